@@ -1,0 +1,36 @@
+//! The corpus on disk: Parquet shards, manifest, statistics, splits and rejects.
+
+use crate::source::Labels;
+
+/// One clip of the corpus: a row of a shard.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ClipRecord {
+    /// Unique id (`<source clip id>[_sNN]`, `M` prefix for mirrored copies).
+    pub motion_id: String,
+    /// Source kind (`bvh`, `joints`, `amass`, `hml3d`, `synth`).
+    pub source: String,
+    /// Input file the clip came from.
+    pub source_path: String,
+    /// Id of the source clip before segmenting and mirroring (decides the split).
+    pub source_clip: String,
+    /// Segment index within the source clip (0 when it was not split).
+    pub segment: u32,
+    /// Frame rate of `features` and `joints` (20).
+    pub fps: f32,
+    /// Frame rate of the source before resampling.
+    pub source_fps: f32,
+    /// Number of feature rows; `joints` has one frame more.
+    pub num_frames: u32,
+    /// num_frames × 263 HumanML3D features, row-major.
+    pub features: Vec<f32>,
+    /// (num_frames + 1) × 22 × 3 joint positions (metres, Y up), row-major.
+    pub joints: Vec<f32>,
+    /// Captions (may be empty).
+    pub captions: Vec<String>,
+    /// Action, style, emotion and scenario labels.
+    pub labels: Labels,
+    /// `train`, `val` or `test`.
+    pub split: String,
+    /// Whether this is a left/right mirrored copy.
+    pub mirrored: bool,
+}

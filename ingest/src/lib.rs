@@ -1,0 +1,12 @@
+//! Ingest: heterogeneous motion capture → SMPL-22 joints → HumanML3D-263 features →
+//! a Parquet corpus with manifest, statistics, splits and a rejects list.
+
+pub mod corpus;
+pub mod export;
+pub mod hml263;
+pub mod npy;
+pub mod pipeline;
+pub mod quat;
+pub mod resample;
+pub mod skeleton;
+pub mod source;

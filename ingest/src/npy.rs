@@ -1,0 +1,201 @@
+//! Minimal NumPy `.npy` reader and writer for the float arrays motion data uses
+//! (little-endian f32/f64, C order), so joints, features and stats interchange with numpy.
+
+use std::io::Write;
+use std::path::Path;
+
+/// A dense float array read from a `.npy` file, widened to f64.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NpyArray {
+    /// Array shape (C order).
+    pub shape: Vec<usize>,
+    /// Values in C order.
+    pub data: Vec<f64>,
+}
+
+/// Errors from parsing `.npy` bytes.
+#[derive(Debug, thiserror::Error)]
+pub enum NpyError {
+    /// The bytes do not start with the NumPy magic string or the header is malformed.
+    #[error("not a .npy file: {0}")]
+    Format(String),
+    /// The dtype is not one we read.
+    #[error("unsupported dtype {0:?} (expected little-endian float32 or float64)")]
+    Dtype(String),
+    /// The array is stored in Fortran order.
+    #[error("Fortran-ordered arrays are not supported")]
+    FortranOrder,
+    /// The data section is shorter than the header's shape says.
+    #[error("truncated data: header says {expected} bytes, file has {actual}")]
+    Truncated {
+        /// Bytes required by the shape.
+        expected: usize,
+        /// Bytes present.
+        actual: usize,
+    },
+}
+
+fn header_value<'a>(header: &'a str, key: &str) -> Result<&'a str, NpyError> {
+    let pat = format!("'{key}':");
+    let start = header
+        .find(&pat)
+        .ok_or_else(|| NpyError::Format(format!("header lacks {key}")))?
+        + pat.len();
+    Ok(header[start..].trim_start())
+}
+
+/// Parse `.npy` bytes (format versions 1–3) holding f32 or f64 values.
+pub fn parse(bytes: &[u8]) -> Result<NpyArray, NpyError> {
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return Err(NpyError::Format("missing \\x93NUMPY magic".into()));
+    }
+    let (header_len, header_start) = match bytes[6] {
+        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
+        2 | 3 if bytes.len() >= 12 => (
+            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+            12,
+        ),
+        v => return Err(NpyError::Format(format!("unknown format version {v}"))),
+    };
+    let data_start = header_start + header_len;
+    let header = bytes
+        .get(header_start..data_start)
+        .and_then(|h| std::str::from_utf8(h).ok())
+        .ok_or_else(|| NpyError::Format("header truncated or not text".into()))?;
+    let descr = header_value(header, "descr")?;
+    let descr = descr
+        .trim_start_matches(['\'', '"'])
+        .split(['\'', '"'])
+        .next()
+        .unwrap_or("");
+    let width = match descr {
+        "<f4" | "=f4" | "f4" => 4,
+        "<f8" | "=f8" | "f8" => 8,
+        other => return Err(NpyError::Dtype(other.to_string())),
+    };
+    if header_value(header, "fortran_order")?.starts_with("True") {
+        return Err(NpyError::FortranOrder);
+    }
+    let shape_text = header_value(header, "shape")?;
+    let shape_text = shape_text
+        .strip_prefix('(')
+        .and_then(|s| s.split(')').next())
+        .ok_or_else(|| NpyError::Format("malformed shape".into()))?;
+    let shape = shape_text
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| {
+            s.parse::<usize>()
+                .map_err(|_| NpyError::Format(format!("bad shape entry {s:?}")))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let count: usize = shape.iter().product();
+    let payload = &bytes[data_start.min(bytes.len())..];
+    let expected = count * width;
+    if payload.len() < expected {
+        return Err(NpyError::Truncated {
+            expected,
+            actual: payload.len(),
+        });
+    }
+    let data = if width == 4 {
+        payload[..expected]
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
+            .collect()
+    } else {
+        payload[..expected]
+            .chunks_exact(8)
+            .map(|c| f64::from_le_bytes(c.try_into().expect("chunk of 8")))
+            .collect()
+    };
+    Ok(NpyArray { shape, data })
+}
+
+/// Read a `.npy` file; the error names the file.
+pub fn read(path: &Path) -> Result<NpyArray, String> {
+    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    parse(&bytes).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// Encode f32 values with the given shape as `.npy` (version 1.0) bytes.
+pub fn encode_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
+    assert_eq!(
+        shape.iter().product::<usize>(),
+        data.len(),
+        "shape does not match data"
+    );
+    let shape_text = match shape {
+        [n] => format!("({n},)"),
+        dims => format!(
+            "({})",
+            dims.iter()
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        ),
+    };
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_text}, }}");
+    // Pad so the data starts on a 64-byte boundary, header ends with '\n'.
+    let unpadded = 10 + header.len() + 1;
+    header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
+    header.push('\n');
+    let mut out = Vec::with_capacity(10 + header.len() + data.len() * 4);
+    out.extend_from_slice(b"\x93NUMPY\x01\x00");
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// Write bytes to `path` atomically: a temporary file in the same folder, then rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let dir = path.parent().unwrap_or_else(|| Path::new("."));
+    std::fs::create_dir_all(dir)?;
+    let tmp = dir.join(format!(
+        ".{}.tmp{}",
+        path.file_name().and_then(|n| n.to_str()).unwrap_or("out"),
+        std::process::id()
+    ));
+    {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+    }
+    std::fs::rename(&tmp, path)
+}
+
+/// Write an f32 array as a `.npy` file, atomically.
+pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> std::io::Result<()> {
+    write_atomic(path, &encode_f32(shape, data))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_f32() {
+        let data: Vec<f32> = (0..24).map(|i| i as f32 * 0.5).collect();
+        let bytes = encode_f32(&[2, 4, 3], &data);
+        assert_eq!((bytes.len() - data.len() * 4) % 64, 0);
+        let arr = parse(&bytes).unwrap();
+        assert_eq!(arr.shape, vec![2, 4, 3]);
+        assert_eq!(arr.data[5], 2.5);
+        let one_d = parse(&encode_f32(&[3], &[1.0, 2.0, 3.0])).unwrap();
+        assert_eq!(one_d.shape, vec![3]);
+    }
+
+    #[test]
+    fn rejects_bad_input() {
+        assert!(matches!(parse(b"hello world"), Err(NpyError::Format(_))));
+        let mut bytes = encode_f32(&[4], &[1.0; 4]);
+        bytes.truncate(bytes.len() - 3);
+        assert!(matches!(parse(&bytes), Err(NpyError::Truncated { .. })));
+        let ints = String::from_utf8_lossy(&encode_f32(&[1], &[0.0])).replace("<f4", "<i4");
+        assert!(matches!(parse(ints.as_bytes()), Err(NpyError::Dtype(d)) if d == "<i4"));
+    }
+}

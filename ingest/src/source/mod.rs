@@ -1,0 +1,69 @@
+//! Motion sources: each reads one kind of input into [`RawClip`]s of SMPL-22 joint
+//! positions (metres, Y up, at the source frame rate), or rejects it with a reason.
+
+pub mod amass;
+pub mod bandai;
+pub mod bvh;
+pub mod hml3d;
+pub mod joints;
+pub mod retarget;
+
+use crate::skeleton::Pose;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+/// Labels attached to a clip (any may be absent).
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Labels {
+    /// What is done (Bandai content, synthetic action).
+    pub action: Option<String>,
+    /// How it is done (Bandai style, persona).
+    pub style: Option<String>,
+    /// Emotion (DESIGN.md mapping from styles).
+    pub emotion: Option<String>,
+    /// Scenario for the continual study (DESIGN.md mapping from contents).
+    pub scenario: Option<String>,
+}
+
+/// A motion read from a source, before resampling and the 263 pipeline.
+#[derive(Debug, Clone)]
+pub struct RawClip {
+    /// Stable id of the source clip (file stem, or stem plus a segment suffix); decides the split.
+    pub clip_id: String,
+    /// Source kind: `bvh`, `joints`, `amass`, `hml3d`, `synth`.
+    pub source: String,
+    /// Input file, as given on the command line joined with the path inside the source folder.
+    pub source_path: PathBuf,
+    /// Frame rate of `poses`.
+    pub fps: f64,
+    /// Joint positions per frame, SMPL-22 order, metres, Y up.
+    pub poses: Vec<Pose>,
+    /// Labels, when a sidecar or the source provides them.
+    pub labels: Labels,
+    /// Captions, when a sidecar or the source provides them.
+    pub captions: Vec<String>,
+    /// How the source's units and axes were converted (e.g. "cm→m, Y up"), for the manifest.
+    pub conversion: String,
+    /// Split fixed by the source (HumanML3D split files); otherwise chosen by hash of `clip_id`.
+    pub split: Option<String>,
+}
+
+/// Why an input was not ingested: the stage that refused it and a human-readable reason.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, thiserror::Error)]
+#[error("{stage}: {reason}")]
+pub struct Reject {
+    /// Pipeline stage (`read`, `parse`, `retarget`, `filter`, `features`).
+    pub stage: String,
+    /// What was wrong, naming the line/frame where known.
+    pub reason: String,
+}
+
+impl Reject {
+    /// A rejection at `stage` with `reason`.
+    pub fn new(stage: &str, reason: impl Into<String>) -> Self {
+        Self {
+            stage: stage.to_string(),
+            reason: reason.into(),
+        }
+    }
+}
