@@ -1,1 +1,121 @@
-fn main() {}
+//! `motionscale`: the command-line front of the toolkit. Thin: parse arguments, call the crates,
+//! print results and choose exit codes (0 ok, 1 failure, 2 partial: some inputs rejected).
+
+mod bench;
+mod commands;
+
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(
+    name = "motionscale",
+    version,
+    about = "Motion corpora, motion tokenizers and the scaling laws of text-to-motion transformers",
+    long_about = "motionscale turns heterogeneous motion capture into a HumanML3D-conformant \
+                  text-motion corpus (Parquet shards + manifest + mean/std + rejects), and \
+                  exports it to the layouts other tools read."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Build a corpus from motion sources (bvh:DIR, joints:DIR, amass:DIR, hml3d:DIR).
+    Ingest(commands::IngestArgs),
+    /// Inspect or check a corpus.
+    #[command(subcommand)]
+    Corpus(CorpusCommand),
+    /// Export corpus clips to other tools' formats.
+    #[command(subcommand)]
+    Export(ExportCommand),
+    /// Write the small built-in demo inputs (generated BVH clips with captions) to a folder.
+    Demo {
+        /// Folder to write into.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Measure throughput against the reference figures.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Subcommand)]
+enum CorpusCommand {
+    /// Clip counts by source, label and split, and hours of motion.
+    Stats {
+        /// Corpus folder.
+        corpus: PathBuf,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Check checksums, schema, shapes, NaN/Inf and statistics; exit 1 on any problem.
+    Verify {
+        /// Corpus folder.
+        corpus: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum ExportCommand {
+    /// Write the HumanML3D layout (new_joint_vecs/, new_joints/, texts/, Mean/Std, split files).
+    Hml3d {
+        /// Corpus folder.
+        corpus: PathBuf,
+        /// Output folder.
+        out: PathBuf,
+    },
+    /// Write one clip's SMPL-22 joints as a BVH file (Blender, MotionBuilder).
+    Bvh {
+        /// Corpus folder.
+        corpus: PathBuf,
+        /// Clip id (see `corpus stats` or the shards' motion_id column).
+        motion_id: String,
+        /// Output .bvh file.
+        out: PathBuf,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Ingest both Bandai Namco archives and time joints → 263 features on fixture (a).
+    Ingest(bench::BenchIngestArgs),
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| "warn".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Ingest(args) => commands::ingest(args),
+        Command::Corpus(CorpusCommand::Stats { corpus, json }) => commands::stats(&corpus, json),
+        Command::Corpus(CorpusCommand::Verify { corpus, json }) => commands::verify(&corpus, json),
+        Command::Export(ExportCommand::Hml3d { corpus, out }) => commands::export_hml3d(&corpus, &out),
+        Command::Export(ExportCommand::Bvh {
+            corpus,
+            motion_id,
+            out,
+        }) => commands::export_bvh(&corpus, &motion_id, &out),
+        Command::Demo { out } => commands::demo(&out),
+        Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(1)
+        }
+    }
+}

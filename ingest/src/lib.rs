@@ -2,6 +2,7 @@
 //! a Parquet corpus with manifest, statistics, splits and a rejects list.
 
 pub mod corpus;
+pub mod demo;
 pub mod export;
 pub mod hml263;
 pub mod npy;

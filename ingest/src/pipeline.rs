@@ -1,1 +1,714 @@
-//! TODO(owner)
+//! The ingest pipeline: discover inputs → read (per source kind) → resample → segment →
+//! mirror → HumanML3D-263 → filter → sorted Parquet shards, stats, manifest and rejects.
+
+use crate::corpus::manifest::{BuildOptions, Manifest, ShardEntry, SourceEntry, FORMAT, FORMAT_VERSION};
+use crate::corpus::split::{split_of, SPLITS};
+use crate::corpus::stats::FeatureStats;
+use crate::corpus::writer::write_shard;
+use crate::corpus::ClipRecord;
+use crate::hml263::{self, Hml263Options, FEATURE_DIM};
+use crate::resample::resample;
+use crate::skeleton::{mirror_pose, Pose};
+use crate::source::retarget::RigMap;
+use crate::source::{amass, bandai, bvh, hml3d, joints, RawClip, Reject};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::{BTreeMap, HashSet};
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+/// Kinds of `--source`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SourceKind {
+    /// BVH files, searched recursively.
+    Bvh,
+    /// `.npy` joint arrays (T × J × 3).
+    Joints,
+    /// AMASS `.npz` sequences (needs a body model).
+    Amass,
+    /// A HumanML3D-layout folder.
+    Hml3d,
+}
+
+impl SourceKind {
+    /// Name used on the command line and in outputs.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Bvh => "bvh",
+            Self::Joints => "joints",
+            Self::Amass => "amass",
+            Self::Hml3d => "hml3d",
+        }
+    }
+
+    fn extension(self) -> &'static str {
+        match self {
+            Self::Bvh => "bvh",
+            Self::Joints => "npy",
+            Self::Amass => "npz",
+            Self::Hml3d => "",
+        }
+    }
+}
+
+/// A parsed `KIND:PATH` source argument.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SourceSpec {
+    /// Source kind.
+    pub kind: SourceKind,
+    /// Folder (or single file) to read.
+    pub path: PathBuf,
+}
+
+impl FromStr for SourceSpec {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (kind, path) = s
+            .split_once(':')
+            .ok_or_else(|| format!("source {s:?} is not KIND:PATH (kinds: bvh, joints, amass, hml3d)"))?;
+        let kind = match kind {
+            "bvh" => SourceKind::Bvh,
+            "joints" => SourceKind::Joints,
+            "amass" => SourceKind::Amass,
+            "hml3d" => SourceKind::Hml3d,
+            other => {
+                return Err(format!(
+                    "unknown source kind {other:?} in {s:?} (kinds: bvh, joints, amass, hml3d)"
+                ))
+            }
+        };
+        if path.is_empty() {
+            return Err(format!("source {s:?} has an empty path"));
+        }
+        Ok(Self {
+            kind,
+            path: PathBuf::from(path),
+        })
+    }
+}
+
+/// Everything that shapes a corpus build.
+#[derive(Debug, Clone)]
+pub struct IngestOptions {
+    /// Corpus frame rate.
+    pub fps: f64,
+    /// Add left/right mirrored copies.
+    pub mirror: bool,
+    /// Clips longer than this are split into balanced consecutive segments.
+    pub max_seconds: f64,
+    /// Clips with fewer feature rows are rejected.
+    pub min_frames: usize,
+    /// Mean joint speed (m/s) under which a clip is rejected as static.
+    pub static_threshold: f64,
+    /// HumanML3D feature options.
+    pub features: Hml263Options,
+    /// Frame rate of `joints:` inputs.
+    pub src_fps: f64,
+    /// Rig map for BVH rigs the built-in maps do not know.
+    pub map: Option<RigMap>,
+    /// Body model for `amass:` sources.
+    pub body_model: Option<PathBuf>,
+    /// Clips per shard file.
+    pub rows_per_shard: usize,
+}
+
+impl Default for IngestOptions {
+    fn default() -> Self {
+        Self {
+            fps: 20.0,
+            mirror: false,
+            max_seconds: 10.0,
+            min_frames: 20,
+            static_threshold: DEFAULT_STATIC_THRESHOLD,
+            features: Hml263Options::default(),
+            src_fps: 20.0,
+            map: None,
+            body_model: None,
+            rows_per_shard: 512,
+        }
+    }
+}
+
+/// Default static-clip threshold: mean joint speed in m/s. A person standing still
+/// (breathing, sway) stays under ~0.02 m/s; the slowest real gestures measured in the
+/// Bandai set are far above it.
+pub const DEFAULT_STATIC_THRESHOLD: f64 = 0.02;
+
+/// One line of `rejects.jsonl`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, serde::Deserialize)]
+pub struct RejectRecord {
+    /// Input file (or folder for whole-source failures).
+    pub path: String,
+    /// Source kind.
+    pub source: String,
+    /// Clip or segment id when the reject concerns part of a file.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub clip: Option<String>,
+    /// Stage that refused it.
+    pub stage: String,
+    /// Why.
+    pub reason: String,
+}
+
+/// Summary of an ingest run.
+#[derive(Debug, Clone, Serialize)]
+pub struct IngestReport {
+    /// Input files found.
+    pub inputs: u64,
+    /// Clips written (mirrored copies included).
+    pub clips: u64,
+    /// Feature rows written.
+    pub frames: u64,
+    /// Frames read from the sources (before resampling).
+    pub source_frames: u64,
+    /// Bytes of input files read.
+    pub source_bytes: u64,
+    /// Entries in `rejects.jsonl`.
+    pub rejects: u64,
+    /// Shard files written.
+    pub shards: u64,
+}
+
+/// What processing one input file produced.
+#[derive(Default)]
+struct UnitOutcome {
+    records: Vec<ClipRecord>,
+    rejects: Vec<RejectRecord>,
+    source_frames: u64,
+    bytes: u64,
+    conversions: BTreeMap<String, u64>,
+}
+
+struct Unit {
+    source: usize,
+    path: PathBuf,
+}
+
+fn discover(spec: &SourceSpec) -> Result<Vec<PathBuf>, String> {
+    if spec.kind == SourceKind::Hml3d {
+        return Ok(vec![spec.path.clone()]);
+    }
+    if spec.path.is_file() {
+        return Ok(vec![spec.path.clone()]);
+    }
+    if !spec.path.is_dir() {
+        return Err(format!(
+            "{}: no such file or folder for source {}",
+            spec.path.display(),
+            spec.kind.name()
+        ));
+    }
+    let mut out = Vec::new();
+    let mut stack = vec![spec.path.clone()];
+    while let Some(dir) = stack.pop() {
+        let entries = std::fs::read_dir(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        for entry in entries {
+            let path = entry.map_err(|e| format!("{}: {e}", dir.display()))?.path();
+            let matches = path
+                .extension()
+                .and_then(|e| e.to_str())
+                .is_some_and(|e| e.eq_ignore_ascii_case(spec.kind.extension()));
+            // A folder named like an input (x.bvh/) is an input that cannot be read: keep it
+            // so it lands in the rejects instead of vanishing.
+            if path.is_dir() && !matches {
+                stack.push(path);
+            } else if matches {
+                out.push(path);
+            }
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
+fn caption_sidecar(path: &Path) -> Result<Option<Vec<String>>, Reject> {
+    let txt = path.with_extension("txt");
+    if !txt.is_file() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(&txt)
+        .map_err(|e| Reject::new("captions", format!("{}: {e}", txt.display())))?;
+    Ok(Some(
+        text.lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty())
+            .map(str::to_string)
+            .collect(),
+    ))
+}
+
+/// Attach labels and captions from sidecar files (Bandai `.json` + `cfg/`, `<clip>.txt`).
+fn attach_sidecars(clip: &mut RawClip, path: &Path) -> Result<(), Reject> {
+    if let Some((labels, captions)) = bandai::sidecar(path)? {
+        clip.labels = labels;
+        clip.captions = captions;
+    }
+    if let Some(captions) = caption_sidecar(path)? {
+        clip.captions = captions;
+    }
+    Ok(())
+}
+
+/// Swap the words left and right (keeping capitalisation) for a mirrored clip's caption.
+pub fn mirror_caption(caption: &str) -> String {
+    let mut out = String::with_capacity(caption.len());
+    let mut word = String::new();
+    let flush = |word: &mut String, out: &mut String| {
+        let swapped = match word.as_str() {
+            "left" => "right",
+            "right" => "left",
+            "Left" => "Right",
+            "Right" => "Left",
+            "LEFT" => "RIGHT",
+            "RIGHT" => "LEFT",
+            w => w,
+        };
+        out.push_str(swapped);
+        word.clear();
+    };
+    for ch in caption.chars() {
+        if ch.is_alphanumeric() {
+            word.push(ch);
+        } else {
+            flush(&mut word, &mut out);
+            out.push(ch);
+        }
+    }
+    flush(&mut word, &mut out);
+    out
+}
+
+fn first_non_finite(poses: &[Pose]) -> Option<(usize, usize)> {
+    poses.iter().enumerate().find_map(|(t, pose)| {
+        pose.iter()
+            .position(|p| p.iter().any(|v| !v.is_finite()))
+            .map(|j| (t, j))
+    })
+}
+
+/// Mean joint speed in m/s over a clip.
+pub fn mean_joint_speed(poses: &[Pose], fps: f64) -> f64 {
+    if poses.len() < 2 {
+        return 0.0;
+    }
+    let total: f64 = poses
+        .windows(2)
+        .map(|w| {
+            w[0].iter()
+                .zip(&w[1])
+                .map(|(a, b)| crate::quat::norm(crate::quat::sub(*b, *a)))
+                .sum::<f64>()
+        })
+        .sum();
+    total * fps / ((poses.len() - 1) * crate::skeleton::NUM_JOINTS) as f64
+}
+
+/// Balanced consecutive segments of `rows` feature rows, none longer than `max_rows`:
+/// returns (first joint frame, last joint frame inclusive) per segment.
+fn segments(rows: usize, max_rows: usize) -> Vec<(usize, usize)> {
+    let n = rows.div_ceil(max_rows.max(1)).max(1);
+    (0..n)
+        .map(|k| (k * rows / n, (k + 1) * rows / n))
+        .collect()
+}
+
+fn clip_records(raw: &RawClip, opts: &IngestOptions, out: &mut UnitOutcome) {
+    let reject = |clip: &str, r: Reject| RejectRecord {
+        path: raw.source_path.display().to_string(),
+        source: raw.source.clone(),
+        clip: Some(clip.to_string()),
+        stage: r.stage,
+        reason: r.reason,
+    };
+    if let Some((t, j)) = first_non_finite(&raw.poses) {
+        let r = Reject::new(
+            "validate",
+            format!("non-finite joint position at frame {t}, joint {j}"),
+        );
+        out.rejects.push(reject(&raw.clip_id, r));
+        return;
+    }
+    let poses = resample(&raw.poses, raw.fps, opts.fps);
+    let rows = poses.len().saturating_sub(1);
+    if rows < opts.min_frames.max(1) {
+        let r = Reject::new(
+            "filter",
+            format!(
+                "too short: {rows} frames at {} fps after resampling from {} source frames at {} fps (minimum {})",
+                opts.fps,
+                raw.poses.len(),
+                raw.fps,
+                opts.min_frames
+            ),
+        );
+        out.rejects.push(reject(&raw.clip_id, r));
+        return;
+    }
+    let max_rows = (opts.max_seconds * opts.fps).round() as usize;
+    let parts = segments(rows, max_rows);
+    let split = raw
+        .split
+        .clone()
+        .unwrap_or_else(|| split_of(&raw.clip_id).to_string());
+    *out.conversions.entry(raw.conversion.clone()).or_default() += 1;
+    for (k, &(a, b)) in parts.iter().enumerate() {
+        let id = if parts.len() == 1 {
+            raw.clip_id.clone()
+        } else {
+            format!("{}_s{k:02}", raw.clip_id)
+        };
+        let segment = &poses[a..=b];
+        let speed = mean_joint_speed(segment, opts.fps);
+        if speed < opts.static_threshold {
+            let r = Reject::new(
+                "filter",
+                format!(
+                    "static: mean joint speed {speed:.4} m/s below {} m/s",
+                    opts.static_threshold
+                ),
+            );
+            out.rejects.push(reject(&id, r));
+            continue;
+        }
+        let variants: &[bool] = if opts.mirror { &[false, true] } else { &[false] };
+        for &mirrored in variants {
+            let motion_id = if mirrored { format!("M{id}") } else { id.clone() };
+            let input: Vec<Pose> = if mirrored {
+                segment.iter().map(mirror_pose).collect()
+            } else {
+                segment.to_vec()
+            };
+            let result = hml263::process(&input, &opts.features);
+            let feats = match result {
+                Ok(f) if f.features.iter().all(|v| v.is_finite()) => f,
+                Ok(_) => {
+                    let r = Reject::new("features", "non-finite feature values");
+                    out.rejects.push(reject(&motion_id, r));
+                    continue;
+                }
+                Err(e) => {
+                    out.rejects.push(reject(&motion_id, Reject::new("features", e)));
+                    continue;
+                }
+            };
+            let captions = if mirrored {
+                raw.captions.iter().map(|c| mirror_caption(c)).collect()
+            } else {
+                raw.captions.clone()
+            };
+            out.records.push(ClipRecord {
+                motion_id,
+                source: raw.source.clone(),
+                source_path: raw.source_path.display().to_string(),
+                source_clip: raw.clip_id.clone(),
+                segment: k as u32,
+                fps: opts.fps as f32,
+                source_fps: raw.fps as f32,
+                num_frames: (feats.features.len() / FEATURE_DIM) as u32,
+                joints: feats
+                    .joints
+                    .iter()
+                    .flat_map(|p| p.iter().flat_map(|v| v.map(|x| x as f32)))
+                    .collect(),
+                features: feats.features,
+                captions,
+                labels: raw.labels.clone(),
+                split: split.clone(),
+                mirrored,
+            });
+        }
+    }
+}
+
+enum Reader<'a> {
+    Bvh(Option<&'a RigMap>),
+    Joints(f64),
+    Amass(&'a amass::BodyModel),
+    Hml3d,
+}
+
+fn read_unit(kind: &Reader, spec: &SourceSpec, path: &Path) -> Vec<Result<RawClip, Reject>> {
+    match kind {
+        Reader::Bvh(map) => vec![bvh::read_clip(path, *map)],
+        Reader::Joints(fps) => vec![joints::read_clip(path, *fps)],
+        Reader::Amass(model) => vec![amass::read_clip(path, model)],
+        Reader::Hml3d => match hml3d::read_folder(&spec.path) {
+            Ok(clips) => clips,
+            Err(e) => vec![Err(e)],
+        },
+    }
+}
+
+fn process_unit(kind: &Reader, spec: &SourceSpec, path: &Path, opts: &IngestOptions) -> UnitOutcome {
+    let mut out = UnitOutcome {
+        bytes: std::fs::metadata(path).map(|m| m.len()).unwrap_or(0),
+        ..Default::default()
+    };
+    for result in read_unit(kind, spec, path) {
+        let clip = result.and_then(|mut clip| {
+            if !matches!(kind, Reader::Hml3d) {
+                attach_sidecars(&mut clip, path)?;
+            }
+            Ok(clip)
+        });
+        match clip {
+            Ok(clip) => {
+                out.source_frames += clip.poses.len() as u64;
+                clip_records(&clip, opts, &mut out);
+            }
+            Err(r) => out.rejects.push(RejectRecord {
+                path: path.display().to_string(),
+                source: spec.kind.name().to_string(),
+                clip: None,
+                stage: r.stage,
+                reason: r.reason,
+            }),
+        }
+    }
+    out
+}
+
+/// Build (or rebuild) a corpus in `out` from `sources`. Calls `progress(done, total)` as
+/// input files finish. Returns the report; the caller turns rejects into an exit code.
+pub fn ingest(
+    sources: &[SourceSpec],
+    out_dir: &Path,
+    opts: &IngestOptions,
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<IngestReport, String> {
+    let body_model = match (&opts.body_model, sources.iter().any(|s| s.kind == SourceKind::Amass)) {
+        (Some(p), true) => Some(amass::BodyModel::load(p)?),
+        (None, true) => return Err("amass sources need --body-model FILE.npz".into()),
+        _ => None,
+    };
+    let readers: Vec<Reader> = sources
+        .iter()
+        .map(|s| match s.kind {
+            SourceKind::Bvh => Reader::Bvh(opts.map.as_ref()),
+            SourceKind::Joints => Reader::Joints(opts.src_fps),
+            SourceKind::Amass => Reader::Amass(body_model.as_ref().expect("loaded above")),
+            SourceKind::Hml3d => Reader::Hml3d,
+        })
+        .collect();
+    let mut units = Vec::new();
+    let mut entries: Vec<SourceEntry> = Vec::new();
+    for (i, spec) in sources.iter().enumerate() {
+        let files = discover(spec)?;
+        entries.push(SourceEntry {
+            kind: spec.kind.name().to_string(),
+            path: spec.path.display().to_string(),
+            files: files.len() as u64,
+            ..Default::default()
+        });
+        units.extend(files.into_iter().map(|path| Unit { source: i, path }));
+    }
+    let total = units.len() as u64;
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let outcomes: Vec<UnitOutcome> = units
+        .par_iter()
+        .map(|u| {
+            let o = process_unit(&readers[u.source], &sources[u.source], &u.path, opts);
+            let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress(n, total);
+            o
+        })
+        .collect();
+
+    let mut records = Vec::new();
+    let mut rejects = Vec::new();
+    let mut report = IngestReport {
+        inputs: total,
+        clips: 0,
+        frames: 0,
+        source_frames: 0,
+        source_bytes: 0,
+        rejects: 0,
+        shards: 0,
+    };
+    let mut seen = HashSet::new();
+    for (unit, mut o) in units.iter().zip(outcomes) {
+        let entry = &mut entries[unit.source];
+        // Two inputs with the same file stem would collide: the first (in path order) wins.
+        o.records.retain(|r| {
+            let fresh = seen.insert(r.motion_id.clone());
+            if !fresh {
+                o.rejects.push(RejectRecord {
+                    path: r.source_path.clone(),
+                    source: r.source.clone(),
+                    clip: Some(r.motion_id.clone()),
+                    stage: "dedupe".into(),
+                    reason: format!("motion id {} already taken by an earlier input", r.motion_id),
+                });
+            }
+            fresh
+        });
+        entry.ingested_files += u64::from(!o.records.is_empty());
+        entry.rejects += o.rejects.len() as u64;
+        for (k, v) in o.conversions {
+            *entry.conversions.entry(k).or_default() += v;
+        }
+        report.source_frames += o.source_frames;
+        report.source_bytes += o.bytes;
+        records.extend(o.records);
+        rejects.extend(o.rejects);
+    }
+    records.sort_by(|a, b| a.motion_id.cmp(&b.motion_id));
+    rejects.sort_by(|a, b| (&a.path, &a.clip).cmp(&(&b.path, &b.clip)));
+    report.clips = records.len() as u64;
+    report.frames = records.iter().map(|r| r.num_frames as u64).sum();
+    report.rejects = rejects.len() as u64;
+
+    let shards = write_corpus(out_dir, &records, &rejects, opts, entries)?;
+    report.shards = shards as u64;
+    Ok(report)
+}
+
+fn write_corpus(
+    out_dir: &Path,
+    records: &[ClipRecord],
+    rejects: &[RejectRecord],
+    opts: &IngestOptions,
+    sources: Vec<SourceEntry>,
+) -> Result<usize, String> {
+    fn io(p: &Path) -> impl Fn(std::io::Error) -> String + '_ {
+        move |e| format!("{}: {e}", p.display())
+    }
+    let shard_dir = out_dir.join("shards");
+    std::fs::create_dir_all(&shard_dir).map_err(io(&shard_dir))?;
+    let chunks: Vec<&[ClipRecord]> = records.chunks(opts.rows_per_shard.max(1)).collect();
+    let shards: Vec<ShardEntry> = chunks
+        .par_iter()
+        .enumerate()
+        .map(|(i, chunk)| write_shard(out_dir, &format!("shards/shard-{i:05}.parquet"), chunk))
+        .collect::<Result<_, _>>()?;
+    // Shards of an earlier, larger build would otherwise linger beside the new manifest.
+    let keep: HashSet<String> = shards.iter().map(|s| s.file.clone()).collect();
+    for entry in std::fs::read_dir(&shard_dir).map_err(io(&shard_dir))? {
+        let path = entry.map_err(io(&shard_dir))?.path();
+        let rel = format!(
+            "shards/{}",
+            path.file_name().and_then(|n| n.to_str()).unwrap_or_default()
+        );
+        if path.extension().is_some_and(|e| e == "parquet") && !keep.contains(&rel) {
+            std::fs::remove_file(&path).map_err(io(&path))?;
+        }
+    }
+
+    let mut stats = FeatureStats::new(FEATURE_DIM);
+    records
+        .iter()
+        .filter(|r| r.split == "train")
+        .for_each(|r| stats.add(&r.features));
+    let (mean, std, degenerate) = stats.finish();
+    let stats_dir = out_dir.join("stats");
+    crate::npy::write_f32(&stats_dir.join("mean.npy"), &[FEATURE_DIM], &mean).map_err(io(&stats_dir))?;
+    crate::npy::write_f32(&stats_dir.join("std.npy"), &[FEATURE_DIM], &std).map_err(io(&stats_dir))?;
+    let stats_json = serde_json::json!({
+        "split": "train",
+        "rows": stats.rows(),
+        "mirrored_included": opts.mirror,
+        "nan_clips": "rejected at ingest, so none enter the statistics",
+        "convention": "mean per dimension over all frames of the train split; std per dimension (population), then replaced by its block average over [0:1],[1:3],[3:4],[4:67],[67:193],[193:259],[259:263] (HumanML3D). The HumanML3D release computed them over every clip, mirrored and test ones included.",
+        "degenerate_blocks_set_to_one": degenerate,
+    });
+    crate::npy::write_atomic(
+        &stats_dir.join("stats.json"),
+        serde_json::to_string_pretty(&stats_json).expect("json").as_bytes(),
+    )
+    .map_err(io(&stats_dir))?;
+
+    let mut lines = String::new();
+    for r in rejects {
+        lines.push_str(&serde_json::to_string(r).expect("reject serialises"));
+        lines.push('\n');
+    }
+    let rejects_path = out_dir.join("rejects.jsonl");
+    crate::npy::write_atomic(&rejects_path, lines.as_bytes()).map_err(io(&rejects_path))?;
+
+    let mut clips_by_split = BTreeMap::new();
+    let mut frames_by_split = BTreeMap::new();
+    for s in SPLITS {
+        clips_by_split.insert(s.to_string(), 0);
+        frames_by_split.insert(s.to_string(), 0);
+    }
+    for r in records {
+        *clips_by_split.entry(r.split.clone()).or_default() += 1;
+        *frames_by_split.entry(r.split.clone()).or_default() += r.num_frames as u64;
+    }
+    let compatible = !opts.features.fix_facing;
+    let manifest = Manifest {
+        format: FORMAT.into(),
+        format_version: FORMAT_VERSION,
+        feature_convention: if compatible {
+            "humanml3d-263".into()
+        } else {
+            "humanml3d-263-fixed-facing".into()
+        },
+        humanml3d_compatible: compatible,
+        feature_dim: FEATURE_DIM,
+        joint_set: "smpl-22".into(),
+        units: "metres".into(),
+        up_axis: "Y".into(),
+        fps: opts.fps,
+        options: BuildOptions {
+            fps: opts.fps,
+            mirror: opts.mirror,
+            max_seconds: opts.max_seconds,
+            min_frames: opts.min_frames,
+            static_threshold: opts.static_threshold,
+            feet_threshold: opts.features.feet_threshold,
+            fix_facing: opts.features.fix_facing,
+        },
+        sources,
+        shards,
+        clips_by_split,
+        frames_by_split,
+        rejects: rejects.len() as u64,
+        stats: [
+            ("mean", "stats/mean.npy"),
+            ("std", "stats/std.npy"),
+            ("info", "stats/stats.json"),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v.to_string()))
+        .collect(),
+    };
+    let manifest_path = out_dir.join("manifest.json");
+    let text = serde_json::to_string_pretty(&manifest).expect("manifest serialises");
+    crate::npy::write_atomic(&manifest_path, text.as_bytes()).map_err(io(&manifest_path))?;
+    Ok(manifest.shards.len())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn source_spec_parses_and_explains() {
+        let s: SourceSpec = "bvh:data/mocap".parse().unwrap();
+        assert_eq!(s.kind, SourceKind::Bvh);
+        assert_eq!(s.path, PathBuf::from("data/mocap"));
+        assert!("fbx:x".parse::<SourceSpec>().unwrap_err().contains("unknown source kind"));
+        assert!("nocolon".parse::<SourceSpec>().unwrap_err().contains("KIND:PATH"));
+    }
+
+    #[test]
+    fn mirrored_captions_swap_sides() {
+        assert_eq!(
+            mirror_caption("A person waves the left hand, then Right."),
+            "A person waves the right hand, then Left."
+        );
+        assert_eq!(mirror_caption("leftover"), "leftover");
+    }
+
+    #[test]
+    fn segments_are_balanced_and_consecutive() {
+        assert_eq!(segments(150, 200), vec![(0, 150)]);
+        assert_eq!(segments(210, 200), vec![(0, 105), (105, 210)]);
+        let s = segments(1000, 200);
+        assert_eq!(s.len(), 5);
+        assert!(s.windows(2).all(|w| w[0].1 == w[1].0));
+        assert!(s.iter().all(|(a, b)| b - a <= 200));
+    }
+}

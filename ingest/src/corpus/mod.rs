@@ -1,5 +1,16 @@
 //! The corpus on disk: Parquet shards, manifest, statistics, splits and rejects.
 
+pub mod manifest;
+pub mod reader;
+pub mod schema;
+pub mod split;
+pub mod stats;
+pub mod verify;
+pub mod writer;
+
+pub use manifest::Manifest;
+pub use reader::Corpus;
+
 use crate::source::Labels;
 
 /// One clip of the corpus: a row of a shard.

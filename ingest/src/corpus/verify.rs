@@ -1,0 +1,153 @@
+//! `corpus verify`: checksums, schema, row counts, shapes, NaN scan and statistics files.
+
+use super::manifest::Manifest;
+use super::reader::{records_from_batch, Corpus};
+use super::schema::{shard_schema, FEATURE_DIM, JOINT_FRAME_DIM};
+use super::split::SPLITS;
+use super::writer::hex;
+use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+use sha2::{Digest, Sha256};
+use std::path::Path;
+
+/// What `verify` checked and every problem it found (empty = the corpus is sound).
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct Verification {
+    /// Shards checked.
+    pub shards: usize,
+    /// Clips checked.
+    pub clips: u64,
+    /// Feature rows scanned for NaN/Inf.
+    pub frames: u64,
+    /// Problems, each naming the file and the clip.
+    pub problems: Vec<String>,
+}
+
+/// Verify a corpus folder.
+pub fn verify(dir: &Path) -> Verification {
+    let mut v = Verification::default();
+    let manifest = match Manifest::read(dir) {
+        Ok(m) => m,
+        Err(e) => {
+            v.problems.push(e);
+            return v;
+        }
+    };
+    let mut last_id: Option<String> = None;
+    for entry in &manifest.shards {
+        v.shards += 1;
+        let path = dir.join(&entry.file);
+        let bytes = match std::fs::read(&path) {
+            Ok(b) => b,
+            Err(e) => {
+                v.problems.push(format!("{}: {e}", path.display()));
+                continue;
+            }
+        };
+        let sha = hex(&Sha256::digest(&bytes));
+        if sha != entry.sha256 {
+            v.problems.push(format!(
+                "{}: sha256 {sha} differs from the manifest's {}",
+                path.display(),
+                entry.sha256
+            ));
+        }
+        let builder = match ParquetRecordBatchReaderBuilder::try_new(bytes::Bytes::from(bytes)) {
+            Ok(b) => b,
+            Err(e) => {
+                v.problems.push(format!("{}: not a readable Parquet file: {e}", path.display()));
+                continue;
+            }
+        };
+        let expected = shard_schema();
+        if builder.schema().fields() != expected.fields() {
+            v.problems.push(format!(
+                "{}: schema differs from the corpus schema: {:?}",
+                path.display(),
+                builder.schema().fields()
+            ));
+            continue;
+        }
+        let reader = match builder.build() {
+            Ok(r) => r,
+            Err(e) => {
+                v.problems.push(format!("{}: {e}", path.display()));
+                continue;
+            }
+        };
+        let mut rows = 0u64;
+        for batch in reader {
+            let records = match batch.map_err(|e| e.to_string()).and_then(|b| records_from_batch(&b)) {
+                Ok(r) => r,
+                Err(e) => {
+                    v.problems.push(format!("{}: {e}", path.display()));
+                    break;
+                }
+            };
+            for r in records {
+                rows += 1;
+                v.frames += r.num_frames as u64;
+                let at = |what: String| format!("{}: clip {}: {what}", path.display(), r.motion_id);
+                let n = r.num_frames as usize;
+                if r.features.len() != n * FEATURE_DIM {
+                    v.problems.push(at(format!(
+                        "{} feature values, expected {n} × {FEATURE_DIM}",
+                        r.features.len()
+                    )));
+                }
+                if r.joints.len() != (n + 1) * JOINT_FRAME_DIM {
+                    v.problems.push(at(format!(
+                        "{} joint values, expected ({n} + 1) × 22 × 3",
+                        r.joints.len()
+                    )));
+                }
+                if let Some(i) = r.features.iter().position(|x| !x.is_finite()) {
+                    v.problems.push(at(format!(
+                        "non-finite feature at frame {}, dim {}",
+                        i / FEATURE_DIM,
+                        i % FEATURE_DIM
+                    )));
+                }
+                if let Some(i) = r.joints.iter().position(|x| !x.is_finite()) {
+                    v.problems.push(at(format!("non-finite joint value at frame {}", i / JOINT_FRAME_DIM)));
+                }
+                if !SPLITS.contains(&r.split.as_str()) {
+                    v.problems.push(at(format!("unknown split {:?}", r.split)));
+                }
+                if last_id.as_ref().is_some_and(|prev| prev >= &r.motion_id) {
+                    v.problems.push(at("ids are not strictly increasing (duplicate or unsorted)".into()));
+                }
+                last_id = Some(r.motion_id);
+            }
+        }
+        v.clips += rows;
+        if rows != entry.rows {
+            v.problems.push(format!(
+                "{}: {rows} rows, the manifest says {}",
+                path.display(),
+                entry.rows
+            ));
+        }
+    }
+    for name in ["mean.npy", "std.npy"] {
+        let path = dir.join("stats").join(name);
+        match crate::npy::read(&path) {
+            Ok(a) if a.shape == [FEATURE_DIM] && a.data.iter().all(|x| x.is_finite()) => {
+                if name == "std.npy" && a.data.iter().any(|&x| x <= 0.0) {
+                    v.problems.push(format!("{}: non-positive std", path.display()));
+                }
+            }
+            Ok(a) => v.problems.push(format!(
+                "{}: shape {:?} or values invalid (expected {FEATURE_DIM} finite floats)",
+                path.display(),
+                a.shape
+            )),
+            Err(e) => v.problems.push(e),
+        }
+    }
+    if v.problems.is_empty() {
+        if let Err(e) = Corpus::open(dir) {
+            v.problems.push(e);
+        }
+    }
+    v
+}

@@ -1,0 +1,258 @@
+//! Subcommand bodies: each turns arguments into a crate call and a printed result.
+
+use anyhow::{bail, Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+use ingest::corpus::verify::verify as verify_corpus;
+use ingest::corpus::Corpus;
+use ingest::hml263::Hml263Options;
+use ingest::pipeline::{IngestOptions, SourceSpec, DEFAULT_STATIC_THRESHOLD};
+use ingest::source::retarget::RigMap;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+
+/// Arguments of `motionscale ingest`.
+#[derive(clap::Args, Debug)]
+pub struct IngestArgs {
+    /// A source as KIND:PATH (bvh:DIR, joints:DIR, amass:DIR, hml3d:DIR); repeatable.
+    #[arg(long = "source", required = true, value_parser = parse_source)]
+    pub sources: Vec<SourceSpec>,
+    /// Output corpus folder (created; a re-run over the same inputs rewrites identical bytes).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Corpus frame rate; sources are resampled by time.
+    #[arg(long, default_value_t = 20.0)]
+    pub fps: f64,
+    /// Add left/right mirrored copies (ids prefixed with M, captions' left/right swapped).
+    #[arg(long)]
+    pub mirror: bool,
+    /// Split longer clips into balanced consecutive segments of at most this many seconds.
+    #[arg(long, default_value_t = 10.0)]
+    pub max_seconds: f64,
+    /// Reject clips with fewer feature frames than this (training stages filter further).
+    #[arg(long, default_value_t = 20)]
+    pub min_frames: usize,
+    /// Reject clips whose mean joint speed (m/s) is below this as static.
+    #[arg(long, default_value_t = DEFAULT_STATIC_THRESHOLD)]
+    pub static_threshold: f64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub workers: Option<usize>,
+    /// TOML rig map for BVH rigs the built-in maps (Bandai Namco, CMU, Mixamo) do not cover.
+    #[arg(long)]
+    pub map: Option<PathBuf>,
+    /// Frame rate of joints:DIR inputs.
+    #[arg(long, default_value_t = 20.0)]
+    pub src_fps: f64,
+    /// SMPL+H / SMPL-X body model .npz for amass:DIR sources.
+    #[arg(long)]
+    pub body_model: Option<PathBuf>,
+    /// Correct the HumanML3D hip-order quirk (features are then NOT HumanML3D-compatible).
+    #[arg(long)]
+    pub fix_facing: bool,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn parse_source(s: &str) -> Result<SourceSpec, String> {
+    s.parse()
+}
+
+/// Build the ingest options from the command line.
+pub fn ingest_options(args: &IngestArgs) -> Result<IngestOptions> {
+    let map = match &args.map {
+        Some(p) => Some(RigMap::from_toml_file(p).map_err(anyhow::Error::msg)?),
+        None => None,
+    };
+    Ok(IngestOptions {
+        fps: args.fps,
+        mirror: args.mirror,
+        max_seconds: args.max_seconds,
+        min_frames: args.min_frames,
+        static_threshold: args.static_threshold,
+        features: Hml263Options {
+            fix_facing: args.fix_facing,
+            ..Hml263Options::default()
+        },
+        src_fps: args.src_fps,
+        map,
+        body_model: args.body_model.clone(),
+        ..IngestOptions::default()
+    })
+}
+
+fn thread_pool(workers: Option<usize>) -> Result<rayon::ThreadPool> {
+    let mut b = rayon::ThreadPoolBuilder::new();
+    if let Some(n) = workers {
+        b = b.num_threads(n.max(1));
+    }
+    b.build().context("starting worker threads")
+}
+
+/// `motionscale ingest`.
+pub fn ingest(args: IngestArgs) -> Result<ExitCode> {
+    let opts = ingest_options(&args)?;
+    let bar = ProgressBar::new(0).with_style(
+        ProgressStyle::with_template("{spinner} ingest [{bar:30}] {pos}/{len} files {elapsed} eta {eta}")
+            .expect("template")
+            .progress_chars("=> "),
+    );
+    if args.json {
+        bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
+    }
+    let started = std::time::Instant::now();
+    let report = thread_pool(args.workers)?.install(|| {
+        ingest::pipeline::ingest(&args.sources, &args.out, &opts, &|done, total| {
+            bar.set_length(total);
+            bar.set_position(done);
+        })
+    });
+    bar.finish_and_clear();
+    let report = report.map_err(anyhow::Error::msg)?;
+    let secs = started.elapsed().as_secs_f64();
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!(
+            "ingested {} clips ({} frames, {:.2} h) from {} input files into {} shards; {} rejected (see {}); {secs:.1} s",
+            report.clips,
+            report.frames,
+            report.frames as f64 / opts.fps / 3600.0,
+            report.inputs,
+            report.shards,
+            report.rejects,
+            args.out.join("rejects.jsonl").display(),
+        );
+    }
+    Ok(if report.rejects > 0 {
+        ExitCode::from(2)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+/// `motionscale corpus stats`.
+pub fn stats(dir: &Path, json: bool) -> Result<ExitCode> {
+    let corpus = Corpus::open(dir).map_err(anyhow::Error::msg)?;
+    let meta = corpus.clip_metadata().map_err(anyhow::Error::msg)?;
+    #[derive(Default, serde::Serialize)]
+    struct Bucket {
+        clips: u64,
+        hours: f64,
+    }
+    let mut tables: BTreeMap<&str, BTreeMap<String, Bucket>> = BTreeMap::new();
+    let mut total_hours = 0.0;
+    for m in &meta {
+        let hours = m.num_frames as f64 / m.fps as f64 / 3600.0;
+        total_hours += hours;
+        let keys = [
+            ("source", Some(m.source.clone())),
+            ("split", Some(m.split.clone())),
+            ("action", m.labels.action.clone()),
+            ("style", m.labels.style.clone()),
+            ("emotion", m.labels.emotion.clone()),
+            ("scenario", m.labels.scenario.clone()),
+            ("mirrored", Some(m.mirrored.to_string())),
+        ];
+        for (table, key) in keys {
+            let e = tables
+                .entry(table)
+                .or_default()
+                .entry(key.unwrap_or_else(|| "(none)".into()))
+                .or_default();
+            e.clips += 1;
+            e.hours += hours;
+        }
+    }
+    if json {
+        let value = serde_json::json!({
+            "clips": meta.len(),
+            "hours": total_hours,
+            "rejects": corpus.manifest().rejects,
+            "by": tables,
+        });
+        println!("{}", serde_json::to_string_pretty(&value)?);
+    } else {
+        println!(
+            "{}: {} clips, {:.2} hours, {} rejected inputs",
+            dir.display(),
+            meta.len(),
+            total_hours,
+            corpus.manifest().rejects
+        );
+        for (table, rows) in &tables {
+            println!("\nby {table}:");
+            for (k, b) in rows {
+                println!("  {k:<28} {:>8} clips {:>9.3} h", b.clips, b.hours);
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `motionscale corpus verify`.
+pub fn verify(dir: &Path, json: bool) -> Result<ExitCode> {
+    let v = verify_corpus(dir);
+    if json {
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        for p in &v.problems {
+            println!("problem: {p}");
+        }
+        println!(
+            "{}: {} shards, {} clips, {} frames checked; {} problems",
+            dir.display(),
+            v.shards,
+            v.clips,
+            v.frames,
+            v.problems.len()
+        );
+    }
+    Ok(if v.problems.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
+/// `motionscale export hml3d`.
+pub fn export_hml3d(dir: &Path, out: &Path) -> Result<ExitCode> {
+    let corpus = Corpus::open(dir).map_err(anyhow::Error::msg)?;
+    let mut writer = ingest::export::hml3d::Hml3dWriter::new(out)
+        .with_context(|| format!("creating {}", out.display()))?;
+    for shard in 0..corpus.manifest().shards.len() {
+        for clip in corpus.shard_records(shard).map_err(anyhow::Error::msg)? {
+            writer
+                .add(&clip)
+                .with_context(|| format!("writing clip {} to {}", clip.motion_id, out.display()))?;
+        }
+    }
+    let summary = writer
+        .finish(corpus.mean(), corpus.std())
+        .with_context(|| format!("finishing {}", out.display()))?;
+    println!("{}", serde_json::to_string(&summary)?);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `motionscale export bvh`.
+pub fn export_bvh(dir: &Path, motion_id: &str, out: &Path) -> Result<ExitCode> {
+    let corpus = Corpus::open(dir).map_err(anyhow::Error::msg)?;
+    let Some(index) = corpus.find(motion_id) else {
+        bail!("{}: no clip with motion_id {motion_id:?}", dir.display());
+    };
+    let clip = corpus.clip(index).map_err(anyhow::Error::msg)?;
+    let poses = ingest::export::bvh::poses_from_flat(&clip.joints);
+    ingest::export::bvh::write_bvh_file(out, &poses, clip.fps as f64)
+        .with_context(|| format!("writing {}", out.display()))?;
+    println!("wrote {} ({} frames at {} fps)", out.display(), poses.len(), clip.fps);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `motionscale demo`.
+pub fn demo(out: &Path) -> Result<ExitCode> {
+    let files = ingest::demo::write_demo_inputs(out)
+        .with_context(|| format!("writing demo inputs to {}", out.display()))?;
+    println!("wrote {} demo BVH clips (with caption sidecars) to {}", files.len(), out.display());
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,104 @@
+//! Real data: both Bandai Namco archives through `motionscale ingest`; every input is
+//! accounted for, pyarrow reads every shard, `corpus verify` passes.
+
+mod common;
+
+use common::*;
+use std::collections::HashSet;
+
+#[test]
+fn both_bandai_archives_ingest_with_every_input_accounted_for() {
+    let Some(data) = shared_data() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let mut sources = Vec::new();
+    for archive in ["bandai-namco-1.tar.zst", "bandai-namco-2.tar.zst"] {
+        let status = std::process::Command::new("tar")
+            .arg("--zstd")
+            .arg("-xf")
+            .arg(data.join("bandai-namco").join(archive))
+            .arg("-C")
+            .arg(tmp.path())
+            .status()
+            .unwrap();
+        assert!(status.success(), "extracting {archive}");
+    }
+    for dir in std::fs::read_dir(tmp.path()).unwrap() {
+        sources.push(format!("bvh:{}", dir.unwrap().path().display()));
+    }
+    sources.sort();
+    let corpus = tmp.path().join("corpus");
+    let mut args = vec!["ingest".to_string()];
+    for s in &sources {
+        args.extend(["--source".to_string(), s.clone()]);
+    }
+    args.extend(["--out".into(), corpus.display().to_string(), "--json".into()]);
+    let out = motionscale(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let exit = code(&out);
+    assert!(exit == 0 || exit == 2, "{}", text(&out));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["inputs"], 3076);
+    assert!(report["source_frames"].as_u64().unwrap() >= 416_845, "{report}");
+
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(corpus.join("manifest.json")).unwrap()).unwrap();
+    let ingested: u64 = manifest["sources"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["ingested_files"].as_u64().unwrap())
+        .sum();
+    assert!(ingested as f64 >= 0.99 * 3076.0, "only {ingested} of 3076 files ingested");
+
+    // Every input file is in a shard or in the rejects, with a reason.
+    let rejects = rejects(&corpus);
+    assert!(rejects.iter().all(|r| !r["reason"].as_str().unwrap().is_empty()));
+    let listing = python(
+        r#"
+import json, sys, pyarrow.parquet as pq
+c = sys.argv[1]
+for s in json.load(open(f"{c}/manifest.json"))["shards"]:
+    for p in set(pq.read_table(f"{c}/{s['file']}", columns=["source_path"]).column("source_path").to_pylist()):
+        print(p)
+"#,
+        &[corpus.to_str().unwrap()],
+    );
+    let mut seen: HashSet<String> = listing.lines().map(str::to_string).collect();
+    seen.extend(rejects.iter().map(|r| r["path"].as_str().unwrap().to_string()));
+    let mut missing = 0;
+    for s in &sources {
+        let root = s.trim_start_matches("bvh:");
+        for entry in walk(std::path::Path::new(root)) {
+            if entry.extension().is_some_and(|e| e == "bvh") && !seen.contains(&entry.display().to_string()) {
+                missing += 1;
+            }
+        }
+    }
+    assert_eq!(missing, 0, "inputs neither ingested nor rejected");
+
+    // Labels from the sidecars made it into the rows.
+    let stats = motionscale(&["corpus", "stats", corpus.to_str().unwrap(), "--json"]);
+    let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
+    for scenario in ["locomotion", "greeting", "gesture", "fighting", "dance"] {
+        assert!(stats["by"]["scenario"][scenario]["clips"].as_u64().unwrap() > 0, "{scenario}");
+    }
+    assert!(stats["by"]["emotion"]["anxious"]["clips"].as_u64().unwrap() > 0);
+
+    let rows = python(PYARROW_CHECK, &[corpus.to_str().unwrap()]);
+    let n: u64 = rows.split_whitespace().next().unwrap().parse().unwrap();
+    assert_eq!(n, report["clips"].as_u64().unwrap());
+    let verify = motionscale(&["corpus", "verify", corpus.to_str().unwrap()]);
+    assert_eq!(code(&verify), 0, "{}", text(&verify));
+}
+
+fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}

@@ -1,0 +1,102 @@
+//! Helpers shared by the end-to-end tests: the binary, the shared data folder, Python checks.
+
+#![allow(dead_code)] // each test binary uses a different subset of these helpers
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// Run the motionscale binary with arguments.
+pub fn motionscale(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_motionscale"))
+        .args(args)
+        .output()
+        .expect("motionscale runs")
+}
+
+/// Exit code of a finished command, with its output in the panic message if it was killed.
+pub fn code(out: &Output) -> i32 {
+    out.status.code().unwrap_or_else(|| panic!("killed: {}", text(out)))
+}
+
+/// stdout and stderr of a command as text.
+pub fn text(out: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+/// `../shared/data`, or `None` (with a note) when absent outside CI. Panics in CI.
+pub fn shared_data() -> Option<PathBuf> {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
+    if dir.is_dir() {
+        return Some(dir);
+    }
+    assert!(
+        std::env::var_os("CI").is_none(),
+        "{} is missing: CI must run with the shared data",
+        dir.display()
+    );
+    eprintln!("note: {} missing, test not run", dir.display());
+    None
+}
+
+/// Run a Python snippet (numpy/pyarrow checks of our files); panics with its output on failure.
+pub fn python(script: &str, args: &[&str]) -> String {
+    let out = Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .args(args)
+        .output()
+        .expect("python3 runs");
+    assert!(out.status.success(), "python check failed:\n{}", text(&out));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// Read `rejects.jsonl` as JSON values.
+pub fn rejects(corpus: &Path) -> Vec<serde_json::Value> {
+    std::fs::read_to_string(corpus.join("rejects.jsonl"))
+        .expect("rejects.jsonl")
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("reject line is JSON"))
+        .collect()
+}
+
+/// Bytes of every shard file and the manifest, for determinism checks.
+pub fn corpus_bytes(corpus: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(corpus.join("shards"))
+        .expect("shards folder")
+        .map(|e| e.expect("entry").path())
+        .collect();
+    files.push(corpus.join("manifest.json"));
+    files.push(corpus.join("stats/mean.npy"));
+    files.push(corpus.join("stats/std.npy"));
+    files.sort();
+    files
+        .into_iter()
+        .map(|p| {
+            let name = p.strip_prefix(corpus).expect("inside").display().to_string();
+            (name, std::fs::read(&p).expect("readable"))
+        })
+        .collect()
+}
+
+/// Python that reads every shard with pyarrow and checks the feature and joint shapes.
+pub const PYARROW_CHECK: &str = r#"
+import json, sys, numpy as np, pyarrow.parquet as pq
+corpus = sys.argv[1]
+manifest = json.load(open(f"{corpus}/manifest.json"))
+rows = frames = 0
+for shard in manifest["shards"]:
+    t = pq.read_table(f"{corpus}/{shard['file']}")
+    assert t.num_rows == shard["rows"], (shard, t.num_rows)
+    for n, f, j in zip(t.column("num_frames").to_pylist(), t.column("features").to_pylist(), t.column("joints").to_pylist()):
+        assert np.asarray(f, dtype=np.float32).reshape(-1, 263).shape == (n, 263)
+        assert np.asarray(j, dtype=np.float32).reshape(-1, 22, 3).shape == (n + 1, 22, 3)
+        frames += n
+    all_feats = t.column("features").combine_chunks().flatten().to_numpy().reshape(-1, 263)
+    assert np.isfinite(all_feats).all()
+    rows += t.num_rows
+print(rows, frames)
+"#;
