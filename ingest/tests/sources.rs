@@ -412,11 +412,11 @@ fn amass_zero_pose_gives_rest_joints_plus_trans_axis_swapped() {
     assert_eq!((clip.source.as_str(), clip.fps), ("amass", 120.0));
     assert!(clip.conversion.contains("(-x, z, y)"));
     let rest = model_rest();
-    for j in 0..NUM_JOINTS {
-        close(clip.poses[0][j], y_up(rest[j]), 1e-6, "frame 0");
+    for (j, r) in rest.into_iter().enumerate() {
+        close(clip.poses[0][j], y_up(r), 1e-6, "frame 0");
         close(
             clip.poses[1][j],
-            y_up(quat::add(rest[j], [1.0, 2.0, 3.0])),
+            y_up(quat::add(r, [1.0, 2.0, 3.0])),
             1e-6,
             "frame 1",
         );

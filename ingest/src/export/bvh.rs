@@ -2,6 +2,8 @@
 //! HumanML3D target skeleton as OFFSETs, in centimetres (Blender's BVH importer has a scale
 //! option; 0.01 gives metres), Y up, and per-frame joint rotations recovered by inverse kinematics.
 //!
+//! The bones out of the pelvis and spine3 take the motion's own shape ([`rest_offsets`]).
+//!
 //! IK: a joint with one child takes the minimal rotation that turns the rest bone towards the
 //! observed child, relative to its parent's global rotation, so single-child chains are exact
 //! relative to their parent's position. A joint with several children (pelvis: hips and spine;
@@ -29,14 +31,16 @@ fn children(j: usize) -> impl Iterator<Item = usize> {
 /// BVH text of a motion: SMPL-22 hierarchy, one MOTION line per pose, `Frame Time` = 1/fps.
 pub fn write_bvh(joints: &[Pose], fps: f64) -> String {
     let mut out = String::from("HIERARCHY\n");
-    write_joint(&mut out, 0, 0);
+    let offsets = rest_offsets(joints);
+    write_joint(&mut out, &offsets, 0, 0);
     let _ = writeln!(out, "MOTION\nFrames: {}", joints.len());
     let _ = writeln!(out, "Frame Time: {:.8}", 1.0 / fps);
+    let order = hierarchy_order();
     for pose in joints {
-        let locals = local_rotations(pose);
+        let locals = local_rotations(pose, &offsets);
         let mut values = Vec::with_capacity(3 + 3 * NUM_JOINTS);
         values.extend(pose[0].iter().map(|v| v * UNITS_PER_METRE));
-        values.extend(locals.iter().flat_map(|&q| euler_zyx_degrees(q)));
+        values.extend(order.iter().flat_map(|&j| euler_zyx_degrees(locals[j])));
         let line = values
             .iter()
             .map(|v| format!("{v:.6}"))
@@ -53,9 +57,22 @@ pub fn write_bvh_file(path: &Path, joints: &[Pose], fps: f64) -> std::io::Result
     npy::write_atomic(path, write_bvh(joints, fps).as_bytes())
 }
 
-fn write_joint(out: &mut String, j: usize, depth: usize) {
+/// Joints in the depth-first order of the HIERARCHY section, which the MOTION values follow.
+pub fn hierarchy_order() -> Vec<usize> {
+    fn visit(j: usize, order: &mut Vec<usize>) {
+        order.push(j);
+        for c in children(j) {
+            visit(c, order);
+        }
+    }
+    let mut order = Vec::with_capacity(NUM_JOINTS);
+    visit(0, &mut order);
+    order
+}
+
+fn write_joint(out: &mut String, offsets: &[Vec3; NUM_JOINTS], j: usize, depth: usize) {
     let pad = "  ".repeat(depth);
-    let offset = offset_text(TARGET_OFFSETS[j]);
+    let offset = offset_text(offsets[j]);
     if j == 0 {
         let _ = writeln!(out, "ROOT {}\n{{", JOINT_NAMES[j]);
         let _ = writeln!(out, "{pad}  OFFSET {offset}");
@@ -71,14 +88,14 @@ fn write_joint(out: &mut String, j: usize, depth: usize) {
     let mut leaf = true;
     for c in children(j) {
         leaf = false;
-        write_joint(out, c, depth + 1);
+        write_joint(out, offsets, c, depth + 1);
     }
     if leaf {
         // End Site half a bone further along the leaf's own bone, so viewers draw its last segment.
         let _ = writeln!(
             out,
             "{pad}  End Site\n{pad}  {{\n{pad}    OFFSET {}\n{pad}  }}",
-            offset_text(quat::scale(TARGET_OFFSETS[j], 0.5))
+            offset_text(quat::scale(offsets[j], 0.5))
         );
     }
     let _ = writeln!(out, "{pad}}}");
@@ -93,9 +110,45 @@ fn offset_text(v: Vec3) -> String {
     )
 }
 
+/// BVH OFFSETs (metres) for a motion: [`TARGET_OFFSETS`], except that the bones from a joint with
+/// several children (pelvis → hips, spine1; spine3 → neck, collars) take the motion's own shape:
+/// their observed offsets, turned back by the rotation best fitting them to the target
+/// directions, averaged over the frames. SMPL-derived joints keep these bones rigid but not along
+/// the axis-aligned target directions (the hips sit below the pelvis), so target directions
+/// would leave centimetres of error that no rotation can remove.
+pub fn rest_offsets(joints: &[Pose]) -> [Vec3; NUM_JOINTS] {
+    let mut offsets = TARGET_OFFSETS;
+    if joints.is_empty() {
+        return offsets;
+    }
+    for j in 0..NUM_JOINTS {
+        let kids: Vec<usize> = children(j).collect();
+        if kids.len() < 2 {
+            continue;
+        }
+        let mut sums = vec![[0.0; 3]; kids.len()];
+        for pose in joints {
+            let seen: Vec<Vec3> = kids.iter().map(|&c| quat::sub(pose[c], pose[j])).collect();
+            let pairs: Vec<(Vec3, Vec3)> = kids
+                .iter()
+                .map(|&c| TARGET_OFFSETS[c])
+                .zip(seen.iter().copied())
+                .collect();
+            let back = quat::inv(fit_rotation(&pairs));
+            for (sum, s) in sums.iter_mut().zip(&seen) {
+                *sum = quat::add(*sum, quat::rot(back, *s));
+            }
+        }
+        for (&c, sum) in kids.iter().zip(&sums) {
+            offsets[c] = quat::scale(*sum, 1.0 / joints.len() as f64);
+        }
+    }
+    offsets
+}
+
 /// Local rotation of every joint (relative to its parent; the root's is global) whose forward
-/// kinematics over [`TARGET_OFFSETS`] reproduces `pose` as closely as the rest shape allows.
-pub fn local_rotations(pose: &Pose) -> [Quat; NUM_JOINTS] {
+/// kinematics over `offsets` reproduces `pose` as closely as the rest shape allows.
+pub fn local_rotations(pose: &Pose, offsets: &[Vec3; NUM_JOINTS]) -> [Quat; NUM_JOINTS] {
     let mut local = [IDENTITY; NUM_JOINTS];
     let mut global = [IDENTITY; NUM_JOINTS];
     // Parents precede children in SMPL-22 order, so one pass sees every parent first.
@@ -105,7 +158,7 @@ pub fn local_rotations(pose: &Pose) -> [Quat; NUM_JOINTS] {
         let pairs: Vec<(Vec3, Vec3)> = children(j)
             .map(|c| {
                 (
-                    TARGET_OFFSETS[c],
+                    offsets[c],
                     quat::rot(to_parent_frame, quat::sub(pose[c], pose[j])),
                 )
             })
@@ -175,16 +228,14 @@ fn jacobi_eigen4(mut a: [[f64; 4]; 4]) -> ([f64; 4], [[f64; 4]; 4]) {
                 let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
                 let c = 1.0 / (t * t + 1.0).sqrt();
                 let s = t * c;
-                for k in 0..4 {
-                    let (akp, akq) = (a[k][p], a[k][q]);
-                    a[k][p] = c * akp - s * akq;
-                    a[k][q] = s * akp + c * akq;
+                for row in a.iter_mut() {
+                    let (x, y) = (row[p], row[q]);
+                    row[p] = c * x - s * y;
+                    row[q] = s * x + c * y;
                 }
-                for k in 0..4 {
-                    let (apk, aqk) = (a[p][k], a[q][k]);
-                    a[p][k] = c * apk - s * aqk;
-                    a[q][k] = s * apk + c * aqk;
-                }
+                let (row_p, row_q) = (a[p], a[q]);
+                a[p] = std::array::from_fn(|k| c * row_p[k] - s * row_q[k]);
+                a[q] = std::array::from_fn(|k| s * row_p[k] + c * row_q[k]);
                 for row in v.iter_mut() {
                     let (vkp, vkq) = (row[p], row[q]);
                     row[p] = c * vkp - s * vkq;
@@ -236,7 +287,11 @@ mod tests {
 
     #[test]
     fn euler_angles_rebuild_the_rotation() {
-        for v in [[0.3, -0.2, 0.9], [0.0, 1.5707963, 0.0], [2.0, 1.0, -0.5]] {
+        for v in [
+            [0.3, -0.2, 0.9],
+            [0.0, std::f64::consts::FRAC_PI_2, 0.0],
+            [2.0, 1.0, -0.5],
+        ] {
             let q = quat::from_rotvec(v);
             let [z, y, x] = euler_zyx_degrees(q);
             let rebuilt = quat::mul(

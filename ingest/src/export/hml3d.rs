@@ -248,7 +248,6 @@ const NOUNS: &[&str] = &[
     "woman",
     "human",
     "figure",
-    "someone",
     "body",
     "hand",
     "arm",
@@ -289,7 +288,6 @@ const NOUNS: &[&str] = &[
     "stairs",
     "ball",
     "object",
-    "something",
     "chair",
     "door",
     "wall",
@@ -449,6 +447,10 @@ const PRONOUNS: &[&str] = &[
     "who",
     "which",
     "what",
+    "someone",
+    "something",
+    "everyone",
+    "anyone",
 ];
 const AUXILIARIES: &[&str] = &[
     "is", "are", "was", "were", "be", "been", "being", "has", "have", "had", "can", "will",

@@ -222,7 +222,7 @@ pub fn parse_texts(text: &str) -> Result<Vec<CaptionLine>, String> {
         };
         let (start, end) = (seconds(start, "start")?, seconds(end, "end")?);
         let whole = (start.is_nan() || start == 0.0) && (end.is_nan() || end == 0.0);
-        if !whole && !(start >= 0.0 && end > start) {
+        if !(whole || start >= 0.0 && end > start) {
             return Err(format!(
                 "line {}: span {start}..{end} s is not a forward span",
                 n + 1
