@@ -113,7 +113,7 @@ fn offset_text(v: Vec3) -> String {
 /// BVH OFFSETs (metres) for a motion: [`TARGET_OFFSETS`], except that the bones from a joint with
 /// several children (pelvis → hips, spine1; spine3 → neck, collars) take the motion's own shape:
 /// their observed offsets, turned back by the rotation best fitting them to the target
-/// directions, averaged over the frames. SMPL-derived joints keep these bones rigid but not along
+/// directions, averaged over the frames (mean direction, mean length). SMPL-derived joints keep these bones rigid but not along
 /// the axis-aligned target directions (the hips sit below the pelvis), so target directions
 /// would leave centimetres of error that no rotation can remove.
 pub fn rest_offsets(joints: &[Pose]) -> [Vec3; NUM_JOINTS] {
@@ -127,6 +127,7 @@ pub fn rest_offsets(joints: &[Pose]) -> [Vec3; NUM_JOINTS] {
             continue;
         }
         let mut sums = vec![[0.0; 3]; kids.len()];
+        let mut lengths = vec![0.0; kids.len()];
         for pose in joints {
             let seen: Vec<Vec3> = kids.iter().map(|&c| quat::sub(pose[c], pose[j])).collect();
             let pairs: Vec<(Vec3, Vec3)> = kids
@@ -135,12 +136,14 @@ pub fn rest_offsets(joints: &[Pose]) -> [Vec3; NUM_JOINTS] {
                 .zip(seen.iter().copied())
                 .collect();
             let back = quat::inv(fit_rotation(&pairs));
-            for (sum, s) in sums.iter_mut().zip(&seen) {
+            for ((sum, length), s) in sums.iter_mut().zip(&mut lengths).zip(&seen) {
                 *sum = quat::add(*sum, quat::rot(back, *s));
+                *length += quat::norm(*s);
             }
         }
-        for (&c, sum) in kids.iter().zip(&sums) {
-            offsets[c] = quat::scale(*sum, 1.0 / joints.len() as f64);
+        // Mean direction at the mean length, so the bone keeps its observed length.
+        for ((&c, sum), length) in kids.iter().zip(&sums).zip(&lengths) {
+            offsets[c] = quat::scale(quat::normalize(*sum), length / joints.len() as f64);
         }
     }
     offsets

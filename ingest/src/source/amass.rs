@@ -57,7 +57,7 @@ impl Npz {
             Err(zip::result::ZipError::FileNotFound) => return Ok(None),
             Err(e) => return Err(format!("{}: entry {key}: {e}", self.path)),
         };
-        let mut bytes = Vec::with_capacity(entry.size() as usize);
+        let mut bytes = Vec::new();
         entry
             .read_to_end(&mut bytes)
             .map_err(|e| format!("{}: entry {key}: {e}", self.path))?;
@@ -183,15 +183,16 @@ impl BodyModel {
 
     /// Joint positions (Z up, as SMPL gives them) of one frame: 22 axis-angle rotations
     /// (root first) and the root translation.
-    pub fn pose_joints(&self, rest: &[Vec3; NUM_JOINTS], axis_angles: &[f64], trans: Vec3) -> Pose {
+    pub fn pose_joints(
+        &self,
+        rest: &[Vec3; NUM_JOINTS],
+        axis_angles: &[Vec3; NUM_JOINTS],
+        trans: Vec3,
+    ) -> Pose {
         let mut global: [Quat; NUM_JOINTS] = [quat::IDENTITY; NUM_JOINTS];
         let mut pos = [[0.0; 3]; NUM_JOINTS];
         for j in 0..NUM_JOINTS {
-            let local = quat::from_rotvec([
-                axis_angles[3 * j],
-                axis_angles[3 * j + 1],
-                axis_angles[3 * j + 2],
-            ]);
+            let local = quat::from_rotvec(axis_angles[j]);
             if j == 0 {
                 // SMPL rotates about the root joint, so the root stays at its rest place.
                 global[0] = local;
@@ -281,19 +282,21 @@ pub fn read_clip(path: &Path, rel_path: &Path, model: &BodyModel) -> Result<RawC
     let rest = model.rest_joints(&betas.data);
     let mut out = Vec::with_capacity(frames);
     for t in 0..frames {
-        let angles = &poses.data[t * width..t * width + 3 * NUM_JOINTS];
+        let row = &poses.data[t * width..(t + 1) * width];
+        let angles: [Vec3; NUM_JOINTS] =
+            std::array::from_fn(|j| [row[3 * j], row[3 * j + 1], row[3 * j + 2]]);
         let tr = [
             trans.data[3 * t],
             trans.data[3 * t + 1],
             trans.data[3 * t + 2],
         ];
-        if angles.iter().chain(&tr).any(|v| !v.is_finite()) {
+        if angles.iter().flatten().chain(&tr).any(|v| !v.is_finite()) {
             return Err(Reject::new(
                 "parse",
                 format!("{where_}: frame {t}: non-finite pose or translation"),
             ));
         }
-        let mut pose = model.pose_joints(&rest, angles, tr);
+        let mut pose = model.pose_joints(&rest, &angles, tr);
         for p in pose.iter_mut() {
             *p = [-p[0], p[2], p[1]];
         }

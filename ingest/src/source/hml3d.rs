@@ -14,6 +14,9 @@ use std::path::{Path, PathBuf};
 /// Frame rate of HumanML3D's processed joints.
 pub const FPS: f64 = 20.0;
 
+/// Captioned spans of a clip: frame range `[start, end)` at 20 fps → its distinct captions.
+type Spans = BTreeMap<(usize, usize), Vec<String>>;
+
 const CONVERSION: &str = "HumanML3D new_joints (metres, Y up)";
 
 /// An opened HumanML3D folder: its root and the split of every id listed in a split file.
@@ -105,12 +108,8 @@ impl Hml3dFolder {
         }
     }
 
-    /// The whole clip and its captioned spans (frame ranges at 20 fps → captions).
-    #[allow(clippy::type_complexity)]
-    fn read_whole(
-        &self,
-        joints_file: &Path,
-    ) -> Result<(RawClip, BTreeMap<(usize, usize), Vec<String>>), Reject> {
+    /// The whole clip and its captioned spans.
+    fn read_whole(&self, joints_file: &Path) -> Result<(RawClip, Spans), Reject> {
         let id = joints_file
             .file_stem()
             .map(|s| s.to_string_lossy().into_owned())
@@ -130,7 +129,7 @@ impl Hml3dFolder {
             Vec::new()
         };
         let mut captions = Vec::new();
-        let mut spans: BTreeMap<(usize, usize), Vec<String>> = BTreeMap::new();
+        let mut spans = Spans::new();
         for line in lines {
             match (line.start, line.end) {
                 (Some(start), Some(end)) => {
