@@ -172,7 +172,7 @@ fn segment(
     captions: Vec<String>,
 ) -> Result<RawClip, Reject> {
     let stop = end.min(whole.poses.len());
-    if stop < start + 2 {
+    if stop < start.saturating_add(2) {
         return Err(Reject::new(
             "parse",
             format!(
