@@ -46,6 +46,16 @@ fn header_value<'a>(header: &'a str, key: &str) -> Result<&'a str, NpyError> {
 
 /// Parse `.npy` bytes (format versions 1–3) holding f32 or f64 values.
 pub fn parse(bytes: &[u8]) -> Result<NpyArray, NpyError> {
+    parse_with(bytes, false)
+}
+
+/// Parse `.npy` bytes holding floats or little-endian integers (i4, i8, u4, u8), widened to f64
+/// (exact below 2^53; index tables such as SMPL's `kintree_table` are stored as integers).
+pub fn parse_numeric(bytes: &[u8]) -> Result<NpyArray, NpyError> {
+    parse_with(bytes, true)
+}
+
+fn parse_with(bytes: &[u8], integers: bool) -> Result<NpyArray, NpyError> {
     if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
         return Err(NpyError::Format("missing \\x93NUMPY magic".into()));
     }
@@ -68,10 +78,14 @@ pub fn parse(bytes: &[u8]) -> Result<NpyArray, NpyError> {
         .split(['\'', '"'])
         .next()
         .unwrap_or("");
-    let width = match descr {
-        "<f4" | "=f4" | "f4" => 4,
-        "<f8" | "=f8" | "f8" => 8,
-        other => return Err(NpyError::Dtype(other.to_string())),
+    let (kind, width) = match descr.trim_start_matches(['<', '=']) {
+        "f4" => ('f', 4),
+        "f8" => ('f', 8),
+        "i4" if integers => ('i', 4),
+        "i8" if integers => ('i', 8),
+        "u4" if integers => ('u', 4),
+        "u8" if integers => ('u', 8),
+        _ => return Err(NpyError::Dtype(descr.to_string())),
     };
     if header_value(header, "fortran_order")?.starts_with("True") {
         return Err(NpyError::FortranOrder);
@@ -99,17 +113,21 @@ pub fn parse(bytes: &[u8]) -> Result<NpyArray, NpyError> {
             actual: payload.len(),
         });
     }
-    let data = if width == 4 {
-        payload[..expected]
-            .chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]) as f64)
-            .collect()
-    } else {
-        payload[..expected]
-            .chunks_exact(8)
-            .map(|c| f64::from_le_bytes(c.try_into().expect("chunk of 8")))
-            .collect()
-    };
+    let data = payload[..expected]
+        .chunks_exact(width)
+        .map(|c| {
+            let mut b = [0u8; 8];
+            b[..width].copy_from_slice(c);
+            match (kind, width) {
+                ('f', 4) => f32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
+                ('f', _) => f64::from_le_bytes(b),
+                ('i', 4) => i32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
+                ('i', _) => i64::from_le_bytes(b) as f64,
+                ('u', 4) => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f64,
+                _ => u64::from_le_bytes(b) as f64,
+            }
+        })
+        .collect();
     Ok(NpyArray { shape, data })
 }
 
@@ -199,5 +217,19 @@ mod tests {
         let at = ints.windows(3).position(|w| w == b"<f4").unwrap();
         ints[at + 1] = b'i';
         assert!(matches!(parse(&ints), Err(NpyError::Dtype(d)) if d == "<i4"));
+    }
+
+    #[test]
+    fn numeric_parse_widens_integers() {
+        let mut bytes = encode_f32(&[2], &[0.0; 2]);
+        let at = bytes.windows(3).position(|w| w == b"<f4").unwrap();
+        bytes[at + 1] = b'u';
+        let n = bytes.len();
+        bytes[n - 8..n - 4].copy_from_slice(&u32::MAX.to_le_bytes());
+        bytes[n - 4..].copy_from_slice(&7u32.to_le_bytes());
+        let arr = parse_numeric(&bytes).unwrap();
+        assert_eq!(arr.data, vec![4294967295.0, 7.0]);
+        bytes[at + 1] = b'i';
+        assert_eq!(parse_numeric(&bytes).unwrap().data, vec![-1.0, 7.0]);
     }
 }

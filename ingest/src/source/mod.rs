@@ -67,3 +67,18 @@ impl Reject {
         }
     }
 }
+
+/// Clip id of a file from its path inside the source folder: the components without the
+/// extension, joined by `_` (the file stem for a file at the top; sub-folders keep ids unique,
+/// e.g. AMASS subjects that reuse file names).
+pub fn clip_id_of(rel_path: &std::path::Path) -> String {
+    let stemmed = rel_path.with_extension("");
+    stemmed
+        .components()
+        .filter_map(|c| match c {
+            std::path::Component::Normal(s) => Some(s.to_string_lossy().into_owned()),
+            _ => None,
+        })
+        .collect::<Vec<_>>()
+        .join("_")
+}

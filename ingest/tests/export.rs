@@ -1,0 +1,442 @@
+//! Exports: the HumanML3D folder layout and BVH (checked by forward kinematics of the written file).
+
+use ingest::corpus::ClipRecord;
+use ingest::export::bvh;
+use ingest::export::hml3d::{Hml3dWriter, FEATURE_DIM, GENERIC_CAPTION};
+use ingest::npy;
+use ingest::quat::{self, Quat, Vec3};
+use ingest::skeleton::{Pose, JOINT_NAMES, NUM_JOINTS, PARENTS, TARGET_OFFSETS};
+use std::path::PathBuf;
+
+fn data_dir() -> Option<PathBuf> {
+    let dir = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"));
+    if dir.is_dir() {
+        return Some(dir);
+    }
+    assert!(
+        std::env::var_os("CI").is_none(),
+        "shared data missing at {}",
+        dir.display()
+    );
+    eprintln!("note: {} missing, test skipped", dir.display());
+    None
+}
+
+// ---------------------------------------------------------------- HumanML3D layout
+
+fn record(id: &str, frames: usize, split: &str, captions: &[&str]) -> ClipRecord {
+    ClipRecord {
+        motion_id: id.into(),
+        source: "synth".into(),
+        source_path: format!("{id}.npy"),
+        source_clip: id.into(),
+        segment: 0,
+        fps: 20.0,
+        source_fps: 30.0,
+        num_frames: frames as u32,
+        features: (0..frames * FEATURE_DIM).map(|i| i as f32 * 0.5).collect(),
+        joints: (0..(frames + 1) * NUM_JOINTS * 3)
+            .map(|i| -(i as f32))
+            .collect(),
+        captions: captions.iter().map(|c| c.to_string()).collect(),
+        labels: Default::default(),
+        split: split.into(),
+        mirrored: false,
+    }
+}
+
+#[test]
+fn hml3d_layout_round_trips() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("export");
+    let mut writer = Hml3dWriter::new(&out).unwrap();
+    writer
+        .add(&record(
+            "walk_001",
+            4,
+            "train",
+            &["A person walks forward.", "Someone walks #1"],
+        ))
+        .unwrap();
+    writer.add(&record("Mwalk_001", 3, "train", &[])).unwrap();
+    writer
+        .add(&record("bow_002", 2, "test", &["he bows."]))
+        .unwrap();
+    let bad = record("x/y", 2, "train", &[]);
+    assert!(writer
+        .add(&bad)
+        .unwrap_err()
+        .to_string()
+        .contains("file name"));
+    let mut short = record("short", 2, "train", &[]);
+    short.features.pop();
+    assert!(writer
+        .add(&short)
+        .unwrap_err()
+        .to_string()
+        .contains("525 feature values"));
+    let mean: Vec<f32> = (0..FEATURE_DIM).map(|i| i as f32).collect();
+    let std = vec![1.5f32; FEATURE_DIM];
+    assert!(Hml3dWriter::new(&dir.path().join("other"))
+        .unwrap()
+        .finish(&mean[..10], &std)
+        .is_err());
+    let summary = writer.finish(&mean, &std).unwrap();
+    assert_eq!(summary.clips, 3);
+    assert_eq!(summary.generic_captions, 1);
+    assert_eq!(summary.per_split["train"], 2);
+    assert_eq!(summary.per_split["val"], 0);
+    assert_eq!(summary.per_split["test"], 1);
+
+    let vecs = npy::read(&out.join("new_joint_vecs/walk_001.npy")).unwrap();
+    assert_eq!(vecs.shape, [4, FEATURE_DIM]);
+    assert_eq!(vecs.data[FEATURE_DIM + 1], (FEATURE_DIM + 1) as f64 * 0.5);
+    let joints = npy::read(&out.join("new_joints/walk_001.npy")).unwrap();
+    assert_eq!(joints.shape, [5, NUM_JOINTS, 3]);
+    assert_eq!(joints.data[70], -70.0);
+    assert_eq!(
+        npy::read(&out.join("new_joints/Mwalk_001.npy"))
+            .unwrap()
+            .shape,
+        [4, 22, 3]
+    );
+    assert_eq!(npy::read(&out.join("Mean.npy")).unwrap().data[262], 262.0);
+    assert_eq!(
+        npy::read(&out.join("Std.npy")).unwrap().shape,
+        [FEATURE_DIM]
+    );
+
+    let text = std::fs::read_to_string(out.join("texts/walk_001.txt")).unwrap();
+    assert_eq!(
+        text,
+        "A person walks forward.#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0\n\
+         Someone walks 1#someone/PRON walk/VERB 1/NUM#0.0#0.0\n"
+    );
+    for line in text.lines() {
+        let fields: Vec<_> = line.split('#').collect();
+        assert_eq!(fields.len(), 4);
+        // T2M-GPT's WordVectorizer splits every token on '/' into exactly (word, POS).
+        assert!(
+            fields[1].split(' ').all(|t| t.split('/').count() == 2),
+            "{line}"
+        );
+    }
+    let generic = std::fs::read_to_string(out.join("texts/Mwalk_001.txt")).unwrap();
+    assert!(
+        generic.starts_with(&format!("{GENERIC_CAPTION}#")),
+        "{generic}"
+    );
+
+    let read = |name: &str| std::fs::read_to_string(out.join(name)).unwrap();
+    assert_eq!(read("train.txt"), "Mwalk_001\nwalk_001\n");
+    assert_eq!(read("val.txt"), "");
+    assert_eq!(read("test.txt"), "bow_002\n");
+    assert_eq!(read("all.txt"), "Mwalk_001\nbow_002\nwalk_001\n");
+    let leftovers: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains(".tmp"))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+}
+
+// ---------------------------------------------------------------- BVH
+
+/// A BVH read back by a minimal reader: joints in file order and the motion rows.
+struct Bvh {
+    names: Vec<String>,
+    parents: Vec<Option<usize>>,
+    offsets: Vec<Vec3>,
+    channels: Vec<Vec<String>>,
+    end_sites: usize,
+    frame_time: f64,
+    rows: Vec<Vec<f64>>,
+}
+
+fn read_bvh(text: &str) -> Bvh {
+    let mut bvh = Bvh {
+        names: vec![],
+        parents: vec![],
+        offsets: vec![],
+        channels: vec![],
+        end_sites: 0,
+        frame_time: 0.0,
+        rows: vec![],
+    };
+    // Stack of open blocks: Some(joint) or None for an End Site.
+    let mut stack: Vec<Option<usize>> = vec![];
+    let mut pending: Option<Option<usize>> = None;
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("HIERARCHY"));
+    let mut frames = None;
+    for line in lines.by_ref() {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        match words.as_slice() {
+            ["ROOT" | "JOINT", name] => {
+                bvh.parents.push(stack.last().copied().flatten());
+                bvh.names.push(name.to_string());
+                bvh.offsets.push([0.0; 3]);
+                bvh.channels.push(vec![]);
+                pending = Some(Some(bvh.names.len() - 1));
+            }
+            ["End", "Site"] => {
+                bvh.end_sites += 1;
+                pending = Some(None);
+            }
+            ["{"] => stack.push(pending.take().expect("'{' after a joint")),
+            ["}"] => {
+                stack.pop().expect("balanced braces");
+            }
+            ["OFFSET", x, y, z] => {
+                if let Some(Some(j)) = stack.last() {
+                    bvh.offsets[*j] = [x.parse().unwrap(), y.parse().unwrap(), z.parse().unwrap()];
+                }
+            }
+            ["CHANNELS", n, names @ ..] => {
+                assert_eq!(n.parse::<usize>().unwrap(), names.len());
+                let j = stack.last().unwrap().unwrap();
+                bvh.channels[j] = names.iter().map(|s| s.to_string()).collect();
+            }
+            ["MOTION"] => {
+                assert!(stack.is_empty(), "braces balanced before MOTION");
+            }
+            ["Frames:", n] => frames = Some(n.parse::<usize>().unwrap()),
+            ["Frame", "Time:", t] => {
+                bvh.frame_time = t.parse().unwrap();
+                break;
+            }
+            other => panic!("unexpected hierarchy line {other:?}"),
+        }
+    }
+    bvh.rows = lines
+        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
+        .collect();
+    assert_eq!(Some(bvh.rows.len()), frames, "Frames: matches the rows");
+    bvh
+}
+
+/// Joint positions (metres) of every frame by forward kinematics of the channels as written.
+fn forward_kinematics(bvh: &Bvh) -> Vec<Vec<Vec3>> {
+    bvh.rows
+        .iter()
+        .map(|row| {
+            let mut values = row.iter();
+            let mut global: Vec<Quat> = vec![];
+            let mut pos: Vec<Vec3> = vec![];
+            for j in 0..bvh.names.len() {
+                let mut translation = [0.0; 3];
+                let mut local = quat::IDENTITY;
+                for ch in &bvh.channels[j] {
+                    let v = *values.next().expect("enough values");
+                    let axis = match &ch[..1] {
+                        "X" => 0,
+                        "Y" => 1,
+                        _ => 2,
+                    };
+                    if ch.ends_with("position") {
+                        translation[axis] = v;
+                    } else {
+                        let mut unit = [0.0; 3];
+                        unit[axis] = 1.0;
+                        local = quat::mul(local, quat::from_axis_angle(unit, v.to_radians()));
+                    }
+                }
+                let (g, p) = match bvh.parents[j] {
+                    None => (local, quat::add(bvh.offsets[j], translation)),
+                    Some(parent) => (
+                        quat::mul(global[parent], local),
+                        quat::add(pos[parent], quat::rot(global[parent], bvh.offsets[j])),
+                    ),
+                };
+                global.push(g);
+                pos.push(p);
+            }
+            assert!(values.next().is_none(), "no extra values");
+            pos.into_iter().map(|p| quat::scale(p, 0.01)).collect()
+        })
+        .collect()
+}
+
+/// Pose by forward kinematics of the target skeleton with the given local rotations.
+fn pose_from(locals: &[Quat; NUM_JOINTS], root: Vec3) -> Pose {
+    let mut global = [quat::IDENTITY; NUM_JOINTS];
+    let mut pose = [[0.0; 3]; NUM_JOINTS];
+    for j in 0..NUM_JOINTS {
+        if j == 0 {
+            global[0] = locals[0];
+            pose[0] = root;
+        } else {
+            let p = PARENTS[j];
+            global[j] = quat::mul(global[p], locals[j]);
+            pose[j] = quat::add(pose[p], quat::rot(global[p], TARGET_OFFSETS[j]));
+        }
+    }
+    pose
+}
+
+/// Checks the hierarchy (bones out of pelvis and spine3 within `length_tol_cm` of the target
+/// lengths), frame count and frame time; returns the file and each file joint's SMPL-22 index.
+fn check_structure(text: &str, frames: usize, fps: f64, length_tol_cm: f64) -> (Bvh, Vec<usize>) {
+    let bvh = read_bvh(text);
+    let index = |name: &str| JOINT_NAMES.iter().position(|n| *n == name).unwrap();
+    let order: Vec<usize> = bvh.names.iter().map(|n| index(n)).collect();
+    assert_eq!(order, bvh::hierarchy_order());
+    assert_eq!(order[0], 0);
+    for (i, &j) in order.iter().enumerate().skip(1) {
+        let parent = bvh.parents[i].map(|p| order[p]);
+        assert_eq!(parent, Some(PARENTS[j]), "parent of {}", JOINT_NAMES[j]);
+        let expected = quat::scale(TARGET_OFFSETS[j], 100.0);
+        let siblings = (1..NUM_JOINTS)
+            .filter(|&c| PARENTS[c] == PARENTS[j])
+            .count();
+        if siblings > 1 {
+            // The motion's own shape: the target's bone length (cm), any direction.
+            let d = quat::norm(bvh.offsets[i]) - quat::norm(expected);
+            assert!(d.abs() < length_tol_cm, "{}: {d}", JOINT_NAMES[j]);
+        } else {
+            assert!(quat::norm(quat::sub(bvh.offsets[i], expected)) < 1e-5);
+        }
+        assert_eq!(bvh.channels[i], ["Zrotation", "Yrotation", "Xrotation"]);
+    }
+    assert_eq!(bvh.channels[0].len(), 6);
+    assert_eq!(bvh.parents[0], None);
+    // Leaves: feet, head, wrists.
+    assert_eq!(bvh.end_sites, 5);
+    assert_eq!(bvh.rows.len(), frames);
+    assert!((bvh.frame_time - 1.0 / fps).abs() < 1e-8);
+    assert!(bvh.rows.iter().all(|r| r.len() == 6 + 3 * (NUM_JOINTS - 1)));
+    (bvh, order)
+}
+
+/// Forward kinematics of a written BVH, as poses in SMPL-22 order.
+fn fk_poses(text: &str, frames: usize, fps: f64, length_tol_cm: f64) -> Vec<Pose> {
+    let (bvh, order) = check_structure(text, frames, fps, length_tol_cm);
+    forward_kinematics(&bvh)
+        .into_iter()
+        .map(|file_order| {
+            let mut pose = [[0.0; 3]; NUM_JOINTS];
+            for (i, &j) in order.iter().enumerate() {
+                pose[j] = file_order[i];
+            }
+            pose
+        })
+        .collect()
+}
+
+/// Poses of the target skeleton under seeded random local rotations (up to ~1.2 rad per joint).
+fn random_poses(frames: usize) -> Vec<Pose> {
+    let mut state = 0x2545_f491_4f6c_dd1du64;
+    let mut uniform = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    };
+    (0..frames)
+        .map(|t| {
+            let locals: [Quat; NUM_JOINTS] = std::array::from_fn(|_| {
+                quat::from_rotvec([uniform() * 0.7, uniform() * 0.7, uniform() * 0.7])
+            });
+            pose_from(&locals, [0.1 * t as f64, 0.9, -0.05 * t as f64])
+        })
+        .collect()
+}
+
+#[test]
+fn bvh_reproduces_rigid_poses_exactly() {
+    let poses = random_poses(12);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("rigid.bvh");
+    bvh::write_bvh_file(&path, &poses, 30.0).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    let fk = fk_poses(&text, 12, 30.0, 1e-3);
+    let mut max_err: f64 = 0.0;
+    for (pose, got) in poses.iter().zip(&fk) {
+        for j in 0..NUM_JOINTS {
+            max_err = max_err.max(quat::norm(quat::sub(pose[j], got[j])));
+        }
+    }
+    eprintln!("rigid poses: max FK error {max_err:.3e} m");
+    assert!(max_err < 1e-6, "max error {max_err}");
+}
+
+#[test]
+fn bvh_of_real_humanml3d_joints_reproduces_them() {
+    let Some(data) = data_dir() else { return };
+    let raw = npy::read(&data.join("humanml3d-fixtures/humanml3d_new_joints_012314.npy")).unwrap();
+    let poses: Vec<Pose> = raw
+        .data
+        .chunks_exact(NUM_JOINTS * 3)
+        .map(|f| std::array::from_fn(|j| [f[3 * j], f[3 * j + 1], f[3 * j + 2]]))
+        .collect();
+    let text = bvh::write_bvh(&poses, 20.0);
+    let fk = fk_poses(&text, poses.len(), 20.0, 1e-3);
+    let mut bone_err: f64 = 0.0;
+    let (mut upper_max, mut sum, mut count): (f64, f64, usize) = (0.0, 0.0, 0);
+    let mut overall_max: f64 = 0.0;
+    let upper = [13, 14, 16, 17, 18, 19, 20, 21];
+    let single_child = |p: usize| (1..NUM_JOINTS).filter(|&c| PARENTS[c] == p).count() == 1;
+    for (pose, got) in poses.iter().zip(&fk) {
+        for j in 0..NUM_JOINTS {
+            let err = quat::norm(quat::sub(pose[j], got[j]));
+            overall_max = overall_max.max(err);
+            sum += err;
+            count += 1;
+            if upper.contains(&j) {
+                upper_max = upper_max.max(err);
+            }
+            let p = PARENTS[j];
+            if j > 0 && p != 0 && single_child(p) {
+                let seen = quat::sub(pose[j], pose[p]);
+                let rebuilt = quat::sub(got[j], got[p]);
+                bone_err = bone_err.max(quat::norm(quat::sub(seen, rebuilt)));
+            }
+        }
+    }
+    let mean = sum / count as f64;
+    eprintln!(
+        "HumanML3D 012314 ({} frames): single-child bones max {bone_err:.2e} m; \
+         collars/arms max {:.2e} m; all joints max {:.2e} m, mean {:.2e} m",
+        poses.len(),
+        upper_max,
+        overall_max,
+        mean
+    );
+    // Single-child bones: exact up to the clip's bone-length noise (< 2e-6 m) and text rounding.
+    assert!(bone_err < 1e-5, "{bone_err}");
+    assert!(upper_max < 0.02, "{upper_max}");
+    assert!(mean < 0.01, "{mean}");
+}
+
+#[test]
+fn bvh_of_a_non_rigid_shoulder_girdle_stays_close() {
+    // Move the left collar (and the arm hanging from it) off the rigid spine3 shape by up to
+    // 1.5 cm, varying over time: no rotation can match every frame, the fit spreads the error.
+    let mut poses = random_poses(40);
+    for (t, pose) in poses.iter_mut().enumerate() {
+        let phase = t as f64 * 0.3;
+        let shift = [0.015 * phase.sin(), 0.01 * phase.cos(), 0.0];
+        for j in [13, 16, 18, 20] {
+            pose[j] = quat::add(pose[j], shift);
+        }
+    }
+    let fk = fk_poses(&bvh::write_bvh(&poses, 20.0), poses.len(), 20.0, 1.5);
+    let (mut max_err, mut sum): (f64, f64) = (0.0, 0.0);
+    for (t, (pose, got)) in poses.iter().zip(&fk).enumerate() {
+        for j in 0..NUM_JOINTS {
+            let err = quat::norm(quat::sub(pose[j], got[j]));
+            max_err = max_err.max(err);
+            sum += err;
+        }
+        // Bones of single-child chains stay exact relative to their parent.
+        let bone = |c: usize, p: usize| quat::sub(pose[c], pose[p]);
+        let got_bone = |c: usize, p: usize| quat::sub(got[c], got[p]);
+        for (c, p) in [(18, 16), (20, 18), (4, 1), (15, 12)] {
+            let e = quat::norm(quat::sub(bone(c, p), got_bone(c, p)));
+            assert!(e < 1e-6, "frame {t}, bone {p}->{c}: {e:e}");
+        }
+    }
+    let mean = sum / (poses.len() * NUM_JOINTS) as f64;
+    eprintln!("non-rigid collar: max FK error {max_err:.4} m, mean {mean:.5} m");
+    assert!(max_err < 0.02, "{max_err}");
+}
