@@ -242,7 +242,7 @@ pub fn export_bvh(dir: &Path, motion_id: &str, out: &Path) -> Result<ExitCode> {
         bail!("{}: no clip with motion_id {motion_id:?}", dir.display());
     };
     let clip = corpus.clip(index).map_err(anyhow::Error::msg)?;
-    let poses = ingest::export::bvh::poses_from_flat(&clip.joints);
+    let poses = clip.poses();
     ingest::export::bvh::write_bvh_file(out, &poses, clip.fps as f64)
         .with_context(|| format!("writing {}", out.display()))?;
     println!("wrote {} ({} frames at {} fps)", out.display(), poses.len(), clip.fps);

@@ -4,6 +4,7 @@
 mod common;
 
 use common::*;
+use ingest::corpus::Corpus;
 use std::path::Path;
 
 fn demo_inputs(dir: &Path) {
@@ -74,6 +75,22 @@ assert (np.load(os.path.join(d, "Std.npy")) > 0).all()
 print("ok")
 "##;
     assert_eq!(python(check, &[hml.to_str().unwrap()]).trim(), "ok");
+
+    // The export imports back (hml3d: source) with the same splits and the same features.
+    let reimported = tmp.path().join("reimported");
+    let out = motionscale(&[
+        "ingest", "--source", &format!("hml3d:{}", hml.display()), "--out", reimported.to_str().unwrap(),
+    ]);
+    assert_eq!(code(&out), 0, "{}", text(&out));
+    let (a, b) = (Corpus::open(&corpus).unwrap(), Corpus::open(&reimported).unwrap());
+    assert_eq!(b.clips().len(), 12);
+    for id in ["demo_walk", "Mdemo_turn"] {
+        let x = a.clip(a.find(id).unwrap()).unwrap();
+        let y = b.clip(b.find(id).unwrap()).unwrap();
+        assert_eq!((x.split.as_str(), x.num_frames), (y.split.as_str(), y.num_frames));
+        let worst = x.features.iter().zip(&y.features).map(|(p, q)| (p - q).abs()).fold(0f32, f32::max);
+        assert!(worst < 1e-3, "{id}: re-imported features differ by {worst}");
+    }
 
     let bvh = tmp.path().join("walk.bvh");
     let out = motionscale(&["export", "bvh", corpus.to_str().unwrap(), "demo_walk", bvh.to_str().unwrap()]);

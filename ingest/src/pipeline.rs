@@ -44,9 +44,8 @@ impl SourceKind {
     fn extension(self) -> &'static str {
         match self {
             Self::Bvh => "bvh",
-            Self::Joints => "npy",
+            Self::Joints | Self::Hml3d => "npy",
             Self::Amass => "npz",
-            Self::Hml3d => "",
         }
     }
 }
@@ -185,9 +184,9 @@ struct Unit {
     path: PathBuf,
 }
 
-fn discover(spec: &SourceSpec) -> Result<Vec<PathBuf>, String> {
-    if spec.kind == SourceKind::Hml3d {
-        return Ok(vec![spec.path.clone()]);
+fn discover(spec: &SourceSpec, reader: &Reader) -> Result<Vec<PathBuf>, String> {
+    if let Reader::Hml3d(folder) = reader {
+        return folder.discover();
     }
     if spec.path.is_file() {
         return Ok(vec![spec.path.clone()]);
@@ -425,18 +424,23 @@ enum Reader<'a> {
     Bvh(Option<&'a RigMap>),
     Joints(f64),
     Amass(&'a amass::BodyModel),
-    Hml3d,
+    Hml3d(hml3d::Hml3dFolder),
 }
 
 fn read_unit(kind: &Reader, spec: &SourceSpec, path: &Path) -> Vec<Result<RawClip, Reject>> {
+    // Ids come from the path inside the source folder, so equal file names in different
+    // sub-folders (AMASS subjects) stay distinct.
+    let rel = path.strip_prefix(&spec.path).unwrap_or(path);
+    let rel = if rel.as_os_str().is_empty() {
+        Path::new(path.file_name().unwrap_or_default())
+    } else {
+        rel
+    };
     match kind {
-        Reader::Bvh(map) => vec![bvh::read_clip(path, *map)],
-        Reader::Joints(fps) => vec![joints::read_clip(path, *fps)],
-        Reader::Amass(model) => vec![amass::read_clip(path, model)],
-        Reader::Hml3d => match hml3d::read_folder(&spec.path) {
-            Ok(clips) => clips,
-            Err(e) => vec![Err(e)],
-        },
+        Reader::Bvh(map) => vec![bvh::read_clip(path, rel, *map)],
+        Reader::Joints(fps) => vec![joints::read_clip(path, rel, *fps)],
+        Reader::Amass(model) => vec![amass::read_clip(path, rel, model)],
+        Reader::Hml3d(folder) => folder.read_clips(path),
     }
 }
 
@@ -447,7 +451,7 @@ fn process_unit(kind: &Reader, spec: &SourceSpec, path: &Path, opts: &IngestOpti
     };
     for result in read_unit(kind, spec, path) {
         let clip = result.and_then(|mut clip| {
-            if !matches!(kind, Reader::Hml3d) {
+            if !matches!(kind, Reader::Hml3d(_)) {
                 attach_sidecars(&mut clip, path)?;
             }
             Ok(clip)
@@ -484,17 +488,19 @@ pub fn ingest(
     };
     let readers: Vec<Reader> = sources
         .iter()
-        .map(|s| match s.kind {
-            SourceKind::Bvh => Reader::Bvh(opts.map.as_ref()),
-            SourceKind::Joints => Reader::Joints(opts.src_fps),
-            SourceKind::Amass => Reader::Amass(body_model.as_ref().expect("loaded above")),
-            SourceKind::Hml3d => Reader::Hml3d,
+        .map(|s| {
+            Ok(match s.kind {
+                SourceKind::Bvh => Reader::Bvh(opts.map.as_ref()),
+                SourceKind::Joints => Reader::Joints(opts.src_fps),
+                SourceKind::Amass => Reader::Amass(body_model.as_ref().expect("loaded above")),
+                SourceKind::Hml3d => Reader::Hml3d(hml3d::Hml3dFolder::open(&s.path)?),
+            })
         })
-        .collect();
+        .collect::<Result<_, String>>()?;
     let mut units = Vec::new();
     let mut entries: Vec<SourceEntry> = Vec::new();
     for (i, spec) in sources.iter().enumerate() {
-        let files = discover(spec)?;
+        let files = discover(spec, &readers[i])?;
         entries.push(SourceEntry {
             kind: spec.kind.name().to_string(),
             path: spec.path.display().to_string(),

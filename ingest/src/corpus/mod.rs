@@ -45,3 +45,13 @@ pub struct ClipRecord {
     /// Whether this is a left/right mirrored copy.
     pub mirrored: bool,
 }
+
+impl ClipRecord {
+    /// The `joints` column as poses (num_frames + 1 frames).
+    pub fn poses(&self) -> Vec<crate::skeleton::Pose> {
+        self.joints
+            .chunks_exact(schema::JOINT_FRAME_DIM)
+            .map(|f| std::array::from_fn(|j| std::array::from_fn(|k| f[3 * j + k] as f64)))
+            .collect()
+    }
+}
