@@ -231,7 +231,10 @@ mod tests {
     fn between_matches_hand_computed_values() {
         // X → Y: axis = X × Y = Z, w = 1 + 0 → (1, 0, 0, 1)/√2.
         let h = 0.5f64.sqrt();
-        close(&between([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]), &[h, 0.0, 0.0, h]);
+        close(
+            &between([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]),
+            &[h, 0.0, 0.0, h],
+        );
         // Same direction, different lengths: identity.
         close(&between([0.0, 2.0, 0.0], [0.0, 3.0, 0.0]), &IDENTITY);
         let u = [0.2, 0.5, -0.7];
@@ -248,7 +251,12 @@ mod tests {
 
     #[test]
     fn matrix_round_trip() {
-        for v in [[0.3, -0.2, 0.9], [3.0, 0.0, 0.0], [0.0, -3.1, 0.1], [0.1, 0.1, -3.0]] {
+        for v in [
+            [0.3, -0.2, 0.9],
+            [3.0, 0.0, 0.0],
+            [0.0, -3.1, 0.1],
+            [0.1, 0.1, -3.0],
+        ] {
             let q = from_rotvec(v);
             let q = if q[0] < 0.0 { scale4(q, -1.0) } else { q };
             close(&from_matrix(to_matrix(q)), &q);
