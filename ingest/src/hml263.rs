@@ -131,11 +131,19 @@ fn gaussian_nearest(xs: &[f64], pad: &mut Vec<f64>, out: &mut [f64]) {
     pad.resize(RADIUS, first);
     pad.extend_from_slice(xs);
     pad.resize(n + 2 * RADIUS, last);
-    out.fill(0.0);
-    // Tap-outer order keeps the inner loop a contiguous, vectorisable axpy.
-    for (k, &w) in gaussian_kernel().iter().enumerate() {
-        for (o, &p) in out.iter_mut().zip(&pad[k..k + n]) {
-            *o += w * p;
+    let w = gaussian_kernel();
+    for (o, &p) in out.iter_mut().zip(&pad[RADIUS..RADIUS + n]) {
+        *o = w[RADIUS] * p;
+    }
+    // The kernel is symmetric: pair taps ±k. Tap-outer order keeps the inner loop a
+    // contiguous, vectorisable axpy.
+    for k in 1..=RADIUS {
+        let (lo, hi) = (
+            &pad[RADIUS - k..RADIUS - k + n],
+            &pad[RADIUS + k..RADIUS + k + n],
+        );
+        for ((o, &a), &b) in out.iter_mut().zip(lo).zip(hi) {
+            *o += w[RADIUS + k] * (a + b);
         }
     }
 }
@@ -203,7 +211,8 @@ fn between_dir(u: Vec3, v: Vec3) -> Quat {
     let w = if d >= 0.0 { n + d } else { a2 / (n - d) };
     let qn = (w * w + a2).sqrt();
     if qn > 0.0 {
-        [w / qn, a[0] / qn, a[1] / qn, a[2] / qn]
+        let k = 1.0 / qn;
+        [w * k, a[0] * k, a[1] * k, a[2] * k]
     } else {
         let (ax, ay, az) = (u[0].abs(), u[1].abs(), u[2].abs());
         let e = if ax <= ay && ax <= az {
@@ -246,7 +255,7 @@ fn bone_error(t: usize, p: usize, c: usize) -> String {
 
 /// Steps 1–2: validate, retarget to the target skeleton (bones rescaled along their
 /// directions, root × leg-length ratio) and lift the floor to y = 0.
-fn retarget(poses: &[Pose]) -> Result<Vec<Pose>, String> {
+fn retarget(poses: &[Pose], out: &mut Vec<Pose>) -> Result<(), String> {
     let first = &poses[0];
     let src_leg: f64 = LEG_JOINTS
         .iter()
@@ -254,7 +263,7 @@ fn retarget(poses: &[Pose]) -> Result<Vec<Pose>, String> {
         .sum();
     let tgt_leg: f64 = LEG_JOINTS.iter().map(|&j| TARGET_LENGTHS[j]).sum();
     let scale = tgt_leg / src_leg;
-    let mut out = Vec::with_capacity(poses.len());
+    out.clear();
     let mut floor = f64::INFINITY;
     for (t, src) in poses.iter().enumerate() {
         for (j, v) in src.iter().enumerate() {
@@ -278,62 +287,95 @@ fn retarget(poses: &[Pose]) -> Result<Vec<Pose>, String> {
         floor = dst.iter().fold(floor, |m, v| m.min(v[1]));
         out.push(dst);
     }
-    for pose in &mut out {
+    for pose in out.iter_mut() {
         pose.iter_mut().for_each(|v| v[1] -= floor);
     }
-    Ok(out)
+    Ok(())
 }
 
 /// Compute the HumanML3D 263-d features of a clip (T × 22 joint positions, metres, Y up).
 /// Errors: fewer than 2 frames, non-finite input (names the frame/joint), a zero-length bone,
 /// degenerate facing (zero across vector).
 pub fn process(poses: &[Pose], opts: &Hml263Options) -> Result<Hml263, String> {
-    let frames = poses.len();
-    if frames < 2 {
-        return Err(format!("need at least 2 frames, got {frames}"));
-    }
-    let mut joints = retarget(poses)?;
+    let mut out = Hml263 {
+        features: Vec::new(),
+        joints: Vec::new(),
+    };
+    Hml263Extractor::default().process_into(poses, opts, &mut out)?;
+    Ok(out)
+}
 
-    // Steps 3–4: frame-0 root to the XZ origin, frame 0 facing +Z (correct hip order here).
-    let (fx, fz) = facing(&joints[0], false)
-        .ok_or("frame 0: degenerate facing (across vector is zero)".to_string())?;
-    let face = Yaw::to_z(fx, fz)
-        .ok_or("frame 0: degenerate facing (across vector is vertical)".to_string())?
-        .cos_sin();
-    let (ox, oz) = (joints[0][0][0], joints[0][0][2]);
-    let quirk = !opts.fix_facing;
-    let mut fwd_x = Vec::with_capacity(frames);
-    let mut fwd_z = Vec::with_capacity(frames);
-    for (t, pose) in joints.iter_mut().enumerate() {
-        for v in pose.iter_mut() {
-            (v[0], v[2]) = yaw_xz(face, v[0] - ox, v[2] - oz);
+/// [`process`] with scratch buffers kept between clips, for callers that extract many clips
+/// on one thread (saves the allocations and page faults of fresh buffers).
+#[derive(Debug, Default)]
+pub struct Hml263Extractor {
+    fwd_x: Vec<f64>,
+    fwd_z: Vec<f64>,
+    smooth_x: Vec<f64>,
+    smooth_z: Vec<f64>,
+    pad: Vec<f64>,
+    root: Vec<Yaw>,
+}
+
+impl Hml263Extractor {
+    /// Like [`process`], but writes into `out`, reusing its vectors' capacity; on error `out`
+    /// holds partial results.
+    pub fn process_into(
+        &mut self,
+        poses: &[Pose],
+        opts: &Hml263Options,
+        out: &mut Hml263,
+    ) -> Result<(), String> {
+        let frames = poses.len();
+        if frames < 2 {
+            return Err(format!("need at least 2 frames, got {frames}"));
         }
-        let (x, z) = facing(pose, quirk)
-            .ok_or_else(|| format!("frame {t}: degenerate facing (across vector is zero)"))?;
-        fwd_x.push(x);
-        fwd_z.push(z);
-    }
+        let joints = &mut out.joints;
+        retarget(poses, joints)?;
 
-    // Step 6 root rotations: smoothed facing to +Z, frame 0 forced to identity.
-    let mut pad = Vec::with_capacity(frames + 2 * RADIUS);
-    let mut smooth_x = vec![0.0; frames];
-    let mut smooth_z = vec![0.0; frames];
-    gaussian_nearest(&fwd_x, &mut pad, &mut smooth_x);
-    gaussian_nearest(&fwd_z, &mut pad, &mut smooth_z);
-    let mut root = Vec::with_capacity(frames);
-    root.push(Yaw::IDENTITY);
-    for t in 1..frames {
-        root.push(Yaw::to_z(smooth_x[t], smooth_z[t]).ok_or_else(|| {
-            format!("frame {t}: degenerate facing (smoothed forward vector is zero)")
-        })?);
-    }
+        // Steps 3–4: frame-0 root to the XZ origin, frame 0 facing +Z (correct hip order here).
+        let (fx, fz) = facing(&joints[0], false)
+            .ok_or("frame 0: degenerate facing (across vector is zero)".to_string())?;
+        let face = Yaw::to_z(fx, fz)
+            .ok_or("frame 0: degenerate facing (across vector is vertical)".to_string())?
+            .cos_sin();
+        let (ox, oz) = (joints[0][0][0], joints[0][0][2]);
+        let quirk = !opts.fix_facing;
+        self.fwd_x.clear();
+        self.fwd_z.clear();
+        for (t, pose) in joints.iter_mut().enumerate() {
+            for v in pose.iter_mut() {
+                (v[0], v[2]) = yaw_xz(face, v[0] - ox, v[2] - oz);
+            }
+            let (x, z) = facing(pose, quirk)
+                .ok_or_else(|| format!("frame {t}: degenerate facing (across vector is zero)"))?;
+            self.fwd_x.push(x);
+            self.fwd_z.push(z);
+        }
 
-    let mut features = vec![0.0f32; (frames - 1) * FEATURE_DIM];
-    for (t, row) in features.chunks_exact_mut(FEATURE_DIM).enumerate() {
-        write_row(row, &joints[t], &joints[t + 1], root[t], root[t + 1], opts)
-            .map_err(|(p, c)| bone_error(t, p, c))?;
+        // Step 6 root rotations: smoothed facing to +Z, frame 0 forced to identity.
+        self.smooth_x.resize(frames, 0.0);
+        self.smooth_z.resize(frames, 0.0);
+        gaussian_nearest(&self.fwd_x, &mut self.pad, &mut self.smooth_x[..frames]);
+        gaussian_nearest(&self.fwd_z, &mut self.pad, &mut self.smooth_z[..frames]);
+        self.root.clear();
+        self.root.push(Yaw::IDENTITY);
+        for t in 1..frames {
+            let r = Yaw::to_z(self.smooth_x[t], self.smooth_z[t]).ok_or_else(|| {
+                format!("frame {t}: degenerate facing (smoothed forward vector is zero)")
+            })?;
+            self.root.push(r);
+        }
+
+        out.features.clear();
+        out.features.resize((frames - 1) * FEATURE_DIM, 0.0);
+        for (t, row) in out.features.chunks_exact_mut(FEATURE_DIM).enumerate() {
+            let (r, r_next) = (self.root[t], self.root[t + 1]);
+            write_row(row, &joints[t], &joints[t + 1], r, r_next, opts)
+                .map_err(|(p, c)| bone_error(t, p, c))?;
+        }
+        Ok(())
     }
-    Ok(Hml263 { features, joints })
 }
 
 /// Fill one feature row from frames t and t+1 and their root rotations; a zero-length
@@ -621,7 +663,8 @@ mod tests {
     #[test]
     fn retarget_equals_literal_ik_then_fk() {
         let poses = transform(&clip(12), quat::IDENTITY, [0.0, 0.0, 0.0], 1.17);
-        let ours = retarget(&poses).expect("retarget");
+        let mut ours = Vec::new();
+        retarget(&poses, &mut ours).expect("retarget");
         let floor = |ps: &[Pose]| {
             ps.iter()
                 .flat_map(|p| p.iter().map(|v| v[1]))
@@ -679,6 +722,18 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    #[test]
+    fn extractor_reuse_matches_fresh_process() {
+        let opts = Hml263Options::default();
+        let mut ex = Hml263Extractor::default();
+        let mut out = process(&clip(3), &opts).expect("warm-up");
+        for frames in [120, 7, 120, 2] {
+            let poses = clip(frames);
+            ex.process_into(&poses, &opts, &mut out).expect("reuse");
+            assert_eq!(out, process(&poses, &opts).expect("fresh"), "T={frames}");
         }
     }
 
