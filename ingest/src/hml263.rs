@@ -199,32 +199,34 @@ fn yaw_xz((c, s): (f64, f64), x: f64, z: f64) -> (f64, f64) {
     (c * x + s * z, c * z - s * x)
 }
 
-/// `between(u, v)` for a unit `u` and non-zero `v`, with the limiting half-turn (about an
-/// axis perpendicular to `u`) where `v` points exactly against `u`.
+/// `between(u, v)` before normalisation, for a unit `u` and a non-zero `v` of known length
+/// `n`: (|v| + u·v, u × v). Zero only where `v` points exactly against `u`.
 #[inline]
-fn between_dir(u: Vec3, v: Vec3) -> Quat {
-    let n = quat::norm(v);
+fn between_unnormalised(u: Vec3, v: Vec3, n: f64) -> Quat {
     let d = quat::dot(u, v);
     let a = quat::cross(u, v);
-    let a2 = quat::dot(a, a);
     // w = |v| + u·v, rewritten for u·v < 0 to avoid cancellation near the half-turn.
-    let w = if d >= 0.0 { n + d } else { a2 / (n - d) };
-    let qn = (w * w + a2).sqrt();
-    if qn > 0.0 {
-        let k = 1.0 / qn;
-        [w * k, a[0] * k, a[1] * k, a[2] * k]
+    let w = if d >= 0.0 {
+        n + d
     } else {
-        let (ax, ay, az) = (u[0].abs(), u[1].abs(), u[2].abs());
-        let e = if ax <= ay && ax <= az {
-            [1.0, 0.0, 0.0]
-        } else if ay <= az {
-            [0.0, 1.0, 0.0]
-        } else {
-            [0.0, 0.0, 1.0]
-        };
-        let p = quat::normalize(quat::cross(u, e));
-        [0.0, p[0], p[1], p[2]]
-    }
+        quat::dot(a, a) / (n - d)
+    };
+    [w, a[0], a[1], a[2]]
+}
+
+/// The limit of `between(u, v)` as `v` turns to −u (the reference divides 0 by 0 there): a
+/// half-turn about an axis perpendicular to the unit `u`.
+fn half_turn(u: Vec3) -> Quat {
+    let (ax, ay, az) = (u[0].abs(), u[1].abs(), u[2].abs());
+    let e = if ax <= ay && ax <= az {
+        [1.0, 0.0, 0.0]
+    } else if ay <= az {
+        [0.0, 1.0, 0.0]
+    } else {
+        [0.0, 0.0, 1.0]
+    };
+    let p = quat::normalize(quat::cross(u, e));
+    [0.0, p[0], p[1], p[2]]
 }
 
 /// Forward (x, z) of a pose from the normalised across vector (steps 4 and 6), or `None`
@@ -276,13 +278,19 @@ fn retarget(poses: &[Pose], out: &mut Vec<Pose>) -> Result<(), String> {
         }
         let mut dst = [[0.0; 3]; NUM_JOINTS];
         dst[0] = quat::scale(src[0], scale);
-        for &(p, c, _) in &BONES {
-            let d = quat::sub(src[c], src[p]);
-            let n = quat::norm(d);
-            if n == 0.0 {
+        // Bone vectors and their rescale factors first, in a branch-free pass whose square
+        // roots and divisions can overlap; a zero-length bone gives an infinite factor.
+        let mut bone = [[0.0; 3]; NUM_JOINTS - 1];
+        let mut factor = [0.0; NUM_JOINTS - 1];
+        for ((b, f), &(p, c, _)) in bone.iter_mut().zip(&mut factor).zip(&BONES) {
+            *b = quat::sub(src[c], src[p]);
+            *f = TARGET_LENGTHS[c] / quat::norm(*b);
+        }
+        for ((b, &f), &(p, c, _)) in bone.iter().zip(&factor).zip(&BONES) {
+            if f.is_infinite() {
                 return Err(bone_error(t, p, c));
             }
-            dst[c] = quat::add(dst[p], quat::scale(d, TARGET_LENGTHS[c] / n));
+            dst[c] = quat::add(dst[p], quat::scale(*b, f));
         }
         floor = dst.iter().fold(floor, |m, v| m.min(v[1]));
         out.push(dst);
@@ -371,23 +379,15 @@ impl Hml263Extractor {
         out.features.resize((frames - 1) * FEATURE_DIM, 0.0);
         for (t, row) in out.features.chunks_exact_mut(FEATURE_DIM).enumerate() {
             let (r, r_next) = (self.root[t], self.root[t + 1]);
-            write_row(row, &joints[t], &joints[t + 1], r, r_next, opts)
-                .map_err(|(p, c)| bone_error(t, p, c))?;
+            write_row(row, &joints[t], &joints[t + 1], r, r_next, opts);
         }
         Ok(())
     }
 }
 
-/// Fill one feature row from frames t and t+1 and their root rotations; a zero-length
-/// bone is reported as its (parent, child).
-fn write_row(
-    row: &mut [f32],
-    cur: &Pose,
-    next: &Pose,
-    r: Yaw,
-    r_next: Yaw,
-    opts: &Hml263Options,
-) -> Result<(), (usize, usize)> {
+/// Fill one feature row from frames t and t+1 (retargeted, so every bone has its target
+/// length) and their root rotations.
+fn write_row(row: &mut [f32], cur: &Pose, next: &Pose, r: Yaw, r_next: Yaw, opts: &Hml263Options) {
     // Step 7: angular velocity = arcsin of y of r[t+1] · r[t]⁻¹; linear velocity in r[t+1]'s frame.
     let dy = r_next.y * r.w - r_next.w * r.y;
     row[0] = dy.clamp(-1.0, 1.0).asin() as f32;
@@ -411,13 +411,24 @@ fn write_row(
     }
 
     // Step 6 locals: G_parent⁻¹ · G_child, with the root rotation at each chain start.
+    // Unnormalised bone rotations, then all their norms in one branch-free pass whose square
+    // roots and divisions can overlap.
+    let mut unnormalised = [[0.0; 4]; NUM_JOINTS - 1];
+    for (q, &(p, c, _)) in unnormalised.iter_mut().zip(&BONES) {
+        let v = quat::sub(cur[c], cur[p]);
+        *q = between_unnormalised(RAW_OFFSETS[c], v, TARGET_LENGTHS[c]);
+    }
+    let mut inv_norm = [0.0; NUM_JOINTS - 1];
+    for (k, q) in inv_norm.iter_mut().zip(&unnormalised) {
+        *k = 1.0 / (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    }
     let mut global = [quat::IDENTITY; NUM_JOINTS];
-    for &(p, c, chain_start) in &BONES {
-        let d = quat::sub(cur[c], cur[p]);
-        if quat::dot(d, d) == 0.0 {
-            return Err((p, c));
-        }
-        let g = between_dir(RAW_OFFSETS[c], d);
+    for ((q, &k), &(p, c, chain_start)) in unnormalised.iter().zip(&inv_norm).zip(&BONES) {
+        let g = if k.is_finite() {
+            q.map(|x| x * k)
+        } else {
+            half_turn(RAW_OFFSETS[c])
+        };
         let parent = if chain_start { r.quat() } else { global[p] };
         global[c] = g;
         let six = quat::to_rot6d(quat::mul(quat::inv(parent), g));
@@ -445,7 +456,6 @@ fn write_row(
             0.0
         };
     }
-    Ok(())
 }
 
 /// recover_from_ric: features (n×263 row-major) → n×22 joint positions. A trailing partial
@@ -600,10 +610,10 @@ mod tests {
     }
 
     #[test]
-    fn between_dir_matches_quat_between_and_handles_half_turns() {
+    fn bone_rotation_matches_quat_between_and_has_half_turn_limit() {
         for v in [[0.3, -0.9, 0.1], [0.0, -2.0, 0.0], [-0.2, 0.5, 1.5]] {
             let u = [0.0, -1.0, 0.0];
-            let a = between_dir(u, v);
+            let a = quat::qnormalize(between_unnormalised(u, v, quat::norm(v)));
             let b = quat::between(u, v);
             assert!(
                 a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-14),
@@ -611,7 +621,8 @@ mod tests {
             );
         }
         for u in [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]] {
-            let q = between_dir(u, quat::scale(u, -2.5));
+            assert_eq!(between_unnormalised(u, quat::scale(u, -2.5), 2.5), [0.0; 4]);
+            let q = half_turn(u);
             let r = quat::rot(q, u);
             assert!(quat::norm(quat::add(r, u)) < 1e-15, "{u:?} → {r:?}");
         }
