@@ -3,7 +3,8 @@
 //!
 //! The port is mathematically identical to the reference, with two simplifications that
 //! only change rounding: in step 1 the IK root rotation cancels in the FK (R · R⁻¹ · G), so
-//! retargeting reduces to rescaling every bone along its own direction; and in step 6 the
+//! retargeting reduces to rescaling every bone along its own direction (so step 1's hip
+//! order, quirky or fixed, cannot change the result); and in step 6 the
 //! chained local rotation `R⁻¹ · between(u, v)` is computed as `G_parent⁻¹ · G_child`, where
 //! G is the bone's global rotation `between(u, v)` (the chain start uses the root rotation).
 //! Where the reference divides 0 by 0 (a bone or the facing exactly opposite its target
@@ -50,7 +51,7 @@ const TAPS: usize = 2 * RADIUS + 1;
 pub struct Hml263Options {
     /// Foot-contact threshold on the squared per-frame displacement (m²); HumanML3D uses 0.002.
     pub feet_threshold: f64,
-    /// Use the anatomically correct hip order in the IK facing (not HumanML3D-compatible).
+    /// Use the anatomically correct hip order in the IK facing of step 6 (not HumanML3D-compatible).
     pub fix_facing: bool,
 }
 
