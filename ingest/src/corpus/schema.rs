@@ -3,8 +3,7 @@
 use arrow_schema::{DataType, Field, FieldRef, Schema};
 use std::sync::Arc;
 
-/// Number of f32 values per feature row.
-pub const FEATURE_DIM: usize = 263;
+pub use crate::hml263::FEATURE_DIM;
 /// Number of f32 values per joint frame (22 joints × xyz).
 pub const JOINT_FRAME_DIM: usize = 66;
 

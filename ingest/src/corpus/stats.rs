@@ -1,16 +1,7 @@
 //! Per-dimension feature mean and block-averaged std over the training split
 //! (HumanML3D's `Mean.npy`/`Std.npy` convention).
 
-/// Feature blocks whose std is replaced by the block average.
-pub const STD_BLOCKS: [(usize, usize); 7] = [
-    (0, 1),
-    (1, 3),
-    (3, 4),
-    (4, 67),
-    (67, 193),
-    (193, 259),
-    (259, 263),
-];
+use crate::hml263::BLOCKS;
 
 /// Running sums for the mean and (population) std of 263-d feature rows.
 #[derive(Debug, Clone)]
@@ -62,7 +53,7 @@ impl FeatureStats {
             .collect();
         let mut blocked = std.clone();
         let mut degenerate = Vec::new();
-        for &(a, b) in STD_BLOCKS.iter().filter(|(_, b)| *b <= self.dim) {
+        for &(a, b) in BLOCKS.iter().filter(|(_, b)| *b <= self.dim) {
             let avg = std[a..b].iter().sum::<f64>() / (b - a) as f64;
             let value = if avg > 0.0 {
                 avg
