@@ -136,7 +136,7 @@ fn channel_orders_layouts_and_number_formats_agree() {
 #[test]
 fn messy_whitespace_exponents_and_wrapped_values() {
     let text = "HIERARCHY\r\n\r\nROOT\tHips\r\n{\r\n\t OFFSET   0.0\t1E+1  -0.0\r\n\tCHANNELS 3 Xrotation Yrotation Zrotation\r\n\tEnd Site\r\n\t{\r\n\t\tOFFSET 0 1.5e0 0\r\n\t}\r\n}\r\n\r\nMOTION\r\nFrames:\t3\r\nFrame Time: 3.33333e-02\r\n0 0\r\n0\r\n  90 0 0  \r\n\r\n0 -9e1 0\r\n";
-    let b = bvh::parse(text).unwrap();
+    let b = bvh::parse(&format!("\u{feff}{text}")).unwrap();
     assert_eq!(b.num_frames(), 3);
     assert_eq!(b.joints[0].offset, [0.0, 10.0, 0.0]);
     let w = b.world_positions();
@@ -622,4 +622,24 @@ fn bandai_parse_matches_its_own_world_positions_frame_count() {
         .unwrap();
     assert_eq!(b.num_frames(), declared);
     assert_eq!(b.world_positions().len(), declared * b.joints.len());
+}
+
+#[test]
+fn huge_hierarchies_parse_in_linear_time() {
+    // 50,000 nested joints: no recursion to overflow the stack, no quadratic name checks.
+    let n = 50_000;
+    let mut text = String::from("HIERARCHY\nROOT j0 { OFFSET 0 0 0 CHANNELS 1 Xrotation\n");
+    for k in 1..n {
+        text.push_str(&format!(
+            "JOINT j{k} {{ OFFSET 0 1 0 CHANNELS 1 Zrotation\n"
+        ));
+    }
+    text.push_str(&"}".repeat(n));
+    text.push_str("\nMOTION\nFrames: 1\nFrame Time: 0.01\n");
+    text.push_str(&"0 ".repeat(n));
+    let start = std::time::Instant::now();
+    let b = bvh::parse(&text).unwrap();
+    let w = b.world_positions();
+    assert!(start.elapsed().as_secs_f64() < 5.0, "{:?}", start.elapsed());
+    close(w[n - 1], [0.0, (n - 1) as f64, 0.0], 1e-9);
 }

@@ -5,6 +5,7 @@
 use super::retarget::{self, RigMap};
 use super::{Labels, RawClip, Reject};
 use crate::quat::{self, Quat, Vec3};
+use std::collections::HashSet;
 use std::fmt;
 use std::path::Path;
 
@@ -395,6 +396,8 @@ pub fn parse(text: &str) -> Result<Bvh, BvhError> {
 
 /// Parse BVH bytes (ASCII is all the grammar needs; joint names are read as lossy UTF-8).
 pub fn parse_bytes(bytes: &[u8]) -> Result<Bvh, BvhError> {
+    // Some Windows exporters start the file with a UTF-8 byte order mark.
+    let bytes = bytes.strip_prefix(b"\xef\xbb\xbf").unwrap_or(bytes);
     let mut lx = Lexer::new(bytes);
     let joints = parse_hierarchy(&mut lx)?;
     let num_channels: usize = joints.iter().map(|j| j.channels.len()).sum();
@@ -440,6 +443,8 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
     lx.expect("HIERARCHY")?;
     let mut joints: Vec<BvhJoint> = Vec::new();
     let mut stack: Vec<Open> = Vec::new();
+    // A set, so a header with very many joints stays linear to check.
+    let mut names: HashSet<String> = HashSet::new();
     let mut channels = 0usize;
     loop {
         let Some((tok, line)) = lx.next() else {
@@ -469,7 +474,7 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
                     return err(nline, "missing joint name");
                 }
                 let name = String::from_utf8_lossy(name).into_owned();
-                if joints.iter().any(|j| j.name == name) {
+                if !names.insert(name.clone()) {
                     return err(nline, format!("duplicate joint name '{name}'"));
                 }
                 let open_line = lx.expect("{")?;
@@ -502,7 +507,7 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
                 }
                 open.has_end_site = true;
                 let name = format!("{}_End", joints[parent].name);
-                if joints.iter().any(|j| j.name == name) {
+                if !names.insert(name.clone()) {
                     return err(line, format!("duplicate joint name '{name}'"));
                 }
                 let open_line = lx.expect("{")?;
@@ -615,13 +620,15 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
                 }
                 return Ok(joints);
             }
-            _ if Channel::from_name(tok).is_some() => return err(
-                line,
-                format!(
+            _ if Channel::from_name(tok).is_some() => {
+                return err(
+                    line,
+                    format!(
                     "wrong channel count: channel name '{}' after the CHANNELS count was used up",
                     show(tok)
                 ),
-            ),
+                )
+            }
             _ => return err(line, format!("unexpected '{}' in the hierarchy", show(tok))),
         }
     }
