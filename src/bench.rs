@@ -2,7 +2,7 @@
 //! each printed beside the target or reference figure it is judged against.
 
 use anyhow::{bail, Context, Result};
-use ingest::hml263::{process, Hml263Options};
+use ingest::hml263::{Hml263, Hml263Extractor, Hml263Options};
 use ingest::pipeline::{IngestOptions, SourceKind, SourceSpec};
 use ingest::skeleton::{Pose, NUM_JOINTS};
 use std::path::{Path, PathBuf};
@@ -61,7 +61,10 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
     for a in &archives {
         extract(a, work.path())?;
     }
-    println!("extract: {:.2} s (tar --zstd, not part of the ingest figures)", t0.elapsed().as_secs_f64());
+    println!(
+        "extract: {:.2} s (tar --zstd, not part of the ingest figures)",
+        t0.elapsed().as_secs_f64()
+    );
 
     let mut sources = Vec::new();
     for entry in std::fs::read_dir(work.path())? {
@@ -108,11 +111,18 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
         .map(|f| std::array::from_fn(|j| [f[3 * j], f[3 * j + 1], f[3 * j + 2]]))
         .collect();
     let opts = Hml263Options::default();
+    let mut extractor = Hml263Extractor::default();
+    let mut out = Hml263 {
+        features: Vec::new(),
+        joints: Vec::new(),
+    };
     let t2 = Instant::now();
     let mut calls = 0u64;
     while t2.elapsed().as_secs_f64() < args.feature_seconds {
-        let out = process(std::hint::black_box(&poses), &opts).map_err(anyhow::Error::msg)?;
-        std::hint::black_box(out);
+        extractor
+            .process_into(std::hint::black_box(&poses), &opts, &mut out)
+            .map_err(anyhow::Error::msg)?;
+        std::hint::black_box(&out);
         calls += 1;
     }
     let fps = (calls as usize * poses.len()) as f64 / t2.elapsed().as_secs_f64();

@@ -32,7 +32,7 @@ pub struct IngestArgs {
     /// Reject clips with fewer feature frames than this (training stages filter further).
     #[arg(long, default_value_t = 20)]
     pub min_frames: usize,
-    /// Reject clips whose mean joint speed (m/s) is below this as static.
+    /// Reject clips whose fastest joint moves slower than this on average (m/s) as static.
     #[arg(long, default_value_t = DEFAULT_STATIC_THRESHOLD)]
     pub static_threshold: f64,
     /// Worker threads (default: all cores).
@@ -62,7 +62,7 @@ fn parse_source(s: &str) -> Result<SourceSpec, String> {
 /// Build the ingest options from the command line.
 pub fn ingest_options(args: &IngestArgs) -> Result<IngestOptions> {
     let map = match &args.map {
-        Some(p) => Some(RigMap::from_toml_file(p).map_err(anyhow::Error::msg)?),
+        Some(p) => Some(RigMap::load(p).map_err(anyhow::Error::msg)?),
         None => None,
     };
     Ok(IngestOptions {
@@ -94,9 +94,11 @@ fn thread_pool(workers: Option<usize>) -> Result<rayon::ThreadPool> {
 pub fn ingest(args: IngestArgs) -> Result<ExitCode> {
     let opts = ingest_options(&args)?;
     let bar = ProgressBar::new(0).with_style(
-        ProgressStyle::with_template("{spinner} ingest [{bar:30}] {pos}/{len} files {elapsed} eta {eta}")
-            .expect("template")
-            .progress_chars("=> "),
+        ProgressStyle::with_template(
+            "{spinner} ingest [{bar:30}] {pos}/{len} files {elapsed} eta {eta}",
+        )
+        .expect("template")
+        .progress_chars("=> "),
     );
     if args.json {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
@@ -245,7 +247,12 @@ pub fn export_bvh(dir: &Path, motion_id: &str, out: &Path) -> Result<ExitCode> {
     let poses = clip.poses();
     ingest::export::bvh::write_bvh_file(out, &poses, clip.fps as f64)
         .with_context(|| format!("writing {}", out.display()))?;
-    println!("wrote {} ({} frames at {} fps)", out.display(), poses.len(), clip.fps);
+    println!(
+        "wrote {} ({} frames at {} fps)",
+        out.display(),
+        poses.len(),
+        clip.fps
+    );
     Ok(ExitCode::SUCCESS)
 }
 
@@ -253,6 +260,10 @@ pub fn export_bvh(dir: &Path, motion_id: &str, out: &Path) -> Result<ExitCode> {
 pub fn demo(out: &Path) -> Result<ExitCode> {
     let files = ingest::demo::write_demo_inputs(out)
         .with_context(|| format!("writing demo inputs to {}", out.display()))?;
-    println!("wrote {} demo BVH clips (with caption sidecars) to {}", files.len(), out.display());
+    println!(
+        "wrote {} demo BVH clips (with caption sidecars) to {}",
+        files.len(),
+        out.display()
+    );
     Ok(ExitCode::SUCCESS)
 }

@@ -92,8 +92,7 @@ enum BenchCommand {
 fn main() -> ExitCode {
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| "warn".into()),
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),
         )
         .with_writer(std::io::stderr)
         .init();
@@ -102,7 +101,9 @@ fn main() -> ExitCode {
         Command::Ingest(args) => commands::ingest(args),
         Command::Corpus(CorpusCommand::Stats { corpus, json }) => commands::stats(&corpus, json),
         Command::Corpus(CorpusCommand::Verify { corpus, json }) => commands::verify(&corpus, json),
-        Command::Export(ExportCommand::Hml3d { corpus, out }) => commands::export_hml3d(&corpus, &out),
+        Command::Export(ExportCommand::Hml3d { corpus, out }) => {
+            commands::export_hml3d(&corpus, &out)
+        }
         Command::Export(ExportCommand::Bvh {
             corpus,
             motion_id,

@@ -31,27 +31,40 @@ fn both_bandai_archives_ingest_with_every_input_accounted_for() {
     for s in &sources {
         args.extend(["--source".to_string(), s.clone()]);
     }
-    args.extend(["--out".into(), corpus.display().to_string(), "--json".into()]);
+    args.extend([
+        "--out".into(),
+        corpus.display().to_string(),
+        "--json".into(),
+    ]);
     let out = motionscale(&args.iter().map(String::as_str).collect::<Vec<_>>());
     let exit = code(&out);
     assert!(exit == 0 || exit == 2, "{}", text(&out));
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(report["inputs"], 3076);
-    assert!(report["source_frames"].as_u64().unwrap() >= 416_845, "{report}");
+    assert!(
+        report["source_frames"].as_u64().unwrap() >= 416_845,
+        "{report}"
+    );
 
     let manifest: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(corpus.join("manifest.json")).unwrap()).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(corpus.join("manifest.json")).unwrap())
+            .unwrap();
     let ingested: u64 = manifest["sources"]
         .as_array()
         .unwrap()
         .iter()
         .map(|s| s["ingested_files"].as_u64().unwrap())
         .sum();
-    assert!(ingested as f64 >= 0.99 * 3076.0, "only {ingested} of 3076 files ingested");
+    assert!(
+        ingested as f64 >= 0.99 * 3076.0,
+        "only {ingested} of 3076 files ingested"
+    );
 
     // Every input file is in a shard or in the rejects, with a reason.
     let rejects = rejects(&corpus);
-    assert!(rejects.iter().all(|r| !r["reason"].as_str().unwrap().is_empty()));
+    assert!(rejects
+        .iter()
+        .all(|r| !r["reason"].as_str().unwrap().is_empty()));
     let listing = python(
         r#"
 import json, sys, pyarrow.parquet as pq
@@ -63,12 +76,18 @@ for s in json.load(open(f"{c}/manifest.json"))["shards"]:
         &[corpus.to_str().unwrap()],
     );
     let mut seen: HashSet<String> = listing.lines().map(str::to_string).collect();
-    seen.extend(rejects.iter().map(|r| r["path"].as_str().unwrap().to_string()));
+    seen.extend(
+        rejects
+            .iter()
+            .map(|r| r["path"].as_str().unwrap().to_string()),
+    );
     let mut missing = 0;
     for s in &sources {
         let root = s.trim_start_matches("bvh:");
         for entry in walk(std::path::Path::new(root)) {
-            if entry.extension().is_some_and(|e| e == "bvh") && !seen.contains(&entry.display().to_string()) {
+            if entry.extension().is_some_and(|e| e == "bvh")
+                && !seen.contains(&entry.display().to_string())
+            {
                 missing += 1;
             }
         }
@@ -79,7 +98,10 @@ for s in json.load(open(f"{c}/manifest.json"))["shards"]:
     let stats = motionscale(&["corpus", "stats", corpus.to_str().unwrap(), "--json"]);
     let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
     for scenario in ["locomotion", "greeting", "gesture", "fighting", "dance"] {
-        assert!(stats["by"]["scenario"][scenario]["clips"].as_u64().unwrap() > 0, "{scenario}");
+        assert!(
+            stats["by"]["scenario"][scenario]["clips"].as_u64().unwrap() > 0,
+            "{scenario}"
+        );
     }
     assert!(stats["by"]["emotion"]["anxious"]["clips"].as_u64().unwrap() > 0);
 

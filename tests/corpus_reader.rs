@@ -10,10 +10,18 @@ use ingest::corpus::Corpus;
 fn reader_gives_clips_by_id_and_reproducible_normalised_windows() {
     let tmp = tempfile::tempdir().unwrap();
     let inputs = tmp.path().join("inputs");
-    assert_eq!(code(&motionscale(&["demo", "--out", inputs.to_str().unwrap()])), 0);
+    assert_eq!(
+        code(&motionscale(&["demo", "--out", inputs.to_str().unwrap()])),
+        0
+    );
     let dir = tmp.path().join("corpus");
     let out = motionscale(&[
-        "ingest", "--source", &format!("bvh:{}", inputs.display()), "--out", dir.to_str().unwrap(), "--mirror",
+        "ingest",
+        "--source",
+        &format!("bvh:{}", inputs.display()),
+        "--out",
+        dir.to_str().unwrap(),
+        "--mirror",
     ]);
     assert_eq!(code(&out), 0, "{}", text(&out));
 
@@ -23,12 +31,22 @@ fn reader_gives_clips_by_id_and_reproducible_normalised_windows() {
     let clip = corpus.clip(i).unwrap();
     assert!(clip.mirrored);
     assert_eq!(clip.source_clip, "demo_wave");
-    assert!(clip.captions.iter().any(|c| c.contains("left hand")), "{:?}", clip.captions);
+    assert!(
+        clip.captions.iter().any(|c| c.contains("left hand")),
+        "{:?}",
+        clip.captions
+    );
     assert_eq!(clip.features, corpus.features(i).unwrap());
     assert_eq!(clip.num_frames as usize * FEATURE_DIM, clip.features.len());
     let original = corpus.clip(corpus.find("demo_wave").unwrap()).unwrap();
-    assert_eq!(original.split, clip.split, "mirrored copies share the split");
-    assert_eq!(original.num_frames, 79, "4 s at 30 fps → 80 frames at 20 fps → 79 feature rows");
+    assert_eq!(
+        original.split, clip.split,
+        "mirrored copies share the split"
+    );
+    assert_eq!(
+        original.num_frames, 79,
+        "4 s at 30 fps → 80 frames at 20 fps → 79 feature rows"
+    );
 
     let split = clip.split.clone();
     let mut a = corpus.window_sampler(&split, 64, 7);
@@ -51,6 +69,10 @@ fn reader_gives_clips_by_id_and_reproducible_normalised_windows() {
         }
     }
     let mut c = corpus.window_sampler(&split, 64, 8);
-    assert_ne!(c.sample(16).unwrap().1, oa, "another seed draws other windows");
+    assert_ne!(
+        c.sample(16).unwrap().1,
+        oa,
+        "another seed draws other windows"
+    );
     assert!(corpus.window_sampler(&split, 10_000, 1).sample(1).is_err());
 }

@@ -20,7 +20,15 @@ fn demo_corpus_end_to_end_and_byte_identical_rerun() {
     let corpus = tmp.path().join("corpus");
     let src = format!("bvh:{}", inputs.display());
     let run = |out: &Path| {
-        motionscale(&["ingest", "--source", &src, "--out", out.to_str().unwrap(), "--mirror", "--json"])
+        motionscale(&[
+            "ingest",
+            "--source",
+            &src,
+            "--out",
+            out.to_str().unwrap(),
+            "--mirror",
+            "--json",
+        ])
     };
     let out = run(&corpus);
     assert_eq!(code(&out), 0, "{}", text(&out));
@@ -30,7 +38,8 @@ fn demo_corpus_end_to_end_and_byte_identical_rerun() {
     assert_eq!(report["clips"], 12, "6 clips and their mirrored copies");
 
     let manifest: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(corpus.join("manifest.json")).unwrap()).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(corpus.join("manifest.json")).unwrap())
+            .unwrap();
     assert_eq!(manifest["feature_convention"], "humanml3d-263");
     assert_eq!(manifest["sources"][0]["files"], 6);
     assert_eq!(manifest["sources"][0]["ingested_files"], 6);
@@ -56,7 +65,12 @@ fn demo_corpus_end_to_end_and_byte_identical_rerun() {
 
     // HumanML3D layout loads with numpy with the HumanML3D shapes.
     let hml = tmp.path().join("hml3d");
-    let out = motionscale(&["export", "hml3d", corpus.to_str().unwrap(), hml.to_str().unwrap()]);
+    let out = motionscale(&[
+        "export",
+        "hml3d",
+        corpus.to_str().unwrap(),
+        hml.to_str().unwrap(),
+    ]);
     assert_eq!(code(&out), 0, "{}", text(&out));
     let check = r##"
 import sys, os, numpy as np
@@ -79,25 +93,52 @@ print("ok")
     // The export imports back (hml3d: source) with the same splits and the same features.
     let reimported = tmp.path().join("reimported");
     let out = motionscale(&[
-        "ingest", "--source", &format!("hml3d:{}", hml.display()), "--out", reimported.to_str().unwrap(),
+        "ingest",
+        "--source",
+        &format!("hml3d:{}", hml.display()),
+        "--out",
+        reimported.to_str().unwrap(),
     ]);
     assert_eq!(code(&out), 0, "{}", text(&out));
-    let (a, b) = (Corpus::open(&corpus).unwrap(), Corpus::open(&reimported).unwrap());
+    let (a, b) = (
+        Corpus::open(&corpus).unwrap(),
+        Corpus::open(&reimported).unwrap(),
+    );
     assert_eq!(b.clips().len(), 12);
     for id in ["demo_walk", "Mdemo_turn"] {
         let x = a.clip(a.find(id).unwrap()).unwrap();
         let y = b.clip(b.find(id).unwrap()).unwrap();
-        assert_eq!((x.split.as_str(), x.num_frames), (y.split.as_str(), y.num_frames));
-        let worst = x.features.iter().zip(&y.features).map(|(p, q)| (p - q).abs()).fold(0f32, f32::max);
+        assert_eq!(
+            (x.split.as_str(), x.num_frames),
+            (y.split.as_str(), y.num_frames)
+        );
+        let worst = x
+            .features
+            .iter()
+            .zip(&y.features)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0f32, f32::max);
         assert!(worst < 1e-3, "{id}: re-imported features differ by {worst}");
     }
 
     let bvh = tmp.path().join("walk.bvh");
-    let out = motionscale(&["export", "bvh", corpus.to_str().unwrap(), "demo_walk", bvh.to_str().unwrap()]);
+    let out = motionscale(&[
+        "export",
+        "bvh",
+        corpus.to_str().unwrap(),
+        "demo_walk",
+        bvh.to_str().unwrap(),
+    ]);
     assert_eq!(code(&out), 0, "{}", text(&out));
     let bvh_text = std::fs::read_to_string(&bvh).unwrap();
     assert!(bvh_text.starts_with("HIERARCHY") && bvh_text.contains("Frames: "));
-    let missing = motionscale(&["export", "bvh", corpus.to_str().unwrap(), "nope", bvh.to_str().unwrap()]);
+    let missing = motionscale(&[
+        "export",
+        "bvh",
+        corpus.to_str().unwrap(),
+        "nope",
+        bvh.to_str().unwrap(),
+    ]);
     assert_eq!(code(&missing), 1);
     assert!(text(&missing).contains("no clip with motion_id \"nope\""));
 }
@@ -110,35 +151,66 @@ fn bad_inputs_are_rejected_with_reasons_and_good_ones_kept() {
     let good = std::fs::read_to_string(inputs.join("demo_walk.bvh")).unwrap();
     let write = |name: &str, text: &str| std::fs::write(inputs.join(name), text).unwrap();
     write("bad_truncated.bvh", &good[..good.len() * 2 / 3]);
-    write("bad_text_number.bvh", &good.replacen("0.0000 95.0000", "0.0000 abc", 1));
+    write(
+        "bad_text_number.bvh",
+        &good.replacen("0.0000 93.1404", "0.0000 abc", 1),
+    );
     write(
         "bad_channels.bvh",
-        &good.replacen("CHANNELS 3 Zrotation Xrotation Yrotation", "CHANNELS 3 Zrotation Xrotation", 1),
+        &good.replacen(
+            "CHANNELS 3 Zrotation Xrotation Yrotation",
+            "CHANNELS 3 Zrotation Xrotation",
+            1,
+        ),
     );
     let header_end = good.find("Frames:").unwrap();
-    write("bad_zero_frames.bvh", &format!("{}Frames: 0\nFrame Time: 0.0333333\n", &good[..header_end]));
+    write(
+        "bad_zero_frames.bvh",
+        &format!("{}Frames: 0\nFrame Time: 0.0333333\n", &good[..header_end]),
+    );
     let mut lines: Vec<&str> = good.lines().collect();
-    let first_motion = lines.iter().position(|l| l.starts_with("Frame Time")).unwrap() + 5;
+    let first_motion = lines
+        .iter()
+        .position(|l| l.starts_with("Frame Time"))
+        .unwrap()
+        + 5;
     let nan_line = lines[first_motion].replacen("0.0000", "nan", 1);
     lines[first_motion] = &nan_line;
     write("bad_nan.bvh", &(lines.join("\n") + "\n"));
-    write("bad_unknown_rig.bvh", &good.replace("LeftUpLeg", "Thigh_A").replace("RightUpLeg", "Thigh_B"));
+    write(
+        "bad_unknown_rig.bvh",
+        &good
+            .replace("LeftUpLeg", "Thigh_A")
+            .replace("RightUpLeg", "Thigh_B"),
+    );
     std::fs::create_dir(inputs.join("bad_unreadable.bvh")).unwrap();
 
     let corpus = tmp.path().join("corpus");
     let out = motionscale(&[
-        "ingest", "--source", &format!("bvh:{}", inputs.display()), "--out", corpus.to_str().unwrap(), "--json",
+        "ingest",
+        "--source",
+        &format!("bvh:{}", inputs.display()),
+        "--out",
+        corpus.to_str().unwrap(),
+        "--json",
     ]);
     assert_eq!(code(&out), 2, "partial ingest exits 2: {}", text(&out));
     let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(report["clips"], 6, "every good clip is kept");
     let rejects = rejects(&corpus);
+    assert_eq!(
+        report["clips"], 6,
+        "every good clip is kept; rejects: {rejects:#?}"
+    );
     let reason = |file: &str| -> String {
         let r = rejects
             .iter()
             .find(|r| r["path"].as_str().unwrap().ends_with(file))
             .unwrap_or_else(|| panic!("{file} not in rejects: {rejects:?}"));
-        format!("{}: {}", r["stage"].as_str().unwrap(), r["reason"].as_str().unwrap())
+        format!(
+            "{}: {}",
+            r["stage"].as_str().unwrap(),
+            r["reason"].as_str().unwrap()
+        )
     };
     assert_eq!(rejects.len(), 7, "{rejects:#?}");
     let expect = [
@@ -166,7 +238,10 @@ fn static_and_short_clips_are_rejected_and_corruption_is_caught() {
     // A standing skeleton (HumanML3D target offsets stacked by parent) held still for 3 s.
     let mut pose = [[0f64; 3]; 22];
     for j in 1..22 {
-        pose[j] = ingest::quat::add(pose[ingest::skeleton::PARENTS[j]], ingest::skeleton::TARGET_OFFSETS[j]);
+        pose[j] = ingest::quat::add(
+            pose[ingest::skeleton::PARENTS[j]],
+            ingest::skeleton::TARGET_OFFSETS[j],
+        );
     }
     let pose: Vec<f32> = pose.iter().flatten().map(|&v| v as f32).collect();
     let still: Vec<f32> = (0..60).flat_map(|_| pose.iter().copied()).collect();
@@ -178,15 +253,35 @@ fn static_and_short_clips_are_rejected_and_corruption_is_caught() {
     let corpus = tmp.path().join("corpus");
     let out = motionscale(&[
         "ingest",
-        "--source", &format!("joints:{}", inputs.display()),
-        "--source", &format!("bvh:{}", demo.display()),
-        "--out", corpus.to_str().unwrap(),
+        "--source",
+        &format!("joints:{}", inputs.display()),
+        "--source",
+        &format!("bvh:{}", demo.display()),
+        "--out",
+        corpus.to_str().unwrap(),
     ]);
     assert_eq!(code(&out), 2, "{}", text(&out));
     let rejects = rejects(&corpus);
-    let find = |name: &str| rejects.iter().find(|r| r["path"].as_str().unwrap().ends_with(name)).unwrap();
-    assert!(find("still.npy")["reason"].as_str().unwrap().starts_with("static"));
-    assert!(find("short.npy")["reason"].as_str().unwrap().starts_with("too short"));
+    let find = |name: &str| {
+        rejects
+            .iter()
+            .find(|r| r["path"].as_str().unwrap().ends_with(name))
+            .unwrap()
+    };
+    assert!(find("still.npy")["reason"]
+        .as_str()
+        .unwrap()
+        .starts_with("static"));
+    assert!(
+        !rejects
+            .iter()
+            .any(|r| r["path"].as_str().unwrap().contains("demo_wave")),
+        "a one-arm wave is not static"
+    );
+    assert!(find("short.npy")["reason"]
+        .as_str()
+        .unwrap()
+        .starts_with("too short"));
 
     // Flip one byte in a shard: verify names the file and fails.
     let shard = corpus.join("shards/shard-00000.parquet");
@@ -196,5 +291,9 @@ fn static_and_short_clips_are_rejected_and_corruption_is_caught() {
     std::fs::write(&shard, bytes).unwrap();
     let verify = motionscale(&["corpus", "verify", corpus.to_str().unwrap()]);
     assert_eq!(code(&verify), 1);
-    assert!(text(&verify).contains("shard-00000.parquet: sha256"), "{}", text(&verify));
+    assert!(
+        text(&verify).contains("shard-00000.parquet: sha256"),
+        "{}",
+        text(&verify)
+    );
 }

@@ -14,36 +14,135 @@ struct RigJoint {
 
 // Rest pose: T-pose facing +Z, legs along −Y, arms along ±X (the CMU convention).
 const RIG: [RigJoint; 25] = [
-    RigJoint { name: "Hips", parent: None, offset: [0.0, 95.0, 0.0] },
-    RigJoint { name: "LHipJoint", parent: Some(0), offset: [9.0, -5.0, 0.0] },
-    RigJoint { name: "LeftUpLeg", parent: Some(1), offset: [0.0, -1.0, 0.0] },
-    RigJoint { name: "LeftLeg", parent: Some(2), offset: [0.0, -41.0, 0.0] },
-    RigJoint { name: "LeftFoot", parent: Some(3), offset: [0.0, -41.0, 0.0] },
-    RigJoint { name: "LeftToeBase", parent: Some(4), offset: [0.0, -7.0, 13.0] },
-    RigJoint { name: "RHipJoint", parent: Some(0), offset: [-9.0, -5.0, 0.0] },
-    RigJoint { name: "RightUpLeg", parent: Some(6), offset: [0.0, -1.0, 0.0] },
-    RigJoint { name: "RightLeg", parent: Some(7), offset: [0.0, -41.0, 0.0] },
-    RigJoint { name: "RightFoot", parent: Some(8), offset: [0.0, -41.0, 0.0] },
-    RigJoint { name: "RightToeBase", parent: Some(9), offset: [0.0, -7.0, 13.0] },
-    RigJoint { name: "LowerBack", parent: Some(0), offset: [0.0, 6.0, 0.0] },
-    RigJoint { name: "Spine", parent: Some(11), offset: [0.0, 12.0, 0.0] },
-    RigJoint { name: "Spine1", parent: Some(12), offset: [0.0, 14.0, 0.0] },
-    RigJoint { name: "Neck", parent: Some(13), offset: [0.0, 18.0, 0.0] },
-    RigJoint { name: "Neck1", parent: Some(14), offset: [0.0, 5.0, 0.0] },
-    RigJoint { name: "Head", parent: Some(15), offset: [0.0, 6.0, 2.0] },
-    RigJoint { name: "LeftShoulder", parent: Some(13), offset: [4.0, 16.0, 0.0] },
-    RigJoint { name: "LeftArm", parent: Some(17), offset: [13.0, 0.0, 0.0] },
-    RigJoint { name: "LeftForeArm", parent: Some(18), offset: [27.0, 0.0, 0.0] },
-    RigJoint { name: "LeftHand", parent: Some(19), offset: [25.0, 0.0, 0.0] },
-    RigJoint { name: "RightShoulder", parent: Some(13), offset: [-4.0, 16.0, 0.0] },
-    RigJoint { name: "RightArm", parent: Some(21), offset: [-13.0, 0.0, 0.0] },
-    RigJoint { name: "RightForeArm", parent: Some(22), offset: [-27.0, 0.0, 0.0] },
-    RigJoint { name: "RightHand", parent: Some(23), offset: [-25.0, 0.0, 0.0] },
+    RigJoint {
+        name: "Hips",
+        parent: None,
+        offset: [0.0, 95.0, 0.0],
+    },
+    RigJoint {
+        name: "LHipJoint",
+        parent: Some(0),
+        offset: [9.0, -5.0, 0.0],
+    },
+    RigJoint {
+        name: "LeftUpLeg",
+        parent: Some(1),
+        offset: [0.0, -1.0, 0.0],
+    },
+    RigJoint {
+        name: "LeftLeg",
+        parent: Some(2),
+        offset: [0.0, -41.0, 0.0],
+    },
+    RigJoint {
+        name: "LeftFoot",
+        parent: Some(3),
+        offset: [0.0, -41.0, 0.0],
+    },
+    RigJoint {
+        name: "LeftToeBase",
+        parent: Some(4),
+        offset: [0.0, -7.0, 13.0],
+    },
+    RigJoint {
+        name: "RHipJoint",
+        parent: Some(0),
+        offset: [-9.0, -5.0, 0.0],
+    },
+    RigJoint {
+        name: "RightUpLeg",
+        parent: Some(6),
+        offset: [0.0, -1.0, 0.0],
+    },
+    RigJoint {
+        name: "RightLeg",
+        parent: Some(7),
+        offset: [0.0, -41.0, 0.0],
+    },
+    RigJoint {
+        name: "RightFoot",
+        parent: Some(8),
+        offset: [0.0, -41.0, 0.0],
+    },
+    RigJoint {
+        name: "RightToeBase",
+        parent: Some(9),
+        offset: [0.0, -7.0, 13.0],
+    },
+    RigJoint {
+        name: "LowerBack",
+        parent: Some(0),
+        offset: [0.0, 6.0, 0.0],
+    },
+    RigJoint {
+        name: "Spine",
+        parent: Some(11),
+        offset: [0.0, 12.0, 0.0],
+    },
+    RigJoint {
+        name: "Spine1",
+        parent: Some(12),
+        offset: [0.0, 14.0, 0.0],
+    },
+    RigJoint {
+        name: "Neck",
+        parent: Some(13),
+        offset: [0.0, 18.0, 0.0],
+    },
+    RigJoint {
+        name: "Neck1",
+        parent: Some(14),
+        offset: [0.0, 5.0, 0.0],
+    },
+    RigJoint {
+        name: "Head",
+        parent: Some(15),
+        offset: [0.0, 6.0, 2.0],
+    },
+    RigJoint {
+        name: "LeftShoulder",
+        parent: Some(13),
+        offset: [4.0, 16.0, 0.0],
+    },
+    RigJoint {
+        name: "LeftArm",
+        parent: Some(17),
+        offset: [13.0, 0.0, 0.0],
+    },
+    RigJoint {
+        name: "LeftForeArm",
+        parent: Some(18),
+        offset: [27.0, 0.0, 0.0],
+    },
+    RigJoint {
+        name: "LeftHand",
+        parent: Some(19),
+        offset: [25.0, 0.0, 0.0],
+    },
+    RigJoint {
+        name: "RightShoulder",
+        parent: Some(13),
+        offset: [-4.0, 16.0, 0.0],
+    },
+    RigJoint {
+        name: "RightArm",
+        parent: Some(21),
+        offset: [-13.0, 0.0, 0.0],
+    },
+    RigJoint {
+        name: "RightForeArm",
+        parent: Some(22),
+        offset: [-27.0, 0.0, 0.0],
+    },
+    RigJoint {
+        name: "RightHand",
+        parent: Some(23),
+        offset: [-25.0, 0.0, 0.0],
+    },
 ];
 
 fn index(name: &str) -> usize {
-    RIG
-        .iter()
+    RIG.iter()
         .position(|j| j.name == name)
         .expect("demo rig joint")
 }
@@ -77,7 +176,11 @@ fn walk_like(t: f64, speed: f64, cadence: f64, swing: f64) -> Frame {
     let mut f = rest();
     let phase = TAU * cadence * t;
     let (s, c) = phase.sin_cos();
-    f.root = [0.0, 95.0 - 2.0 * (2.0 * phase).cos().abs(), speed * 100.0 * t];
+    f.root = [
+        0.0,
+        95.0 - 2.0 * (2.0 * phase).cos().abs(),
+        speed * 100.0 * t,
+    ];
     // Negative rotation about X swings a downward leg forward (+Z).
     f.angles[index("LeftUpLeg")][0] = -swing * s;
     f.angles[index("RightUpLeg")][0] = swing * s;
@@ -109,7 +212,10 @@ fn squat(t: f64) -> Frame {
     let depth = 0.5 - 0.5 * (TAU * 0.4 * t).cos();
     f.root[1] = 95.0 - 35.0 * depth;
     f.root[2] = -10.0 * depth;
-    for (hip, knee, foot) in [("LeftUpLeg", "LeftLeg", "LeftFoot"), ("RightUpLeg", "RightLeg", "RightFoot")] {
+    for (hip, knee, foot) in [
+        ("LeftUpLeg", "LeftLeg", "LeftFoot"),
+        ("RightUpLeg", "RightLeg", "RightFoot"),
+    ] {
         f.angles[index(hip)][0] = -80.0 * depth;
         f.angles[index(knee)][0] = 110.0 * depth;
         f.angles[index(foot)][0] = -30.0 * depth;
@@ -150,12 +256,57 @@ fn turn(t: f64) -> Frame {
 }
 
 const MOTIONS: [Motion; 6] = [
-    Motion { name: "demo_walk", captions: &["a person walks forward at a steady pace.", "someone strolls straight ahead."], seconds: 6.0, pose: walk },
-    Motion { name: "demo_run", captions: &["a person runs forward.", "someone jogs quickly ahead."], seconds: 4.0, pose: run },
-    Motion { name: "demo_wave", captions: &["a person raises the right hand and waves.", "someone waves hello with the right arm."], seconds: 4.0, pose: wave },
-    Motion { name: "demo_squat", captions: &["a person squats down and stands back up.", "someone does deep knee bends."], seconds: 5.0, pose: squat },
-    Motion { name: "demo_jump", captions: &["a person jumps up in place twice.", "someone hops straight up."], seconds: 3.0, pose: jump },
-    Motion { name: "demo_turn", captions: &["a person turns around in place to the left.", "someone steps around turning left."], seconds: 4.0, pose: turn },
+    Motion {
+        name: "demo_walk",
+        captions: &[
+            "a person walks forward at a steady pace.",
+            "someone strolls straight ahead.",
+        ],
+        seconds: 6.0,
+        pose: walk,
+    },
+    Motion {
+        name: "demo_run",
+        captions: &["a person runs forward.", "someone jogs quickly ahead."],
+        seconds: 4.0,
+        pose: run,
+    },
+    Motion {
+        name: "demo_wave",
+        captions: &[
+            "a person raises the right hand and waves.",
+            "someone waves hello with the right arm.",
+        ],
+        seconds: 4.0,
+        pose: wave,
+    },
+    Motion {
+        name: "demo_squat",
+        captions: &[
+            "a person squats down and stands back up.",
+            "someone does deep knee bends.",
+        ],
+        seconds: 5.0,
+        pose: squat,
+    },
+    Motion {
+        name: "demo_jump",
+        captions: &[
+            "a person jumps up in place twice.",
+            "someone hops straight up.",
+        ],
+        seconds: 3.0,
+        pose: jump,
+    },
+    Motion {
+        name: "demo_turn",
+        captions: &[
+            "a person turns around in place to the left.",
+            "someone steps around turning left.",
+        ],
+        seconds: 4.0,
+        pose: turn,
+    },
 ];
 
 /// Demo frame rate (not 20, so the demo exercises resampling).
@@ -165,17 +316,37 @@ fn hierarchy(out: &mut String, j: usize, depth: usize) {
     let all = &RIG;
     let pad = "  ".repeat(depth);
     let joint = &all[j];
-    let kw = if joint.parent.is_none() { "ROOT" } else { "JOINT" };
-    let [x, y, z] = if joint.parent.is_none() { [0.0; 3] } else { joint.offset };
-    let _ = writeln!(out, "{pad}{kw} {}\n{pad}{{\n{pad}  OFFSET {x:.4} {y:.4} {z:.4}", joint.name);
+    let kw = if joint.parent.is_none() {
+        "ROOT"
+    } else {
+        "JOINT"
+    };
+    let [x, y, z] = if joint.parent.is_none() {
+        [0.0; 3]
+    } else {
+        joint.offset
+    };
+    let _ = writeln!(
+        out,
+        "{pad}{kw} {}\n{pad}{{\n{pad}  OFFSET {x:.4} {y:.4} {z:.4}",
+        joint.name
+    );
     if joint.parent.is_none() {
-        let _ = writeln!(out, "{pad}  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation");
+        let _ = writeln!(
+            out,
+            "{pad}  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation"
+        );
     } else {
         let _ = writeln!(out, "{pad}  CHANNELS 3 Zrotation Xrotation Yrotation");
     }
-    let children: Vec<usize> = (0..all.len()).filter(|&c| all[c].parent == Some(j)).collect();
+    let children: Vec<usize> = (0..all.len())
+        .filter(|&c| all[c].parent == Some(j))
+        .collect();
     if children.is_empty() {
-        let _ = writeln!(out, "{pad}  End Site\n{pad}  {{\n{pad}    OFFSET 0.0 2.0 0.0\n{pad}  }}");
+        let _ = writeln!(
+            out,
+            "{pad}  End Site\n{pad}  {{\n{pad}    OFFSET 0.0 2.0 0.0\n{pad}  }}"
+        );
     }
     for c in children {
         hierarchy(out, c, depth + 1);
@@ -196,7 +367,11 @@ fn bvh_text(motion: &Motion) -> String {
     let mut text = String::from("HIERARCHY\n");
     hierarchy(&mut text, 0, 0);
     let frames = (motion.seconds * DEMO_FPS) as usize;
-    let _ = writeln!(text, "MOTION\nFrames: {frames}\nFrame Time: {:.8}", 1.0 / DEMO_FPS);
+    let _ = writeln!(
+        text,
+        "MOTION\nFrames: {frames}\nFrame Time: {:.8}",
+        1.0 / DEMO_FPS
+    );
     let mut order = Vec::new();
     dfs_order(0, &mut order);
     for k in 0..frames {

@@ -1,12 +1,14 @@
 //! The ingest pipeline: discover inputs → read (per source kind) → resample → segment →
 //! mirror → HumanML3D-263 → filter → sorted Parquet shards, stats, manifest and rejects.
 
-use crate::corpus::manifest::{BuildOptions, Manifest, ShardEntry, SourceEntry, FORMAT, FORMAT_VERSION};
+use crate::corpus::manifest::{
+    BuildOptions, Manifest, ShardEntry, SourceEntry, FORMAT, FORMAT_VERSION,
+};
 use crate::corpus::split::{split_of, SPLITS};
 use crate::corpus::stats::FeatureStats;
 use crate::corpus::writer::write_shard;
 use crate::corpus::ClipRecord;
-use crate::hml263::{self, Hml263Options, FEATURE_DIM};
+use crate::hml263::{Hml263, Hml263Extractor, Hml263Options, FEATURE_DIM};
 use crate::resample::resample;
 use crate::skeleton::{mirror_pose, Pose};
 use crate::source::retarget::RigMap;
@@ -63,9 +65,9 @@ impl FromStr for SourceSpec {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, String> {
-        let (kind, path) = s
-            .split_once(':')
-            .ok_or_else(|| format!("source {s:?} is not KIND:PATH (kinds: bvh, joints, amass, hml3d)"))?;
+        let (kind, path) = s.split_once(':').ok_or_else(|| {
+            format!("source {s:?} is not KIND:PATH (kinds: bvh, joints, amass, hml3d)")
+        })?;
         let kind = match kind {
             "bvh" => SourceKind::Bvh,
             "joints" => SourceKind::Joints,
@@ -98,7 +100,7 @@ pub struct IngestOptions {
     pub max_seconds: f64,
     /// Clips with fewer feature rows are rejected.
     pub min_frames: usize,
-    /// Mean joint speed (m/s) under which a clip is rejected as static.
+    /// Mean speed (m/s) of the fastest joint under which a clip is rejected as static.
     pub static_threshold: f64,
     /// HumanML3D feature options.
     pub features: Hml263Options,
@@ -129,10 +131,10 @@ impl Default for IngestOptions {
     }
 }
 
-/// Default static-clip threshold: mean joint speed in m/s. A person standing still
-/// (breathing, sway) stays under ~0.02 m/s; the slowest real gestures measured in the
-/// Bandai set are far above it.
-pub const DEFAULT_STATIC_THRESHOLD: f64 = 0.02;
+/// Default static-clip threshold (m/s) on the mean speed of a clip's fastest joint. Standing
+/// still (breathing, sway) stays around 0.01–0.02 m/s; the slowest clip of the Bandai set
+/// (a sad bow) measures 0.135 m/s, a single waving hand far more.
+pub const DEFAULT_STATIC_THRESHOLD: f64 = 0.05;
 
 /// One line of `rejects.jsonl`.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, serde::Deserialize)]
@@ -286,33 +288,35 @@ fn first_non_finite(poses: &[Pose]) -> Option<(usize, usize)> {
     })
 }
 
-/// Mean joint speed in m/s over a clip.
-pub fn mean_joint_speed(poses: &[Pose], fps: f64) -> f64 {
+/// Mean speed (m/s) of the clip's fastest joint: the static-clip measure. A mean over all
+/// joints would call one-handed gestures static; the fastest joint does not.
+pub fn fastest_joint_speed(poses: &[Pose], fps: f64) -> f64 {
     if poses.len() < 2 {
         return 0.0;
     }
-    let total: f64 = poses
-        .windows(2)
-        .map(|w| {
-            w[0].iter()
-                .zip(&w[1])
-                .map(|(a, b)| crate::quat::norm(crate::quat::sub(*b, *a)))
-                .sum::<f64>()
-        })
-        .sum();
-    total * fps / ((poses.len() - 1) * crate::skeleton::NUM_JOINTS) as f64
+    let mut per_joint = [0.0f64; crate::skeleton::NUM_JOINTS];
+    for w in poses.windows(2) {
+        for (acc, (a, b)) in per_joint.iter_mut().zip(w[0].iter().zip(&w[1])) {
+            *acc += crate::quat::norm(crate::quat::sub(*b, *a));
+        }
+    }
+    let steps = (poses.len() - 1) as f64;
+    per_joint.iter().fold(0.0f64, |m, &d| m.max(d)) * fps / steps
 }
 
 /// Balanced consecutive segments of `rows` feature rows, none longer than `max_rows`:
 /// returns (first joint frame, last joint frame inclusive) per segment.
 fn segments(rows: usize, max_rows: usize) -> Vec<(usize, usize)> {
     let n = rows.div_ceil(max_rows.max(1)).max(1);
-    (0..n)
-        .map(|k| (k * rows / n, (k + 1) * rows / n))
-        .collect()
+    (0..n).map(|k| (k * rows / n, (k + 1) * rows / n)).collect()
 }
 
-fn clip_records(raw: &RawClip, opts: &IngestOptions, out: &mut UnitOutcome) {
+fn clip_records(
+    raw: &RawClip,
+    opts: &IngestOptions,
+    extractor: &mut Hml263Extractor,
+    out: &mut UnitOutcome,
+) {
     let reject = |clip: &str, r: Reject| RejectRecord {
         path: raw.source_path.display().to_string(),
         source: raw.source.clone(),
@@ -334,7 +338,7 @@ fn clip_records(raw: &RawClip, opts: &IngestOptions, out: &mut UnitOutcome) {
         let r = Reject::new(
             "filter",
             format!(
-                "too short: {rows} frames at {} fps after resampling from {} source frames at {} fps (minimum {})",
+                "too short: {rows} frames at {} fps after resampling from {} source frames at {:.2} fps (minimum {})",
                 opts.fps,
                 raw.poses.len(),
                 raw.fps,
@@ -358,36 +362,49 @@ fn clip_records(raw: &RawClip, opts: &IngestOptions, out: &mut UnitOutcome) {
             format!("{}_s{k:02}", raw.clip_id)
         };
         let segment = &poses[a..=b];
-        let speed = mean_joint_speed(segment, opts.fps);
+        let speed = fastest_joint_speed(segment, opts.fps);
         if speed < opts.static_threshold {
             let r = Reject::new(
                 "filter",
                 format!(
-                    "static: mean joint speed {speed:.4} m/s below {} m/s",
+                    "static: the fastest joint moves {speed:.4} m/s on average, below {} m/s",
                     opts.static_threshold
                 ),
             );
             out.rejects.push(reject(&id, r));
             continue;
         }
-        let variants: &[bool] = if opts.mirror { &[false, true] } else { &[false] };
+        let variants: &[bool] = if opts.mirror {
+            &[false, true]
+        } else {
+            &[false]
+        };
         for &mirrored in variants {
-            let motion_id = if mirrored { format!("M{id}") } else { id.clone() };
+            let motion_id = if mirrored {
+                format!("M{id}")
+            } else {
+                id.clone()
+            };
             let input: Vec<Pose> = if mirrored {
                 segment.iter().map(mirror_pose).collect()
             } else {
                 segment.to_vec()
             };
-            let result = hml263::process(&input, &opts.features);
-            let feats = match result {
-                Ok(f) if f.features.iter().all(|v| v.is_finite()) => f,
+            let mut feats = Hml263 {
+                features: Vec::new(),
+                joints: Vec::new(),
+            };
+            let result = extractor.process_into(&input, &opts.features, &mut feats);
+            match result {
+                Ok(()) if feats.features.iter().all(|v| v.is_finite()) => {}
                 Ok(_) => {
                     let r = Reject::new("features", "non-finite feature values");
                     out.rejects.push(reject(&motion_id, r));
                     continue;
                 }
                 Err(e) => {
-                    out.rejects.push(reject(&motion_id, Reject::new("features", e)));
+                    out.rejects
+                        .push(reject(&motion_id, Reject::new("features", e)));
                     continue;
                 }
             };
@@ -444,7 +461,13 @@ fn read_unit(kind: &Reader, spec: &SourceSpec, path: &Path) -> Vec<Result<RawCli
     }
 }
 
-fn process_unit(kind: &Reader, spec: &SourceSpec, path: &Path, opts: &IngestOptions) -> UnitOutcome {
+fn process_unit(
+    kind: &Reader,
+    spec: &SourceSpec,
+    path: &Path,
+    opts: &IngestOptions,
+    extractor: &mut Hml263Extractor,
+) -> UnitOutcome {
     let mut out = UnitOutcome {
         bytes: std::fs::metadata(path).map(|m| m.len()).unwrap_or(0),
         ..Default::default()
@@ -459,7 +482,7 @@ fn process_unit(kind: &Reader, spec: &SourceSpec, path: &Path, opts: &IngestOpti
         match clip {
             Ok(clip) => {
                 out.source_frames += clip.poses.len() as u64;
-                clip_records(&clip, opts, &mut out);
+                clip_records(&clip, opts, extractor, &mut out);
             }
             Err(r) => out.rejects.push(RejectRecord {
                 path: path.display().to_string(),
@@ -481,7 +504,10 @@ pub fn ingest(
     opts: &IngestOptions,
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<IngestReport, String> {
-    let body_model = match (&opts.body_model, sources.iter().any(|s| s.kind == SourceKind::Amass)) {
+    let body_model = match (
+        &opts.body_model,
+        sources.iter().any(|s| s.kind == SourceKind::Amass),
+    ) {
         (Some(p), true) => Some(amass::BodyModel::load(p)?),
         (None, true) => return Err("amass sources need --body-model FILE.npz".into()),
         _ => None,
@@ -513,8 +539,14 @@ pub fn ingest(
     let done = std::sync::atomic::AtomicU64::new(0);
     let outcomes: Vec<UnitOutcome> = units
         .par_iter()
-        .map(|u| {
-            let o = process_unit(&readers[u.source], &sources[u.source], &u.path, opts);
+        .map_init(Hml263Extractor::default, |extractor, u| {
+            let o = process_unit(
+                &readers[u.source],
+                &sources[u.source],
+                &u.path,
+                opts,
+                extractor,
+            );
             let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
             progress(n, total);
             o
@@ -544,7 +576,10 @@ pub fn ingest(
                     source: r.source.clone(),
                     clip: Some(r.motion_id.clone()),
                     stage: "dedupe".into(),
-                    reason: format!("motion id {} already taken by an earlier input", r.motion_id),
+                    reason: format!(
+                        "motion id {} already taken by an earlier input",
+                        r.motion_id
+                    ),
                 });
             }
             fresh
@@ -594,7 +629,9 @@ fn write_corpus(
         let path = entry.map_err(io(&shard_dir))?.path();
         let rel = format!(
             "shards/{}",
-            path.file_name().and_then(|n| n.to_str()).unwrap_or_default()
+            path.file_name()
+                .and_then(|n| n.to_str())
+                .unwrap_or_default()
         );
         if path.extension().is_some_and(|e| e == "parquet") && !keep.contains(&rel) {
             std::fs::remove_file(&path).map_err(io(&path))?;
@@ -608,8 +645,10 @@ fn write_corpus(
         .for_each(|r| stats.add(&r.features));
     let (mean, std, degenerate) = stats.finish();
     let stats_dir = out_dir.join("stats");
-    crate::npy::write_f32(&stats_dir.join("mean.npy"), &[FEATURE_DIM], &mean).map_err(io(&stats_dir))?;
-    crate::npy::write_f32(&stats_dir.join("std.npy"), &[FEATURE_DIM], &std).map_err(io(&stats_dir))?;
+    crate::npy::write_f32(&stats_dir.join("mean.npy"), &[FEATURE_DIM], &mean)
+        .map_err(io(&stats_dir))?;
+    crate::npy::write_f32(&stats_dir.join("std.npy"), &[FEATURE_DIM], &std)
+        .map_err(io(&stats_dir))?;
     let stats_json = serde_json::json!({
         "split": "train",
         "rows": stats.rows(),
@@ -620,7 +659,9 @@ fn write_corpus(
     });
     crate::npy::write_atomic(
         &stats_dir.join("stats.json"),
-        serde_json::to_string_pretty(&stats_json).expect("json").as_bytes(),
+        serde_json::to_string_pretty(&stats_json)
+            .expect("json")
+            .as_bytes(),
     )
     .map_err(io(&stats_dir))?;
 
@@ -695,8 +736,14 @@ mod tests {
         let s: SourceSpec = "bvh:data/mocap".parse().unwrap();
         assert_eq!(s.kind, SourceKind::Bvh);
         assert_eq!(s.path, PathBuf::from("data/mocap"));
-        assert!("fbx:x".parse::<SourceSpec>().unwrap_err().contains("unknown source kind"));
-        assert!("nocolon".parse::<SourceSpec>().unwrap_err().contains("KIND:PATH"));
+        assert!("fbx:x"
+            .parse::<SourceSpec>()
+            .unwrap_err()
+            .contains("unknown source kind"));
+        assert!("nocolon"
+            .parse::<SourceSpec>()
+            .unwrap_err()
+            .contains("KIND:PATH"));
     }
 
     #[test]

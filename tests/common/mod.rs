@@ -15,7 +15,9 @@ pub fn motionscale(args: &[&str]) -> Output {
 
 /// Exit code of a finished command, with its output in the panic message if it was killed.
 pub fn code(out: &Output) -> i32 {
-    out.status.code().unwrap_or_else(|| panic!("killed: {}", text(out)))
+    out.status
+        .code()
+        .unwrap_or_else(|| panic!("killed: {}", text(out)))
 }
 
 /// stdout and stderr of a command as text.
@@ -76,7 +78,11 @@ pub fn corpus_bytes(corpus: &Path) -> Vec<(String, Vec<u8>)> {
     files
         .into_iter()
         .map(|p| {
-            let name = p.strip_prefix(corpus).expect("inside").display().to_string();
+            let name = p
+                .strip_prefix(corpus)
+                .expect("inside")
+                .display()
+                .to_string();
             (name, std::fs::read(&p).expect("readable"))
         })
         .collect()

@@ -50,7 +50,7 @@ pub struct BuildOptions {
     pub max_seconds: f64,
     /// Shortest clip kept, in feature rows.
     pub min_frames: usize,
-    /// Mean joint speed (m/s) under which a clip is rejected as static.
+    /// Mean speed (m/s) of the fastest joint under which a clip is rejected as static.
     pub static_threshold: f64,
     /// Foot-contact threshold (squared metres per frame).
     pub feet_threshold: f64,

@@ -181,7 +181,8 @@ impl Corpus {
             // SAFETY: shards are written once (temp + rename) and never modified in place.
             let map = unsafe { memmap2::Mmap::map(&file) }.map_err(ctx(&path))?;
             let bytes = Bytes::from_owner(map);
-            let options = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
+            let options =
+                ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
             let metadata = ArrowReaderMetadata::load(&bytes, options).map_err(ctx(&path))?;
             let shard = Shard { bytes, metadata };
             let mask = shard.projection(&[col::MOTION_ID, col::SPLIT, col::NUM_FRAMES]);
@@ -335,7 +336,8 @@ impl Corpus {
             for batch in reader {
                 let b = batch.map_err(ctx(&path))?;
                 let get = |name| strings(&b, name).map_err(ctx(&path));
-                let (ids, sources, splits) = (get(col::MOTION_ID)?, get(col::SOURCE)?, get(col::SPLIT)?);
+                let (ids, sources, splits) =
+                    (get(col::MOTION_ID)?, get(col::SOURCE)?, get(col::SPLIT)?);
                 let (actions, styles) = (get(col::ACTION)?, get(col::STYLE)?);
                 let (emotions, scenarios) = (get(col::EMOTION)?, get(col::SCENARIO)?);
                 let fps = column(&b, col::FPS)?
@@ -397,7 +399,9 @@ impl Corpus {
     /// A seeded sampler of normalised feature windows from one split.
     pub fn window_sampler(&self, split: &str, window: usize, seed: u64) -> WindowSampler<'_> {
         let eligible: Vec<usize> = (0..self.clips.len())
-            .filter(|&i| self.clips[i].split == split && self.clips[i].num_frames as usize >= window)
+            .filter(|&i| {
+                self.clips[i].split == split && self.clips[i].num_frames as usize >= window
+            })
             .collect();
         // Weight clips by their number of windows so every window is equally likely.
         let mut cumulative = Vec::with_capacity(eligible.len());

@@ -54,7 +54,10 @@ pub fn verify(dir: &Path) -> Verification {
         let builder = match ParquetRecordBatchReaderBuilder::try_new(bytes::Bytes::from(bytes)) {
             Ok(b) => b,
             Err(e) => {
-                v.problems.push(format!("{}: not a readable Parquet file: {e}", path.display()));
+                v.problems.push(format!(
+                    "{}: not a readable Parquet file: {e}",
+                    path.display()
+                ));
                 continue;
             }
         };
@@ -76,7 +79,10 @@ pub fn verify(dir: &Path) -> Verification {
         };
         let mut rows = 0u64;
         for batch in reader {
-            let records = match batch.map_err(|e| e.to_string()).and_then(|b| records_from_batch(&b)) {
+            let records = match batch
+                .map_err(|e| e.to_string())
+                .and_then(|b| records_from_batch(&b))
+            {
                 Ok(r) => r,
                 Err(e) => {
                     v.problems.push(format!("{}: {e}", path.display()));
@@ -108,13 +114,18 @@ pub fn verify(dir: &Path) -> Verification {
                     )));
                 }
                 if let Some(i) = r.joints.iter().position(|x| !x.is_finite()) {
-                    v.problems.push(at(format!("non-finite joint value at frame {}", i / JOINT_FRAME_DIM)));
+                    v.problems.push(at(format!(
+                        "non-finite joint value at frame {}",
+                        i / JOINT_FRAME_DIM
+                    )));
                 }
                 if !SPLITS.contains(&r.split.as_str()) {
                     v.problems.push(at(format!("unknown split {:?}", r.split)));
                 }
                 if last_id.as_ref().is_some_and(|prev| prev >= &r.motion_id) {
-                    v.problems.push(at("ids are not strictly increasing (duplicate or unsorted)".into()));
+                    v.problems.push(at(
+                        "ids are not strictly increasing (duplicate or unsorted)".into(),
+                    ));
                 }
                 last_id = Some(r.motion_id);
             }
@@ -133,7 +144,8 @@ pub fn verify(dir: &Path) -> Verification {
         match crate::npy::read(&path) {
             Ok(a) if a.shape == [FEATURE_DIM] && a.data.iter().all(|x| x.is_finite()) => {
                 if name == "std.npy" && a.data.iter().any(|&x| x <= 0.0) {
-                    v.problems.push(format!("{}: non-positive std", path.display()));
+                    v.problems
+                        .push(format!("{}: non-positive std", path.display()));
                 }
             }
             Ok(a) => v.problems.push(format!(

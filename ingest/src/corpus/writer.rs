@@ -1,13 +1,13 @@
 //! Shard writer: clips → zstd Parquet (byte-stream-split floats), written atomically.
 
 use super::schema::{col, list_item, shard_schema};
-use arrow_schema::DataType;
 use super::ClipRecord;
 use crate::corpus::manifest::ShardEntry;
 use arrow_array::builder::{
     BooleanBuilder, Float32Builder, ListBuilder, StringBuilder, UInt32Builder,
 };
 use arrow_array::{ArrayRef, RecordBatch};
+use arrow_schema::DataType;
 use parquet::arrow::ArrowWriter;
 use parquet::basic::{Compression, Encoding, ZstdLevel};
 use parquet::file::properties::WriterProperties;
@@ -22,7 +22,9 @@ pub const ROW_GROUP_ROWS: usize = 32;
 fn properties() -> WriterProperties {
     let float_list = |name: &str| ColumnPath::new(vec![name.into(), "list".into(), "item".into()]);
     let mut props = WriterProperties::builder()
-        .set_compression(Compression::ZSTD(ZstdLevel::try_new(3).expect("valid level")))
+        .set_compression(Compression::ZSTD(
+            ZstdLevel::try_new(3).expect("valid level"),
+        ))
         .set_max_row_group_row_count(Some(ROW_GROUP_ROWS));
     // Byte-stream-split groups the float bytes by significance, which zstd compresses far
     // better than plain IEEE values; dictionaries are useless for continuous data.
@@ -63,7 +65,9 @@ fn batch(clips: &[ClipRecord]) -> Result<RecordBatch, String> {
     };
     let mut captions = ListBuilder::new(StringBuilder::new()).with_field(list_item(DataType::Utf8));
     for c in clips {
-        c.captions.iter().for_each(|s| captions.values().append_value(s));
+        c.captions
+            .iter()
+            .for_each(|s| captions.values().append_value(s));
         captions.append(true);
     }
     let mut mirrored = BooleanBuilder::with_capacity(n);
