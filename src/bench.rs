@@ -4,7 +4,6 @@
 use anyhow::{bail, Context, Result};
 use ingest::hml263::{Hml263, Hml263Extractor, Hml263Options};
 use ingest::pipeline::{IngestOptions, SourceKind, SourceSpec};
-use ingest::skeleton::{Pose, NUM_JOINTS};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -105,11 +104,7 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
 
     let fixture = args.data.join("humanml3d-fixtures/a_asis_joints.npy");
     let arr = ingest::npy::read(&fixture).map_err(anyhow::Error::msg)?;
-    let poses: Vec<Pose> = arr
-        .data
-        .chunks_exact(NUM_JOINTS * 3)
-        .map(|f| std::array::from_fn(|j| [f[3 * j], f[3 * j + 1], f[3 * j + 2]]))
-        .collect();
+    let poses = ingest::source::joints::poses_of(&arr).map_err(anyhow::Error::msg)?;
     let opts = Hml263Options::default();
     let mut extractor = Hml263Extractor::default();
     let mut out = Hml263 {

@@ -1,6 +1,9 @@
 //! BVH parsing, forward kinematics and retargeting on hand-written, generated and real
 //! (Bandai Namco) inputs, and the rejection reasons for bad inputs.
 
+mod common;
+
+use common::data_dir;
 use ingest::quat;
 use ingest::skeleton::{Pose, PARENTS};
 use ingest::source::bvh::fuzzing::{write_bvh, Layout, SeedJoint};
@@ -493,20 +496,6 @@ fn unreadable_files_are_rejected_at_read() {
         "{}",
         e.reason
     );
-}
-
-fn data_dir() -> Option<PathBuf> {
-    let dir = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"));
-    if dir.is_dir() {
-        return Some(dir);
-    }
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "shared data missing at {}",
-        dir.display()
-    );
-    eprintln!("note: {} missing; skipping real-data test", dir.display());
-    None
 }
 
 /// Extract Bandai set-1 files whose names contain one of `patterns` into a temp dir.

@@ -1,11 +1,12 @@
 //! HumanML3D-263 conformance against fixtures produced by the original reference code
 //! (`shared/data/humanml3d-fixtures`, tolerances from its README).
 
+mod common;
+
+use common::data_dir;
 use ingest::hml263::{process, recover_joints, Hml263Options, BLOCKS, FEATURE_DIM};
 use ingest::skeleton::{Pose, NUM_JOINTS};
 use std::path::PathBuf;
-
-const DATA: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data");
 
 /// Per-block absolute tolerances from the fixtures README (feet must match exactly).
 const TOLERANCES: [f64; 7] = [2e-5, 5e-6, 1e-6, 2e-5, 1e-4, 2e-5, 0.0];
@@ -21,22 +22,9 @@ const BLOCK_NAMES: [&str; 7] = [
 /// Tolerance on recovered joints (README).
 const RECOVERED_TOL: f64 = 5e-5;
 
-/// The fixtures folder, or `None` (with a note) when it is absent outside CI.
+/// The fixtures folder, or `None` (with a note) when the shared data is absent outside CI.
 fn fixtures() -> Option<PathBuf> {
-    let dir = PathBuf::from(DATA).join("humanml3d-fixtures");
-    if dir.join("a_asis_joints.npy").is_file() {
-        return Some(dir);
-    }
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "HumanML3D fixtures missing at {} (CI is set)",
-        dir.display()
-    );
-    eprintln!(
-        "note: skipping, HumanML3D fixtures not found at {}",
-        dir.display()
-    );
-    None
+    Some(data_dir()?.join("humanml3d-fixtures"))
 }
 
 fn load(dir: &std::path::Path, name: &str, tail: &[usize]) -> (usize, Vec<f64>) {

@@ -1,26 +1,15 @@
 //! Exports: the HumanML3D folder layout and BVH (checked by forward kinematics of the written file).
 
+mod common;
+
+use common::data_dir;
 use ingest::corpus::ClipRecord;
 use ingest::export::bvh;
 use ingest::export::hml3d::{Hml3dWriter, FEATURE_DIM, GENERIC_CAPTION};
 use ingest::npy;
 use ingest::quat::{self, Quat, Vec3};
 use ingest::skeleton::{Pose, JOINT_NAMES, NUM_JOINTS, PARENTS, TARGET_OFFSETS};
-use std::path::PathBuf;
-
-fn data_dir() -> Option<PathBuf> {
-    let dir = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"));
-    if dir.is_dir() {
-        return Some(dir);
-    }
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "shared data missing at {}",
-        dir.display()
-    );
-    eprintln!("note: {} missing, test skipped", dir.display());
-    None
-}
+use ingest::source::bvh::{Bvh, Channel};
 
 // ---------------------------------------------------------------- HumanML3D layout
 
@@ -142,121 +131,6 @@ fn hml3d_layout_round_trips() {
 
 // ---------------------------------------------------------------- BVH
 
-/// A BVH read back by a minimal reader: joints in file order and the motion rows.
-struct Bvh {
-    names: Vec<String>,
-    parents: Vec<Option<usize>>,
-    offsets: Vec<Vec3>,
-    channels: Vec<Vec<String>>,
-    end_sites: usize,
-    frame_time: f64,
-    rows: Vec<Vec<f64>>,
-}
-
-fn read_bvh(text: &str) -> Bvh {
-    let mut bvh = Bvh {
-        names: vec![],
-        parents: vec![],
-        offsets: vec![],
-        channels: vec![],
-        end_sites: 0,
-        frame_time: 0.0,
-        rows: vec![],
-    };
-    // Stack of open blocks: Some(joint) or None for an End Site.
-    let mut stack: Vec<Option<usize>> = vec![];
-    let mut pending: Option<Option<usize>> = None;
-    let mut lines = text.lines();
-    assert_eq!(lines.next(), Some("HIERARCHY"));
-    let mut frames = None;
-    for line in lines.by_ref() {
-        let words: Vec<&str> = line.split_whitespace().collect();
-        match words.as_slice() {
-            ["ROOT" | "JOINT", name] => {
-                bvh.parents.push(stack.last().copied().flatten());
-                bvh.names.push(name.to_string());
-                bvh.offsets.push([0.0; 3]);
-                bvh.channels.push(vec![]);
-                pending = Some(Some(bvh.names.len() - 1));
-            }
-            ["End", "Site"] => {
-                bvh.end_sites += 1;
-                pending = Some(None);
-            }
-            ["{"] => stack.push(pending.take().expect("'{' after a joint")),
-            ["}"] => {
-                stack.pop().expect("balanced braces");
-            }
-            ["OFFSET", x, y, z] => {
-                if let Some(Some(j)) = stack.last() {
-                    bvh.offsets[*j] = [x.parse().unwrap(), y.parse().unwrap(), z.parse().unwrap()];
-                }
-            }
-            ["CHANNELS", n, names @ ..] => {
-                assert_eq!(n.parse::<usize>().unwrap(), names.len());
-                let j = stack.last().unwrap().unwrap();
-                bvh.channels[j] = names.iter().map(|s| s.to_string()).collect();
-            }
-            ["MOTION"] => {
-                assert!(stack.is_empty(), "braces balanced before MOTION");
-            }
-            ["Frames:", n] => frames = Some(n.parse::<usize>().unwrap()),
-            ["Frame", "Time:", t] => {
-                bvh.frame_time = t.parse().unwrap();
-                break;
-            }
-            other => panic!("unexpected hierarchy line {other:?}"),
-        }
-    }
-    bvh.rows = lines
-        .map(|l| l.split_whitespace().map(|v| v.parse().unwrap()).collect())
-        .collect();
-    assert_eq!(Some(bvh.rows.len()), frames, "Frames: matches the rows");
-    bvh
-}
-
-/// Joint positions (metres) of every frame by forward kinematics of the channels as written.
-fn forward_kinematics(bvh: &Bvh) -> Vec<Vec<Vec3>> {
-    bvh.rows
-        .iter()
-        .map(|row| {
-            let mut values = row.iter();
-            let mut global: Vec<Quat> = vec![];
-            let mut pos: Vec<Vec3> = vec![];
-            for j in 0..bvh.names.len() {
-                let mut translation = [0.0; 3];
-                let mut local = quat::IDENTITY;
-                for ch in &bvh.channels[j] {
-                    let v = *values.next().expect("enough values");
-                    let axis = match &ch[..1] {
-                        "X" => 0,
-                        "Y" => 1,
-                        _ => 2,
-                    };
-                    if ch.ends_with("position") {
-                        translation[axis] = v;
-                    } else {
-                        let mut unit = [0.0; 3];
-                        unit[axis] = 1.0;
-                        local = quat::mul(local, quat::from_axis_angle(unit, v.to_radians()));
-                    }
-                }
-                let (g, p) = match bvh.parents[j] {
-                    None => (local, quat::add(bvh.offsets[j], translation)),
-                    Some(parent) => (
-                        quat::mul(global[parent], local),
-                        quat::add(pos[parent], quat::rot(global[parent], bvh.offsets[j])),
-                    ),
-                };
-                global.push(g);
-                pos.push(p);
-            }
-            assert!(values.next().is_none(), "no extra values");
-            pos.into_iter().map(|p| quat::scale(p, 0.01)).collect()
-        })
-        .collect()
-}
-
 /// Pose by forward kinematics of the target skeleton with the given local rotations.
 fn pose_from(locals: &[Quat; NUM_JOINTS], root: Vec3) -> Pose {
     let mut global = [quat::IDENTITY; NUM_JOINTS];
@@ -274,16 +148,26 @@ fn pose_from(locals: &[Quat; NUM_JOINTS], root: Vec3) -> Pose {
     pose
 }
 
-/// Checks the hierarchy (bones out of pelvis and spine3 within `length_tol_cm` of the target
-/// lengths), frame count and frame time; returns the file and each file joint's SMPL-22 index.
+/// Parses a written BVH with the project's parser and checks the hierarchy (bones out of
+/// pelvis and spine3 within `length_tol_cm` of the target lengths), frame count and frame
+/// time; returns the file and each file joint's SMPL-22 index.
 fn check_structure(text: &str, frames: usize, fps: f64, length_tol_cm: f64) -> (Bvh, Vec<usize>) {
-    let bvh = read_bvh(text);
+    let bvh = ingest::source::bvh::parse(text).expect("written BVH parses");
+    let joints: Vec<_> = bvh.joints.iter().filter(|j| !j.end_site).collect();
     let index = |name: &str| JOINT_NAMES.iter().position(|n| *n == name).unwrap();
-    let order: Vec<usize> = bvh.names.iter().map(|n| index(n)).collect();
+    let order: Vec<usize> = joints.iter().map(|j| index(&j.name)).collect();
     assert_eq!(order, bvh::hierarchy_order());
     assert_eq!(order[0], 0);
+    let file_index = |i: usize| {
+        bvh.joints
+            .iter()
+            .position(|j| j.name == joints[i].name)
+            .unwrap()
+    };
     for (i, &j) in order.iter().enumerate().skip(1) {
-        let parent = bvh.parents[i].map(|p| order[p]);
+        let parent = bvh.joints[file_index(i)]
+            .parent
+            .map(|p| index(&bvh.joints[p].name));
         assert_eq!(parent, Some(PARENTS[j]), "parent of {}", JOINT_NAMES[j]);
         let expected = quat::scale(TARGET_OFFSETS[j], 100.0);
         let siblings = (1..NUM_JOINTS)
@@ -291,35 +175,36 @@ fn check_structure(text: &str, frames: usize, fps: f64, length_tol_cm: f64) -> (
             .count();
         if siblings > 1 {
             // The motion's own shape: the target's bone length (cm), any direction.
-            let d = quat::norm(bvh.offsets[i]) - quat::norm(expected);
+            let d = quat::norm(joints[i].offset) - quat::norm(expected);
             assert!(d.abs() < length_tol_cm, "{}: {d}", JOINT_NAMES[j]);
         } else {
-            assert!(quat::norm(quat::sub(bvh.offsets[i], expected)) < 1e-5);
+            assert!(quat::norm(quat::sub(joints[i].offset, expected)) < 1e-5);
         }
-        assert_eq!(bvh.channels[i], ["Zrotation", "Yrotation", "Xrotation"]);
+        assert_eq!(
+            joints[i].channels,
+            [Channel::Zrotation, Channel::Yrotation, Channel::Xrotation]
+        );
     }
-    assert_eq!(bvh.channels[0].len(), 6);
-    assert_eq!(bvh.parents[0], None);
+    assert_eq!(joints[0].channels.len(), 6);
+    assert_eq!(joints[0].parent, None);
     // Leaves: feet, head, wrists.
-    assert_eq!(bvh.end_sites, 5);
-    assert_eq!(bvh.rows.len(), frames);
+    assert_eq!(bvh.joints.iter().filter(|j| j.end_site).count(), 5);
+    assert_eq!(bvh.num_frames(), frames);
     assert!((bvh.frame_time - 1.0 / fps).abs() < 1e-8);
-    assert!(bvh.rows.iter().all(|r| r.len() == 6 + 3 * (NUM_JOINTS - 1)));
+    assert_eq!(bvh.num_channels, 6 + 3 * (NUM_JOINTS - 1));
     (bvh, order)
 }
 
-/// Forward kinematics of a written BVH, as poses in SMPL-22 order.
+/// Forward kinematics of a written BVH (the project's parser), as poses in SMPL-22 order.
 fn fk_poses(text: &str, frames: usize, fps: f64, length_tol_cm: f64) -> Vec<Pose> {
-    let (bvh, order) = check_structure(text, frames, fps, length_tol_cm);
-    forward_kinematics(&bvh)
-        .into_iter()
-        .map(|file_order| {
-            let mut pose = [[0.0; 3]; NUM_JOINTS];
-            for (i, &j) in order.iter().enumerate() {
-                pose[j] = file_order[i];
-            }
-            pose
-        })
+    let (bvh, _) = check_structure(text, frames, fps, length_tol_cm);
+    let file_index: Vec<usize> = JOINT_NAMES
+        .iter()
+        .map(|n| bvh.joint_index(n).expect("every SMPL joint is in the file"))
+        .collect();
+    bvh.world_positions()
+        .chunks_exact(bvh.joints.len())
+        .map(|frame| std::array::from_fn(|j| quat::scale(frame[file_index[j]], 0.01)))
         .collect()
 }
 

@@ -1,26 +1,14 @@
 //! Sources: joints `.npy`, AMASS `.npz` with a body model, and HumanML3D-layout folders.
 
+mod common;
+
+use common::data_dir;
 use ingest::npy;
 use ingest::quat;
 use ingest::skeleton::{Pose, NUM_JOINTS, PARENTS, TARGET_OFFSETS};
 use ingest::source::{amass, hml3d, joints};
 use std::io::Write;
-use std::path::{Path, PathBuf};
-
-/// The shared data folder, or `None` (with a note) when it is missing outside CI.
-fn data_dir() -> Option<PathBuf> {
-    let dir = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"));
-    if dir.is_dir() {
-        return Some(dir);
-    }
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "shared data missing at {}",
-        dir.display()
-    );
-    eprintln!("note: {} missing, test skipped", dir.display());
-    None
-}
+use std::path::Path;
 
 /// `.npy` bytes of `payload` under another 3-character dtype (the header length is unchanged).
 fn encode_as(shape: &[usize], dtype: &str, payload: &[u8]) -> Vec<u8> {

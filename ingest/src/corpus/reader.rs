@@ -186,13 +186,11 @@ impl Corpus {
             let metadata = ArrowReaderMetadata::load(&bytes, options).map_err(ctx(&path))?;
             let shard = Shard { bytes, metadata };
             let mask = shard.projection(&[col::MOTION_ID, col::SPLIT, col::NUM_FRAMES]);
-            let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(
-                shard.bytes.clone(),
-                shard.metadata.clone(),
-            )
-            .with_projection(mask)
-            .build()
-            .map_err(ctx(&path))?;
+            let reader = shard
+                .builder()
+                .with_projection(mask)
+                .build()
+                .map_err(ctx(&path))?;
             let group_rows: Vec<usize> = shard
                 .metadata
                 .metadata()
@@ -298,10 +296,7 @@ impl Corpus {
     pub fn shard_records(&self, shard: usize) -> Result<Vec<ClipRecord>, String> {
         let s = &self.shards[shard];
         let path = self.dir.join(&self.manifest.shards[shard].file);
-        let reader =
-            ParquetRecordBatchReaderBuilder::new_with_metadata(s.bytes.clone(), s.metadata.clone())
-                .build()
-                .map_err(ctx(&path))?;
+        let reader = s.builder().build().map_err(ctx(&path))?;
         let mut out = Vec::new();
         for batch in reader {
             out.extend(records_from_batch(&batch.map_err(ctx(&path))?).map_err(ctx(&path))?);
@@ -326,13 +321,11 @@ impl Corpus {
                 col::SPLIT,
                 col::MIRRORED,
             ]);
-            let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(
-                shard.bytes.clone(),
-                shard.metadata.clone(),
-            )
-            .with_projection(mask)
-            .build()
-            .map_err(ctx(&path))?;
+            let reader = shard
+                .builder()
+                .with_projection(mask)
+                .build()
+                .map_err(ctx(&path))?;
             for batch in reader {
                 let b = batch.map_err(ctx(&path))?;
                 let get = |name| strings(&b, name).map_err(ctx(&path));
@@ -377,15 +370,13 @@ impl Corpus {
             .ok_or_else(|| format!("no clip {index}"))?;
         let shard = &self.shards[entry.shard];
         let path = self.dir.join(&self.manifest.shards[entry.shard].file);
-        let mut builder = ParquetRecordBatchReaderBuilder::new_with_metadata(
-            shard.bytes.clone(),
-            shard.metadata.clone(),
-        )
-        .with_row_groups(vec![entry.row_group])
-        .with_row_selection(RowSelection::from(vec![
-            RowSelector::skip(entry.row),
-            RowSelector::select(1),
-        ]));
+        let mut builder = shard
+            .builder()
+            .with_row_groups(vec![entry.row_group])
+            .with_row_selection(RowSelection::from(vec![
+                RowSelector::skip(entry.row),
+                RowSelector::select(1),
+            ]));
         if let Some(cols) = columns {
             builder = builder.with_projection(shard.projection(cols));
         }
@@ -421,6 +412,13 @@ impl Corpus {
 }
 
 impl Shard {
+    fn builder(&self) -> ParquetRecordBatchReaderBuilder<Bytes> {
+        ParquetRecordBatchReaderBuilder::new_with_metadata(
+            self.bytes.clone(),
+            self.metadata.clone(),
+        )
+    }
+
     fn projection(&self, names: &[&str]) -> ProjectionMask {
         let fields = self.metadata.schema().fields();
         let roots = names
