@@ -720,10 +720,9 @@ fn write_corpus(
         .into_iter()
         .map(|(k, v)| (k.to_string(), v.to_string()))
         .collect(),
+        text_embeddings: Vec::new(),
     };
-    let manifest_path = out_dir.join("manifest.json");
-    let text = serde_json::to_string_pretty(&manifest).expect("manifest serialises");
-    crate::npy::write_atomic(&manifest_path, text.as_bytes()).map_err(io(&manifest_path))?;
+    manifest.write(out_dir)?;
     Ok(manifest.shards.len())
 }
 

@@ -39,6 +39,19 @@ pub struct SourceEntry {
     pub conversions: BTreeMap<String, u64>,
 }
 
+/// Text embeddings of the corpus captions made by one encoder (written by `embed-text`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TextEmbeddingEntry {
+    /// Encoder id (model name and a hash of its weights and tokenizer).
+    pub encoder: String,
+    /// Folder of the embedding shards, relative to the corpus folder.
+    pub dir: String,
+    /// Embedding width.
+    pub dim: usize,
+    /// Distinct captions embedded.
+    pub captions: u64,
+}
+
 /// Options the corpus was built with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct BuildOptions {
@@ -93,6 +106,9 @@ pub struct Manifest {
     pub rejects: u64,
     /// Statistics files, relative to the corpus folder.
     pub stats: BTreeMap<String, String>,
+    /// Caption embeddings, one entry per encoder (empty until `embed-text` runs).
+    #[serde(default)]
+    pub text_embeddings: Vec<TextEmbeddingEntry>,
 }
 
 impl Manifest {
@@ -112,6 +128,14 @@ impl Manifest {
             ));
         }
         Ok(manifest)
+    }
+
+    /// Write `manifest.json` into a corpus folder atomically.
+    pub fn write(&self, dir: &Path) -> Result<(), String> {
+        let path = dir.join("manifest.json");
+        let text = serde_json::to_string_pretty(self).map_err(|e| e.to_string())?;
+        crate::npy::write_atomic(&path, text.as_bytes())
+            .map_err(|e| format!("{}: {e}", path.display()))
     }
 
     /// Total number of clips.
