@@ -6,6 +6,7 @@ use ingest::corpus::verify::verify as verify_corpus;
 use ingest::corpus::Corpus;
 use ingest::hml263::Hml263Options;
 use ingest::pipeline::{IngestOptions, SourceSpec, DEFAULT_STATIC_THRESHOLD};
+use ingest::scenarios::ScenarioSplit;
 use ingest::source::retarget::RigMap;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -252,6 +253,48 @@ pub fn export_bvh(dir: &Path, motion_id: &str, out: &Path) -> Result<ExitCode> {
         out.display(),
         poses.len(),
         clip.fps
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale scenarios`.
+#[derive(clap::Args, Debug)]
+pub struct ScenariosArgs {
+    /// Corpus folder (clips need scenario labels).
+    #[arg(long)]
+    pub corpus: PathBuf,
+    /// unseen (one dataset per scenario) or mixed (equal-size chunks, a primary scenario each).
+    #[arg(long, value_parser = |s: &str| s.parse::<ScenarioSplit>())]
+    pub split: ScenarioSplit,
+    /// Output folder: datasets.json and D??_name/{train,val,test}.txt.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Seed of the mixed chunking.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Share of a mixed chunk taken from its primary scenario.
+    #[arg(long, default_value_t = 0.6)]
+    pub primary_fraction: f64,
+}
+
+/// `motionscale scenarios`.
+pub fn scenarios(args: ScenariosArgs) -> Result<ExitCode> {
+    if !(0.0..=1.0).contains(&args.primary_fraction) {
+        bail!(
+            "--primary-fraction must be within 0..1, got {}",
+            args.primary_fraction
+        );
+    }
+    let corpus = Corpus::open(&args.corpus).map_err(anyhow::Error::msg)?;
+    let sets = ingest::scenarios::build(&corpus, args.split, args.seed, args.primary_fraction)
+        .map_err(anyhow::Error::msg)?;
+    ingest::scenarios::write(&args.out, &sets).map_err(anyhow::Error::msg)?;
+    print!("{}", ingest::scenarios::table(&sets));
+    println!(
+        "{} datasets written to {} ({} clips without a scenario label left out)",
+        sets.datasets.len(),
+        args.out.display(),
+        sets.unlabelled_clips
     );
     Ok(ExitCode::SUCCESS)
 }

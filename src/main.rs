@@ -32,6 +32,8 @@ enum Command {
     /// Export corpus clips to other tools' formats.
     #[command(subcommand)]
     Export(ExportCommand),
+    /// Cut a labelled corpus into L²-EMG scenario datasets (unseen: one per scenario; mixed: equal chunks).
+    Scenarios(commands::ScenariosArgs),
     /// Write the small built-in demo inputs (generated BVH clips with captions) to a folder.
     Demo {
         /// Folder to write into.
@@ -109,6 +111,7 @@ fn main() -> ExitCode {
             motion_id,
             out,
         }) => commands::export_bvh(&corpus, &motion_id, &out),
+        Command::Scenarios(args) => commands::scenarios(args),
         Command::Demo { out } => commands::demo(&out),
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
     };

@@ -110,6 +110,44 @@ for s in json.load(open(f"{c}/manifest.json"))["shards"]:
     assert_eq!(n, report["clips"].as_u64().unwrap());
     let verify = motionscale(&["corpus", "verify", corpus.to_str().unwrap()]);
     assert_eq!(code(&verify), 0, "{}", text(&verify));
+
+    // L²-EMG scenario datasets: one per scenario (unseen) or equal chunks (mixed).
+    for split in ["unseen", "mixed"] {
+        let out = tmp.path().join(split);
+        let run = motionscale(&[
+            "scenarios",
+            "--corpus",
+            corpus.to_str().unwrap(),
+            "--split",
+            split,
+            "--out",
+            out.to_str().unwrap(),
+            "--seed",
+            "3",
+        ]);
+        assert_eq!(code(&run), 0, "{}", text(&run));
+        let sets: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("datasets.json")).unwrap())
+                .unwrap();
+        let datasets = sets["datasets"].as_array().unwrap();
+        assert_eq!(datasets.len(), 5, "{split}");
+        let mut total = 0;
+        for d in datasets {
+            let n = |s: &str| d["clips"][s].as_array().unwrap().len();
+            assert!(n("train") > 0 && n("test") > 0, "{split} {}", d["name"]);
+            total += n("train") + n("val") + n("test");
+            let listed =
+                std::fs::read_to_string(out.join(d["name"].as_str().unwrap()).join("test.txt"))
+                    .unwrap();
+            assert_eq!(listed.lines().count(), n("test"));
+        }
+        assert_eq!(
+            total as u64,
+            report["clips"].as_u64().unwrap(),
+            "{split}: every labelled clip is in one dataset"
+        );
+        assert!(text(&run).contains("Total"), "prints the table");
+    }
 }
 
 fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {

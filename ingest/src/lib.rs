@@ -9,5 +9,6 @@ pub mod npy;
 pub mod pipeline;
 pub mod quat;
 pub mod resample;
+pub mod scenarios;
 pub mod skeleton;
 pub mod source;

@@ -39,6 +39,8 @@ pub struct ClipMeta {
     pub motion_id: String,
     /// Source kind.
     pub source: String,
+    /// Source clip id (shared by segments and mirrored copies).
+    pub source_clip: String,
     /// Split.
     pub split: String,
     /// Frame rate.
@@ -312,6 +314,7 @@ impl Corpus {
             let mask = shard.projection(&[
                 col::MOTION_ID,
                 col::SOURCE,
+                col::SOURCE_CLIP,
                 col::FPS,
                 col::NUM_FRAMES,
                 col::ACTION,
@@ -331,6 +334,7 @@ impl Corpus {
                 let get = |name| strings(&b, name).map_err(ctx(&path));
                 let (ids, sources, splits) =
                     (get(col::MOTION_ID)?, get(col::SOURCE)?, get(col::SPLIT)?);
+                let source_clips = get(col::SOURCE_CLIP)?;
                 let (actions, styles) = (get(col::ACTION)?, get(col::STYLE)?);
                 let (emotions, scenarios) = (get(col::EMOTION)?, get(col::SCENARIO)?);
                 let fps = column(&b, col::FPS)?
@@ -346,6 +350,7 @@ impl Corpus {
                     out.push(ClipMeta {
                         motion_id: required(ids[r].clone(), col::MOTION_ID)?,
                         source: required(sources[r].clone(), col::SOURCE)?,
+                        source_clip: required(source_clips[r].clone(), col::SOURCE_CLIP)?,
                         split: required(splits[r].clone(), col::SPLIT)?,
                         fps: fps.value(r),
                         num_frames: frames.value(r),
