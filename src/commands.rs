@@ -48,6 +48,10 @@ pub struct IngestArgs {
     /// SMPL+H / SMPL-X body model .npz for amass:DIR sources.
     #[arg(long)]
     pub body_model: Option<PathBuf>,
+    /// Inputs processed (and held in memory) at a time; larger builds spill sorted runs to
+    /// a temporary folder in the output and merge them.
+    #[arg(long, default_value_t = IngestOptions::default().chunk_units)]
+    pub chunk_units: usize,
     /// Correct the HumanML3D hip-order quirk (features are then NOT HumanML3D-compatible).
     #[arg(long)]
     pub fix_facing: bool,
@@ -79,6 +83,7 @@ pub fn ingest_options(args: &IngestArgs) -> Result<IngestOptions> {
         src_fps: args.src_fps,
         map,
         body_model: args.body_model.clone(),
+        chunk_units: args.chunk_units,
         ..IngestOptions::default()
     })
 }

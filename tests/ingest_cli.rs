@@ -62,6 +62,24 @@ fn demo_corpus_end_to_end_and_byte_identical_rerun() {
     assert_eq!(corpus_bytes(&corpus), corpus_bytes(&again));
     assert_eq!(code(&run(&corpus)), 0);
     assert_eq!(corpus_bytes(&corpus), corpus_bytes(&again));
+    // Spilling sorted runs of 2 inputs and merging them gives the same bytes too.
+    let spilled = tmp.path().join("spilled");
+    let out = motionscale(&[
+        "ingest",
+        "--source",
+        &src,
+        "--out",
+        spilled.to_str().unwrap(),
+        "--mirror",
+        "--chunk-units",
+        "2",
+    ]);
+    assert_eq!(code(&out), 0, "{}", text(&out));
+    assert_eq!(corpus_bytes(&corpus), corpus_bytes(&spilled));
+    assert!(
+        !spilled.join(".ingest-runs").exists(),
+        "runs are cleaned up"
+    );
 
     // HumanML3D layout loads with numpy with the HumanML3D shapes.
     let hml = tmp.path().join("hml3d");

@@ -4,9 +4,9 @@
 use crate::corpus::manifest::{
     BuildOptions, Manifest, ShardEntry, SourceEntry, FORMAT, FORMAT_VERSION,
 };
+use crate::corpus::runs::RunSet;
 use crate::corpus::split::{split_of, SPLITS};
 use crate::corpus::stats::FeatureStats;
-use crate::corpus::writer::write_shard;
 use crate::corpus::ClipRecord;
 use crate::hml263::{Hml263, Hml263Extractor, Hml263Options, FEATURE_DIM};
 use crate::resample::resample;
@@ -112,6 +112,9 @@ pub struct IngestOptions {
     pub body_model: Option<PathBuf>,
     /// Clips per shard file.
     pub rows_per_shard: usize,
+    /// Input units processed (and held in memory) at a time; larger builds spill sorted
+    /// runs to disk and merge them.
+    pub chunk_units: usize,
 }
 
 impl Default for IngestOptions {
@@ -127,6 +130,7 @@ impl Default for IngestOptions {
             map: None,
             body_model: None,
             rows_per_shard: 512,
+            chunk_units: 4096,
         }
     }
 }
@@ -169,6 +173,34 @@ pub struct IngestReport {
     pub rejects: u64,
     /// Shard files written.
     pub shards: u64,
+}
+
+/// Running totals over the clips kept: training statistics and per-split counts.
+struct Totals {
+    stats: FeatureStats,
+    clips_by_split: BTreeMap<String, u64>,
+    frames_by_split: BTreeMap<String, u64>,
+}
+
+impl Default for Totals {
+    fn default() -> Self {
+        let zero = || SPLITS.iter().map(|s| (s.to_string(), 0)).collect();
+        Self {
+            stats: FeatureStats::new(FEATURE_DIM),
+            clips_by_split: zero(),
+            frames_by_split: zero(),
+        }
+    }
+}
+
+impl Totals {
+    fn add(&mut self, r: &ClipRecord) {
+        if r.split == "train" {
+            self.stats.add(&r.features);
+        }
+        *self.clips_by_split.entry(r.split.clone()).or_default() += 1;
+        *self.frames_by_split.entry(r.split.clone()).or_default() += r.num_frames as u64;
+    }
 }
 
 /// What processing one input file produced.
@@ -537,23 +569,13 @@ pub fn ingest(
     }
     let total = units.len() as u64;
     let done = std::sync::atomic::AtomicU64::new(0);
-    let outcomes: Vec<UnitOutcome> = units
-        .par_iter()
-        .map_init(Hml263Extractor::default, |extractor, u| {
-            let o = process_unit(
-                &readers[u.source],
-                &sources[u.source],
-                &u.path,
-                opts,
-                extractor,
-            );
-            let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-            progress(n, total);
-            o
-        })
-        .collect();
-
-    let mut records = Vec::new();
+    let chunk = opts.chunk_units.max(1);
+    let tmp = out_dir.join(".ingest-runs");
+    if tmp.is_dir() {
+        std::fs::remove_dir_all(&tmp).map_err(|e| format!("{}: {e}", tmp.display()))?;
+    }
+    let mut runs = RunSet::new(&tmp, units.len() > chunk);
+    let mut totals = Totals::default();
     let mut rejects = Vec::new();
     let mut report = IngestReport {
         inputs: total,
@@ -565,64 +587,78 @@ pub fn ingest(
         shards: 0,
     };
     let mut seen = HashSet::new();
-    for (unit, mut o) in units.iter().zip(outcomes) {
-        let entry = &mut entries[unit.source];
-        // Two inputs with the same file stem would collide: the first (in path order) wins.
-        o.records.retain(|r| {
-            let fresh = seen.insert(r.motion_id.clone());
-            if !fresh {
-                o.rejects.push(RejectRecord {
-                    path: r.source_path.clone(),
-                    source: r.source.clone(),
-                    clip: Some(r.motion_id.clone()),
-                    stage: "dedupe".into(),
-                    reason: format!(
-                        "motion id {} already taken by an earlier input",
-                        r.motion_id
-                    ),
-                });
+    for part in units.chunks(chunk) {
+        let outcomes: Vec<UnitOutcome> = part
+            .par_iter()
+            .map_init(Hml263Extractor::default, |extractor, u| {
+                let o = process_unit(
+                    &readers[u.source],
+                    &sources[u.source],
+                    &u.path,
+                    opts,
+                    extractor,
+                );
+                let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                progress(n, total);
+                o
+            })
+            .collect();
+        let mut records = Vec::new();
+        for (unit, mut o) in part.iter().zip(outcomes) {
+            let entry = &mut entries[unit.source];
+            // Two inputs with the same id would collide: the first (in input order) wins.
+            o.records.retain(|r| {
+                let fresh = seen.insert(r.motion_id.clone());
+                if !fresh {
+                    o.rejects.push(RejectRecord {
+                        path: r.source_path.clone(),
+                        source: r.source.clone(),
+                        clip: Some(r.motion_id.clone()),
+                        stage: "dedupe".into(),
+                        reason: format!(
+                            "motion id {} already taken by an earlier input",
+                            r.motion_id
+                        ),
+                    });
+                }
+                fresh
+            });
+            entry.ingested_files += u64::from(!o.records.is_empty());
+            entry.rejects += o.rejects.len() as u64;
+            for (k, v) in o.conversions {
+                *entry.conversions.entry(k).or_default() += v;
             }
-            fresh
-        });
-        entry.ingested_files += u64::from(!o.records.is_empty());
-        entry.rejects += o.rejects.len() as u64;
-        for (k, v) in o.conversions {
-            *entry.conversions.entry(k).or_default() += v;
+            report.source_frames += o.source_frames;
+            report.source_bytes += o.bytes;
+            o.records.iter().for_each(|r| totals.add(r));
+            records.extend(o.records);
+            rejects.extend(o.rejects);
         }
-        report.source_frames += o.source_frames;
-        report.source_bytes += o.bytes;
-        records.extend(o.records);
-        rejects.extend(o.rejects);
+        runs.push(records)?;
     }
-    records.sort_by(|a, b| a.motion_id.cmp(&b.motion_id));
     rejects.sort_by(|a, b| (&a.path, &a.clip).cmp(&(&b.path, &b.clip)));
-    report.clips = records.len() as u64;
-    report.frames = records.iter().map(|r| r.num_frames as u64).sum();
     report.rejects = rejects.len() as u64;
-
-    let shards = write_corpus(out_dir, &records, &rejects, opts, entries)?;
-    report.shards = shards as u64;
+    report.clips = totals.clips_by_split.values().sum();
+    report.frames = totals.frames_by_split.values().sum();
+    let shards = runs.merge_into_shards(out_dir, opts.rows_per_shard)?;
+    report.shards = shards.len() as u64;
+    write_corpus(out_dir, shards, &totals, &rejects, opts, entries)?;
     Ok(report)
 }
 
 fn write_corpus(
     out_dir: &Path,
-    records: &[ClipRecord],
+    shards: Vec<ShardEntry>,
+    totals: &Totals,
     rejects: &[RejectRecord],
     opts: &IngestOptions,
     sources: Vec<SourceEntry>,
-) -> Result<usize, String> {
+) -> Result<(), String> {
     fn io(p: &Path) -> impl Fn(std::io::Error) -> String + '_ {
         move |e| format!("{}: {e}", p.display())
     }
     let shard_dir = out_dir.join("shards");
     std::fs::create_dir_all(&shard_dir).map_err(io(&shard_dir))?;
-    let chunks: Vec<&[ClipRecord]> = records.chunks(opts.rows_per_shard.max(1)).collect();
-    let shards: Vec<ShardEntry> = chunks
-        .par_iter()
-        .enumerate()
-        .map(|(i, chunk)| write_shard(out_dir, &format!("shards/shard-{i:05}.parquet"), chunk))
-        .collect::<Result<_, _>>()?;
     // Shards of an earlier, larger build would otherwise linger beside the new manifest.
     let keep: HashSet<String> = shards.iter().map(|s| s.file.clone()).collect();
     for entry in std::fs::read_dir(&shard_dir).map_err(io(&shard_dir))? {
@@ -638,11 +674,7 @@ fn write_corpus(
         }
     }
 
-    let mut stats = FeatureStats::new(FEATURE_DIM);
-    records
-        .iter()
-        .filter(|r| r.split == "train")
-        .for_each(|r| stats.add(&r.features));
+    let stats = &totals.stats;
     let (mean, std, degenerate) = stats.finish();
     let stats_dir = out_dir.join("stats");
     crate::npy::write_f32(&stats_dir.join("mean.npy"), &[FEATURE_DIM], &mean)
@@ -673,16 +705,6 @@ fn write_corpus(
     let rejects_path = out_dir.join("rejects.jsonl");
     crate::npy::write_atomic(&rejects_path, lines.as_bytes()).map_err(io(&rejects_path))?;
 
-    let mut clips_by_split = BTreeMap::new();
-    let mut frames_by_split = BTreeMap::new();
-    for s in SPLITS {
-        clips_by_split.insert(s.to_string(), 0);
-        frames_by_split.insert(s.to_string(), 0);
-    }
-    for r in records {
-        *clips_by_split.entry(r.split.clone()).or_default() += 1;
-        *frames_by_split.entry(r.split.clone()).or_default() += r.num_frames as u64;
-    }
     let compatible = !opts.features.fix_facing;
     let manifest = Manifest {
         format: FORMAT.into(),
@@ -709,8 +731,8 @@ fn write_corpus(
         },
         sources,
         shards,
-        clips_by_split,
-        frames_by_split,
+        clips_by_split: totals.clips_by_split.clone(),
+        frames_by_split: totals.frames_by_split.clone(),
         rejects: rejects.len() as u64,
         stats: [
             ("mean", "stats/mean.npy"),
@@ -723,7 +745,7 @@ fn write_corpus(
         text_embeddings: Vec::new(),
     };
     manifest.write(out_dir)?;
-    Ok(manifest.shards.len())
+    Ok(())
 }
 
 #[cfg(test)]

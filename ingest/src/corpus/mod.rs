@@ -2,6 +2,7 @@
 
 pub mod manifest;
 pub mod reader;
+pub mod runs;
 pub mod schema;
 pub mod split;
 pub mod stats;

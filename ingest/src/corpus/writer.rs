@@ -19,12 +19,10 @@ use std::sync::Arc;
 /// Clips per row group: small groups let readers decode one clip without its neighbours.
 pub const ROW_GROUP_ROWS: usize = 32;
 
-fn properties() -> WriterProperties {
+fn properties(compression: Compression) -> WriterProperties {
     let float_list = |name: &str| ColumnPath::new(vec![name.into(), "list".into(), "item".into()]);
     let mut props = WriterProperties::builder()
-        .set_compression(Compression::ZSTD(
-            ZstdLevel::try_new(3).expect("valid level"),
-        ))
+        .set_compression(compression)
         .set_max_row_group_row_count(Some(ROW_GROUP_ROWS));
     // Byte-stream-split groups the float bytes by significance, which zstd compresses far
     // better than plain IEEE values; dictionaries are useless for continuous data.
@@ -94,10 +92,22 @@ fn batch(clips: &[ClipRecord]) -> Result<RecordBatch, String> {
     RecordBatch::try_new(shard_schema(), columns).map_err(|e| e.to_string())
 }
 
-/// Encode clips as one Parquet file in memory.
+/// Encode clips as one zstd Parquet file in memory.
 pub fn encode_shard(clips: &[ClipRecord]) -> Result<Vec<u8>, String> {
+    encode(
+        clips,
+        Compression::ZSTD(ZstdLevel::try_new(3).expect("valid level")),
+    )
+}
+
+/// Encode clips as an uncompressed Parquet file (temporary runs, read back once).
+pub fn encode_run(clips: &[ClipRecord]) -> Result<Vec<u8>, String> {
+    encode(clips, Compression::UNCOMPRESSED)
+}
+
+fn encode(clips: &[ClipRecord], compression: Compression) -> Result<Vec<u8>, String> {
     let mut out = Vec::new();
-    let mut writer = ArrowWriter::try_new(&mut out, shard_schema(), Some(properties()))
+    let mut writer = ArrowWriter::try_new(&mut out, shard_schema(), Some(properties(compression)))
         .map_err(|e| e.to_string())?;
     for chunk in clips.chunks(ROW_GROUP_ROWS) {
         writer.write(&batch(chunk)?).map_err(|e| e.to_string())?;
