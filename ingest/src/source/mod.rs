@@ -7,6 +7,7 @@ pub mod bvh;
 pub mod hml3d;
 pub mod joints;
 pub mod retarget;
+pub mod synth;
 
 use crate::skeleton::Pose;
 use serde::{Deserialize, Serialize};
