@@ -48,6 +48,72 @@ fn extract(archive: &Path, into: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Arguments of `motionscale bench synth`.
+#[derive(clap::Args, Debug)]
+pub struct BenchSynthArgs {
+    /// Synthetic clips to build.
+    #[arg(long, default_value_t = 5000)]
+    pub clips: usize,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub workers: Option<usize>,
+}
+
+/// Synthetic corpus throughput: generation + 263 features alone, then the whole ingest
+/// (features, statistics, zstd Parquet shards), against the 10,000 clips/minute target.
+pub fn synth(args: BenchSynthArgs) -> Result<ExitCode> {
+    let pool = crate::commands::thread_pool(args.workers)?;
+    let threads = pool.current_num_threads();
+    let t0 = Instant::now();
+    let frames: usize = pool
+        .install(|| {
+            use rayon::prelude::*;
+            (0..args.clips)
+                .into_par_iter()
+                .map_init(Hml263Extractor::default, |ex, i| {
+                    let clip = ingest::source::synth::generate(0, i);
+                    let mut out = Hml263 {
+                        features: Vec::new(),
+                        joints: Vec::new(),
+                    };
+                    ex.process_into(&clip.poses, &Hml263Options::default(), &mut out)
+                        .map(|()| clip.poses.len())
+                })
+                .sum::<Result<usize, String>>()
+        })
+        .map_err(anyhow::Error::msg)?;
+    let gen_secs = t0.elapsed().as_secs_f64();
+    println!(
+        "generate + features: {} clips ({frames} frames) in {gen_secs:.2} s on {threads} threads = {:.0} clips/min (target ≥ 10,000 clips/min on 2 cores)",
+        args.clips,
+        args.clips as f64 * 60.0 / gen_secs
+    );
+    let work = tempfile::tempdir().context("creating a temporary folder")?;
+    let sources = [format!("synth:{}:0", args.clips)
+        .parse::<SourceSpec>()
+        .map_err(anyhow::Error::msg)?];
+    let t1 = Instant::now();
+    let report = pool
+        .install(|| {
+            ingest::pipeline::ingest(
+                &sources,
+                &work.path().join("corpus"),
+                &IngestOptions::default(),
+                &|_, _| {},
+            )
+        })
+        .map_err(anyhow::Error::msg)?;
+    let secs = t1.elapsed().as_secs_f64();
+    println!(
+        "whole ingest (features, stats, zstd shards): {} clips in {secs:.2} s = {:.0} clips/min, {:.0} frames/s, peak memory {:.0} MiB",
+        report.clips,
+        report.clips as f64 * 60.0 / secs,
+        report.frames as f64 / secs,
+        peak_rss_mib().unwrap_or(f64::NAN),
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
 /// Run the ingest benchmark.
 pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
     let bandai = args.data.join("bandai-namco");
@@ -77,11 +143,7 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
     }
     sources.sort_by(|a, b| a.path.cmp(&b.path));
     let out = work.path().join("corpus");
-    let mut pool = rayon::ThreadPoolBuilder::new();
-    if let Some(n) = args.workers {
-        pool = pool.num_threads(n.max(1));
-    }
-    let pool = pool.build()?;
+    let pool = crate::commands::thread_pool(args.workers)?;
     let threads = pool.current_num_threads();
     let t1 = Instant::now();
     let report = pool

@@ -88,12 +88,66 @@ pub fn ingest_options(args: &IngestArgs) -> Result<IngestOptions> {
     })
 }
 
-fn thread_pool(workers: Option<usize>) -> Result<rayon::ThreadPool> {
+/// A worker pool of `workers` threads (all cores when unset).
+pub fn thread_pool(workers: Option<usize>) -> Result<rayon::ThreadPool> {
     let mut b = rayon::ThreadPoolBuilder::new();
     if let Some(n) = workers {
         b = b.num_threads(n.max(1));
     }
     b.build().context("starting worker threads")
+}
+
+/// Arguments of `motionscale synth`.
+#[derive(clap::Args, Debug)]
+pub struct SynthArgs {
+    /// Number of synthetic clips (before mirroring).
+    #[arg(long)]
+    pub clips: usize,
+    /// Seed of the clip stream (same seed → same clips).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Output corpus folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Add left/right mirrored copies.
+    #[arg(long)]
+    pub mirror: bool,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub workers: Option<usize>,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `motionscale synth`: a corpus from `synth:CLIPS:SEED` with the default options.
+pub fn synth(args: SynthArgs) -> Result<ExitCode> {
+    let source = format!("synth:{}:{}", args.clips, args.seed);
+    let mut argv = vec![
+        "ingest".to_string(),
+        "--source".into(),
+        source,
+        "--out".into(),
+    ];
+    argv.push(args.out.display().to_string());
+    if args.mirror {
+        argv.push("--mirror".into());
+    }
+    if let Some(n) = args.workers {
+        argv.extend(["--workers".into(), n.to_string()]);
+    }
+    if args.json {
+        argv.push("--json".into());
+    }
+    let parsed = <IngestCli as clap::Parser>::try_parse_from(argv)?;
+    ingest(parsed.args)
+}
+
+/// Parses `ingest` arguments on their own (used to express `synth` as an ingest).
+#[derive(clap::Parser, Debug)]
+struct IngestCli {
+    #[command(flatten)]
+    args: IngestArgs,
 }
 
 /// `motionscale ingest`.
@@ -123,7 +177,7 @@ pub fn ingest(args: IngestArgs) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         println!(
-            "ingested {} clips ({} frames, {:.2} h) from {} input files into {} shards; {} rejected (see {}); {secs:.1} s",
+            "ingested {} clips ({} frames, {:.2} h) from {} inputs into {} shards; {} rejected (see {}); {secs:.1} s",
             report.clips,
             report.frames,
             report.frames as f64 / opts.fps / 3600.0,

@@ -32,6 +32,8 @@ enum Command {
     /// Export corpus clips to other tools' formats.
     #[command(subcommand)]
     Export(ExportCommand),
+    /// Build a corpus of labelled synthetic motion (same as `ingest --source synth:CLIPS:SEED`).
+    Synth(commands::SynthArgs),
     /// Cut a labelled corpus into L²-EMG scenario datasets (unseen: one per scenario; mixed: equal chunks).
     Scenarios(commands::ScenariosArgs),
     /// Write the small built-in demo inputs (generated BVH clips with captions) to a folder.
@@ -89,6 +91,8 @@ enum ExportCommand {
 enum BenchCommand {
     /// Ingest both Bandai Namco archives and time joints → 263 features on fixture (a).
     Ingest(bench::BenchIngestArgs),
+    /// Time synthetic corpus building: generation + features, and the whole ingest.
+    Synth(bench::BenchSynthArgs),
 }
 
 fn main() -> ExitCode {
@@ -98,7 +102,15 @@ fn main() -> ExitCode {
         )
         .with_writer(std::io::stderr)
         .init();
-    let cli = Cli::parse();
+    // Usage errors exit 1 (clap's default 2 is our "some inputs rejected" code).
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) => {
+            let code = u8::from(e.use_stderr());
+            let _ = e.print();
+            return ExitCode::from(code);
+        }
+    };
     let result = match cli.command {
         Command::Ingest(args) => commands::ingest(args),
         Command::Corpus(CorpusCommand::Stats { corpus, json }) => commands::stats(&corpus, json),
@@ -112,8 +124,10 @@ fn main() -> ExitCode {
             out,
         }) => commands::export_bvh(&corpus, &motion_id, &out),
         Command::Scenarios(args) => commands::scenarios(args),
+        Command::Synth(args) => commands::synth(args),
         Command::Demo { out } => commands::demo(&out),
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
+        Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
     };
     match result {
         Ok(code) => code,

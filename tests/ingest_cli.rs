@@ -315,3 +315,51 @@ fn static_and_short_clips_are_rejected_and_corruption_is_caught() {
         text(&verify)
     );
 }
+
+#[test]
+fn synth_corpus_is_labelled_deterministic_and_rejects_bad_specs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let build = |name: &str| {
+        let dir = tmp.path().join(name);
+        let out = motionscale(&[
+            "synth",
+            "--clips",
+            "72",
+            "--seed",
+            "5",
+            "--out",
+            dir.to_str().unwrap(),
+            "--mirror",
+            "--json",
+        ]);
+        assert_eq!(code(&out), 0, "{}", text(&out));
+        dir
+    };
+    let (a, b) = (build("a"), build("b"));
+    assert_eq!(corpus_bytes(&a), corpus_bytes(&b), "same seed, same bytes");
+    let stats = motionscale(&["corpus", "stats", a.to_str().unwrap(), "--json"]);
+    let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
+    assert_eq!(stats["clips"], 144);
+    // 72 consecutive clips hold every (action, emotion) pair once: 12 actions × 6 emotions.
+    assert_eq!(stats["by"]["action"].as_object().unwrap().len(), 12);
+    assert_eq!(stats["by"]["emotion"].as_object().unwrap().len(), 6);
+    assert!(stats["by"]["scenario"].as_object().unwrap().len() >= 5);
+    assert_eq!(
+        code(&motionscale(&["corpus", "verify", a.to_str().unwrap()])),
+        0
+    );
+
+    let bad = motionscale(&[
+        "ingest",
+        "--source",
+        "synth:abc",
+        "--out",
+        tmp.path().join("c").to_str().unwrap(),
+    ]);
+    assert_eq!(
+        code(&bad),
+        1,
+        "a usage error is a failure, not a partial ingest"
+    );
+    assert!(text(&bad).contains("clip count \"abc\""), "{}", text(&bad));
+}

@@ -12,7 +12,7 @@ use crate::hml263::{Hml263, Hml263Extractor, Hml263Options, FEATURE_DIM};
 use crate::resample::resample;
 use crate::skeleton::{mirror_pose, Pose};
 use crate::source::retarget::RigMap;
-use crate::source::{amass, bandai, bvh, hml3d, joints, RawClip, Reject};
+use crate::source::{amass, bandai, bvh, hml3d, joints, synth, RawClip, Reject};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::{BTreeMap, HashSet};
@@ -30,6 +30,8 @@ pub enum SourceKind {
     Amass,
     /// A HumanML3D-layout folder.
     Hml3d,
+    /// Procedural labelled motion, `synth:CLIPS[:SEED]`.
+    Synth,
 }
 
 impl SourceKind {
@@ -40,6 +42,7 @@ impl SourceKind {
             Self::Joints => "joints",
             Self::Amass => "amass",
             Self::Hml3d => "hml3d",
+            Self::Synth => "synth",
         }
     }
 
@@ -48,6 +51,7 @@ impl SourceKind {
             Self::Bvh => "bvh",
             Self::Joints | Self::Hml3d => "npy",
             Self::Amass => "npz",
+            Self::Synth => "",
         }
     }
 }
@@ -57,7 +61,7 @@ impl SourceKind {
 pub struct SourceSpec {
     /// Source kind.
     pub kind: SourceKind,
-    /// Folder (or single file) to read.
+    /// Folder (or single file) to read; `CLIPS[:SEED]` for `synth`.
     pub path: PathBuf,
 }
 
@@ -66,17 +70,21 @@ impl FromStr for SourceSpec {
 
     fn from_str(s: &str) -> Result<Self, String> {
         let (kind, path) = s.split_once(':').ok_or_else(|| {
-            format!("source {s:?} is not KIND:PATH (kinds: bvh, joints, amass, hml3d)")
+            format!("source {s:?} is not KIND:PATH (kinds: bvh, joints, amass, hml3d, synth)")
         })?;
         let kind = match kind {
             "bvh" => SourceKind::Bvh,
             "joints" => SourceKind::Joints,
             "amass" => SourceKind::Amass,
             "hml3d" => SourceKind::Hml3d,
+            "synth" => {
+                path.parse::<synth::SynthSpec>()?;
+                SourceKind::Synth
+            }
             other => {
                 return Err(format!(
-                    "unknown source kind {other:?} in {s:?} (kinds: bvh, joints, amass, hml3d)"
-                ))
+                "unknown source kind {other:?} in {s:?} (kinds: bvh, joints, amass, hml3d, synth)"
+            ))
             }
         };
         if path.is_empty() {
@@ -213,17 +221,27 @@ struct UnitOutcome {
     conversions: BTreeMap<String, u64>,
 }
 
-struct Unit {
-    source: usize,
-    path: PathBuf,
+/// One input: a file of a file source, or one clip of a synthetic stream.
+enum Item {
+    File(PathBuf),
+    Synth(usize),
 }
 
-fn discover(spec: &SourceSpec, reader: &Reader) -> Result<Vec<PathBuf>, String> {
-    if let Reader::Hml3d(folder) = reader {
-        return folder.discover();
+struct Unit {
+    source: usize,
+    item: Item,
+}
+
+fn discover(spec: &SourceSpec, reader: &Reader) -> Result<Vec<Item>, String> {
+    match reader {
+        Reader::Hml3d(folder) => {
+            return Ok(folder.discover()?.into_iter().map(Item::File).collect())
+        }
+        Reader::Synth(stream) => return Ok((0..stream.clips).map(Item::Synth).collect()),
+        _ => {}
     }
     if spec.path.is_file() {
-        return Ok(vec![spec.path.clone()]);
+        return Ok(vec![Item::File(spec.path.clone())]);
     }
     if !spec.path.is_dir() {
         return Err(format!(
@@ -252,7 +270,7 @@ fn discover(spec: &SourceSpec, reader: &Reader) -> Result<Vec<PathBuf>, String> 
         }
     }
     out.sort();
-    Ok(out)
+    Ok(out.into_iter().map(Item::File).collect())
 }
 
 fn caption_sidecar(path: &Path) -> Result<Option<Vec<String>>, Reject> {
@@ -474,9 +492,10 @@ enum Reader<'a> {
     Joints(f64),
     Amass(&'a amass::BodyModel),
     Hml3d(hml3d::Hml3dFolder),
+    Synth(synth::SynthSpec),
 }
 
-fn read_unit(kind: &Reader, spec: &SourceSpec, path: &Path) -> Vec<Result<RawClip, Reject>> {
+fn read_file(kind: &Reader, spec: &SourceSpec, path: &Path) -> Vec<Result<RawClip, Reject>> {
     // Ids come from the path inside the source folder, so equal file names in different
     // sub-folders (AMASS subjects) stay distinct.
     let rel = path.strip_prefix(&spec.path).unwrap_or(path);
@@ -490,27 +509,41 @@ fn read_unit(kind: &Reader, spec: &SourceSpec, path: &Path) -> Vec<Result<RawCli
         Reader::Joints(fps) => vec![joints::read_clip(path, rel, *fps)],
         Reader::Amass(model) => vec![amass::read_clip(path, rel, model)],
         Reader::Hml3d(folder) => folder.read_clips(path),
+        Reader::Synth(_) => unreachable!("synthetic clips are not files"),
     }
 }
 
 fn process_unit(
     kind: &Reader,
     spec: &SourceSpec,
-    path: &Path,
+    item: &Item,
     opts: &IngestOptions,
     extractor: &mut Hml263Extractor,
 ) -> UnitOutcome {
-    let mut out = UnitOutcome {
-        bytes: std::fs::metadata(path).map(|m| m.len()).unwrap_or(0),
-        ..Default::default()
+    let mut out = UnitOutcome::default();
+    let (results, path) = match (item, kind) {
+        (Item::Synth(index), Reader::Synth(stream)) => (
+            vec![Ok(synth::generate(stream.seed, *index))],
+            PathBuf::from(format!("synth:{}", stream.seed)),
+        ),
+        (Item::File(path), _) => {
+            out.bytes = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+            let results = read_file(kind, spec, path)
+                .into_iter()
+                .map(|result| {
+                    result.and_then(|mut clip| {
+                        if !matches!(kind, Reader::Hml3d(_)) {
+                            attach_sidecars(&mut clip, path)?;
+                        }
+                        Ok(clip)
+                    })
+                })
+                .collect();
+            (results, path.clone())
+        }
+        (Item::Synth(_), _) => unreachable!("synthetic items come from synth sources"),
     };
-    for result in read_unit(kind, spec, path) {
-        let clip = result.and_then(|mut clip| {
-            if !matches!(kind, Reader::Hml3d(_)) {
-                attach_sidecars(&mut clip, path)?;
-            }
-            Ok(clip)
-        });
+    for clip in results {
         match clip {
             Ok(clip) => {
                 out.source_frames += clip.poses.len() as u64;
@@ -552,6 +585,7 @@ pub fn ingest(
                 SourceKind::Joints => Reader::Joints(opts.src_fps),
                 SourceKind::Amass => Reader::Amass(body_model.as_ref().expect("loaded above")),
                 SourceKind::Hml3d => Reader::Hml3d(hml3d::Hml3dFolder::open(&s.path)?),
+                SourceKind::Synth => Reader::Synth(s.path.to_string_lossy().parse()?),
             })
         })
         .collect::<Result<_, String>>()?;
@@ -565,7 +599,7 @@ pub fn ingest(
             files: files.len() as u64,
             ..Default::default()
         });
-        units.extend(files.into_iter().map(|path| Unit { source: i, path }));
+        units.extend(files.into_iter().map(|item| Unit { source: i, item }));
     }
     let total = units.len() as u64;
     let done = std::sync::atomic::AtomicU64::new(0);
@@ -594,7 +628,7 @@ pub fn ingest(
                 let o = process_unit(
                     &readers[u.source],
                     &sources[u.source],
-                    &u.path,
+                    &u.item,
                     opts,
                     extractor,
                 );
