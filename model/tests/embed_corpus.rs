@@ -92,7 +92,9 @@ fn fallback_embeddings_resume_and_read_back() {
     let n = captions.len() as u64;
     assert!(n >= 10, "{n} captions");
 
-    let encoder = FallbackEncoder::build(captions.iter().map(String::as_str), 32, 5).unwrap();
+    let encoder = FallbackEncoder::for_corpus(&corpus, 32, 5).unwrap();
+    let built = FallbackEncoder::build(captions.iter().map(String::as_str), 32, 5).unwrap();
+    assert_eq!(encoder.id(), built.id());
     let calls = RefCell::new(Vec::new());
     let record = |d, t| calls.borrow_mut().push((d, t));
     let report = embed_corpus_sharded(&corpus, &encoder, 2, 3, &record).unwrap();
