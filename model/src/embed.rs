@@ -119,10 +119,7 @@ struct Index {
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes)
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
+    crate::hex(&Sha256::digest(bytes))
 }
 
 /// The distinct captions of a corpus, sorted (only the `captions` column is decoded).
@@ -206,11 +203,7 @@ pub fn embed_corpus_sharded(
         encoder: id.clone(),
         dim,
         captions: captions.len() as u64,
-        captions_sha256: list_hash
-            .finalize()
-            .iter()
-            .map(|b| format!("{b:02x}"))
-            .collect(),
+        captions_sha256: crate::hex(&list_hash.finalize()),
         shard_captions,
         shards: Vec::new(),
     };

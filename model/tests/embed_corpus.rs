@@ -38,6 +38,41 @@ fn all_captions(corpus: &Path) -> BTreeSet<String> {
         .collect()
 }
 
+/// Read an encoder's shards with pyarrow; prints rows, the first caption's length and the
+/// sum of its embedding values.
+fn python_check(corpus: &Path, encoder: &str) -> String {
+    const SCRIPT: &str = r#"
+import json, sys, numpy as np, pyarrow.parquet as pq
+corpus, encoder = sys.argv[1], sys.argv[2]
+entry = next(e for e in json.load(open(f"{corpus}/manifest.json"))["text_embeddings"] if e["encoder"] == encoder)
+index = json.load(open(f"{corpus}/{entry['dir']}/index.json"))
+rows, first = 0, None
+for shard in index["shards"]:
+    t = pq.read_table(f"{corpus}/{entry['dir']}/{shard['file']}")
+    meta = t.schema.metadata
+    assert meta[b"motionscale.text_encoder"].decode() == encoder, meta
+    assert int(meta[b"motionscale.text_dim"]) == entry["dim"], meta
+    for cap, toks, n, emb in zip(*(t.column(c).to_pylist() for c in ["caption", "tokens", "num_tokens", "embeddings"])):
+        assert len(toks) == n and len(emb) == n * entry["dim"], cap
+        if first is None:
+            first = (cap, np.asarray(emb, dtype=np.float64).sum())
+    rows += t.num_rows
+print(rows, len(first[0]), repr(float(first[1])))
+"#;
+    let out = std::process::Command::new("python3")
+        .args(["-c", SCRIPT])
+        .arg(corpus)
+        .arg(encoder)
+        .output()
+        .expect("python3 runs");
+    assert!(
+        out.status.success(),
+        "pyarrow check failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
 fn index_shards(dir: &Path) -> Vec<serde_json::Value> {
     let index: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join(INDEX_FILE)).unwrap()).unwrap();
@@ -57,7 +92,9 @@ fn fallback_embeddings_resume_and_read_back() {
     let n = captions.len() as u64;
     assert!(n >= 10, "{n} captions");
 
-    let encoder = FallbackEncoder::build(captions.iter().map(String::as_str), 32, 5).unwrap();
+    let encoder = FallbackEncoder::for_corpus(&corpus, 32, 5).unwrap();
+    let built = FallbackEncoder::build(captions.iter().map(String::as_str), 32, 5).unwrap();
+    assert_eq!(encoder.id(), built.id());
     let calls = RefCell::new(Vec::new());
     let record = |d, t| calls.borrow_mut().push((d, t));
     let report = embed_corpus_sharded(&corpus, &encoder, 2, 3, &record).unwrap();
@@ -98,6 +135,17 @@ fn fallback_embeddings_resume_and_read_back() {
     assert!(chunk
         .encodings()
         .any(|e| e == parquet::basic::Encoding::BYTE_STREAM_SPLIT));
+
+    // Other tools read the shards: pyarrow sees the encoder, the width and every row.
+    let out = python_check(&corpus, encoder.id());
+    let first = read.get(&captions[0]).unwrap().unwrap();
+    let sum: f64 = first.embeddings.iter().map(|&v| v as f64).sum();
+    assert_eq!(
+        out.split_whitespace().collect::<Vec<_>>()[..2],
+        [n.to_string(), captions[0].chars().count().to_string()]
+    );
+    let py_sum: f64 = out.split_whitespace().nth(2).unwrap().parse().unwrap();
+    assert!((py_sum - sum).abs() < 1e-4, "pyarrow {py_sum} vs {sum}");
 
     // A re-run skips everything and keeps a single manifest entry.
     let again = embed_corpus_sharded(&corpus, &encoder, 2, 3, &|_, _| {}).unwrap();
