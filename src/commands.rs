@@ -15,7 +15,7 @@ use std::process::ExitCode;
 /// Arguments of `motionscale ingest`.
 #[derive(clap::Args, Debug)]
 pub struct IngestArgs {
-    /// A source as KIND:PATH (bvh:DIR, joints:DIR, amass:DIR, hml3d:DIR); repeatable.
+    /// A source as KIND:PATH (bvh:DIR, joints:DIR, amass:DIR, hml3d:DIR, synth:CLIPS[:SEED]); repeatable.
     #[arg(long = "source", required = true, value_parser = parse_source)]
     pub sources: Vec<SourceSpec>,
     /// Output corpus folder (created; a re-run over the same inputs rewrites identical bytes).
@@ -62,6 +62,17 @@ pub struct IngestArgs {
 
 fn parse_source(s: &str) -> Result<SourceSpec, String> {
     s.parse()
+}
+
+/// A progress bar for a long step, counting `unit`s (hidden when stderr is not a terminal).
+pub fn progress_bar(step: &str, unit: &str) -> ProgressBar {
+    ProgressBar::new(0).with_style(
+        ProgressStyle::with_template(&format!(
+            "{{spinner}} {step} [{{bar:30}}] {{pos}}/{{len}} {unit} {{per_sec}} eta {{eta}}"
+        ))
+        .expect("template")
+        .progress_chars("=> "),
+    )
 }
 
 /// Build the ingest options from the command line.

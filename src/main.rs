@@ -3,6 +3,8 @@
 
 mod bench;
 mod commands;
+mod quickstart;
+mod text;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
@@ -24,7 +26,11 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Build a corpus from motion sources (bvh:DIR, joints:DIR, amass:DIR, hml3d:DIR).
+    /// The whole pipeline on built-in synthetic data: corpus, embeddings, scenarios, export.
+    Quickstart(quickstart::QuickstartArgs),
+    /// Embed every distinct caption of a corpus with a frozen text encoder.
+    EmbedText(text::EmbedTextArgs),
+    /// Build a corpus from motion sources (bvh:DIR, joints:DIR, amass:DIR, hml3d:DIR, synth:CLIPS[:SEED]).
     Ingest(commands::IngestArgs),
     /// Inspect or check a corpus.
     #[command(subcommand)]
@@ -113,6 +119,8 @@ fn main() -> ExitCode {
     };
     let result = match cli.command {
         Command::Ingest(args) => commands::ingest(args),
+        Command::Quickstart(args) => quickstart::quickstart(args),
+        Command::EmbedText(args) => text::embed_text(args),
         Command::Corpus(CorpusCommand::Stats { corpus, json }) => commands::stats(&corpus, json),
         Command::Corpus(CorpusCommand::Verify { corpus, json }) => commands::verify(&corpus, json),
         Command::Export(ExportCommand::Hml3d { corpus, out }) => {

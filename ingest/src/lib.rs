@@ -9,6 +9,7 @@ pub mod npy;
 pub mod pipeline;
 pub mod quat;
 pub mod resample;
+pub mod rng;
 pub mod scenarios;
 pub mod skeleton;
 pub mod source;

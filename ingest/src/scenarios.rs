@@ -7,9 +7,10 @@
 //! clip and its mirror never sit in two splits. (The corpus's own hash split is not reused:
 //! scenarios with a handful of long source clips would get no training clip at all.)
 
-use crate::corpus::reader::{ClipMeta, SplitMix64};
+use crate::corpus::reader::ClipMeta;
 use crate::corpus::split::SPLITS;
 use crate::corpus::Corpus;
+use crate::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;

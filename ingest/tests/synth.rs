@@ -396,32 +396,3 @@ fn labels_are_recoverable_from_the_motion() {
     assert!(acc_a >= 0.90, "action accuracy {acc_a}");
     assert!(acc_e >= 0.90, "emotion accuracy {acc_e}");
 }
-
-/// Throughput of generation plus 263 features on one thread (run with --ignored --nocapture).
-#[test]
-#[ignore]
-fn generation_speed() {
-    let mut extractor = hml263::Hml263Extractor::default();
-    let mut out = hml263::Hml263 {
-        features: Vec::new(),
-        joints: Vec::new(),
-    };
-    let opts = Hml263Options::default();
-    let start = Instant::now();
-    let mut frames = 0;
-    let mut gen_s = 0.0;
-    for i in 0..2000 {
-        let t = Instant::now();
-        let clip = synth::generate(0, i);
-        gen_s += t.elapsed().as_secs_f64();
-        frames += clip.poses.len();
-        extractor
-            .process_into(&clip.poses, &opts, &mut out)
-            .unwrap();
-    }
-    let s = start.elapsed().as_secs_f64();
-    println!(
-        "2000 clips ({frames} frames) in {s:.2}s: {:.0} clips/s single-threaded (generate {gen_s:.2}s)",
-        2000.0 / s
-    );
-}

@@ -5,7 +5,7 @@
 
 use crate::error::ModelError;
 use crate::{TextEncoder, TokenEmbeddings};
-use ingest::corpus::reader::SplitMix64;
+use ingest::rng::SplitMix64;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use sha2::{Digest, Sha256};
 use std::collections::{BTreeSet, HashMap};

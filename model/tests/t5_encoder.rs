@@ -4,7 +4,7 @@
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use candle_transformers::models::t5::{Config, T5EncoderModel};
-use ingest::corpus::reader::SplitMix64;
+use ingest::rng::SplitMix64;
 use model::{T5Encoder, TextEncoder};
 use serde_json::json;
 use std::path::Path;

@@ -4,6 +4,7 @@
 use super::manifest::Manifest;
 use super::schema::{col, FEATURE_DIM};
 use super::ClipRecord;
+use crate::rng::SplitMix64;
 use crate::source::Labels;
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, UInt32Type};
@@ -430,26 +431,6 @@ impl Shard {
             .iter()
             .filter_map(|n| fields.iter().position(|f| f.name() == n));
         ProjectionMask::roots(self.metadata.parquet_schema(), roots)
-    }
-}
-
-/// SplitMix64: a tiny seeded generator whose sequence never changes between versions.
-#[derive(Debug, Clone)]
-pub struct SplitMix64(pub u64);
-
-impl SplitMix64 {
-    /// Next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform integer in 0..n (n > 0).
-    pub fn below(&mut self, n: u64) -> u64 {
-        ((self.next_u64() as u128 * n as u128) >> 64) as u64
     }
 }
 

@@ -33,8 +33,8 @@
 //! | proud   | 0.95  | 1.05      | chest out, chin up           | wide, shoulders back | —           |
 
 use super::{Labels, RawClip};
-use crate::corpus::reader::SplitMix64;
 use crate::quat::{self, Quat, Vec3};
+use crate::rng::SplitMix64;
 use crate::skeleton::{Pose, NUM_JOINTS, PARENTS, RAW_OFFSETS, TARGET_OFFSETS};
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 use std::path::PathBuf;
