@@ -165,13 +165,8 @@ impl Rng {
         Self(rng)
     }
 
-    /// Uniform in [0, 1).
-    fn unit(&mut self) -> f64 {
-        (self.0.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-
     fn range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * self.unit()
+        self.0.range(lo, hi)
     }
 
     /// Multiplicative jitter 1 ± `rel`.
@@ -184,7 +179,7 @@ impl Rng {
     }
 
     fn pick<'a>(&mut self, xs: &[&'a str]) -> &'a str {
-        xs[self.0.below(xs.len() as u64) as usize]
+        xs[self.0.index(xs.len())]
     }
 }
 

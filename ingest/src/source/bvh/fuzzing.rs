@@ -4,41 +4,8 @@
 
 use super::{parse_bytes, Channel};
 use crate::quat::Vec3;
+use crate::rng::SplitMix64 as Rng;
 use std::panic::{catch_unwind, AssertUnwindSafe};
-
-/// SplitMix64: a small, seeded, deterministic generator.
-#[derive(Debug, Clone)]
-pub struct Rng(u64);
-
-impl Rng {
-    /// Generator started from `seed`.
-    pub fn new(seed: u64) -> Self {
-        Self(seed)
-    }
-
-    /// Next 64 random bits.
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform integer in `0..n` (0 when n = 0).
-    pub fn below(&mut self, n: usize) -> usize {
-        if n == 0 {
-            0
-        } else {
-            (self.next_u64() % n as u64) as usize
-        }
-    }
-
-    /// Uniform float in [lo, hi).
-    pub fn range(&mut self, lo: f64, hi: f64) -> f64 {
-        lo + (hi - lo) * (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
 
 /// A joint for [`write_bvh`]: parents must precede children.
 #[derive(Debug, Clone)]
@@ -144,25 +111,25 @@ const ALL_CHANNELS: [Channel; 6] = [
 /// A random valid BVH: 1–8 joints in a random tree, 1–6 channels each in random order,
 /// 1–6 frames, random layout and number formatting.
 pub fn generate(rng: &mut Rng) -> String {
-    let n = 1 + rng.below(8);
+    let n = 1 + rng.index(8);
     let joints: Vec<SeedJoint> = (0..n)
         .map(|j| {
             let mut pool = ALL_CHANNELS.to_vec();
-            let count = if j == 0 || rng.below(2) == 0 {
-                if rng.below(2) == 0 {
+            let count = if j == 0 || rng.index(2) == 0 {
+                if rng.index(2) == 0 {
                     6
                 } else {
                     3
                 }
             } else {
-                1 + rng.below(6)
+                1 + rng.index(6)
             };
             let channels = (0..count)
-                .map(|_| pool.remove(rng.below(pool.len())))
+                .map(|_| pool.remove(rng.index(pool.len())))
                 .collect();
             SeedJoint {
                 name: format!("J{j}"),
-                parent: if j == 0 { None } else { Some(rng.below(j)) },
+                parent: if j == 0 { None } else { Some(rng.index(j)) },
                 offset: [
                     rng.range(-20.0, 20.0),
                     rng.range(-20.0, 20.0),
@@ -173,22 +140,22 @@ pub fn generate(rng: &mut Rng) -> String {
         })
         .collect();
     let channels: usize = joints.iter().map(|j| j.channels.len()).sum();
-    let frames = 1 + rng.below(6);
+    let frames = 1 + rng.index(6);
     let motion: Vec<f64> = (0..frames * channels)
-        .map(|_| match rng.below(4) {
+        .map(|_| match rng.index(4) {
             0 => rng.range(-1e-5, 1e-5),
             1 => rng.range(-180.0, 180.0).round(),
             _ => rng.range(-180.0, 180.0),
         })
         .collect();
     let layout = Layout {
-        crlf: rng.below(2) == 0,
-        tabs: rng.below(2) == 0,
-        wrap: (rng.below(3) == 0).then(|| 1 + rng.below(7)),
+        crlf: rng.index(2) == 0,
+        tabs: rng.index(2) == 0,
+        wrap: (rng.index(3) == 0).then(|| 1 + rng.index(7)),
     };
     write_bvh(
         &joints,
-        1.0 / (10.0 + rng.below(111) as f64),
+        1.0 / (10.0 + rng.index(111) as f64),
         &motion,
         layout,
     )
@@ -265,37 +232,37 @@ fn splice(input: &[u8], (s, e): (usize, usize), with: &[u8]) -> Vec<u8> {
 pub fn mutate(rng: &mut Rng, input: &[u8], other: &[u8]) -> Vec<u8> {
     let toks = tokens(input);
     let lns = lines(input);
-    match rng.below(10) {
+    match rng.index(10) {
         0 if !input.is_empty() => {
             let mut out = input.to_vec();
-            for _ in 0..1 + rng.below(4) {
-                let i = rng.below(out.len());
-                out[i] ^= 1 << rng.below(8);
+            for _ in 0..1 + rng.index(4) {
+                let i = rng.index(out.len());
+                out[i] ^= 1 << rng.index(8);
             }
             out
         }
         1 if !toks.is_empty() => {
-            let t = toks[rng.below(toks.len())];
-            splice(input, t, NASTY[rng.below(NASTY.len())].as_bytes())
+            let t = toks[rng.index(toks.len())];
+            splice(input, t, NASTY[rng.index(NASTY.len())].as_bytes())
         }
         2 if !toks.is_empty() => {
             // Numbers become words, huge or negative values, and the other way round.
-            let t = toks[rng.below(toks.len())];
-            let with = match rng.below(4) {
+            let t = toks[rng.index(toks.len())];
+            let with = match rng.index(4) {
                 0 => format!("{}", rng.next_u64()),
-                1 => format!("-{}", rng.below(1000)),
+                1 => format!("-{}", rng.index(1000)),
                 2 => format!("{:e}", rng.range(-1e300, 1e300)),
                 _ => "word".to_string(),
             };
             splice(input, t, with.as_bytes())
         }
-        3 if !lns.is_empty() => splice(input, lns[rng.below(lns.len())], b""),
+        3 if !lns.is_empty() => splice(input, lns[rng.index(lns.len())], b""),
         4 if !lns.is_empty() => {
-            let l = lns[rng.below(lns.len())];
-            let dup = input[l.0..l.1].repeat(1 + rng.below(3));
+            let l = lns[rng.index(lns.len())];
+            let dup = input[l.0..l.1].repeat(1 + rng.index(3));
             splice(input, (l.0, l.0), &dup)
         }
-        5 => input[..rng.below(input.len() + 1)].to_vec(),
+        5 => input[..rng.index(input.len() + 1)].to_vec(),
         6 => {
             let braces: Vec<usize> = (0..input.len())
                 .filter(|&i| input[i] == b'{' || input[i] == b'}')
@@ -303,7 +270,7 @@ pub fn mutate(rng: &mut Rng, input: &[u8], other: &[u8]) -> Vec<u8> {
             if braces.is_empty() {
                 input.to_vec()
             } else {
-                let i = braces[rng.below(braces.len())];
+                let i = braces[rng.index(braces.len())];
                 splice(input, (i, i + 1), b"")
             }
         }
@@ -320,26 +287,26 @@ pub fn mutate(rng: &mut Rng, input: &[u8], other: &[u8]) -> Vec<u8> {
             if counts.is_empty() {
                 input.to_vec()
             } else {
-                let t = counts[rng.below(counts.len())];
-                let with = match rng.below(4) {
-                    0 => rng.below(8).to_string(),
+                let t = counts[rng.index(counts.len())];
+                let with = match rng.index(4) {
+                    0 => rng.index(8).to_string(),
                     1 => "-3".to_string(),
                     2 => "4000000000000".to_string(),
-                    _ => (1usize << (rng.below(40) + 20)).to_string(),
+                    _ => (1usize << (rng.index(40) + 20)).to_string(),
                 };
                 splice(input, t, with.as_bytes())
             }
         }
         8 => {
-            let a = rng.below(input.len() + 1);
-            let b = rng.below(other.len() + 1);
+            let a = rng.index(input.len() + 1);
+            let b = rng.index(other.len() + 1);
             [&input[..a], &other[b..]].concat()
         }
         _ => {
             let mut out = input.to_vec();
             if !out.is_empty() {
-                let i = rng.below(out.len());
-                out.insert(i, b" \t\r\n\x0b\x00\xff"[rng.below(7)]);
+                let i = rng.index(out.len());
+                out.insert(i, b" \t\r\n\x0b\x00\xff"[rng.index(7)]);
             }
             out
         }
@@ -380,7 +347,7 @@ pub struct Fuzzer {
 impl Fuzzer {
     /// A fuzzer with `generated` random seed BVHs plus `extra` seeds.
     pub fn new(seed: u64, generated: usize, extra: Vec<Vec<u8>>) -> Self {
-        let mut rng = Rng::new(seed);
+        let mut rng = Rng(seed);
         let mut seeds: Vec<Vec<u8>> = (0..generated)
             .map(|_| generate(&mut rng).into_bytes())
             .collect();
@@ -390,16 +357,16 @@ impl Fuzzer {
 
     /// Next input: a seed (or a fresh generated file) with 1–4 stacked mutations.
     pub fn next_input(&mut self) -> Vec<u8> {
-        let mut input = if self.seeds.is_empty() || self.rng.below(8) == 0 {
+        let mut input = if self.seeds.is_empty() || self.rng.index(8) == 0 {
             generate(&mut self.rng).into_bytes()
         } else {
-            self.seeds[self.rng.below(self.seeds.len())].clone()
+            self.seeds[self.rng.index(self.seeds.len())].clone()
         };
-        for _ in 0..1 + self.rng.below(4) {
+        for _ in 0..1 + self.rng.index(4) {
             let other = if self.seeds.is_empty() {
                 Vec::new()
             } else {
-                self.seeds[self.rng.below(self.seeds.len())].clone()
+                self.seeds[self.rng.index(self.seeds.len())].clone()
             };
             input = mutate(&mut self.rng, &input, &other);
         }
@@ -413,7 +380,7 @@ mod tests {
 
     #[test]
     fn generated_seeds_parse() {
-        let mut rng = Rng::new(7);
+        let mut rng = Rng(7);
         for _ in 0..200 {
             let text = generate(&mut rng);
             assert_eq!(check(text.as_bytes()), Ok(true), "{text}");
