@@ -314,33 +314,26 @@ pub(crate) fn parse_f64(tok: &[u8]) -> Option<f64> {
     };
     let mut mant: u64 = 0;
     let mut sig = 0u32;
-    let mut exp: i64 = 0;
     let mut digits = 0;
-    while let Some(&b) = tok.get(i) {
-        if !b.is_ascii_digit() {
-            break;
-        }
-        if mant != 0 || b != b'0' {
-            sig += 1;
-        }
-        mant = mant.wrapping_mul(10).wrapping_add(u64::from(b - b'0'));
-        digits += 1;
-        i += 1;
-    }
-    if tok.get(i) == Some(&b'.') {
-        i += 1;
-        while let Some(&b) = tok.get(i) {
-            if !b.is_ascii_digit() {
-                break;
-            }
+    // Accumulate a run of digits into the mantissa; returns how many there were.
+    let mut run = |i: &mut usize| {
+        let start = *i;
+        while let Some(&b) = tok.get(*i).filter(|b| b.is_ascii_digit()) {
             if mant != 0 || b != b'0' {
                 sig += 1;
             }
             mant = mant.wrapping_mul(10).wrapping_add(u64::from(b - b'0'));
-            exp -= 1;
-            digits += 1;
-            i += 1;
+            *i += 1;
         }
+        *i - start
+    };
+    digits += run(&mut i);
+    let mut exp: i64 = 0;
+    if tok.get(i) == Some(&b'.') {
+        i += 1;
+        let fraction = run(&mut i);
+        digits += fraction;
+        exp -= fraction as i64;
     }
     if digits > 0 && matches!(tok.get(i), Some(b'e' | b'E')) {
         i += 1;
