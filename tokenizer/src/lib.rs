@@ -1,0 +1,18 @@
+//! Quantizers of the motion tokenizers (issue 3) and their codebook metrics.
+//!
+//! [`FsqQuantizer`] (finite scalar quantization, Mentzer et al.) and [`VqQuantizer`]
+//! (nearest-code VQ with an EMA codebook and dead-code reset, as in T2M-GPT) both map
+//! encoder outputs (`..., dim`) to a straight-through quantized tensor and one code index
+//! per position; [`CodeUsage`] turns those indices into utilisation and perplexity.
+//! The `cuda` feature (off by default) builds candle with CUDA.
+
+pub mod error;
+pub mod fsq;
+pub mod ste;
+pub mod usage;
+pub mod vq;
+
+pub use error::TokenizerError;
+pub use fsq::{levels_for, Bound, FsqConfig, FsqOutput, FsqQuantizer};
+pub use usage::CodeUsage;
+pub use vq::{VqConfig, VqOutput, VqQuantizer};
