@@ -4,14 +4,17 @@
 //! (nearest-code VQ with an EMA codebook and dead-code reset, as in T2M-GPT) both map
 //! encoder outputs (`..., dim`) to a straight-through quantized tensor and one code index
 //! per position; [`CodeUsage`] turns those indices into utilisation and perplexity.
+//! [`ConvEncoder`] and [`ConvDecoder`] are the T2M-GPT convolutional networks around them.
 //! The `cuda` feature (off by default) builds candle with CUDA.
 
+pub mod conv;
 pub mod error;
 pub mod fsq;
 pub mod ste;
 pub mod usage;
 pub mod vq;
 
+pub use conv::{ConvConfig, ConvDecoder, ConvEncoder};
 pub use error::TokenizerError;
 pub use fsq::{levels_for, Bound, FsqConfig, FsqOutput, FsqQuantizer};
 pub use usage::CodeUsage;
