@@ -80,15 +80,15 @@ pub struct FsqOutput {
 /// An FSQ bottleneck: `Linear(dim → d_q)`, bound, round, normalise, `Linear(d_q → dim)`.
 #[derive(Debug, Clone)]
 pub struct FsqQuantizer {
-    project_in: Linear,
-    project_out: Linear,
+    proj_in: Linear,
+    proj_out: Linear,
     levels: Vec<usize>,
     bound: Bound,
 }
 
 impl FsqQuantizer {
-    /// Build from `config`, with weights `project_in.{weight,bias}` and
-    /// `project_out.{weight,bias}` under `vb`.
+    /// Build from `config`, with weights `proj_in.{weight,bias}` and
+    /// `proj_out.{weight,bias}` under `vb`.
     pub fn new(config: &FsqConfig, vb: VarBuilder) -> Result<Self, TokenizerError> {
         if config.dim == 0 {
             return Err(TokenizerError::Argument("FSQ dim must be positive".into()));
@@ -112,8 +112,8 @@ impl FsqQuantizer {
         }
         let d_q = config.levels.len();
         Ok(Self {
-            project_in: candle_nn::linear(config.dim, d_q, vb.pp("project_in"))?,
-            project_out: candle_nn::linear(d_q, config.dim, vb.pp("project_out"))?,
+            proj_in: candle_nn::linear(config.dim, d_q, vb.pp("proj_in"))?,
+            proj_out: candle_nn::linear(d_q, config.dim, vb.pp("proj_out"))?,
             levels: config.levels.clone(),
             bound: config.bound,
         })
@@ -131,10 +131,10 @@ impl FsqQuantizer {
 
     /// Project `x` (`..., dim`), quantize, and project back.
     pub fn forward(&self, x: &Tensor) -> Result<FsqOutput, TokenizerError> {
-        let z = self.project_in.forward(x)?;
+        let z = self.proj_in.forward(x)?;
         let codes = self.quantize(&z)?;
         let indices = self.codes_to_indices(&codes)?;
-        let quantized = self.project_out.forward(&codes)?;
+        let quantized = self.proj_out.forward(&codes)?;
         Ok(FsqOutput {
             quantized,
             codes,
