@@ -10,10 +10,7 @@ use ingest::corpus::Corpus;
 fn reader_gives_clips_by_id_and_reproducible_normalised_windows() {
     let tmp = tempfile::tempdir().unwrap();
     let inputs = tmp.path().join("inputs");
-    assert_eq!(
-        code(&motionscale(&["demo", "--out", inputs.to_str().unwrap()])),
-        0
-    );
+    demo_inputs(&inputs);
     let dir = tmp.path().join("corpus");
     let out = motionscale(&[
         "ingest",

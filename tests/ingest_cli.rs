@@ -7,11 +7,6 @@ use common::*;
 use ingest::corpus::Corpus;
 use std::path::Path;
 
-fn demo_inputs(dir: &Path) {
-    let out = motionscale(&["demo", "--out", dir.to_str().unwrap()]);
-    assert_eq!(code(&out), 0, "{}", text(&out));
-}
-
 #[test]
 fn demo_corpus_end_to_end_and_byte_identical_rerun() {
     let tmp = tempfile::tempdir().unwrap();

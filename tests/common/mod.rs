@@ -29,6 +29,12 @@ pub fn text(out: &Output) -> String {
     )
 }
 
+/// Write the built-in demo BVH inputs into `dir` (panics with the output on failure).
+pub fn demo_inputs(dir: &Path) {
+    let out = motionscale(&["demo", "--out", dir.to_str().expect("utf-8 path")]);
+    assert_eq!(code(&out), 0, "{}", text(&out));
+}
+
 /// `../shared/data`, or `None` (with a note) when absent outside CI. Panics in CI.
 pub fn shared_data() -> Option<PathBuf> {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
