@@ -1,5 +1,6 @@
 //! The error type of every fallible operation of this crate.
 
+use std::path::PathBuf;
 use thiserror::Error;
 
 /// What went wrong.
@@ -11,4 +12,12 @@ pub enum TokenizerError {
     /// A caller passed an unusable argument or configuration.
     #[error("invalid argument: {0}")]
     Argument(String),
+    /// A file could not be read or written, or its content is wrong.
+    #[error("{}: {message}", path.display())]
+    File {
+        /// The file.
+        path: PathBuf,
+        /// What went wrong with it.
+        message: String,
+    },
 }

@@ -7,15 +7,19 @@
 //! [`ConvEncoder`] and [`ConvDecoder`] are the T2M-GPT convolutional networks around them.
 //! The `cuda` feature (off by default) builds candle with CUDA.
 
+pub mod checkpoint;
 pub mod conv;
 pub mod error;
 pub mod fsq;
+pub mod optim;
 pub mod ste;
+pub mod tokens;
 pub mod usage;
 pub mod vq;
 
 pub use conv::{ConvConfig, ConvDecoder, ConvEncoder};
 pub use error::TokenizerError;
 pub use fsq::{levels_for, Bound, FsqConfig, FsqOutput, FsqQuantizer};
+pub use tokens::{TokenClip, TokenManifest, TokenSet, TokenizerInfo, UnigramCounts};
 pub use usage::CodeUsage;
 pub use vq::{VqConfig, VqOutput, VqQuantizer};
