@@ -3,6 +3,9 @@
 
 mod bench;
 mod commands;
+mod lm;
+mod lm_bench;
+mod motion;
 mod quickstart;
 mod text;
 
@@ -51,6 +54,21 @@ enum Command {
     /// Measure throughput against the reference figures.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Inspect prefix-LM shapes: parameters and FLOPs.
+    #[command(subcommand)]
+    Model(ModelCommand),
+    /// Train (or resume) a text-prefix autoregressive motion transformer on a token set.
+    Train(lm::TrainArgs),
+    /// Generate motion for a text with a trained prefix LM.
+    Generate(lm::GenerateArgs),
+}
+
+#[derive(Subcommand)]
+enum ModelCommand {
+    /// N_nv, N_v, N and FLOPs per token (6N and exact) of one shape.
+    Info(lm::InfoArgs),
+    /// The preset table at one codebook size.
+    Presets(lm::PresetsArgs),
 }
 
 #[derive(Subcommand)]
@@ -99,6 +117,8 @@ enum BenchCommand {
     Ingest(bench::BenchIngestArgs),
     /// Time synthetic corpus building: generation + features, and the whole ingest.
     Synth(bench::BenchSynthArgs),
+    /// Prefix-LM training step and generation: tokens/s, GFLOP/s, MFU, PyTorch ratio.
+    Train(lm_bench::BenchTrainArgs),
 }
 
 fn main() -> ExitCode {
@@ -136,6 +156,11 @@ fn main() -> ExitCode {
         Command::Demo { out } => commands::demo(&out),
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
         Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
+        Command::Bench(BenchCommand::Train(args)) => lm_bench::train(args),
+        Command::Model(ModelCommand::Info(args)) => lm::info(args),
+        Command::Model(ModelCommand::Presets(args)) => lm::presets(args),
+        Command::Train(args) => lm::train(args),
+        Command::Generate(args) => lm::generate(args),
     };
     match result {
         Ok(code) => code,
