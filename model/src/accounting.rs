@@ -175,3 +175,92 @@ impl Accounting {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::prefix_lm::{PrefixLm, PRESETS};
+    use candle_core::{DType, Device, Shape, Tensor};
+    use candle_nn::var_builder::SimpleBackend;
+    use candle_nn::{Init, VarBuilder};
+    use std::sync::{Arc, Mutex};
+
+    /// A backend that records every requested parameter and hands out zero-stride views, so
+    /// even the 3B preset builds without allocating its weights.
+    #[derive(Default, Clone)]
+    struct Shapes(Arc<Mutex<Vec<(String, Shape)>>>);
+
+    impl SimpleBackend for Shapes {
+        fn get(
+            &self,
+            s: Shape,
+            name: &str,
+            _: Init,
+            dtype: DType,
+            dev: &Device,
+        ) -> candle_core::Result<Tensor> {
+            self.0.lock().unwrap().push((name.to_string(), s.clone()));
+            Tensor::zeros((), dtype, dev)?.broadcast_as(s)
+        }
+
+        fn get_unchecked(&self, name: &str, _: DType, _: &Device) -> candle_core::Result<Tensor> {
+            candle_core::bail!("{name}: shape needed")
+        }
+
+        fn contains_tensor(&self, _: &str) -> bool {
+            true
+        }
+    }
+
+    /// Parameters the model asks its VarBuilder for: total count and names.
+    fn built_params(config: &PrefixLmConfig) -> (u64, Vec<String>) {
+        let shapes = Shapes::default();
+        let vb = VarBuilder::from_backend(Box::new(shapes.clone()), DType::F32, Device::Cpu);
+        PrefixLm::new(config, vb).unwrap();
+        let recorded = shapes.0.lock().unwrap();
+        let total = recorded.iter().map(|(_, s)| s.elem_count() as u64).sum();
+        (total, recorded.iter().map(|(n, _)| n.clone()).collect())
+    }
+
+    #[test]
+    fn every_preset_has_the_closed_form_parameter_count() {
+        for preset in &PRESETS {
+            for codebook in [1 << 10, 1 << 16] {
+                let config = PrefixLmConfig::preset(preset.name, codebook, 384).unwrap();
+                let (built, names) = built_params(&config);
+                let counted = param_count(&config);
+                assert_eq!(built, counted.total, "{}", preset.name);
+                assert_eq!(
+                    counted.n_v,
+                    2 * (codebook as u64 + 3) * config.d_model as u64
+                );
+                assert_eq!(counted.n_nv + counted.n_v, counted.total);
+                assert!(names.contains(&"blocks.0.attn.wqkv.weight".to_string()));
+            }
+        }
+        // 44M at K = 1024: 8·(4·512² + 3·512·1365 + 2·512) + 512 + 384·512 + 512 blocks etc.
+        let c = PrefixLmConfig::preset("44M", 1024, 384).unwrap();
+        let p = param_count(&c);
+        assert_eq!(p.blocks, 8 * (4 * 512 * 512 + 3 * 512 * 1365 + 2 * 512));
+        assert_eq!(p.n_nv, p.blocks + 512 + 384 * 512 + 512);
+        assert_eq!(p.n_v, 2 * 1027 * 512);
+    }
+
+    #[test]
+    fn flops_match_the_reference_conventions() {
+        // pytorch_prefix_lm.py, d 256, 4 layers, B 32: exact = 3·(2·linear MACs + attention).
+        let c = PrefixLmConfig::new(256, 4, 4, 1024, 384);
+        let seq = SequenceShape::BENCH;
+        let linear_macs = 80 * 4 * (3 * 256 * 256 + 256 * 256 + 2 * 256 * 683 + 683 * 256)
+            + 16 * 384 * 256
+            + 64 * 256 * 1027;
+        let attention = 4 * 2 * (2 * 80 * 80 * 256);
+        let exact = 3.0 * (2.0 * linear_macs as f64 + attention as f64);
+        assert_eq!(train_flops_exact(&c, seq), exact);
+        assert_eq!(flops_exact_per_token(&c, seq), exact / 64.0);
+        let n = param_count(&c).total as f64;
+        assert_eq!(flops_6n_per_token(&c), 6.0 * n);
+        assert_eq!(budget(&c, 1e6), 6.0 * n * 1e6);
+        assert!((tokens_for_budget(&c, budget(&c, 1e6)) - 1e6).abs() < 1e-6);
+    }
+}

@@ -10,7 +10,7 @@
 //! resumed run reproduces an uninterrupted one bit for bit. CPU only (no CUDA/Metal kernels).
 
 use crate::prefix_lm::SeqLayout;
-use candle_core::{bail, CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape};
+use candle_core::{bail, CpuStorage, CustomOp1, CustomOp3, Layout, Result, Shape};
 use candle_core::{DType, Device, Storage, Tensor};
 use rayon::prelude::*;
 use std::sync::{Arc, OnceLock};
@@ -63,21 +63,18 @@ impl SharedMut {
     }
 }
 
-/// `dst (+)= scale · op(lhs) · op(rhs)` for row-major matrices: `op(lhs)` is m×k (stored k×m
-/// when `lhs_t`), `op(rhs)` is k×n (stored n×k when `rhs_t`), `dst` is m×n and is added to
-/// when `accumulate`. `parallel` spreads one product over the rayon threads; the attention
-/// kernels instead run many small single-threaded products in parallel.
-#[allow(clippy::too_many_arguments)]
-fn gemm(
+/// A matrix operand: row-major values, read transposed when the flag is set.
+type Operand<'a> = (&'a [f32], bool);
+
+/// `dst (+)= scale · op(lhs) · op(rhs)` for row-major matrices: `op(lhs)` is m×k (stored
+/// k×m when transposed), `op(rhs)` is k×n (stored n×k when transposed), `dst` is m×n and
+/// is added to when `accumulate`. Single-threaded unless `parallel`.
+fn gemm_with(
     dst: &mut [f32],
-    accumulate: bool,
-    lhs: &[f32],
-    lhs_t: bool,
-    rhs: &[f32],
-    rhs_t: bool,
+    (lhs, lhs_t): Operand,
+    (rhs, rhs_t): Operand,
     (m, n, k): (usize, usize, usize),
-    scale: f32,
-    parallel: bool,
+    (accumulate, scale, parallel): (bool, f32, bool),
 ) {
     assert!(dst.len() >= m * n && lhs.len() >= m * k && rhs.len() >= k * n);
     let (lhs_rs, lhs_cs) = if lhs_t { (1, m) } else { (k, 1) };
@@ -114,17 +111,15 @@ fn gemm(
     }
 }
 
-/// `matmul` of the attention kernels: one small single-threaded product.
-fn matmul(
-    dst: &mut [f32],
-    lhs: &[f32],
-    lhs_t: bool,
-    rhs: &[f32],
-    rhs_t: bool,
-    mnk: (usize, usize, usize),
-    scale: f32,
-) {
-    gemm(dst, false, lhs, lhs_t, rhs, rhs_t, mnk, scale, false);
+/// One large product over all rows, spread over the rayon threads (`dst (+)= lhs · rhs`).
+fn gemm(dst: &mut [f32], lhs: Operand, rhs: Operand, mnk: (usize, usize, usize), accumulate: bool) {
+    gemm_with(dst, lhs, rhs, mnk, (accumulate, 1.0, true));
+}
+
+/// One small single-threaded product of the attention kernels (`dst = scale · lhs · rhs`),
+/// which run many of them in parallel.
+fn matmul(dst: &mut [f32], lhs: Operand, rhs: Operand, mnk: (usize, usize, usize), scale: f32) {
+    gemm_with(dst, lhs, rhs, mnk, (false, scale, false));
 }
 
 /// Run `f` on the f32 values of contiguous CPU tensors.
@@ -194,42 +189,54 @@ fn rms_rows_grad(x: &[f32], w: &[f32], g: &[f32], eps: f32) -> (Vec<f32>, Vec<f3
     (gx, gw)
 }
 
-fn sigmoid(a: f32) -> f32 {
-    1.0 / (1.0 + (-a).exp())
+/// `sigmoid(a)` of the first halves `a` of the `2f`-wide rows `[a | b]`.
+fn gate_sigmoid(ab: &[f32], f: usize) -> Vec<f32> {
+    let mut s = vec![0f32; ab.len() / 2];
+    s.par_chunks_mut(f * ROW_BLOCK)
+        .zip(ab.par_chunks(2 * f * ROW_BLOCK))
+        .for_each(|(sb, abb)| {
+            for (sr, abr) in sb.chunks_mut(f).zip(abb.chunks(2 * f)) {
+                for (s, a) in sr.iter_mut().zip(&abr[..f]) {
+                    *s = 1.0 / (1.0 + (-a).exp());
+                }
+            }
+        });
+    s
 }
 
-/// `silu(a)·b` of the halves `[a | b]` of each `2f`-wide row.
-fn swiglu_rows(ab: &[f32], f: usize) -> Vec<f32> {
-    let mut y = vec![0f32; ab.len() / 2];
+/// SwiGLU `silu(a)·b = a·σ(a)·b` of the rows `[a | b]`, given `σ(a)`.
+fn swiglu_rows(ab: &[f32], sig: &[f32], f: usize) -> Vec<f32> {
+    let mut y = vec![0f32; sig.len()];
     y.par_chunks_mut(f * ROW_BLOCK)
         .zip(ab.par_chunks(2 * f * ROW_BLOCK))
-        .for_each(|(yb, abb)| {
-            for (yr, abr) in yb.chunks_mut(f).zip(abb.chunks(2 * f)) {
+        .zip(sig.par_chunks(f * ROW_BLOCK))
+        .for_each(|((yb, abb), sb)| {
+            for ((yr, abr), sr) in yb.chunks_mut(f).zip(abb.chunks(2 * f)).zip(sb.chunks(f)) {
                 let (a, b) = abr.split_at(f);
                 for i in 0..f {
-                    yr[i] = a[i] * sigmoid(a[i]) * b[i];
+                    yr[i] = a[i] * sr[i] * b[i];
                 }
             }
         });
     y
 }
 
-/// Gradient of [`swiglu_rows`] given the output gradient `g`.
-fn swiglu_rows_grad(ab: &[f32], g: &[f32], f: usize) -> Vec<f32> {
+/// Gradient of [`swiglu_rows`] with respect to `[a | b]` given the output gradient `g`.
+fn swiglu_rows_grad(ab: &[f32], sig: &[f32], g: &[f32], f: usize) -> Vec<f32> {
     let mut out = vec![0f32; ab.len()];
     out.par_chunks_mut(2 * f * ROW_BLOCK)
         .zip(ab.par_chunks(2 * f * ROW_BLOCK))
-        .zip(g.par_chunks(f * ROW_BLOCK))
-        .for_each(|((ob, abb), gb)| {
-            for ((or, abr), gr) in ob
-                .chunks_mut(2 * f)
-                .zip(abb.chunks(2 * f))
-                .zip(gb.chunks(f))
-            {
+        .zip(
+            sig.par_chunks(f * ROW_BLOCK)
+                .zip(g.par_chunks(f * ROW_BLOCK)),
+        )
+        .for_each(|((ob, abb), (sb, gb))| {
+            let rows = ob.chunks_mut(2 * f).zip(abb.chunks(2 * f));
+            for ((or, abr), (sr, gr)) in rows.zip(sb.chunks(f).zip(gb.chunks(f))) {
                 let (a, b) = abr.split_at(f);
                 let (ga, gb) = or.split_at_mut(f);
                 for i in 0..f {
-                    let s = sigmoid(a[i]);
+                    let s = sr[i];
                     ga[i] = gr[i] * b[i] * s * (1.0 + a[i] * (1.0 - s));
                     gb[i] = gr[i] * a[i] * s;
                 }
@@ -270,11 +277,9 @@ impl CustomOp3 for NormLinear {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (h, norm, w) = (
-            f32s(s1, l1, self.name())?,
-            f32s(s2, l2, self.name())?,
-            f32s(s3, l3, self.name())?,
-        );
+        let h = f32s(s1, l1, self.name())?;
+        let norm = f32s(s2, l2, self.name())?;
+        let w = f32s(s3, l3, self.name())?;
         let ((rows, d), (out, d_w)) = (dims2(l1)?, dims2(l3)?);
         if d != d_w || norm.len() != d {
             bail!(
@@ -284,17 +289,7 @@ impl CustomOp3 for NormLinear {
         }
         let xn = rms_rows(h, norm, self.eps);
         let mut y = vec![0f32; rows * out];
-        gemm(
-            &mut y,
-            false,
-            &xn,
-            false,
-            w,
-            true,
-            (rows, out, d),
-            1.0,
-            true,
-        );
+        gemm(&mut y, (&xn, false), (w, true), (rows, out, d), false);
         Ok((CpuStorage::F32(y), Shape::from((rows, out))))
     }
 
@@ -312,29 +307,9 @@ impl CustomOp3 for NormLinear {
             let (h, norm, w, g) = (v[0], v[1], v[2], v[3]);
             let xn = rms_rows(h, norm, self.eps);
             let mut gw = vec![0f32; out * d];
-            gemm(
-                &mut gw,
-                false,
-                g,
-                true,
-                &xn,
-                false,
-                (out, d, rows),
-                1.0,
-                true,
-            );
+            gemm(&mut gw, (g, true), (&xn, false), (out, d, rows), false);
             let mut gxn = xn;
-            gemm(
-                &mut gxn,
-                false,
-                g,
-                false,
-                w,
-                false,
-                (rows, d, out),
-                1.0,
-                true,
-            );
+            gemm(&mut gxn, (g, false), (w, false), (rows, d, out), false);
             let (gh, gnorm) = rms_rows_grad(h, norm, &gxn, self.eps);
             Ok((
                 Some(tensor(gh, (rows, d))?),
@@ -347,36 +322,46 @@ impl CustomOp3 for NormLinear {
 
 /// `h + x · wᵀ` for `x` (rows × in), `w` (out × in), `h` (rows × out).
 pub fn linear_residual(x: &Tensor, w: &Tensor, h: &Tensor) -> Result<Tensor> {
-    x.contiguous()?.apply_op3(
-        &w.contiguous()?,
-        &h.contiguous()?,
-        LinearResidual { swiglu: false },
-    )
+    let op = LinearResidual::new(false);
+    x.contiguous()?
+        .apply_op3(&w.contiguous()?, &h.contiguous()?, op)
 }
 
 /// `h + swiglu(ab) · wᵀ` for `ab` (rows × 2f, `[a | b]`), `w` (out × f), `h` (rows × out).
 pub fn swiglu_linear_residual(ab: &Tensor, w: &Tensor, h: &Tensor) -> Result<Tensor> {
-    ab.contiguous()?.apply_op3(
-        &w.contiguous()?,
-        &h.contiguous()?,
-        LinearResidual { swiglu: true },
-    )
+    let op = LinearResidual::new(true);
+    ab.contiguous()?
+        .apply_op3(&w.contiguous()?, &h.contiguous()?, op)
 }
 
 /// `h + act(x) · wᵀ`, act = identity or SwiGLU of the halves of x.
 struct LinearResidual {
     swiglu: bool,
+    /// SwiGLU: σ(a) of the forward pass, kept for the backward (saves two passes of exp).
+    sigmoid: OnceLock<Vec<f32>>,
 }
 
 impl LinearResidual {
-    /// `(rows, x width, out, inner)` of the inputs, checked.
-    fn dims(&self, x: &Layout, w: &Layout, h: &Layout) -> Result<(usize, usize, usize, usize)> {
+    fn new(swiglu: bool) -> Self {
+        Self {
+            swiglu,
+            sigmoid: OnceLock::new(),
+        }
+    }
+
+    /// `(rows, out, inner)` of the inputs, checked.
+    fn dims(&self, x: &Layout, w: &Layout, h: &Layout) -> Result<(usize, usize, usize)> {
         let ((rows, width), (out, inner), (h_rows, h_out)) = (dims2(x)?, dims2(w)?, dims2(h)?);
         let act_width = if self.swiglu { width / 2 } else { width };
         if act_width != inner || h_rows != rows || h_out != out || (self.swiglu && width % 2 != 0) {
             bail!("linear_residual: x {rows}×{width}, w {out}×{inner}, h {h_rows}×{h_out}")
         }
-        Ok((rows, width, out, inner))
+        Ok((rows, out, inner))
+    }
+
+    /// σ(a) of `x` (SwiGLU only), computed once.
+    fn sigmoid(&self, x: &[f32], inner: usize) -> &[f32] {
+        self.sigmoid.get_or_init(|| gate_sigmoid(x, inner))
     }
 }
 
@@ -394,30 +379,17 @@ impl CustomOp3 for LinearResidual {
         s3: &CpuStorage,
         l3: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let (x, w, h) = (
-            f32s(s1, l1, self.name())?,
-            f32s(s2, l2, self.name())?,
-            f32s(s3, l3, self.name())?,
-        );
-        let (rows, _, out, inner) = self.dims(l1, l2, l3)?;
-        let act = if self.swiglu {
-            swiglu_rows(x, inner)
-        } else {
-            Vec::new()
-        };
-        let x = if self.swiglu { &act } else { x };
+        let x = f32s(s1, l1, self.name())?;
+        let w = f32s(s2, l2, self.name())?;
+        let h = f32s(s3, l3, self.name())?;
+        let (rows, out, inner) = self.dims(l1, l2, l3)?;
         let mut y = h.to_vec();
-        gemm(
-            &mut y,
-            true,
-            x,
-            false,
-            w,
-            true,
-            (rows, out, inner),
-            1.0,
-            true,
-        );
+        if self.swiglu {
+            let act = swiglu_rows(x, self.sigmoid(x, inner), inner);
+            gemm(&mut y, (&act, false), (w, true), (rows, out, inner), true);
+        } else {
+            gemm(&mut y, (x, false), (w, true), (rows, out, inner), true);
+        }
         Ok((CpuStorage::F32(y), Shape::from((rows, out))))
     }
 
@@ -434,42 +406,17 @@ impl CustomOp3 for LinearResidual {
         let (out, inner) = w.dims2()?;
         let (gx, gw) = with_values(&[x, w, &grad], |v| {
             let (x, w, g) = (v[0], v[1], v[2]);
-            let act = if self.swiglu {
-                swiglu_rows(x, inner)
-            } else {
-                Vec::new()
-            };
-            let a = if self.swiglu { &act } else { x };
             let mut gw = vec![0f32; out * inner];
-            gemm(
-                &mut gw,
-                false,
-                g,
-                true,
-                a,
-                false,
-                (out, inner, rows),
-                1.0,
-                true,
-            );
             let mut ga = vec![0f32; rows * inner];
-            gemm(
-                &mut ga,
-                false,
-                g,
-                false,
-                w,
-                false,
-                (rows, inner, out),
-                1.0,
-                true,
-            );
-            let gx = if self.swiglu {
-                swiglu_rows_grad(x, &ga, inner)
-            } else {
-                ga
-            };
-            Ok((gx, gw))
+            gemm(&mut ga, (g, false), (w, false), (rows, inner, out), false);
+            if !self.swiglu {
+                gemm(&mut gw, (g, true), (x, false), (out, inner, rows), false);
+                return Ok((ga, gw));
+            }
+            let sig = self.sigmoid(x, inner);
+            let act = swiglu_rows(x, sig, inner);
+            gemm(&mut gw, (g, true), (&act, false), (out, inner, rows), false);
+            Ok((swiglu_rows_grad(x, sig, &ga, inner), gw))
         })?;
         Ok((
             Some(tensor(gx, (rows, width))?),
@@ -665,9 +612,21 @@ impl CustomOp1 for PrefixAttention {
                 |scr, (bh, p)| {
                     let (b, h) = (bh / heads, bh % heads);
                     self.gather(qkv, b, h, d, scr);
-                    matmul(p, &scr.q, false, &scr.k, true, (slots, slots, hd), scale);
+                    matmul(
+                        p,
+                        (&scr.q, false),
+                        (&scr.k, true),
+                        (slots, slots, hd),
+                        scale,
+                    );
                     masked_softmax(p, slots, |i, j| self.layout.allowed(b, i, j));
-                    matmul(&mut scr.o, p, false, &scr.v, false, (slots, hd, slots), 1.0);
+                    matmul(
+                        &mut scr.o,
+                        (p, false),
+                        (&scr.v, false),
+                        (slots, hd, slots),
+                        1.0,
+                    );
                     for s in 0..slots {
                         let at = self.layout.row(b, s) * d + h * hd;
                         // SAFETY: (row of sample b, columns of head h) is written by this
@@ -688,108 +647,94 @@ impl CustomOp1 for PrefixAttention {
     }
 
     fn bwd(&self, qkv: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
-        Ok(Some(qkv.apply_op2_no_bwd(
-            &grad.contiguous()?,
-            &PrefixAttentionGrad(self),
-        )?))
+        let grad = grad.contiguous()?;
+        let (d, hd) = self.dims(qkv.layout())?;
+        let out = with_values(&[qkv, &grad], |v| self.backward(v[0], v[1], d, hd))?;
+        Ok(Some(tensor(out, qkv.shape())?))
     }
 }
 
-/// Gradient of [`PrefixAttention`] with respect to its packed `qkv` input.
-struct PrefixAttentionGrad<'a>(&'a PrefixAttention);
-
-impl CustomOp2 for PrefixAttentionGrad<'_> {
-    fn name(&self) -> &'static str {
-        "prefix-lm-attention-grad"
-    }
-
-    fn cpu_fwd(
-        &self,
-        s1: &CpuStorage,
-        l1: &Layout,
-        s2: &CpuStorage,
-        l2: &Layout,
-    ) -> Result<(CpuStorage, Shape)> {
-        let op = self.0;
-        let qkv = f32s(s1, l1, self.name())?;
-        let grad = f32s(s2, l2, self.name())?;
-        let (d, hd) = op.dims(l1)?;
-        let Some(probs) = op.probs.get() else {
+impl PrefixAttention {
+    /// Gradient with respect to the packed `qkv` input, given the output gradient `grad`.
+    fn backward(&self, qkv: &[f32], grad: &[f32], d: usize, hd: usize) -> Result<Vec<f32>> {
+        let Some(probs) = self.probs.get() else {
             bail!("prefix attention: backward before forward")
         };
-        let (slots, heads) = (op.layout.slots(), op.heads);
+        let (slots, heads) = (self.layout.slots(), self.heads);
         let scale = 1.0 / (hd as f32).sqrt();
         let mut out = vec![0f32; qkv.len()];
         let out_ptr = SharedMut(out.as_mut_ptr());
-        (0..op.layout.batch * heads).into_par_iter().for_each_init(
-            || (HeadScratch::new(slots, hd), HeadScratch::new(slots, hd)),
-            |(scr, gs), bh| {
-                let (b, h) = (bh / heads, bh % heads);
-                let p = &probs[bh * slots * slots..][..slots * slots];
-                op.gather(qkv, b, h, d, scr);
-                // gs.o = dO (slots × hd).
-                for s in 0..slots {
-                    let at = op.layout.row(b, s) * d + h * hd;
-                    gs.o[s * hd..(s + 1) * hd].copy_from_slice(&grad[at..at + hd]);
-                }
-                // dV = Pᵀ dO; dP = dO Vᵀ.
-                matmul(&mut gs.v, p, true, &gs.o, false, (slots, hd, slots), 1.0);
-                matmul(
-                    &mut gs.p,
-                    &gs.o,
-                    false,
-                    &scr.v,
-                    true,
-                    (slots, slots, hd),
-                    1.0,
-                );
-                // dS = P ⊙ (dP − rowsum(P ⊙ dP)), times the score scale.
-                for (dp, pr) in gs.p.chunks_mut(slots).zip(p.chunks(slots)) {
-                    let c = dot(dp, pr);
-                    for (x, &pv) in dp.iter_mut().zip(pr) {
-                        *x = pv * (*x - c) * scale;
+        (0..self.layout.batch * heads)
+            .into_par_iter()
+            .for_each_init(
+                || (HeadScratch::new(slots, hd), HeadScratch::new(slots, hd)),
+                |(scr, gs), bh| {
+                    let (b, h) = (bh / heads, bh % heads);
+                    let p = &probs[bh * slots * slots..][..slots * slots];
+                    self.gather(qkv, b, h, d, scr);
+                    // gs.o = dO (slots × hd).
+                    for s in 0..slots {
+                        let at = self.layout.row(b, s) * d + h * hd;
+                        gs.o[s * hd..(s + 1) * hd].copy_from_slice(&grad[at..at + hd]);
                     }
-                }
-                // dQ = dS K; dK = dSᵀ Q (rotated frame).
-                matmul(
-                    &mut gs.q,
-                    &gs.p,
-                    false,
-                    &scr.k,
-                    false,
-                    (slots, hd, slots),
-                    1.0,
-                );
-                matmul(
-                    &mut gs.k,
-                    &gs.p,
-                    true,
-                    &scr.q,
-                    false,
-                    (slots, hd, slots),
-                    1.0,
-                );
-                for s in 0..slots {
-                    let pos = op.layout.position(b, s);
-                    let r = s * hd..(s + 1) * hd;
-                    op.rope.rotate(&mut gs.q[r.clone()], pos, true);
-                    op.rope.rotate(&mut gs.k[r.clone()], pos, true);
-                    let at = op.layout.row(b, s) * 3 * d + h * hd;
-                    for (part, src) in [&gs.q, &gs.k, &gs.v].into_iter().enumerate() {
-                        // SAFETY: (row of sample b, q/k/v columns of head h) is written by
-                        // this (b, h) item only, inside `out` (rows × 3d).
-                        unsafe {
-                            std::ptr::copy_nonoverlapping(
-                                src[r.clone()].as_ptr(),
-                                out_ptr.at(at + part * d),
-                                hd,
-                            )
-                        };
+                    // dV = Pᵀ dO; dP = dO Vᵀ.
+                    matmul(
+                        &mut gs.v,
+                        (p, true),
+                        (&gs.o, false),
+                        (slots, hd, slots),
+                        1.0,
+                    );
+                    matmul(
+                        &mut gs.p,
+                        (&gs.o, false),
+                        (&scr.v, true),
+                        (slots, slots, hd),
+                        1.0,
+                    );
+                    // dS = P ⊙ (dP − rowsum(P ⊙ dP)), times the score scale.
+                    for (dp, pr) in gs.p.chunks_mut(slots).zip(p.chunks(slots)) {
+                        let c = dot(dp, pr);
+                        for (x, &pv) in dp.iter_mut().zip(pr) {
+                            *x = pv * (*x - c) * scale;
+                        }
                     }
-                }
-            },
-        );
-        Ok((CpuStorage::F32(out), l1.shape().clone()))
+                    // dQ = dS K; dK = dSᵀ Q (rotated frame).
+                    matmul(
+                        &mut gs.q,
+                        (&gs.p, false),
+                        (&scr.k, false),
+                        (slots, hd, slots),
+                        1.0,
+                    );
+                    matmul(
+                        &mut gs.k,
+                        (&gs.p, true),
+                        (&scr.q, false),
+                        (slots, hd, slots),
+                        1.0,
+                    );
+                    for s in 0..slots {
+                        let pos = self.layout.position(b, s);
+                        let r = s * hd..(s + 1) * hd;
+                        self.rope.rotate(&mut gs.q[r.clone()], pos, true);
+                        self.rope.rotate(&mut gs.k[r.clone()], pos, true);
+                        let at = self.layout.row(b, s) * 3 * d + h * hd;
+                        for (part, src) in [&gs.q, &gs.k, &gs.v].into_iter().enumerate() {
+                            // SAFETY: (row of sample b, q/k/v columns of head h) is written by
+                            // this (b, h) item only, inside `out` (rows × 3d).
+                            unsafe {
+                                std::ptr::copy_nonoverlapping(
+                                    src[r.clone()].as_ptr(),
+                                    out_ptr.at(at + part * d),
+                                    hd,
+                                )
+                            };
+                        }
+                    }
+                },
+            );
+        Ok(out)
     }
 }
 
@@ -849,9 +794,9 @@ pub fn cached_attention(
                     vc[s * hd..(s + 1) * hd].copy_from_slice(&row[2 * d + h * hd..][..hd]);
                 }
                 let p = &mut scr.p[..n_new * to];
-                matmul(p, &scr.q, false, kc, true, (n_new, to, hd), scale);
+                matmul(p, (&scr.q, false), (kc, true), (n_new, to, hd), scale);
                 masked_softmax(p, to, |i, j| layout.allowed(b, from + i, j));
-                matmul(&mut scr.o, p, false, vc, false, (n_new, hd, to), 1.0);
+                matmul(&mut scr.o, (p, false), (vc, false), (n_new, hd, to), 1.0);
                 for i in 0..n_new {
                     let at = (b * n_new + i) * d + h * hd;
                     // SAFETY: (new row of sample b, columns of head h) belongs to this item.
@@ -954,45 +899,30 @@ impl CustomOp1 for CrossEntropy {
 
     fn bwd(&self, logits: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<Option<Tensor>> {
         let scale = grad.to_dtype(DType::F32)?.to_scalar::<f32>()? / self.valid().max(1) as f32;
-        Ok(Some(
-            logits.apply_op1_no_bwd(&CrossEntropyGrad { op: self, scale })?,
-        ))
-    }
-}
-
-/// `(softmax − onehot) · scale` on rows with a target, zero elsewhere.
-struct CrossEntropyGrad<'a> {
-    op: &'a CrossEntropy,
-    scale: f32,
-}
-
-impl CustomOp1 for CrossEntropyGrad<'_> {
-    fn name(&self) -> &'static str {
-        "prefix-lm-cross-entropy-grad"
-    }
-
-    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
-        let logits = f32s(s, l, self.name())?;
-        let (_, vocab) = self.op.check(l)?;
-        let mut out = vec![0f32; logits.len()];
-        out.par_chunks_mut(vocab)
-            .zip(logits.par_chunks(vocab))
-            .zip(self.op.targets.par_iter())
-            .for_each(|((o, row), &t)| {
-                if t == IGNORE {
-                    return;
-                }
-                let max = row.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
-                let mut sum = 0f32;
-                for (o, &v) in o.iter_mut().zip(row) {
-                    *o = (v - max).exp();
-                    sum += *o;
-                }
-                let inv = self.scale / sum;
-                o.iter_mut().for_each(|v| *v *= inv);
-                o[t as usize] -= self.scale;
-            });
-        Ok((CpuStorage::F32(out), l.shape().clone()))
+        let (_, vocab) = self.check(logits.layout())?;
+        let out = with_values(&[logits], |v| {
+            let mut out = vec![0f32; v[0].len()];
+            out.par_chunks_mut(vocab)
+                .zip(v[0].par_chunks(vocab))
+                .zip(self.targets.par_iter())
+                .for_each(|((o, row), &t)| {
+                    if t == IGNORE {
+                        return;
+                    }
+                    // (softmax − onehot) · scale.
+                    let max = row.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+                    let mut sum = 0f32;
+                    for (o, &v) in o.iter_mut().zip(row) {
+                        *o = (v - max).exp();
+                        sum += *o;
+                    }
+                    let inv = scale / sum;
+                    o.iter_mut().for_each(|v| *v *= inv);
+                    o[t as usize] -= scale;
+                });
+            Ok(out)
+        })?;
+        Ok(Some(tensor(out, logits.shape())?))
     }
 }
 
