@@ -5,6 +5,7 @@ mod bench;
 mod commands;
 mod quickstart;
 mod text;
+mod tokenizer_cmd;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
@@ -48,6 +49,11 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Motion tokenizers (FSQ / VQ VAEs): train, evaluate, sweep codebook sizes, decode tokens.
+    #[command(subcommand)]
+    Tokenizer(TokenizerCommand),
+    /// Turn every clip of a corpus into token ids with a trained tokenizer (a token set).
+    Tokenize(tokenizer_cmd::TokenizeArgs),
     /// Measure throughput against the reference figures.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -94,6 +100,16 @@ enum ExportCommand {
 }
 
 #[derive(Subcommand)]
+enum TokenizerCommand {
+    /// Train an FSQ or VQ tokenizer on random 64-frame windows of a corpus (resumable).
+    Train(tokenizer_cmd::TrainArgs),
+    /// Reconstruction L1, MPJPE, codebook utilisation, entropy and perplexity on a split (JSON).
+    Eval(tokenizer_cmd::EvalArgs),
+    /// Token ids back to features (.npy), joints (.npy --joints) or BVH.
+    Decode(tokenizer_cmd::DecodeArgs),
+}
+
+#[derive(Subcommand)]
 enum BenchCommand {
     /// Ingest both Bandai Namco archives and time joints → 263 features on fixture (a).
     Ingest(bench::BenchIngestArgs),
@@ -134,6 +150,10 @@ fn main() -> ExitCode {
         Command::Scenarios(args) => commands::scenarios(args),
         Command::Synth(args) => commands::synth(args),
         Command::Demo { out } => commands::demo(&out),
+        Command::Tokenizer(TokenizerCommand::Train(args)) => tokenizer_cmd::train_cmd(args),
+        Command::Tokenizer(TokenizerCommand::Eval(args)) => tokenizer_cmd::eval_cmd(args),
+        Command::Tokenizer(TokenizerCommand::Decode(args)) => tokenizer_cmd::decode_cmd(args),
+        Command::Tokenize(args) => tokenizer_cmd::tokenize_cmd(args),
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
         Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
     };
