@@ -2,6 +2,7 @@
 //! print results and choose exit codes (0 ok, 1 failure, 2 partial: some inputs rejected).
 
 mod bench;
+mod bench_tokenizer;
 mod commands;
 mod quickstart;
 mod text;
@@ -105,6 +106,8 @@ enum TokenizerCommand {
     Train(tokenizer_cmd::TrainArgs),
     /// Reconstruction L1, MPJPE, codebook utilisation, entropy and perplexity on a split (JSON).
     Eval(tokenizer_cmd::EvalArgs),
+    /// Train and evaluate every (quantizer, codebook) pair with equal steps: table + plots.
+    Sweep(tokenizer_cmd::SweepArgs),
     /// Token ids back to features (.npy), joints (.npy --joints) or BVH.
     Decode(tokenizer_cmd::DecodeArgs),
 }
@@ -115,6 +118,8 @@ enum BenchCommand {
     Ingest(bench::BenchIngestArgs),
     /// Time synthetic corpus building: generation + features, and the whole ingest.
     Synth(bench::BenchSynthArgs),
+    /// Time tokenizer training steps (FSQ, VQ) at the T2M-GPT shape; --reference runs PyTorch too.
+    Tokenizer(bench_tokenizer::BenchTokenizerArgs),
 }
 
 fn main() -> ExitCode {
@@ -153,9 +158,11 @@ fn main() -> ExitCode {
         Command::Tokenizer(TokenizerCommand::Train(args)) => tokenizer_cmd::train_cmd(args),
         Command::Tokenizer(TokenizerCommand::Eval(args)) => tokenizer_cmd::eval_cmd(args),
         Command::Tokenizer(TokenizerCommand::Decode(args)) => tokenizer_cmd::decode_cmd(args),
+        Command::Tokenizer(TokenizerCommand::Sweep(args)) => tokenizer_cmd::sweep_cmd(args),
         Command::Tokenize(args) => tokenizer_cmd::tokenize_cmd(args),
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
         Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
+        Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
     };
     match result {
         Ok(code) => code,

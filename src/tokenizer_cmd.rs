@@ -123,10 +123,15 @@ fn step_bar(label: &str, steps: u64) -> impl FnMut(StepReport) {
         }
         bar.set_message(message);
         if let Some(val) = r.val {
-            bar.println(format!(
+            let line = format!(
                 "{label} step {}/{}: train loss {:.4}, val recon {:.4} vel {:.4} L1 {:.4}",
                 r.step, r.steps, r.loss, val.recon, val.velocity, val.l1
-            ));
+            );
+            if bar.is_hidden() {
+                eprintln!("{line}");
+            } else {
+                bar.println(line);
+            }
         }
         if r.step == r.steps {
             bar.finish_and_clear();
@@ -370,5 +375,104 @@ pub fn decode_cmd(args: DecodeArgs) -> Result<ExitCode> {
             error_sum / frames as f64 * 1000.0
         );
     }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale tokenizer sweep`.
+#[derive(clap::Args, Debug)]
+pub struct SweepArgs {
+    /// Corpus folder.
+    #[arg(long)]
+    pub corpus: PathBuf,
+    /// Quantizers, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "fsq,vq")]
+    pub quantizers: Vec<String>,
+    /// Nominal codebook sizes, comma-separated.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "256,1024,4096,16384,65536"
+    )]
+    pub codebooks: Vec<usize>,
+    /// Split the metrics are computed on.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Training settings shared by every run.
+    #[command(flatten)]
+    pub flags: TrainFlags,
+    /// Output folder (one sub-folder per run, sweep.csv, sweep.parquet); re-running resumes.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// `motionscale tokenizer sweep`: train and evaluate every (quantizer, codebook) pair.
+pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
+    use tokenizer::sweep::{sweep, SweepEvent, SweepPlan};
+    if let Some(q) = args
+        .quantizers
+        .iter()
+        .find(|q| !["fsq", "vq"].contains(&q.as_str()))
+    {
+        bail!("unknown quantizer {q:?} (fsq or vq)");
+    }
+    let plan = SweepPlan {
+        quantizers: args.quantizers.clone(),
+        codebooks: args.codebooks.clone(),
+        conv: args.flags.conv(),
+        bound: args.flags.bound(),
+        train: args.flags.train_config(),
+        split: args.split.clone(),
+    };
+    let started = std::time::Instant::now();
+    let bar = progress_bar("sweep", "steps");
+    let rows = sweep(
+        &args.corpus,
+        &args.out,
+        &plan,
+        &Device::Cpu,
+        |event| match event {
+            SweepEvent::Step(name, r) => {
+                bar.set_length(r.steps);
+                bar.set_position(r.step);
+                bar.set_message(format!("{name} loss {:.4}", r.loss));
+            }
+            SweepEvent::Eval(name, done, total) => {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+                bar.set_message(format!("{name} eval"));
+            }
+            SweepEvent::Done(name, row) => eprintln!(
+                "{name}: utilization {:.1}%, perplexity {:.1}, recon L1 {:.4}, MPJPE {:.1} mm",
+                100.0 * row.utilization,
+                row.perplexity,
+                row.recon_l1,
+                row.mpjpe_mm
+            ),
+        },
+    )?;
+    bar.finish_and_clear();
+    println!(
+        "{:<6} {:>8} {:>8} {:>8} {:>10} {:>8} {:>9} {:>9}",
+        "quant", "codebook", "codes", "util%", "perplexity", "entropy", "recon_l1", "mpjpe_mm"
+    );
+    for r in &rows {
+        println!(
+            "{:<6} {:>8} {:>8} {:>8.1} {:>10.1} {:>8.3} {:>9.4} {:>9.1}",
+            r.quantizer,
+            r.codebook,
+            r.codebook_size,
+            100.0 * r.utilization,
+            r.perplexity,
+            r.entropy,
+            r.recon_l1,
+            r.mpjpe_mm
+        );
+    }
+    println!(
+        "{} runs in {:.1} s → {}",
+        rows.len(),
+        started.elapsed().as_secs_f64(),
+        args.out.join("sweep.csv").display()
+    );
     Ok(ExitCode::SUCCESS)
 }

@@ -321,8 +321,9 @@ impl CustomOp3 for ConvOp {
             (width, 1),
         );
         let dw = channels_major(&dwt, (out_ch, inp, kernel));
-        // db = column sums of dY, per task then reduced.
-        let db = dy
+        // db = column sums of dY: per fixed chunk of rows in parallel, then summed in order
+        // (a rayon `reduce` would add in a scheduling-dependent order).
+        let partial: Vec<Vec<f32>> = dy
             .par_chunks(out_ch * ROWS_PER_TASK)
             .map(|chunk| {
                 let mut s = vec![0f32; out_ch];
@@ -331,13 +332,11 @@ impl CustomOp3 for ConvOp {
                     .for_each(|r| s.iter_mut().zip(r).for_each(|(a, v)| *a += v));
                 s
             })
-            .reduce(
-                || vec![0f32; out_ch],
-                |mut a, b| {
-                    a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
-                    a
-                },
-            );
+            .collect();
+        let mut db = vec![0f32; out_ch];
+        for s in &partial {
+            db.iter_mut().zip(s).for_each(|(a, v)| *a += v);
+        }
         // dcols (rows × kernel·in) = dY · Wt, then scattered back onto the input frames.
         let mut dcols = vec![0f32; rows * width];
         sgemm(

@@ -17,6 +17,7 @@ pub mod loss;
 pub mod model;
 pub mod optim;
 pub mod ste;
+pub mod sweep;
 pub mod tokens;
 pub mod train;
 pub mod usage;

@@ -107,11 +107,13 @@ impl CustomOp2 for MotionLoss {
         };
         let (p, x) = (slice(ps, pl)?, slice(xs, xl)?);
         let clip = frames * features;
-        let (rec, vel) = p
+        // Per-clip sums in parallel, added in clip order: deterministic.
+        let sums: Vec<(f64, f64)> = p
             .par_chunks(clip)
             .zip(x.par_chunks(clip))
             .map(|(p, x)| clip_sums(p, x, features))
-            .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
+            .collect();
+        let (rec, vel) = sums.iter().fold((0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1));
         let (n_rec, n_vel) = counts(batch, frames, features);
         let out = vec![rec as f32 / n_rec, vel as f32 / n_vel];
         Ok((CpuStorage::F32(out), Shape::from(2)))

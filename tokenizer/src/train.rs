@@ -165,14 +165,7 @@ pub fn train(
     };
     let corpus = Corpus::open(corpus_dir).map_err(|e| corpus_error(corpus_dir, e))?;
     let (mut model, mut state) = resume_or_start(&spec, &corpus, out, device)?;
-    let adam = AdamWConfig {
-        beta1: config.beta1,
-        beta2: config.beta2,
-        eps: 1e-8,
-        weight_decay: config.weight_decay,
-    };
-    let vars = model.vars().data().lock().expect("var map lock").clone();
-    let mut optimizer = AdamW::new(&vars, adam);
+    let mut optimizer = optimizer_for(&model, &config);
     let optimizer_path = out.join("optimizer.safetensors");
     if state.step > 0 {
         optimizer.load(&optimizer_path)?;
@@ -206,17 +199,16 @@ pub fn train(
             .sample(config.batch)
             .map_err(|e| corpus_error(corpus_dir, e))?;
         let x = Tensor::from_vec(windows, (config.batch, config.window, FEATURES), device)?;
-        let (pass, reset) = model.forward_train(&x, step == 0)?;
-        let losses = reconstruction_losses(&pass.motion, &x)?;
-        let weights = Tensor::new(&[1f32, config.velocity_weight as f32], device)?;
-        let mut loss = (losses * weights)?.sum_all()?;
-        if let Some(commitment) = &pass.commitment {
-            loss = (loss + commitment)?;
-        }
-        let grads = loss.backward()?;
-        optimizer.step(&grads, schedule.at(step), config.grad_clip)?;
+        let (loss, reset) = optimizer_step(
+            &mut model,
+            &mut optimizer,
+            &x,
+            schedule.at(step),
+            &config,
+            step == 0,
+        )?;
         state.step += 1;
-        state.train_loss = Some(loss.to_scalar::<f32>()? as f64);
+        state.train_loss = Some(loss);
         let mut report = StepReport {
             step: state.step,
             steps: config.steps,
@@ -241,6 +233,40 @@ pub fn train(
         on_step(report);
     }
     Ok(state)
+}
+
+/// The AdamW optimiser of `model`'s variables with `config`'s settings.
+pub fn optimizer_for(model: &MotionTokenizer, config: &TrainConfig) -> AdamW {
+    let adam = AdamWConfig {
+        beta1: config.beta1,
+        beta2: config.beta2,
+        eps: 1e-8,
+        weight_decay: config.weight_decay,
+    };
+    AdamW::new(&model.vars().data().lock().expect("var map lock"), adam)
+}
+
+/// One training step on normalised windows `x` (batch, frames, 263): forward (EMA update for
+/// VQ, codebook initialised from `x` on the first step), loss, backward, AdamW at `lr`.
+/// Returns the loss and the number of dead VQ codes reset.
+pub fn optimizer_step(
+    model: &mut MotionTokenizer,
+    optimizer: &mut AdamW,
+    x: &Tensor,
+    lr: f64,
+    config: &TrainConfig,
+    first_step: bool,
+) -> Result<(f64, usize), TokenizerError> {
+    let (pass, reset) = model.forward_train(x, first_step)?;
+    let losses = reconstruction_losses(&pass.motion, x)?;
+    let weights = Tensor::new(&[1f32, config.velocity_weight as f32], x.device())?;
+    let mut loss = (losses * weights)?.sum_all()?;
+    if let Some(commitment) = &pass.commitment {
+        loss = (loss + commitment)?;
+    }
+    let grads = loss.backward()?;
+    optimizer.step(&grads, lr, config.grad_clip)?;
+    Ok((loss.to_scalar::<f32>()? as f64, reset))
 }
 
 /// Start from scratch, or restore weights, optimiser position and state from `out` when it
