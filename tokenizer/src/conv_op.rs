@@ -222,11 +222,14 @@ fn tensor_f32(t: &Tensor) -> Result<Vec<f32>> {
     t.contiguous()?.flatten_all()?.to_vec1::<f32>()
 }
 
+/// (batch, frames, channels) of an input, or (out, in, kernel) of a weight.
+type Dims3 = (usize, usize, usize);
+
 /// The fused convolution (see the module docs).
 struct ConvOp(ConvGeometry);
 
 impl ConvOp {
-    fn dims(x: &Layout, w: &Layout) -> Result<((usize, usize, usize), (usize, usize, usize))> {
+    fn dims(x: &Layout, w: &Layout) -> Result<(Dims3, Dims3)> {
         let (b, t, c) = x.shape().dims3()?;
         let (o, i, k) = w.shape().dims3()?;
         if i != c {
@@ -463,7 +466,8 @@ mod tests {
         let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
         let scalar = |t: Tensor| t.to_scalar::<f32>().unwrap();
         let rebuild = |v: &[f32], like: &Tensor| Tensor::from_slice(v, like.dims(), &dev).unwrap();
-        let checks: [(&str, &Var, Box<dyn Fn(&[f32]) -> f32>); 3] = [
+        type Loss<'a> = Box<dyn Fn(&[f32]) -> f32 + 'a>;
+        let checks: [(&str, &Var, Loss); 3] = [
             ("x", &x, Box::new(|v| scalar(loss(&rebuild(v, &x), &w, &b)))),
             ("w", &w, Box::new(|v| scalar(loss(&x, &rebuild(v, &w), &b)))),
             ("b", &b, Box::new(|v| scalar(loss(&x, &w, &rebuild(v, &b))))),
