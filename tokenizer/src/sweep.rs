@@ -4,6 +4,9 @@
 //! ```text
 //! OUT/<quantizer>-<codebook>/     each run's tokenizer checkpoint (resumable) and eval-<split>.json
 //! OUT/sweep.csv, sweep.parquet    one row per run (columns: SweepRow's fields)
+//! OUT/utilization.{svg,png}       utilisation, entropy and MPJPE against codebook size,
+//! OUT/entropy.{svg,png}           one line per quantizer
+//! OUT/mpjpe.{svg,png}
 //! ```
 //!
 //! Re-running the same command resumes unfinished runs and reuses finished evaluations.
@@ -139,6 +142,7 @@ pub fn sweep(
         }
     }
     write_tables(out, &rows)?;
+    write_plots(out, &rows)?;
     Ok(rows)
 }
 
@@ -206,4 +210,43 @@ pub fn write_tables(out: &Path, rows: &[SweepRow]) -> Result<(), TokenizerError>
         .and_then(|_| writer.close().map(|_| ()))
         .map_err(|e| file_error(&parquet_path, e))?;
     ingest::npy::write_atomic(&parquet_path, &bytes).map_err(|e| file_error(&parquet_path, e))
+}
+
+/// Utilisation, entropy and MPJPE against codebook size (log x), one line per quantizer.
+pub fn write_plots(out: &Path, rows: &[SweepRow]) -> Result<(), TokenizerError> {
+    let mut quantizers: Vec<&str> = rows.iter().map(|r| r.quantizer.as_str()).collect();
+    quantizers.dedup();
+    let mut sizes: Vec<f64> = rows.iter().map(|r| r.codebook_size as f64).collect();
+    sizes.sort_by(f64::total_cmp);
+    sizes.dedup();
+    let metrics: [(&str, &str, &dyn Fn(&SweepRow) -> f64); 3] = [
+        ("utilization", "codebook utilisation (%)", &|r| {
+            100.0 * r.utilization
+        }),
+        ("entropy", "entropy of code usage (nats)", &|r| r.entropy),
+        ("mpjpe", "MPJPE (mm)", &|r| r.mpjpe_mm),
+    ];
+    for (name, label, value) in metrics {
+        let mut chart = plot::Chart::new(
+            format!("{label} vs codebook size"),
+            "codebook size (codes)",
+            label,
+        );
+        chart.log_x = true;
+        chart.x_ticks = Some(sizes.clone());
+        for (i, q) in quantizers.iter().enumerate() {
+            let points = rows
+                .iter()
+                .filter(|r| r.quantizer == *q)
+                .map(|r| (r.codebook_size as f64, value(r)))
+                .collect();
+            chart
+                .series
+                .push(plot::Series::line(q.to_uppercase(), points).with_color(i));
+        }
+        chart
+            .write(&out.join(name))
+            .map_err(|e| file_error(&out.join(name), e))?;
+    }
+    Ok(())
 }
