@@ -219,7 +219,8 @@ pub fn write_plots(out: &Path, rows: &[SweepRow]) -> Result<(), TokenizerError> 
     let mut sizes: Vec<f64> = rows.iter().map(|r| r.codebook_size as f64).collect();
     sizes.sort_by(f64::total_cmp);
     sizes.dedup();
-    let metrics: [(&str, &str, &dyn Fn(&SweepRow) -> f64); 3] = [
+    type Metric<'a> = (&'a str, &'a str, &'a dyn Fn(&SweepRow) -> f64);
+    let metrics: [Metric; 3] = [
         ("utilization", "codebook utilisation (%)", &|r| {
             100.0 * r.utilization
         }),
