@@ -5,8 +5,8 @@
 # fail (not skip) when CI is set and the data is missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-if ! python3 -c "import numpy, pyarrow" 2>/dev/null; then
-  python3 -m pip install --quiet --disable-pip-version-check numpy pyarrow
+if ! python3 -c "import numpy, pyarrow, safetensors" 2>/dev/null; then
+  python3 -m pip install --quiet --disable-pip-version-check numpy pyarrow safetensors
 fi
 bash scripts/fetch-text-encoder.sh >/dev/null
 cargo test --workspace --release "$@"

@@ -1,7 +1,7 @@
 //! `motionscale model info|presets`, `motionscale train` and `motionscale generate`: the
 //! text-prefix autoregressive motion transformer.
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use model::accounting::{Accounting, SequenceShape};
 use model::generate::Sampling;
 use model::prefix_lm::{PrefixLmConfig, PRESETS};
@@ -9,6 +9,7 @@ use model::train::{ModelShape, RunConfig, TrainConfig, TrainEvent};
 use model::{BertEncoder, FallbackEncoder, TextEncoder};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use tokenizer::model::MotionTokenizer;
 
 /// A model shape on the command line: `--preset P` or `--width W --layers L --heads H`.
 #[derive(clap::Args, Debug, Clone)]
@@ -385,13 +386,14 @@ pub struct GenerateArgs {
     /// Trained model folder (`motionscale train --out`).
     #[arg(long)]
     pub model: PathBuf,
-    /// Tokenizer checkpoint folder (its decoder turns tokens into motion).
+    /// Tokenizer checkpoint folder (default: the one that made the model's token set).
     #[arg(long)]
     pub tokenizer: Option<PathBuf>,
     /// The text to animate.
     #[arg(long)]
     pub text: String,
-    /// Output file: .json (tokens), .npy (HumanML3D 263 features) or .bvh.
+    /// Output file: .json (tokens), .npy (n × 263 HumanML3D features, de-normalised) or
+    /// .bvh (SMPL-22 hierarchy, 20 fps, centimetres: Blender's import scale 0.01 gives metres).
     #[arg(long)]
     pub out: PathBuf,
     /// BERT-family text encoder folder (default: the one the model was trained with).
@@ -440,6 +442,24 @@ fn load_text_encoder(run: &RunConfig, dir: Option<&Path>) -> Result<Box<dyn Text
     Ok(encoder)
 }
 
+/// Decode `tokens` with the run's tokenizer (or `dir`, which must hold the same checkpoint)
+/// and write HumanML3D features (.npy) or a BVH of the recovered joints.
+fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path) -> Result<()> {
+    let dir = dir.unwrap_or(&run.tokenizer.dir);
+    let id = MotionTokenizer::content_id(dir)
+        .with_context(|| format!("reading the tokenizer checkpoint in {}", dir.display()))?;
+    if id != run.tokenizer.id {
+        bail!(
+            "{}: tokenizer {id} is not the model's {} (pass --tokenizer DIR)",
+            dir.display(),
+            run.tokenizer.id
+        );
+    }
+    let decoder = MotionTokenizer::load(dir, &candle_core::Device::Cpu)?;
+    let features = decoder.detokenize(tokens)?;
+    crate::tokenizer_cmd::write_motion(out, &features, false)
+}
+
 /// `motionscale generate`.
 pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
     keep_freed_memory();
@@ -473,9 +493,7 @@ pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
             });
             ingest::npy::write_atomic(&args.out, serde_json::to_string_pretty(&value)?.as_bytes())?;
         }
-        "npy" | "bvh" => {
-            crate::motion::write_motion(&tokens, &run, args.tokenizer.as_deref(), &args.out)?
-        }
+        "npy" | "bvh" => write_motion(&tokens, &run, args.tokenizer.as_deref(), &args.out)?,
         _ => bail!("--out must end in .json, .npy or .bvh"),
     }
     println!(

@@ -2,12 +2,13 @@
 //! print results and choose exit codes (0 ok, 1 failure, 2 partial: some inputs rejected).
 
 mod bench;
+mod bench_tokenizer;
 mod commands;
 mod lm;
 mod lm_bench;
-mod motion;
 mod quickstart;
 mod text;
+mod tokenizer_cmd;
 
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
@@ -51,6 +52,11 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Motion tokenizers (FSQ / VQ VAEs): train, evaluate, sweep codebook sizes, decode tokens.
+    #[command(subcommand)]
+    Tokenizer(TokenizerCommand),
+    /// Turn every clip of a corpus into token ids with a trained tokenizer (a token set).
+    Tokenize(tokenizer_cmd::TokenizeArgs),
     /// Measure throughput against the reference figures.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -112,6 +118,18 @@ enum ExportCommand {
 }
 
 #[derive(Subcommand)]
+enum TokenizerCommand {
+    /// Train an FSQ or VQ tokenizer on random 64-frame windows of a corpus (resumable).
+    Train(tokenizer_cmd::TrainArgs),
+    /// Reconstruction L1, MPJPE, codebook utilisation, entropy and perplexity on a split (JSON).
+    Eval(tokenizer_cmd::EvalArgs),
+    /// Train and evaluate every (quantizer, codebook) pair with equal steps: table + plots.
+    Sweep(tokenizer_cmd::SweepArgs),
+    /// Token ids back to features (.npy), joints (.npy --joints) or BVH.
+    Decode(tokenizer_cmd::DecodeArgs),
+}
+
+#[derive(Subcommand)]
 enum BenchCommand {
     /// Ingest both Bandai Namco archives and time joints → 263 features on fixture (a).
     Ingest(bench::BenchIngestArgs),
@@ -119,6 +137,8 @@ enum BenchCommand {
     Synth(bench::BenchSynthArgs),
     /// Prefix-LM training step and generation: tokens/s, GFLOP/s, MFU, PyTorch ratio.
     Train(lm_bench::BenchTrainArgs),
+    /// Time tokenizer training steps (FSQ, VQ) at the T2M-GPT shape; --reference runs PyTorch too.
+    Tokenizer(bench_tokenizer::BenchTokenizerArgs),
 }
 
 fn main() -> ExitCode {
@@ -154,6 +174,11 @@ fn main() -> ExitCode {
         Command::Scenarios(args) => commands::scenarios(args),
         Command::Synth(args) => commands::synth(args),
         Command::Demo { out } => commands::demo(&out),
+        Command::Tokenizer(TokenizerCommand::Train(args)) => tokenizer_cmd::train_cmd(args),
+        Command::Tokenizer(TokenizerCommand::Eval(args)) => tokenizer_cmd::eval_cmd(args),
+        Command::Tokenizer(TokenizerCommand::Decode(args)) => tokenizer_cmd::decode_cmd(args),
+        Command::Tokenizer(TokenizerCommand::Sweep(args)) => tokenizer_cmd::sweep_cmd(args),
+        Command::Tokenize(args) => tokenizer_cmd::tokenize_cmd(args),
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
         Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
         Command::Bench(BenchCommand::Train(args)) => lm_bench::train(args),
@@ -161,6 +186,7 @@ fn main() -> ExitCode {
         Command::Model(ModelCommand::Presets(args)) => lm::presets(args),
         Command::Train(args) => lm::train(args),
         Command::Generate(args) => lm::generate(args),
+        Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
     };
     match result {
         Ok(code) => code,

@@ -1,7 +1,9 @@
-//! Checkpoint files: safetensors written atomically.
+//! Checkpoint files: safetensors and JSON, written atomically, read with errors naming the file.
 
 use crate::error::TokenizerError;
 use candle_core::Tensor;
+use serde::de::DeserializeOwned;
+use serde::Serialize;
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -21,4 +23,23 @@ pub fn save_safetensors(
     let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
     candle_core::safetensors::save(tensors, &tmp).map_err(|e| file_error(&e))?;
     std::fs::rename(&tmp, path).map_err(|e| file_error(&e))
+}
+
+fn file_error(path: &Path, e: impl std::fmt::Display) -> TokenizerError {
+    TokenizerError::File {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+/// Write `value` as pretty JSON to `path`, atomically.
+pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), TokenizerError> {
+    let text = serde_json::to_string_pretty(value).map_err(|e| file_error(path, e))?;
+    ingest::npy::write_atomic(path, text.as_bytes()).map_err(|e| file_error(path, e))
+}
+
+/// Parse the JSON file at `path`.
+pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T, TokenizerError> {
+    let text = std::fs::read_to_string(path).map_err(|e| file_error(path, e))?;
+    serde_json::from_str(&text).map_err(|e| file_error(path, e))
 }

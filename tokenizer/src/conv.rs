@@ -19,12 +19,14 @@
 //! `.bias`. Inside `MotionVQVAE` the two networks sit under `encoder.` and `decoder.`:
 //! build them with `vb.pp("encoder")` and `vb.pp("decoder")`.
 //!
-//! Tensors are (batch, frames, features) at the interface and channels-first inside, as in
-//! the PyTorch model.
+//! Tensors are (batch, frames, features) everywhere: the convolutions run channels-last
+//! ([`crate::conv_op`]), with the ReLUs and up-samplings of the PyTorch `net` fused into the
+//! input reads of the convolutions that follow them.
 
+use crate::conv_op::{conv1d, ConvGeometry};
 use crate::error::TokenizerError;
 use candle_core::{Module, Tensor};
-use candle_nn::{Conv1d, Conv1dConfig, VarBuilder};
+use candle_nn::{Init, VarBuilder};
 use serde::{Deserialize, Serialize};
 
 /// Shape of a T2M-GPT encoder/decoder pair.
@@ -73,6 +75,32 @@ impl ConvConfig {
             .collect()
     }
 
+    /// Multiply-accumulates of one encoder + decoder forward pass over `frames` frames of
+    /// one clip (convolutions only, as PyTorch forward hooks count them).
+    pub fn forward_macs(&self, frames: usize) -> u64 {
+        let (w, c, f) = (
+            self.width as u64,
+            self.code_dim as u64,
+            self.input_dim as u64,
+        );
+        let conv = |frames: u64, inp: u64, out: u64, k: u64| frames * inp * out * k;
+        let unit = |frames: u64| conv(frames, w, w, 3) + conv(frames, w, w, 1);
+        let units = |frames: u64| self.depth as u64 * unit(frames);
+        let mut macs = conv(frames as u64, f, w, 3);
+        let mut t = frames as u64;
+        for _ in 0..self.down_t {
+            t /= 2;
+            macs += conv(t, w, w, 4) + units(t);
+        }
+        macs += conv(t, w, c, 3) + conv(t, c, w, 3);
+        for _ in 0..self.down_t {
+            macs += units(t);
+            t *= 2;
+            macs += conv(t, w, w, 3);
+        }
+        macs + conv(t, w, w, 3) + conv(t, w, f, 3)
+    }
+
     fn validate(&self) -> Result<(), TokenizerError> {
         let sizes = [
             ("input_dim", self.input_dim),
@@ -96,47 +124,96 @@ impl ConvConfig {
     }
 }
 
-/// `Conv1d(in, out, kernel, stride, padding, dilation)` with weight and bias under `vb`.
-fn conv(
-    in_channels: usize,
-    out_channels: usize,
-    kernel: usize,
-    stride: usize,
-    padding: usize,
-    dilation: usize,
-    vb: VarBuilder,
-) -> candle_core::Result<Conv1d> {
-    let cfg = Conv1dConfig {
-        padding,
-        stride,
-        dilation,
-        ..Default::default()
-    };
-    candle_nn::conv1d(in_channels, out_channels, kernel, cfg, vb)
+/// A `Conv1d(in, out, kernel, stride, padding, dilation)` with PyTorch's parameters
+/// (`weight` (out, in, kernel), `bias` (out), initialised as `nn.Conv1d` does) applied
+/// channels-last by the fused op, with the input pre-ops of its geometry.
+#[derive(Debug, Clone)]
+struct Conv {
+    weight: Tensor,
+    bias: Tensor,
+    geometry: ConvGeometry,
+}
+
+impl Conv {
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        (inp, out, kernel): (usize, usize, usize),
+        stride: usize,
+        padding: usize,
+        dilation: usize,
+        relu_input: bool,
+        upsample_input: bool,
+        vb: VarBuilder,
+    ) -> candle_core::Result<Self> {
+        // PyTorch's default: U(-1/sqrt(fan_in), 1/sqrt(fan_in)) for weight and bias.
+        let bound = 1.0 / ((inp * kernel) as f64).sqrt();
+        let init = Init::Uniform {
+            lo: -bound,
+            up: bound,
+        };
+        Ok(Self {
+            weight: vb.get_with_hints((out, inp, kernel), "weight", init)?,
+            bias: vb.get_with_hints(out, "bias", init)?,
+            geometry: ConvGeometry {
+                kernel,
+                stride,
+                dilation,
+                padding,
+                relu_input,
+                upsample_input,
+            },
+        })
+    }
+
+    /// A stride-1 convolution that keeps the length (`padding = dilation·(k-1)/2`).
+    fn same(
+        channels: (usize, usize),
+        kernel: usize,
+        dilation: usize,
+        relu_input: bool,
+        vb: VarBuilder,
+    ) -> candle_core::Result<Self> {
+        let (inp, out) = channels;
+        let padding = dilation * (kernel - 1) / 2;
+        Self::new(
+            (inp, out, kernel),
+            1,
+            padding,
+            dilation,
+            relu_input,
+            false,
+            vb,
+        )
+    }
+}
+
+impl Module for Conv {
+    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
+        conv1d(x, &self.weight, &self.bias, self.geometry)
+    }
 }
 
 /// One residual unit: `x + conv2(relu(conv1(relu(x))))`, `conv1` of kernel 3 and dilation
-/// `d` (padding `d` keeps the length), `conv2` of kernel 1; no normalisation.
+/// `d` (padding `d` keeps the length), `conv2` of kernel 1; no normalisation. Both ReLUs
+/// are fused into the convolutions' input reads.
 #[derive(Debug, Clone)]
 struct ResUnit {
-    conv1: Conv1d,
-    conv2: Conv1d,
+    conv1: Conv,
+    conv2: Conv,
 }
 
 impl ResUnit {
     fn new(width: usize, dilation: usize, vb: VarBuilder) -> candle_core::Result<Self> {
         Ok(Self {
-            conv1: conv(width, width, 3, 1, dilation, dilation, vb.pp("conv1"))?,
-            conv2: conv(width, width, 1, 1, 0, 1, vb.pp("conv2"))?,
+            conv1: Conv::same((width, width), 3, dilation, true, vb.pp("conv1"))?,
+            conv2: Conv::same((width, width), 1, 1, true, vb.pp("conv2"))?,
         })
     }
 }
 
 impl Module for ResUnit {
     fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        let h = self.conv1.forward(&x.relu()?)?;
-        let h = self.conv2.forward(&h.relu()?)?;
-        x + h
+        x + self.conv2.forward(&self.conv1.forward(x)?)?
     }
 }
 
@@ -191,10 +268,10 @@ fn check_input(
 /// T2M-GPT motion encoder: (batch, frames, `input_dim`) → (batch, frames / 2^down_t, `code_dim`).
 #[derive(Debug, Clone)]
 pub struct ConvEncoder {
-    input: Conv1d,
+    input: Conv,
     /// Per stage: the stride-2 down-sampling conv, then its residual stack.
-    stages: Vec<(Conv1d, Resnet1d)>,
-    output: Conv1d,
+    stages: Vec<(Conv, Resnet1d)>,
+    output: Conv,
     config: ConvConfig,
 }
 
@@ -203,22 +280,19 @@ impl ConvEncoder {
     pub fn new(config: &ConvConfig, vb: VarBuilder) -> Result<Self, TokenizerError> {
         config.validate()?;
         let (w, net) = (config.width, vb.pp("net"));
-        let input = conv(config.input_dim, w, 3, 1, 1, 1, net.pp(0))?;
+        let input = Conv::same((config.input_dim, w), 3, 1, false, net.pp(0))?;
         let stages = (0..config.down_t)
             .map(|s| {
-                Ok((
-                    conv(w, w, 4, 2, 1, 1, net.pp(2 + 2 * s))?,
-                    Resnet1d::new(config, net.pp(3 + 2 * s))?,
-                ))
+                // The ReLU after the input conv (net.1) is fused into the first down conv.
+                let down = Conv::new((w, w, 4), 2, 1, 1, s == 0, false, net.pp(2 + 2 * s))?;
+                Ok((down, Resnet1d::new(config, net.pp(3 + 2 * s))?))
             })
             .collect::<candle_core::Result<_>>()?;
-        let output = conv(
-            w,
-            config.code_dim,
+        let output = Conv::same(
+            (w, config.code_dim),
             3,
             1,
-            1,
-            1,
+            config.down_t == 0,
             net.pp(2 + 2 * config.down_t),
         )?;
         Ok(Self {
@@ -239,29 +313,29 @@ impl ConvEncoder {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor, TokenizerError> {
         let factor = self.config.downsample_factor();
         check_input(x, self.config.input_dim, factor, "conv encoder")?;
-        let h = self.input.forward(&x.transpose(1, 2)?)?.relu()?;
+        let h = self.input.forward(x)?;
         let h = self
             .stages
             .iter()
             .try_fold(h, |h, (down, res)| res.forward(&down.forward(&h)?))?;
-        Ok(self.output.forward(&h)?.transpose(1, 2)?)
+        Ok(self.output.forward(&h)?)
     }
 }
 
-/// One decoder stage: residual stack, nearest ×2 up-sampling, k3 conv.
+/// One decoder stage: residual stack, then a k3 conv reading the ×2 nearest up-sampled input.
 #[derive(Debug, Clone)]
 struct UpStage {
     resnet: Resnet1d,
-    conv: Conv1d,
+    conv: Conv,
 }
 
 /// T2M-GPT motion decoder: (batch, latents, `code_dim`) → (batch, latents · 2^down_t, `input_dim`).
 #[derive(Debug, Clone)]
 pub struct ConvDecoder {
-    input: Conv1d,
+    input: Conv,
     stages: Vec<UpStage>,
-    post: Conv1d,
-    output: Conv1d,
+    post: Conv,
+    output: Conv,
     config: ConvConfig,
 }
 
@@ -270,19 +344,20 @@ impl ConvDecoder {
     pub fn new(config: &ConvConfig, vb: VarBuilder) -> Result<Self, TokenizerError> {
         config.validate()?;
         let (w, net) = (config.width, vb.pp("net"));
-        let input = conv(config.code_dim, w, 3, 1, 1, 1, net.pp(0))?;
+        let input = Conv::same((config.code_dim, w), 3, 1, false, net.pp(0))?;
         let stages = (0..config.down_t)
             .map(|s| {
                 Ok(UpStage {
                     resnet: Resnet1d::new(config, net.pp(2 + 3 * s))?,
-                    // Index 3 + 3s is the parameter-free Upsample.
-                    conv: conv(w, w, 3, 1, 1, 1, net.pp(4 + 3 * s))?,
+                    // Index 3 + 3s is the parameter-free Upsample, fused into this conv.
+                    conv: Conv::new((w, w, 3), 1, 1, 1, false, true, net.pp(4 + 3 * s))?,
                 })
             })
             .collect::<candle_core::Result<_>>()?;
         let last = 2 + 3 * config.down_t;
-        let post = conv(w, w, 3, 1, 1, 1, net.pp(last))?;
-        let output = conv(w, config.input_dim, 3, 1, 1, 1, net.pp(last + 2))?;
+        let post = Conv::same((w, w), 3, 1, false, net.pp(last))?;
+        // net.{last+1} is the ReLU fused into the output conv.
+        let output = Conv::same((w, config.input_dim), 3, 1, true, net.pp(last + 2))?;
         Ok(Self {
             input,
             stages,
@@ -300,14 +375,13 @@ impl ConvDecoder {
     /// Decode `z` (batch, latents, `code_dim`) to (batch, latents · 2^down_t, `input_dim`).
     pub fn forward(&self, z: &Tensor) -> Result<Tensor, TokenizerError> {
         check_input(z, self.config.code_dim, 1, "conv decoder")?;
-        let h = self.input.forward(&z.transpose(1, 2)?)?.relu()?;
-        let h = self.stages.iter().try_fold(h, |h, stage| {
-            let h = stage.resnet.forward(&h)?;
-            let frames = h.dim(2)?;
-            stage.conv.forward(&h.upsample_nearest1d(2 * frames)?)
-        })?;
-        let h = self.post.forward(&h)?.relu()?;
-        Ok(self.output.forward(&h)?.transpose(1, 2)?)
+        // The ReLU after the input conv (net.1) feeds the residual path too: not fusable.
+        let h = self.input.forward(z)?.relu()?;
+        let h = self
+            .stages
+            .iter()
+            .try_fold(h, |h, stage| stage.conv.forward(&stage.resnet.forward(&h)?))?;
+        Ok(self.output.forward(&self.post.forward(&h)?)?)
     }
 }
 

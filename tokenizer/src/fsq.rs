@@ -13,7 +13,8 @@ use candle_core::{DType, Module, Tensor, D};
 use candle_nn::{Linear, VarBuilder};
 use serde::{Deserialize, Serialize};
 
-/// Margin that keeps the tanh bound strictly inside the outer rounding bins.
+/// Margin of the tanh bound (Mentzer et al.'s `eps`): the bound reaches just past the centres of
+/// the outer levels, so they are reachable with finite inputs, and still rounds to `L` levels.
 pub const TANH_EPS: f64 = 1e-3;
 
 /// Mentzer et al.'s level sets, keyed by their nominal codebook size `2^k`.
@@ -41,7 +42,7 @@ pub fn levels_for(codebook: usize) -> Option<&'static [usize]> {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Bound {
-    /// Mentzer et al.: with `half_l = (L - 1)(1 - eps) / 2`, `offset = 0.5` if `L` is even
+    /// Mentzer et al.: with `half_l = (L - 1)(1 + eps) / 2`, `offset = 0.5` if `L` is even
     /// else 0 and `shift = atanh(offset / half_l)`, `bounded = tanh(z + shift)·half_l - offset`.
     /// The range `(-half_l - offset, half_l - offset)` rounds to exactly the `L` centred
     /// levels, and `z = 0` maps to level 0 (the shift cancels the offset there).
@@ -142,6 +143,40 @@ impl FsqQuantizer {
         })
     }
 
+    /// Project normalised codes (`..., d_q`) back to `dim` channels (the decoder's input).
+    pub fn project_out(&self, codes: &Tensor) -> Result<Tensor, TokenizerError> {
+        Ok(self.proj_out.forward(codes)?)
+    }
+
+    /// The constant buffers of the PyTorch reference's `FSQ` module (`L`, `half_l`, `offset`,
+    /// `shift`, `half_width`, `basis`), so a saved state dict loads there strictly.
+    pub fn buffers(&self) -> Vec<(&'static str, Vec<f32>)> {
+        let levels: Vec<f64> = self.levels.iter().map(|&l| l as f64).collect();
+        let half_l: Vec<f64> = levels
+            .iter()
+            .map(|l| (l - 1.0) * (1.0 + TANH_EPS) / 2.0)
+            .collect();
+        let offset: Vec<f64> = self
+            .levels
+            .iter()
+            .map(|&l| if l % 2 == 0 { 0.5 } else { 0.0 })
+            .collect();
+        let shift: Vec<f64> = offset
+            .iter()
+            .zip(&half_l)
+            .map(|(o, h)| (o / h).atanh())
+            .collect();
+        let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+        vec![
+            ("L", f32s(&levels)),
+            ("half_l", f32s(&half_l)),
+            ("offset", f32s(&offset)),
+            ("shift", f32s(&shift)),
+            ("half_width", f32s(&self.half_widths())),
+            ("basis", f32s(&self.basis())),
+        ]
+    }
+
     /// Bound `z` (`..., d_q`) channel-wise so rounding yields the centred integer levels.
     pub fn bound(&self, z: &Tensor) -> Result<Tensor, TokenizerError> {
         let bounded = match self.bound {
@@ -149,7 +184,7 @@ impl FsqQuantizer {
                 let half_l: Vec<f64> = self
                     .levels
                     .iter()
-                    .map(|&l| (l as f64 - 1.0) * (1.0 - TANH_EPS) / 2.0)
+                    .map(|&l| (l as f64 - 1.0) * (1.0 + TANH_EPS) / 2.0)
                     .collect();
                 let offset: Vec<f64> = self
                     .levels
@@ -356,7 +391,7 @@ mod tests {
             let codes = q.quantize(var.as_tensor()).unwrap();
             let grads = codes.sum_all().unwrap().backward().unwrap();
             let g = grads.get(&var).unwrap().to_vec2::<f32>().unwrap()[0][0] as f64;
-            let half_l = (levels as f64 - 1.0) * (1.0 - TANH_EPS) / 2.0;
+            let half_l = (levels as f64 - 1.0) * (1.0 + TANH_EPS) / 2.0;
             let offset = if levels % 2 == 0 { 0.5 } else { 0.0 };
             let t = (z + (offset / half_l).atanh()).tanh();
             let expected = (1.0 - t * t) * half_l / (levels / 2) as f64;

@@ -9,11 +9,17 @@
 
 pub mod checkpoint;
 pub mod conv;
+pub mod conv_op;
 pub mod error;
+pub mod evaluate;
 pub mod fsq;
+pub mod loss;
+pub mod model;
 pub mod optim;
 pub mod ste;
+pub mod sweep;
 pub mod tokens;
+pub mod train;
 pub mod usage;
 pub mod vq;
 

@@ -11,6 +11,7 @@
 //! Unigram counts feed the normalised loss (ScaMo Eq. 8), which uses the train split's
 //! frequencies with add-one smoothing. Files are written to temporary names and renamed.
 
+use crate::checkpoint::{read_json, write_json};
 use crate::error::TokenizerError;
 use arrow_array::builder::{ListBuilder, StringBuilder, UInt32Builder};
 use arrow_array::cast::AsArray;
@@ -219,16 +220,6 @@ fn sha256_hex(bytes: &[u8]) -> String {
         .iter()
         .map(|b| format!("{b:02x}"))
         .collect()
-}
-
-fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), TokenizerError> {
-    let text = serde_json::to_string_pretty(value).map_err(|e| io_error(path, e))?;
-    write_atomic(path, text.as_bytes()).map_err(|e| io_error(path, e))
-}
-
-fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, TokenizerError> {
-    let text = std::fs::read_to_string(path).map_err(|e| io_error(path, e))?;
-    serde_json::from_str(&text).map_err(|e| io_error(path, e))
 }
 
 impl TokenSet {

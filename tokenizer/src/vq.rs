@@ -54,6 +54,9 @@ impl VqConfig {
     }
 }
 
+/// Rows × codes of one distance-matrix chunk in [`VqQuantizer::nearest`].
+const DISTANCE_CHUNK: usize = 1 << 24;
+
 /// Laplace smoothing of the EMA cluster sizes, so no code divides by zero.
 const LAPLACE_EPS: f64 = 1e-5;
 
@@ -151,13 +154,22 @@ impl VqQuantizer {
     pub fn nearest(&self, z: &Tensor) -> Result<Tensor, TokenizerError> {
         let (flat, lead) = self.flatten(z)?;
         let flat = flat.detach();
-        let z_sq = flat.sqr()?.sum_keepdim(1)?;
         let c_sq = self.codebook.sqr()?.sum(1)?.unsqueeze(0)?;
-        let cross = flat.matmul(&self.codebook.t()?)?;
-        let dist = z_sq
-            .broadcast_sub(&cross.affine(2.0, 0.0)?)?
-            .broadcast_add(&c_sq)?;
-        Ok(dist.argmin(D::Minus1)?.reshape(lead)?)
+        let codebook_t = self.codebook.t()?;
+        // Rows in chunks so the rows × K distance matrix stays near 64 MB even for 2^16 codes.
+        let chunk = (DISTANCE_CHUNK / self.config.codebook_size).max(1);
+        let rows = flat.dim(0)?;
+        let mut parts = Vec::with_capacity(rows.div_ceil(chunk));
+        for start in (0..rows).step_by(chunk) {
+            let part = flat.narrow(0, start, chunk.min(rows - start))?;
+            let z_sq = part.sqr()?.sum_keepdim(1)?;
+            let cross = part.matmul(&codebook_t)?;
+            let dist = z_sq
+                .broadcast_sub(&cross.affine(2.0, 0.0)?)?
+                .broadcast_add(&c_sq)?;
+            parts.push(dist.argmin(D::Minus1)?);
+        }
+        Ok(Tensor::cat(&parts, 0)?.reshape(lead)?)
     }
 
     /// Code vectors of `indices` (`...`, u32 → `..., D`).
@@ -218,12 +230,11 @@ impl VqQuantizer {
         }
         let k = self.config.codebook_size;
         let device = flat.device();
-        let codes = Tensor::arange(0u32, k as u32, device)?.unsqueeze(1)?;
-        let onehot = codes
-            .broadcast_eq(&indices.unsqueeze(0)?)?
-            .to_dtype(DType::F32)?;
-        let batch_sum = onehot.matmul(&flat)?;
-        let batch_count = onehot.sum(1)?;
+        // Scatter-adds, not a K × rows one-hot matmul (a gigabyte at 2^16 codes).
+        let batch_sum = Tensor::zeros((k, self.config.dim), DType::F32, device)?
+            .index_add(&indices, &flat, 0)?;
+        let ones = Tensor::ones(rows, DType::F32, device)?;
+        let batch_count = Tensor::zeros(k, DType::F32, device)?.index_add(&indices, &ones, 0)?;
         let mu = self.config.decay;
         self.code_sum = (self.code_sum.affine(mu, 0.0)? + batch_sum.affine(1.0 - mu, 0.0)?)?;
         self.code_count =
@@ -236,8 +247,7 @@ impl VqQuantizer {
             .affine(n / (n + k as f64 * LAPLACE_EPS), 0.0)?;
         let updated = self.code_sum.broadcast_div(&weights.unsqueeze(1)?)?;
         // One draw per code, dead or not, so the generator's stream depends only on K.
-        let picks: Vec<u32> = (0..k).map(|_| self.rng.index(rows) as u32).collect();
-        let random = flat.index_select(&Tensor::new(picks, device)?, 0)?;
+        let random = self.random_rows(&flat, k)?;
         let live = self.code_count.ge(self.config.reset_below)?;
         let dead = k - live.to_dtype(DType::U32)?.sum_all()?.to_scalar::<u32>()? as usize;
         self.codebook = live
@@ -248,6 +258,75 @@ impl VqQuantizer {
     }
 
     /// `z` as rows of width D, and its leading shape.
+    /// Restore a saved codebook and its EMA statistics (K×D, K×D, K).
+    pub fn set_state(
+        &mut self,
+        codebook: Tensor,
+        code_sum: Tensor,
+        code_count: Tensor,
+    ) -> Result<(), TokenizerError> {
+        let (k, d) = (self.config.codebook_size, self.config.dim);
+        for (name, t, dims) in [
+            ("codebook", &codebook, vec![k, d]),
+            ("code_sum", &code_sum, vec![k, d]),
+            ("code_count", &code_count, vec![k]),
+        ] {
+            if t.dims() != dims.as_slice() {
+                return Err(TokenizerError::Argument(format!(
+                    "VQ {name} has shape {:?}, expected {dims:?}",
+                    t.dims()
+                )));
+            }
+        }
+        self.codebook = codebook.to_dtype(DType::F32)?;
+        self.code_sum = code_sum.to_dtype(DType::F32)?;
+        self.code_count = code_count.to_dtype(DType::F32)?;
+        Ok(())
+    }
+
+    /// State of the generator that draws reset codes (saved with training checkpoints).
+    pub fn rng_state(&self) -> u64 {
+        self.rng.0
+    }
+
+    /// Restore the generator state saved by [`Self::rng_state`].
+    pub fn set_rng_state(&mut self, state: u64) {
+        self.rng = SplitMix64(state);
+    }
+
+    /// Replace the codebook by `K` random vectors of `z` (`..., D`) and restart the EMA
+    /// statistics from it, as T2M-GPT initialises its codebook from the first batch.
+    pub fn init_from(&mut self, z: &Tensor) -> Result<(), TokenizerError> {
+        let (flat, _) = self.flatten(z)?;
+        let flat = flat.detach().to_dtype(DType::F32)?;
+        self.codebook = self.random_rows(&flat, self.config.codebook_size)?;
+        self.code_sum = self.codebook.clone();
+        self.code_count = Tensor::ones(self.config.codebook_size, DType::F32, flat.device())?;
+        Ok(())
+    }
+
+    /// `count` rows drawn from `flat` (rows × D) with the quantizer's generator; with fewer
+    /// rows than wanted, repeated draws get N(0, (0.01/√D)²) noise (as T2M-GPT's
+    /// `_tile`) so reset codes do not collapse onto identical vectors.
+    fn random_rows(&mut self, flat: &Tensor, count: usize) -> Result<Tensor, TokenizerError> {
+        let rows = flat.dim(0)?;
+        if rows == 0 {
+            return Err(TokenizerError::Argument(
+                "VQ needs at least one vector to draw codes from".into(),
+            ));
+        }
+        let picks: Vec<u32> = (0..count).map(|_| self.rng.index(rows) as u32).collect();
+        let drawn = flat.index_select(&Tensor::new(picks, flat.device())?, 0)?;
+        if rows >= count {
+            return Ok(drawn);
+        }
+        let sigma = 0.01 / (self.config.dim as f64).sqrt();
+        let noise: Vec<f32> = (0..count * self.config.dim)
+            .map(|_| (normal(&mut self.rng) * sigma) as f32)
+            .collect();
+        Ok((drawn + Tensor::from_vec(noise, (count, self.config.dim), flat.device())?)?)
+    }
+
     fn flatten(&self, z: &Tensor) -> Result<(Tensor, Vec<usize>), TokenizerError> {
         let dims = z.dims();
         match dims.split_last() {

@@ -1,0 +1,173 @@
+//! `motionscale bench tokenizer`: training steps/s of the T2M-GPT-shape tokenizer (width 512,
+//! 64-frame windows of 263 features) for FSQ and VQ, and with `--reference` the same step of
+//! `shared/bench/pytorch_vqvae.py` run in this session, alternating, with the ratio.
+//!
+//! FLOPs follow the reference's rule: (conv + linear multiply-accumulates of one forward) × 2
+//! × 3; the VQ distance matmul (no gradient) is not counted, as there.
+
+use anyhow::{bail, Context, Result};
+use candle_core::{Device, Tensor};
+use std::path::PathBuf;
+use std::process::{Command, ExitCode};
+use std::time::Instant;
+use tokenizer::model::{MotionTokenizer, TokenizerConfig, FEATURES};
+use tokenizer::train::{optimizer_for, optimizer_step, TrainConfig};
+use tokenizer::{Bound, ConvConfig};
+
+/// Arguments of `motionscale bench tokenizer`.
+#[derive(clap::Args, Debug)]
+pub struct BenchTokenizerArgs {
+    /// Batch sizes to time (windows per step).
+    #[arg(long, value_delimiter = ',', default_value = "256,64")]
+    pub batches: Vec<usize>,
+    /// Quantizers to time.
+    #[arg(long, value_delimiter = ',', default_value = "fsq,vq")]
+    pub quantizers: Vec<String>,
+    /// Untimed steps first.
+    #[arg(long, default_value_t = 2)]
+    pub warmup: usize,
+    /// Timed steps (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    pub reps: usize,
+    /// Also run shared/bench/pytorch_vqvae.py (needs torch) and print the ratio.
+    #[arg(long)]
+    pub reference: bool,
+    /// Folder of the PyTorch reference scripts.
+    #[arg(long, default_value = "../shared/bench")]
+    pub bench_dir: PathBuf,
+    /// fp32 peak of this machine in GFLOP/s (sgemm_peak.py: ≈447 on 2 threads here).
+    #[arg(long, default_value_t = 447.0)]
+    pub peak_gflops: f64,
+}
+
+/// One timed configuration.
+struct Timing {
+    steps_per_s: f64,
+    flops_per_step: f64,
+}
+
+/// The reference's shapes: FSQ [8,5,5,5] (1000 codes), VQ 512 codes × 512.
+fn reference_config(quantizer: &str) -> Result<TokenizerConfig> {
+    let conv = ConvConfig::default();
+    Ok(match quantizer {
+        "fsq" => TokenizerConfig::new("fsq", 1024, Bound::Tanh, conv)?,
+        "vq" => TokenizerConfig::new("vq", 512, Bound::Tanh, conv)?,
+        other => bail!("unknown quantizer {other:?}"),
+    })
+}
+
+fn time_ours(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> Result<Timing> {
+    let config = reference_config(quantizer)?;
+    let conv = config.conv.clone();
+    let device = Device::Cpu;
+    let mut model =
+        MotionTokenizer::new(config, vec![0.0; FEATURES], vec![1.0; FEATURES], &device, 0)?;
+    let train = TrainConfig {
+        lr: 2e-4,
+        ..TrainConfig::default()
+    };
+    let mut optimizer = optimizer_for(&model, &train);
+    let x = Tensor::randn(0f32, 1.0, (batch, train.window, FEATURES), &device)?;
+    let mut times = Vec::with_capacity(args.reps);
+    for step in 0..args.warmup + args.reps {
+        let started = Instant::now();
+        optimizer_step(&mut model, &mut optimizer, &x, train.lr, &train, step == 0)?;
+        if step >= args.warmup {
+            times.push(started.elapsed().as_secs_f64());
+        }
+    }
+    times.sort_by(f64::total_cmp);
+    let median = times[times.len() / 2];
+    // FSQ's two projections are the reference's "linear" MACs.
+    let linear = if quantizer == "fsq" {
+        2 * (batch * train.window / conv.downsample_factor()) as u64 * conv.code_dim as u64 * 4
+    } else {
+        0
+    };
+    let macs = batch as u64 * conv.forward_macs(train.window) + linear;
+    Ok(Timing {
+        steps_per_s: 1.0 / median,
+        flops_per_step: macs as f64 * 6.0,
+    })
+}
+
+fn time_reference(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> Result<Timing> {
+    let script = args.bench_dir.join("pytorch_vqvae.py");
+    let out = tempfile::NamedTempFile::new()?;
+    let status = Command::new("python3")
+        .arg(&script)
+        .args([
+            "--quant",
+            quantizer,
+            "--batch",
+            &batch.to_string(),
+            "--threads",
+            "2",
+        ])
+        .args([
+            "--warmup",
+            &args.warmup.to_string(),
+            "--reps",
+            &args.reps.to_string(),
+        ])
+        .arg("--out")
+        .arg(out.path())
+        .stdout(std::process::Stdio::null())
+        .status()
+        .with_context(|| format!("running python3 {}", script.display()))?;
+    if !status.success() {
+        bail!(
+            "{} failed ({status}); is torch installed?",
+            script.display()
+        );
+    }
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.path())?)?;
+    let number = |key: &str| {
+        json[key]
+            .as_f64()
+            .with_context(|| format!("{}: no {key} in its output", script.display()))
+    };
+    Ok(Timing {
+        steps_per_s: number("steps_per_s")?,
+        flops_per_step: number("model_flops_per_step")?,
+    })
+}
+
+/// `motionscale bench tokenizer`.
+pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
+    println!(
+        "tokenizer training step, width 512, 64 × 263 windows, {} threads, fp32 peak {:.0} GFLOP/s",
+        rayon::current_num_threads(),
+        args.peak_gflops
+    );
+    for quantizer in &args.quantizers {
+        for &batch in &args.batches {
+            let ours = time_ours(quantizer, batch, &args)?;
+            let gflops = ours.flops_per_step * ours.steps_per_s / 1e9;
+            let mut line = format!(
+                "{quantizer} batch {batch:>3}: {:.3} steps/s, {:.0} frames/s, {:.0} GFLOP/s ({:.0}% of peak)",
+                ours.steps_per_s,
+                ours.steps_per_s * (batch * 64) as f64,
+                gflops,
+                100.0 * gflops / args.peak_gflops
+            );
+            if args.reference {
+                let theirs = time_reference(quantizer, batch, &args)?;
+                if (theirs.flops_per_step / ours.flops_per_step - 1.0).abs() > 1e-6 {
+                    bail!(
+                        "FLOP counts differ: ours {} vs PyTorch {} per step",
+                        ours.flops_per_step,
+                        theirs.flops_per_step
+                    );
+                }
+                line.push_str(&format!(
+                    "; PyTorch {:.3} steps/s → ratio {:.2}×",
+                    theirs.steps_per_s,
+                    ours.steps_per_s / theirs.steps_per_s
+                ));
+            }
+            println!("{line}");
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}

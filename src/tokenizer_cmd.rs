@@ -1,0 +1,478 @@
+//! `motionscale tokenizer train|eval|sweep|decode` and `motionscale tokenize`: motion
+//! tokenizers (FSQ / VQ VAEs) trained on a corpus, their metrics, and token sets.
+
+use crate::commands::progress_bar;
+use anyhow::{bail, Context, Result};
+use candle_core::Device;
+use ingest::corpus::Corpus;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use tokenizer::evaluate::{evaluate, mpjpe, tokenize_corpus, EvalReport};
+use tokenizer::model::{MotionTokenizer, TokenizerConfig};
+use tokenizer::train::{train, StepReport, TrainConfig};
+use tokenizer::{Bound, ConvConfig, TokenSet, TokenizerInfo};
+
+/// Architecture and optimisation flags shared by `train` and `sweep`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct TrainFlags {
+    /// Channels of the encoder/decoder convolutions (T2M-GPT: 512).
+    #[arg(long, default_value_t = 512)]
+    pub width: usize,
+    /// Channels of the latent (default: the width).
+    #[arg(long)]
+    pub code_dim: Option<usize>,
+    /// Residual units per dilated stack.
+    #[arg(long, default_value_t = 3)]
+    pub depth: usize,
+    /// FSQ bound: tanh (Mentzer et al.) or sigmoid (ScaMo).
+    #[arg(long, default_value = "tanh", value_parser = ["tanh", "sigmoid"])]
+    pub bound: String,
+    /// Windows per batch.
+    #[arg(long, default_value_t = 256)]
+    pub batch: usize,
+    /// Optimiser steps.
+    #[arg(long, default_value_t = 20_000)]
+    pub steps: u64,
+    /// Frames per training window.
+    #[arg(long, default_value_t = 64)]
+    pub window: usize,
+    /// Peak learning rate.
+    #[arg(long, default_value_t = 2e-4)]
+    pub lr: f64,
+    /// Warm-up steps (default: 5% of the steps).
+    #[arg(long)]
+    pub warmup: Option<u64>,
+    /// Clip the global gradient norm to this value.
+    #[arg(long)]
+    pub grad_clip: Option<f64>,
+    /// Validate every N steps (default: 20 times per run).
+    #[arg(long)]
+    pub eval_every: Option<u64>,
+    /// Checkpoint every N steps (default: as often as validation).
+    #[arg(long)]
+    pub checkpoint_every: Option<u64>,
+    /// Seed of initialisation and batch draws.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+impl TrainFlags {
+    fn conv(&self) -> ConvConfig {
+        ConvConfig {
+            width: self.width,
+            code_dim: self.code_dim.unwrap_or(self.width),
+            depth: self.depth,
+            ..ConvConfig::default()
+        }
+    }
+
+    fn bound(&self) -> Bound {
+        if self.bound == "sigmoid" {
+            Bound::Sigmoid
+        } else {
+            Bound::Tanh
+        }
+    }
+
+    fn train_config(&self) -> TrainConfig {
+        let eval_every = self.eval_every.unwrap_or((self.steps / 20).max(1));
+        TrainConfig {
+            steps: self.steps,
+            batch: self.batch,
+            window: self.window,
+            lr: self.lr,
+            warmup: self.warmup.unwrap_or(self.steps / 20),
+            grad_clip: self.grad_clip,
+            eval_every,
+            checkpoint_every: self.checkpoint_every.unwrap_or(eval_every),
+            seed: self.seed,
+            ..TrainConfig::default()
+        }
+    }
+}
+
+/// Arguments of `motionscale tokenizer train`.
+#[derive(clap::Args, Debug)]
+pub struct TrainArgs {
+    /// Corpus folder.
+    #[arg(long)]
+    pub corpus: PathBuf,
+    /// fsq or vq.
+    #[arg(long, value_parser = ["fsq", "vq"])]
+    pub quantizer: String,
+    /// Codebook size (FSQ: 256, 1024, 4096, 16384 or 65536, named by Mentzer et al.'s level sets).
+    #[arg(long, default_value_t = 1024)]
+    pub codebook: usize,
+    /// Training settings.
+    #[command(flatten)]
+    pub flags: TrainFlags,
+    /// Output folder: the checkpoint; re-running the same command resumes it.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+fn step_bar(label: &str, steps: u64) -> impl FnMut(StepReport) {
+    let label = label.to_string();
+    let bar = progress_bar(&label, "steps");
+    bar.set_length(steps);
+    move |r: StepReport| {
+        bar.set_position(r.step);
+        let mut message = format!("loss {:.4}", r.loss);
+        if r.reset > 0 {
+            message.push_str(&format!(" reset {}", r.reset));
+        }
+        bar.set_message(message);
+        if let Some(val) = r.val {
+            let line = format!(
+                "{label} step {}/{}: train loss {:.4}, val recon {:.4} vel {:.4} L1 {:.4}",
+                r.step, r.steps, r.loss, val.recon, val.velocity, val.l1
+            );
+            if bar.is_hidden() {
+                eprintln!("{line}");
+            } else {
+                bar.println(line);
+            }
+        }
+        if r.step == r.steps {
+            bar.finish_and_clear();
+        }
+    }
+}
+
+/// `motionscale tokenizer train`.
+pub fn train_cmd(args: TrainArgs) -> Result<ExitCode> {
+    let config = TokenizerConfig::new(
+        &args.quantizer,
+        args.codebook,
+        args.flags.bound(),
+        args.flags.conv(),
+    )?;
+    let train_config = args.flags.train_config();
+    let started = std::time::Instant::now();
+    let label = format!("{} {}", args.quantizer, args.codebook);
+    let state = train(
+        &args.corpus,
+        &args.out,
+        config,
+        train_config,
+        &Device::Cpu,
+        step_bar(&label, args.flags.steps),
+    )?;
+    println!(
+        "trained {label} for {} steps in {:.1} s ({:.1} s in all runs): final train loss {:.4}{} → {}",
+        state.step,
+        started.elapsed().as_secs_f64(),
+        state.wall_s,
+        state.train_loss.unwrap_or(f64::NAN),
+        state
+            .val
+            .map(|v| format!(", val L1 {:.4}", v.l1))
+            .unwrap_or_default(),
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale tokenizer eval`.
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    /// Tokenizer checkpoint folder.
+    #[arg(long)]
+    pub tokenizer: PathBuf,
+    /// Corpus folder.
+    #[arg(long)]
+    pub corpus: PathBuf,
+    /// Split to evaluate.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Also write the JSON report here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+fn open_corpus(dir: &Path) -> Result<Corpus> {
+    Corpus::open(dir).map_err(anyhow::Error::msg)
+}
+
+fn eval_report(tokenizer_dir: &Path, corpus: &Corpus, split: &str) -> Result<EvalReport> {
+    let tokenizer = MotionTokenizer::load(tokenizer_dir, &Device::Cpu)?;
+    let bar = progress_bar(&format!("eval {split}"), "clips");
+    let report = evaluate(
+        &tokenizer,
+        tokenizer_dir.to_path_buf(),
+        corpus,
+        split,
+        |done, total| {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
+        },
+    )?;
+    bar.finish_and_clear();
+    Ok(report)
+}
+
+/// `motionscale tokenizer eval`: metrics as JSON on stdout.
+pub fn eval_cmd(args: EvalArgs) -> Result<ExitCode> {
+    let corpus = open_corpus(&args.corpus)?;
+    let report = eval_report(&args.tokenizer, &corpus, &args.split)?;
+    let json = serde_json::to_string_pretty(&report)?;
+    if let Some(out) = &args.out {
+        ingest::npy::write_atomic(out, json.as_bytes())
+            .with_context(|| format!("writing {}", out.display()))?;
+    }
+    println!("{json}");
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale tokenize`.
+#[derive(clap::Args, Debug)]
+pub struct TokenizeArgs {
+    /// Tokenizer checkpoint folder.
+    #[arg(long)]
+    pub tokenizer: PathBuf,
+    /// Corpus folder.
+    #[arg(long)]
+    pub corpus: PathBuf,
+    /// Output token-set folder (tokens.parquet, unigram.json, manifest.json).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// `motionscale tokenize`: every clip of a corpus → token ids.
+pub fn tokenize_cmd(args: TokenizeArgs) -> Result<ExitCode> {
+    let corpus = open_corpus(&args.corpus)?;
+    let tokenizer = MotionTokenizer::load(&args.tokenizer, &Device::Cpu)?;
+    let bar = progress_bar("tokenize", "clips");
+    let clips = tokenize_corpus(&tokenizer, &corpus, &[], |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    let config = tokenizer.config();
+    let info = TokenizerInfo {
+        dir: args.tokenizer.clone(),
+        id: MotionTokenizer::content_id(&args.tokenizer)?,
+        quantizer: config.quantizer_name().into(),
+        codebook_size: config.codebook_size(),
+        nominal_codebook: config.nominal_codebook,
+        downsample: tokenizer.downsample(),
+    };
+    let manifest = TokenSet::write(&args.out, info, &args.corpus, clips)?;
+    for (split, count) in &manifest.splits {
+        println!("{split}: {} clips, {} tokens", count.clips, count.tokens);
+    }
+    println!("wrote {}", args.out.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale tokenizer decode`.
+#[derive(clap::Args, Debug)]
+pub struct DecodeArgs {
+    /// Tokenizer checkpoint folder.
+    #[arg(long)]
+    pub tokenizer: PathBuf,
+    /// Token-set folder (from `motionscale tokenize`).
+    #[arg(long, conflicts_with = "ids")]
+    pub tokens: Option<PathBuf>,
+    /// One clip of the token set (writes OUT as a file).
+    #[arg(long, requires = "tokens", conflicts_with = "split")]
+    pub motion_id: Option<String>,
+    /// Every clip of this split of the token set (writes OUT/<motion_id>.npy).
+    #[arg(long, requires = "tokens")]
+    pub split: Option<String>,
+    /// Token ids given directly, comma-separated.
+    #[arg(long, value_delimiter = ',')]
+    pub ids: Option<Vec<u32>>,
+    /// Compare with this corpus's clips: prints the round-trip MPJPE.
+    #[arg(long)]
+    pub corpus: Option<PathBuf>,
+    /// Output: .npy (n × 263 features, or n × 22 × 3 joints with --joints) or .bvh; a folder with --split.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Write joint positions instead of features to .npy files.
+    #[arg(long)]
+    pub joints: bool,
+}
+
+/// Write decoded features to `out` as features/joints `.npy` or BVH (by extension).
+pub fn write_motion(out: &Path, features: &[f32], joints: bool) -> Result<()> {
+    let frames = features.len() / ingest::hml263::FEATURE_DIM;
+    match out.extension().and_then(|e| e.to_str()) {
+        Some("bvh") => {
+            let poses = ingest::hml263::recover_joints(features);
+            ingest::export::bvh::write_bvh_file(out, &poses, 20.0)
+        }
+        Some("npy") if joints => {
+            let poses = ingest::hml263::recover_joints(features);
+            let flat: Vec<f32> = poses
+                .iter()
+                .flatten()
+                .flatten()
+                .map(|&v| v as f32)
+                .collect();
+            ingest::npy::write_f32(out, &[frames, 22, 3], &flat)
+        }
+        Some("npy") => ingest::npy::write_f32(out, &[frames, 263], features),
+        _ => bail!("{}: the output must end in .npy or .bvh", out.display()),
+    }
+    .with_context(|| format!("writing {}", out.display()))
+}
+
+/// `motionscale tokenizer decode`: token ids → features, joints or BVH.
+pub fn decode_cmd(args: DecodeArgs) -> Result<ExitCode> {
+    let tokenizer = MotionTokenizer::load(&args.tokenizer, &Device::Cpu)?;
+    let corpus = args.corpus.as_deref().map(open_corpus).transpose()?;
+    let clips: Vec<(String, Vec<u32>)> = match (&args.tokens, &args.ids) {
+        (Some(dir), None) => {
+            let set = TokenSet::open(dir)?;
+            let wanted = |c: &&tokenizer::TokenClip| match (&args.motion_id, &args.split) {
+                (Some(id), _) => &c.motion_id == id,
+                (None, Some(split)) => &c.split == split,
+                (None, None) => false,
+            };
+            let picked: Vec<_> = set
+                .clips
+                .iter()
+                .filter(wanted)
+                .map(|c| (c.motion_id.clone(), c.tokens.clone()))
+                .collect();
+            if picked.is_empty() {
+                bail!("{}: no clip matches --motion-id/--split", dir.display());
+            }
+            picked
+        }
+        (None, Some(ids)) => vec![("tokens".into(), ids.clone())],
+        _ => bail!("give --tokens DIR with --motion-id or --split, or --ids"),
+    };
+    let many = args.split.is_some();
+    if many {
+        std::fs::create_dir_all(&args.out)
+            .with_context(|| format!("creating {}", args.out.display()))?;
+    }
+    let (mut error_sum, mut frames) = (0f64, 0usize);
+    for (id, tokens) in &clips {
+        let features = tokenizer.detokenize(tokens)?;
+        let out = if many {
+            args.out.join(format!("{id}.npy"))
+        } else {
+            args.out.clone()
+        };
+        write_motion(&out, &features, args.joints)?;
+        if let Some(corpus) = &corpus {
+            let index = corpus
+                .find(id)
+                .with_context(|| format!("{id} is not in the corpus"))?;
+            let original = corpus.features(index).map_err(anyhow::Error::msg)?;
+            let (error, n) = mpjpe(&original[..features.len()], &features);
+            error_sum += error * n as f64;
+            frames += n;
+        }
+    }
+    println!("decoded {} clip(s) → {}", clips.len(), args.out.display());
+    if frames > 0 {
+        println!(
+            "round-trip MPJPE {:.3} mm over {frames} frames",
+            error_sum / frames as f64 * 1000.0
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale tokenizer sweep`.
+#[derive(clap::Args, Debug)]
+pub struct SweepArgs {
+    /// Corpus folder.
+    #[arg(long)]
+    pub corpus: PathBuf,
+    /// Quantizers, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "fsq,vq")]
+    pub quantizers: Vec<String>,
+    /// Nominal codebook sizes, comma-separated.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "256,1024,4096,16384,65536"
+    )]
+    pub codebooks: Vec<usize>,
+    /// Split the metrics are computed on.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Training settings shared by every run.
+    #[command(flatten)]
+    pub flags: TrainFlags,
+    /// Output folder (one sub-folder per run, sweep.csv, sweep.parquet); re-running resumes.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// `motionscale tokenizer sweep`: train and evaluate every (quantizer, codebook) pair.
+pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
+    use tokenizer::sweep::{sweep, SweepEvent, SweepPlan};
+    if let Some(q) = args
+        .quantizers
+        .iter()
+        .find(|q| !["fsq", "vq"].contains(&q.as_str()))
+    {
+        bail!("unknown quantizer {q:?} (fsq or vq)");
+    }
+    let plan = SweepPlan {
+        quantizers: args.quantizers.clone(),
+        codebooks: args.codebooks.clone(),
+        conv: args.flags.conv(),
+        bound: args.flags.bound(),
+        train: args.flags.train_config(),
+        split: args.split.clone(),
+    };
+    let started = std::time::Instant::now();
+    let bar = progress_bar("sweep", "steps");
+    let rows = sweep(
+        &args.corpus,
+        &args.out,
+        &plan,
+        &Device::Cpu,
+        |event| match event {
+            SweepEvent::Step(name, r) => {
+                bar.set_length(r.steps);
+                bar.set_position(r.step);
+                bar.set_message(format!("{name} loss {:.4}", r.loss));
+            }
+            SweepEvent::Eval(name, done, total) => {
+                bar.set_length(total as u64);
+                bar.set_position(done as u64);
+                bar.set_message(format!("{name} eval"));
+            }
+            SweepEvent::Done(name, row) => eprintln!(
+                "{name}: utilization {:.1}%, perplexity {:.1}, recon L1 {:.4}, MPJPE {:.1} mm",
+                100.0 * row.utilization,
+                row.perplexity,
+                row.recon_l1,
+                row.mpjpe_mm
+            ),
+        },
+    )?;
+    bar.finish_and_clear();
+    println!(
+        "{:<6} {:>8} {:>8} {:>8} {:>10} {:>8} {:>9} {:>9}",
+        "quant", "codebook", "codes", "util%", "perplexity", "entropy", "recon_l1", "mpjpe_mm"
+    );
+    for r in &rows {
+        println!(
+            "{:<6} {:>8} {:>8} {:>8.1} {:>10.1} {:>8.3} {:>9.4} {:>9.1}",
+            r.quantizer,
+            r.codebook,
+            r.codebook_size,
+            100.0 * r.utilization,
+            r.perplexity,
+            r.entropy,
+            r.recon_l1,
+            r.mpjpe_mm
+        );
+    }
+    println!(
+        "{} runs in {:.1} s → {}",
+        rows.len(),
+        started.elapsed().as_secs_f64(),
+        args.out.join("sweep.csv").display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
