@@ -57,8 +57,36 @@ pub struct BenchTrainArgs {
     pub json: Option<PathBuf>,
 }
 
+/// CPU jiffies so far: (idle of all cores, total of all cores, this process).
+fn cpu_snapshot() -> Option<(u64, u64, u64)> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    let all: Vec<u64> = stat
+        .lines()
+        .next()?
+        .split_whitespace()
+        .skip(1)
+        .filter_map(|v| v.parse().ok())
+        .collect();
+    let own = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name: state is field 3, utime 14, stime 15.
+    let fields: Vec<&str> = own.rsplit_once(')')?.1.split_whitespace().collect();
+    let utime: u64 = fields.get(11)?.parse().ok()?;
+    let stime: u64 = fields.get(12)?.parse().ok()?;
+    Some((all.get(3)? + all.get(4)?, all.iter().sum(), utime + stime))
+}
+
+/// Share of all cores' time between two snapshots that other processes used (0: a quiet
+/// machine; 0.5 on 2 cores: one whole core was busy elsewhere), as `pytorch_prefix_lm.py`'s
+/// `foreign_cpu_fraction`.
+fn foreign_load(a: Option<(u64, u64, u64)>, b: Option<(u64, u64, u64)>) -> Option<f64> {
+    let ((idle0, total0, own0), (idle1, total1, own1)) = (a?, b?);
+    let total = total1.checked_sub(total0).filter(|&t| t > 0)? as f64;
+    let busy = total - (idle1 - idle0) as f64;
+    Some(((busy - (own1 - own0) as f64) / total).max(0.0))
+}
+
 /// Median, min and max of `f`'s wall time after `warmup` calls, over at least `reps` calls
-/// and `min_time` seconds.
+/// and `min_time` seconds, with the foreign CPU load meanwhile.
 fn time<F: FnMut() -> Result<()>>(
     warmup: usize,
     reps: usize,
@@ -68,6 +96,7 @@ fn time<F: FnMut() -> Result<()>>(
     for _ in 0..warmup {
         f()?;
     }
+    let before = cpu_snapshot();
     let mut samples = Vec::new();
     let mut total = 0.0;
     while samples.len() < reps || total < min_time {
@@ -79,10 +108,12 @@ fn time<F: FnMut() -> Result<()>>(
             break;
         }
     }
+    let foreign = foreign_load(before, cpu_snapshot());
     samples.sort_by(f64::total_cmp);
     Ok(
         json!({"median_s": samples[samples.len() / 2], "min_s": samples[0],
-              "max_s": samples[samples.len() - 1], "n": samples.len()}),
+              "max_s": samples[samples.len() - 1], "n": samples.len(),
+              "foreign_cpu_fraction": foreign}),
     )
 }
 
@@ -265,7 +296,7 @@ pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
         let mut ours = bench_train_step(&args, d, layers)?;
         let phases = &ours["phase_median_s"];
         println!(
-            "train d{d}/{layers}L B{}: {:.0} motion tok/s, {:.1} GFLOP/s exact, MFU {:.1}% ({:.0} ms/step: fwd {:.0} bwd {:.0} opt {:.0})",
+            "train d{d}/{layers}L B{}: {:.0} motion tok/s, {:.1} GFLOP/s exact, MFU {:.1}% ({:.0} ms/step: fwd {:.0} bwd {:.0} opt {:.0}; foreign load {:.2})",
             args.batch,
             ours["motion_tokens_per_s"].as_f64().unwrap_or(0.0),
             ours["achieved_gflops_exact"].as_f64().unwrap_or(0.0),
@@ -274,6 +305,9 @@ pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
             1e3 * phases["fwd"].as_f64().unwrap_or(0.0),
             1e3 * phases["bwd"].as_f64().unwrap_or(0.0),
             1e3 * phases["opt"].as_f64().unwrap_or(0.0),
+            ours["step_time"]["foreign_cpu_fraction"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
         );
         if args.reference {
             let reference = run_reference(&args, "train", d, layers)?;
@@ -284,9 +318,12 @@ pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
             let same_flops =
                 reference["flops_per_step_exact"].as_f64() == ours["flops_per_step_exact"].as_f64();
             println!(
-                "  PyTorch: {:.0} motion tok/s, {:.1} GFLOP/s → ratio {ratio:.2}× (same exact FLOPs per step: {same_flops})",
+                "  PyTorch: {:.0} motion tok/s, {:.1} GFLOP/s → ratio {ratio:.2}× (same exact FLOPs per step: {same_flops}; foreign load {:.2})",
                 reference["motion_tokens_per_s"].as_f64().unwrap_or(0.0),
                 reference["achieved_gflops_exact"].as_f64().unwrap_or(0.0),
+                reference["step_time"]["foreign_cpu_fraction"]
+                    .as_f64()
+                    .unwrap_or(f64::NAN),
             );
             ours["reference"] = json!({"motion_tokens_per_s": reference["motion_tokens_per_s"],
                 "achieved_gflops_exact": reference["achieved_gflops_exact"],
