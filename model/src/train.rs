@@ -296,137 +296,192 @@ pub fn train(
     config: &TrainConfig,
     on_event: &mut dyn FnMut(&TrainEvent),
 ) -> Result<TrainReport, ModelError> {
-    let limits = Limits {
-        text_tokens: config.max_text_tokens,
-        motion_tokens: config.max_motion_tokens,
-    };
-    let corpus = match &config.corpus {
-        Some(c) => c.clone(),
-        None => {
-            tokenizer::TokenSet::open(&config.tokens)
-                .map_err(|e| ModelError::invalid(&config.tokens, e))?
-                .manifest
-                .corpus
-        }
-    };
-    let data = LmData::load(
-        &config.tokens,
-        &corpus,
-        config.text_encoder.as_deref(),
-        limits,
-    )?;
-    let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
-    let (batch, seed) = (config.batch_size, config.seed);
-    let total = data
-        .steps_for_tokens(config.tokens_budget, batch, seed)
-        .ok_or_else(|| ModelError::Argument("no train clips with motion tokens".into()))?;
-    let schedule = LrSchedule {
-        peak: config.lr,
-        warmup: ((total as f64 * config.warmup_fraction).round() as u64).max(1),
-        total,
-        final_ratio: config.final_lr_ratio,
-    };
-    let seq = SequenceShape {
-        prefix: config.max_text_tokens,
-        motion: config.max_motion_tokens + 1,
-    };
-    let run = RunConfig {
-        format: FORMAT.into(),
-        train: config.clone(),
-        model: model_config.clone(),
-        corpus,
-        text_encoder: data.encoder.clone(),
-        tokenizer: data.tokens.tokenizer.clone(),
-        schedule,
-        accounting: Accounting::of(&model_config, seq),
-    };
-    let out = &config.out;
-    std::fs::create_dir_all(out).map_err(|e| ModelError::io(out, e))?;
-    let (model, varmap) = init_model(&model_config, seed).map_err(ModelError::inference)?;
-    let vars = varmap.data().lock().expect("varmap lock").clone();
-    let mut opt = AdamW::new(
-        &vars,
-        AdamWConfig {
-            beta1: config.betas.0,
-            beta2: config.betas.1,
-            eps: 1e-8,
-            weight_decay: config.weight_decay,
-        },
-    );
-    let paths = Paths::new(out);
-    let mut state = resume(&paths, &run, &varmap, &mut opt)?;
-    write_json(&paths.config, &run)?;
-    let params = accounting::param_count(&model_config);
+    let mut run = Run::start(config)?;
+    let total = run.config.schedule.total;
     on_event(&TrainEvent::Started {
-        from: state.step,
+        from: run.state.step,
         total,
-        run: Box::new(run),
+        run: Box::new(run.config.clone()),
     });
     let end = config.stop_after.map_or(total, |s| total.min(s));
     let every = |n: Option<u64>| n.unwrap_or(total.div_ceil(10)).max(1);
     let (mut loss_sum, mut loss_steps) = (0f64, 0u64);
     let mut last_eval = None;
-    while state.step < end {
-        let started = Instant::now();
-        let items = data.train_items(state.step, batch, seed);
-        let b = data.batch(&model_config, &items, &Device::Cpu)?;
-        let loss = model.loss(&b).map_err(ModelError::inference)?;
-        let grads = loss.backward().map_err(ModelError::inference)?;
-        let lr = schedule.at(state.step);
-        opt.step(&grads, lr, Some(config.grad_clip))
-            .map_err(ModelError::inference)?;
-        let loss = loss.to_scalar::<f32>().map_err(ModelError::inference)?;
-        let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
-        let shape = SequenceShape {
-            prefix: b.layout.prefix_slots,
-            motion: b.layout.motion_slots,
-        };
-        state.step += 1;
-        state.tokens_seen += tokens;
-        state.data_position += batch as u64;
-        state.flops_exact += batch as f64 * accounting::train_flops_exact(&model_config, shape);
-        (loss_sum, loss_steps) = (loss_sum + f64::from(loss), loss_steps + 1);
-        on_event(&TrainEvent::Step {
-            step: state.step,
-            loss,
-            lr,
-            tokens_seen: state.tokens_seen,
-            tokens_per_s: tokens as f64 / started.elapsed().as_secs_f64(),
-        });
-        let done = state.step == end;
-        if state.step % every(config.eval_every) == 0 || done {
-            let test = evaluate(&model, &data, "test", batch)?;
-            let record = EvalRecord {
-                step: state.step,
-                tokens_seen: state.tokens_seen,
-                train_loss: loss_sum / loss_steps.max(1) as f64,
-                test,
-                flops_6n: accounting::budget(&model_config, state.tokens_seen as f64),
-                flops_exact: state.flops_exact,
-                n_nv: params.n_nv,
-                n_v: params.n_v,
-                tied: params.tied,
-            };
+    while run.state.step < end {
+        let event = run.step()?;
+        if let TrainEvent::Step { loss, .. } = event {
+            (loss_sum, loss_steps) = (loss_sum + f64::from(loss), loss_steps + 1);
+        }
+        on_event(&event);
+        let (step, done) = (run.state.step, run.state.step == end);
+        if step % every(config.eval_every) == 0 || done {
+            let record = run.evaluate(loss_sum / loss_steps.max(1) as f64)?;
             (loss_sum, loss_steps) = (0.0, 0);
-            write_json(&paths.eval, &record)?;
-            append_eval(&paths.evals, &record)?;
             on_event(&TrainEvent::Eval(Box::new(record.clone())));
             last_eval = Some(record);
         }
-        if state.step % every(config.checkpoint_every) == 0 || done {
-            checkpoint(&paths, &vars, &opt, &mut state)?;
+        if step % every(config.checkpoint_every) == 0 || done {
+            run.checkpoint()?;
         }
     }
     let eval = match last_eval {
         Some(e) => e,
-        None => read_json(&paths.eval)?,
+        None => read_json(&run.paths.eval)?,
     };
     Ok(TrainReport {
-        steps: state.step,
+        steps: run.state.step,
         total_steps: total,
         eval,
-        out: out.clone(),
+        out: config.out.clone(),
     })
+}
+
+/// A run in progress: data, model, optimiser and where it stands.
+struct Run {
+    config: RunConfig,
+    data: LmData,
+    model: PrefixLm,
+    vars: HashMap<String, candle_core::Var>,
+    opt: AdamW,
+    state: TrainState,
+    paths: Paths,
+}
+
+impl Run {
+    /// Load the data, resolve the run, build the model and optimiser, and restore the
+    /// checkpoint in the output folder if there is one.
+    fn start(config: &TrainConfig) -> Result<Self, ModelError> {
+        let corpus = match &config.corpus {
+            Some(c) => c.clone(),
+            None => {
+                tokenizer::TokenSet::open(&config.tokens)
+                    .map_err(|e| ModelError::invalid(&config.tokens, e))?
+                    .manifest
+                    .corpus
+            }
+        };
+        let limits = Limits {
+            text_tokens: config.max_text_tokens,
+            motion_tokens: config.max_motion_tokens,
+        };
+        let encoder = config.text_encoder.as_deref();
+        let data = LmData::load(&config.tokens, &corpus, encoder, limits)?;
+        let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
+        let total = data
+            .steps_for_tokens(config.tokens_budget, config.batch_size, config.seed)
+            .ok_or_else(|| ModelError::Argument("no train clips with motion tokens".into()))?;
+        let seq = SequenceShape {
+            prefix: config.max_text_tokens,
+            motion: config.max_motion_tokens + 1,
+        };
+        let run = RunConfig {
+            format: FORMAT.into(),
+            train: config.clone(),
+            accounting: Accounting::of(&model_config, seq),
+            model: model_config,
+            corpus,
+            text_encoder: data.encoder.clone(),
+            tokenizer: data.tokens.tokenizer.clone(),
+            schedule: LrSchedule {
+                peak: config.lr,
+                warmup: ((total as f64 * config.warmup_fraction).round() as u64).max(1),
+                total,
+                final_ratio: config.final_lr_ratio,
+            },
+        };
+        std::fs::create_dir_all(&config.out).map_err(|e| ModelError::io(&config.out, e))?;
+        let (model, varmap) = init_model(&run.model, config.seed).map_err(ModelError::inference)?;
+        let vars = varmap.data().lock().expect("varmap lock").clone();
+        let (beta1, beta2) = config.betas;
+        let adamw = AdamWConfig {
+            beta1,
+            beta2,
+            eps: 1e-8,
+            weight_decay: config.weight_decay,
+        };
+        let mut opt = AdamW::new(&vars, adamw);
+        let paths = Paths::new(&config.out);
+        let state = resume(&paths, &run, &varmap, &mut opt)?;
+        write_json(&paths.config, &run)?;
+        Ok(Self {
+            config: run,
+            data,
+            model,
+            vars,
+            opt,
+            state,
+            paths,
+        })
+    }
+
+    /// One optimiser step on the next batch.
+    fn step(&mut self) -> Result<TrainEvent, ModelError> {
+        let (c, started) = (&self.config.train, Instant::now());
+        let items = self.data.train_items(self.state.step, c.batch_size, c.seed);
+        let batch = self.data.batch(&self.config.model, &items, &Device::Cpu)?;
+        let loss = self.model.loss(&batch).map_err(ModelError::inference)?;
+        let grads = loss.backward().map_err(ModelError::inference)?;
+        let lr = self.config.schedule.at(self.state.step);
+        self.opt
+            .step(&grads, lr, Some(c.grad_clip))
+            .map_err(ModelError::inference)?;
+        let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
+        let shape = SequenceShape {
+            prefix: batch.layout.prefix_slots,
+            motion: batch.layout.motion_slots,
+        };
+        let s = &mut self.state;
+        s.step += 1;
+        s.tokens_seen += tokens;
+        s.data_position += c.batch_size as u64;
+        s.flops_exact +=
+            c.batch_size as f64 * accounting::train_flops_exact(&self.config.model, shape);
+        Ok(TrainEvent::Step {
+            step: s.step,
+            loss: loss.to_scalar::<f32>().map_err(ModelError::inference)?,
+            lr,
+            tokens_seen: s.tokens_seen,
+            tokens_per_s: tokens as f64 / started.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Evaluate the test split and record it in `eval.json` and `evals.jsonl`.
+    fn evaluate(&self, train_loss: f64) -> Result<EvalRecord, ModelError> {
+        let test = evaluate(
+            &self.model,
+            &self.data,
+            "test",
+            self.config.train.batch_size,
+        )?;
+        let params = self.config.accounting.params;
+        let record = EvalRecord {
+            step: self.state.step,
+            tokens_seen: self.state.tokens_seen,
+            train_loss,
+            test,
+            flops_6n: accounting::budget(&self.config.model, self.state.tokens_seen as f64),
+            flops_exact: self.state.flops_exact,
+            n_nv: params.n_nv,
+            n_v: params.n_v,
+            tied: params.tied,
+        };
+        write_json(&self.paths.eval, &record)?;
+        append_eval(&self.paths.evals, &record)?;
+        Ok(record)
+    }
+
+    /// Write weights and optimiser state atomically, then `state.json` naming their hashes.
+    fn checkpoint(&mut self) -> Result<(), ModelError> {
+        let paths = &self.paths;
+        tokenizer::checkpoint::save_safetensors(&tensors(&self.vars), &paths.model)
+            .map_err(|e| ModelError::invalid(&paths.model, e))?;
+        self.opt
+            .save(&paths.optimizer)
+            .map_err(|e| ModelError::invalid(&paths.optimizer, e))?;
+        self.state.model_sha256 = file_sha256(&paths.model)?;
+        self.state.optimizer_sha256 = file_sha256(&paths.optimizer)?;
+        write_json(&paths.state, &self.state)
+    }
 }
 
 /// The files of a run folder.
@@ -519,20 +574,4 @@ fn append_eval(path: &Path, record: &EvalRecord) -> Result<(), ModelError> {
         .open(path)
         .map_err(|e| ModelError::io(path, e))?;
     writeln!(file, "{line}").map_err(|e| ModelError::io(path, e))
-}
-
-/// Write weights and optimiser state atomically, then `state.json` naming their hashes.
-fn checkpoint(
-    paths: &Paths,
-    vars: &HashMap<String, candle_core::Var>,
-    opt: &AdamW,
-    state: &mut TrainState,
-) -> Result<(), ModelError> {
-    tokenizer::checkpoint::save_safetensors(&tensors(vars), &paths.model)
-        .map_err(|e| ModelError::invalid(&paths.model, e))?;
-    opt.save(&paths.optimizer)
-        .map_err(|e| ModelError::invalid(&paths.optimizer, e))?;
-    state.model_sha256 = file_sha256(&paths.model)?;
-    state.optimizer_sha256 = file_sha256(&paths.optimizer)?;
-    write_json(&paths.state, state)
 }
