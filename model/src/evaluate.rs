@@ -71,9 +71,12 @@ pub fn evaluate(
     let (mut code_lp, mut code_targets, mut all_nll, mut all) =
         (Vec::new(), Vec::new(), 0f64, 0u64);
     for chunk in items.chunks(batch.max(1)) {
-        let b = data.batch(model.config(), chunk, &candle_core::Device::Cpu)?;
-        let logits = model.forward(&b).map_err(ModelError::inference)?;
-        let lp = target_log_probs(&logits, &b.targets).map_err(ModelError::inference)?;
+        let b = data.batch(model.config(), chunk);
+        let logits = model
+            .forward(&b)
+            .and_then(|l| l.flatten_all()?.to_vec1::<f32>())
+            .map_err(ModelError::inference)?;
+        let lp = target_log_probs(&logits, model.config().vocab_size(), &b.targets);
         for (&t, &l) in b.targets.iter().zip(&lp) {
             if t == IGNORE {
                 continue;

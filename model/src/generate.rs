@@ -104,7 +104,6 @@ pub fn generate(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<
     for (b, t) in texts.iter().enumerate() {
         text[b * p * c.text_dim..][..t.len()].copy_from_slice(t);
     }
-    let text = Tensor::from_vec(text, (batch * p, c.text_dim), &Device::Cpu)?;
     let mut cache = s.kv_cache.then(|| model.new_cache(&layout));
     let mut inputs = vec![c.bos(); batch];
     for t in 0..s.max_tokens {
@@ -115,14 +114,13 @@ pub fn generate(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<
                 } else {
                     (p + t, p + t + 1)
                 };
-                let tokens = Tensor::new(inputs.as_slice(), &Device::Cpu)?;
-                model.forward_cached(cache, &layout, Some(&text), &tokens, slots)?
+                model.forward_cached(cache, &layout, &text, &inputs, slots)?
             }
             None => {
                 // `true`: a slot after the last token, whose logits predict the next one.
                 let motions: Vec<(&[u32], bool)> =
                     out.iter().map(|o| (o.as_slice(), true)).collect();
-                let full = LmBatch::new(c, texts, &motions, &Device::Cpu)?;
+                let full = LmBatch::new(c, texts, &motions);
                 let m = full.layout.motion_slots;
                 let rows: Vec<u32> = (0..batch).map(|b| (b * m + out[b].len()) as u32).collect();
                 let full = model.forward(&full)?;

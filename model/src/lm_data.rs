@@ -10,7 +10,6 @@
 use crate::embed::{clip_captions, CaptionEmbeddings};
 use crate::prefix_lm::{LmBatch, PrefixLmConfig};
 use crate::ModelError;
-use candle_core::Device;
 use ingest::corpus::manifest::Manifest;
 use ingest::rng::SplitMix64;
 use std::collections::{BTreeMap, HashMap};
@@ -231,12 +230,7 @@ impl LmData {
     }
 
     /// A model batch of `items`.
-    pub fn batch(
-        &self,
-        config: &PrefixLmConfig,
-        items: &[(&Example, Option<usize>)],
-        device: &Device,
-    ) -> Result<LmBatch, ModelError> {
+    pub fn batch(&self, config: &PrefixLmConfig, items: &[(&Example, Option<usize>)]) -> LmBatch {
         let texts: Vec<&[f32]> = items
             .iter()
             .map(|(_, c)| c.map_or(&[][..], |c| self.text[c].as_slice()))
@@ -245,7 +239,7 @@ impl LmData {
             .iter()
             .map(|(e, _)| (e.tokens.as_slice(), e.ends))
             .collect();
-        LmBatch::new(config, &texts, &motions, device).map_err(ModelError::inference)
+        LmBatch::new(config, &texts, &motions)
     }
 
     /// Evaluation items of `split`: every clip in order with its first caption.

@@ -18,14 +18,19 @@
 //! ```
 //!
 //! Vocabulary: the motion codes `0..K`, then BOS = K, EOS = K + 1, PAD = K + 2 (V = K + 3).
+//!
+//! Weights live in candle tensors (built from a `VarBuilder`, optimised as `Var`s); the
+//! forward and backward passes run on the CPU kernels of [`crate::fused`] directly
+//! ([`PrefixLm::loss_and_grads`] returns a `GradStore` as `loss.backward()` would), which is
+//! checked against candle's autograd of the same model written with composite ops.
 
 use crate::fused::{self, LayerCache, Rope};
 use crate::ModelError;
-use candle_core::{DType, Device, Result, Tensor, Var};
+use candle_core::backprop::GradStore;
+use candle_core::{CpuStorage, DType, Device, Layout, Result, Storage, Tensor, Var};
 use candle_nn::{Init, VarBuilder, VarMap};
 use ingest::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
-use std::sync::Arc;
 
 /// Special tokens appended to the motion codebook: BOS, EOS, PAD.
 pub const SPECIAL_TOKENS: usize = 3;
@@ -290,13 +295,13 @@ impl SeqLayout {
 #[derive(Debug, Clone)]
 pub struct LmBatch {
     /// The layout.
-    pub layout: Arc<SeqLayout>,
-    /// Text embeddings, `batch · prefix_slots × E` (padding rows zero).
-    pub text: Tensor,
-    /// Motion inputs `[BOS, m0, …]`, `batch · motion_slots` u32 (PAD after the end).
-    pub inputs: Tensor,
+    pub layout: SeqLayout,
+    /// Text embeddings, `batch · prefix_slots × E` row-major (padding rows zero).
+    pub text: Vec<f32>,
+    /// Motion inputs `[BOS, m0, …]`, `batch · motion_slots` (PAD after the end).
+    pub inputs: Vec<u32>,
     /// Next-token targets `[m0, …, EOS]`, [`fused::IGNORE`] on padding.
-    pub targets: Arc<Vec<u32>>,
+    pub targets: Vec<u32>,
 }
 
 impl LmBatch {
@@ -304,12 +309,7 @@ impl LmBatch {
     /// tokens with whether the clip ends there. A sequence of n tokens has a target per
     /// token, plus EOS when it ends: inputs `[BOS, m0, …]`, targets `[m0, …, m(n−1) (, EOS)]`,
     /// n (+1) slots; all sequences are padded to the longest.
-    pub fn new(
-        config: &PrefixLmConfig,
-        texts: &[&[f32]],
-        motions: &[(&[u32], bool)],
-        device: &Device,
-    ) -> Result<Self> {
+    pub fn new(config: &PrefixLmConfig, texts: &[&[f32]], motions: &[(&[u32], bool)]) -> Self {
         let e = config.text_dim;
         let prefix_lens: Vec<usize> = texts.iter().map(|t| t.len() / e).collect();
         let slots = |(m, ends): &(&[u32], bool)| (m.len() + usize::from(*ends)).max(1);
@@ -333,13 +333,12 @@ impl LmBatch {
                 tgt[tokens.len()] = config.eos();
             }
         }
-        let rows = layout.batch * layout.prefix_slots;
-        Ok(Self {
-            text: Tensor::from_vec(text, (rows, e), device)?,
-            inputs: Tensor::from_vec(inputs, layout.batch * motion_slots, device)?,
-            targets: Arc::new(targets),
-            layout: Arc::new(layout),
-        })
+        Self {
+            layout,
+            text,
+            inputs,
+            targets,
+        }
     }
 }
 
@@ -347,90 +346,150 @@ fn matrix(vb: &VarBuilder, rows: usize, cols: usize, name: &str) -> Result<Tenso
     vb.get_with_hints((rows, cols), name, Init::Const(0.0))
 }
 
-/// The learned scale of an RMSNorm, applied fused with the projection after it.
+/// One pre-norm block: `h += Wo·attn(Wqkv·RMSNorm(h; n1)); h += W2·swiglu(W13·RMSNorm(h; n2))`.
 #[derive(Debug, Clone)]
-struct RmsNorm {
-    weight: Tensor,
-    eps: f32,
-}
-
-impl RmsNorm {
-    fn new(d: usize, eps: f64, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            weight: vb.get_with_hints(d, "weight", Init::Const(1.0))?,
-            eps: eps as f32,
-        })
-    }
-
-    /// `RMSNorm(x) · wᵀ`.
-    fn linear(&self, x: &Tensor, w: &Tensor) -> Result<Tensor> {
-        fused::norm_linear(x, &self.weight, w, self.eps)
-    }
-}
-
-/// Multi-head self-attention with a fused QKV projection.
-#[derive(Debug, Clone)]
-struct Attention {
+struct Block {
+    n1: Tensor,
     wqkv: Tensor,
     wo: Tensor,
-    heads: usize,
-}
-
-impl Attention {
-    fn new(c: &PrefixLmConfig, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            wqkv: matrix(&vb.pp("wqkv"), 3 * c.d_model, c.d_model, "weight")?,
-            wo: matrix(&vb.pp("wo"), c.d_model, c.d_model, "weight")?,
-            heads: c.n_heads,
-        })
-    }
-}
-
-/// SwiGLU feed-forward with a fused W1|W3 projection.
-#[derive(Debug, Clone)]
-struct Ffn {
+    n2: Tensor,
     w13: Tensor,
     w2: Tensor,
 }
 
-impl Ffn {
-    fn new(c: &PrefixLmConfig, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            w13: matrix(&vb.pp("w13"), 2 * c.ffn_hidden, c.d_model, "weight")?,
-            w2: matrix(&vb.pp("w2"), c.d_model, c.ffn_hidden, "weight")?,
-        })
-    }
+/// The values of one block's weights.
+struct BlockWeights<'a> {
+    n1: &'a [f32],
+    wqkv: &'a [f32],
+    wo: &'a [f32],
+    n2: &'a [f32],
+    w13: &'a [f32],
+    w2: &'a [f32],
 }
 
-/// One pre-norm block: `h += Wo·attn(Wqkv·n1(h)); h += W2·swiglu(W13·n2(h))`.
-#[derive(Debug, Clone)]
-struct Block {
-    n1: RmsNorm,
-    attn: Attention,
-    n2: RmsNorm,
-    ffn: Ffn,
+/// What the backward pass needs from a block's forward pass.
+struct BlockTrace {
+    h: Vec<f32>,
+    qkv: Vec<f32>,
+    probs: Vec<f32>,
+    a: Vec<f32>,
+    h1: Vec<f32>,
+    ab: Vec<f32>,
+    sig: Vec<f32>,
 }
+
+/// Gradients of one block's weights, in [`Block`] field order.
+type BlockGrads = [Vec<f32>; 6];
 
 impl Block {
     fn new(c: &PrefixLmConfig, vb: VarBuilder) -> Result<Self> {
+        let (d, f) = (c.d_model, c.ffn_hidden);
         Ok(Self {
-            n1: RmsNorm::new(c.d_model, c.norm_eps, vb.pp("n1"))?,
-            attn: Attention::new(c, vb.pp("attn"))?,
-            n2: RmsNorm::new(c.d_model, c.norm_eps, vb.pp("n2"))?,
-            ffn: Ffn::new(c, vb.pp("ffn"))?,
+            n1: vb.pp("n1").get_with_hints(d, "weight", Init::Const(1.0))?,
+            wqkv: matrix(&vb.pp("attn.wqkv"), 3 * d, d, "weight")?,
+            wo: matrix(&vb.pp("attn.wo"), d, d, "weight")?,
+            n2: vb.pp("n2").get_with_hints(d, "weight", Init::Const(1.0))?,
+            w13: matrix(&vb.pp("ffn.w13"), 2 * f, d, "weight")?,
+            w2: matrix(&vb.pp("ffn.w2"), d, f, "weight")?,
         })
     }
 
-    /// The block with attention `attend` (full or cached) from the packed QKV rows.
-    fn forward(
-        &self,
-        h: &Tensor,
-        attend: impl FnOnce(&Tensor) -> Result<Tensor>,
-    ) -> Result<Tensor> {
-        let a = attend(&self.n1.linear(h, &self.attn.wqkv)?)?;
-        let h = fused::linear_residual(&a, &self.attn.wo, h)?;
-        fused::swiglu_linear_residual(&self.n2.linear(&h, &self.ffn.w13)?, &self.ffn.w2, &h)
+    fn tensors(&self) -> [&Tensor; 6] {
+        [
+            &self.n1, &self.wqkv, &self.wo, &self.n2, &self.w13, &self.w2,
+        ]
     }
+
+    /// The block on rows `h` (`rows × d`); `attend` maps the packed QKV rows to the attention
+    /// output and its softmax probabilities.
+    fn forward(
+        c: &PrefixLmConfig,
+        w: &BlockWeights,
+        h: Vec<f32>,
+        attend: impl FnOnce(&[f32]) -> (Vec<f32>, Vec<f32>),
+    ) -> (Vec<f32>, BlockTrace) {
+        let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
+        let rows = h.len() / d;
+        let xn = fused::rms_norm(&h, w.n1, eps);
+        let qkv = fused::matmul_new((&xn, false), (w.wqkv, true), (rows, 3 * d, d));
+        let (a, probs) = attend(&qkv);
+        let mut h1 = h.clone();
+        fused::gemm(&mut h1, (&a, false), (w.wo, true), (rows, d, d), true);
+        let xn = fused::rms_norm(&h1, w.n2, eps);
+        let ab = fused::matmul_new((&xn, false), (w.w13, true), (rows, 2 * f, d));
+        let sig = fused::gate_sigmoid(&ab, f);
+        let mut h2 = h1.clone();
+        let act = fused::swiglu(&ab, &sig, f);
+        fused::gemm(&mut h2, (&act, false), (w.w2, true), (rows, d, f), true);
+        let trace = BlockTrace {
+            h,
+            qkv,
+            probs,
+            a,
+            h1,
+            ab,
+            sig,
+        };
+        (h2, trace)
+    }
+
+    /// Backward through the block: `gh` holds the gradient of its output on entry and of its
+    /// input on return; returns the weights' gradients.
+    fn backward(
+        c: &PrefixLmConfig,
+        w: &BlockWeights,
+        t: &BlockTrace,
+        attn: &fused::Attention,
+        gh: &mut [f32],
+    ) -> BlockGrads {
+        let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
+        let rows = gh.len() / d;
+        // h2 = h1 + swiglu(ab)·W2ᵀ.
+        let act = fused::swiglu(&t.ab, &t.sig, f);
+        let g_w2 = fused::matmul_new((gh, true), (&act, false), (d, f, rows));
+        let g_act = fused::matmul_new((gh, false), (w.w2, false), (rows, f, d));
+        let g_ab = fused::swiglu_backward(&t.ab, &t.sig, &g_act, f);
+        // ab = RMSNorm(h1)·W13ᵀ.
+        let xn = fused::rms_norm(&t.h1, w.n2, eps);
+        let g_w13 = fused::matmul_new((&g_ab, true), (&xn, false), (2 * f, d, rows));
+        let g_xn = fused::matmul_new((&g_ab, false), (w.w13, false), (rows, d, 2 * f));
+        let g_n2 = fused::rms_norm_backward(&t.h1, w.n2, &g_xn, eps, gh);
+        // h1 = h + a·Woᵀ.
+        let g_wo = fused::matmul_new((gh, true), (&t.a, false), (d, d, rows));
+        let g_a = fused::matmul_new((gh, false), (w.wo, false), (rows, d, d));
+        let g_qkv = attn.backward(&t.qkv, &t.probs, &g_a);
+        // qkv = RMSNorm(h)·Wqkvᵀ.
+        let xn = fused::rms_norm(&t.h, w.n1, eps);
+        let g_wqkv = fused::matmul_new((&g_qkv, true), (&xn, false), (3 * d, d, rows));
+        let g_xn = fused::matmul_new((&g_qkv, false), (w.wqkv, false), (rows, d, 3 * d));
+        let g_n1 = fused::rms_norm_backward(&t.h, w.n1, &g_xn, eps, gh);
+        [g_n1, g_wqkv, g_wo, g_n2, g_w13, g_w2]
+    }
+}
+
+/// The values of every weight of a [`PrefixLm`].
+struct Weights<'a> {
+    tok_emb: &'a [f32],
+    proj_w: &'a [f32],
+    proj_b: &'a [f32],
+    blocks: Vec<BlockWeights<'a>>,
+    norm: &'a [f32],
+    head: &'a [f32],
+}
+
+/// The f32 values of a contiguous CPU tensor's storage.
+fn cpu_values<'a>(storage: &'a Storage, layout: &Layout) -> Result<&'a [f32]> {
+    match (storage, layout.contiguous_offsets()) {
+        (Storage::Cpu(CpuStorage::F32(v)), Some((start, end))) => Ok(&v[start..end]),
+        _ => candle_core::bail!("the prefix LM runs on contiguous f32 CPU weights"),
+    }
+}
+
+/// What the backward pass needs from the forward pass.
+struct Trace {
+    blocks: Vec<BlockTrace>,
+    /// The last block's output.
+    h: Vec<f32>,
 }
 
 /// The text-prefix autoregressive transformer.
@@ -441,9 +500,9 @@ pub struct PrefixLm {
     proj_w: Tensor,
     proj_b: Tensor,
     blocks: Vec<Block>,
-    norm: RmsNorm,
+    norm: Tensor,
     head: Tensor,
-    rope: Arc<Rope>,
+    rope: Rope,
 }
 
 impl PrefixLm {
@@ -463,13 +522,11 @@ impl PrefixLm {
                 .pp("prefix_proj")
                 .get_with_hints(d, "bias", Init::Const(0.0))?,
             blocks,
-            norm: RmsNorm::new(d, config.norm_eps, vb.pp("norm"))?,
+            norm: vb
+                .pp("norm")
+                .get_with_hints(d, "weight", Init::Const(1.0))?,
             head: matrix(&vb.pp("head"), v, d, "weight")?,
-            rope: Arc::new(Rope::new(
-                config.head_dim(),
-                config.rope_base,
-                config.max_positions,
-            )),
+            rope: Rope::new(config.head_dim(), config.rope_base, config.max_positions),
             config: config.clone(),
         })
     }
@@ -479,31 +536,175 @@ impl PrefixLm {
         &self.config
     }
 
-    /// Text embeddings projected to the model width.
-    fn project_text(&self, text: &Tensor) -> Result<Tensor> {
-        text.matmul(&self.proj_w.t()?)?.broadcast_add(&self.proj_b)
+    /// Every weight, in a fixed order (embedding, projection, blocks, norm, head).
+    fn tensors(&self) -> Vec<&Tensor> {
+        let mut t = vec![&self.tok_emb, &self.proj_w, &self.proj_b];
+        t.extend(self.blocks.iter().flat_map(Block::tensors));
+        t.extend([&self.norm, &self.head]);
+        t
     }
 
-    /// Logits of every motion slot, `batch · motion_slots × V` (sample-major).
-    pub fn forward(&self, batch: &LmBatch) -> Result<Tensor> {
-        let motion = self.tok_emb.embedding(&batch.inputs)?;
-        let mut h = if batch.layout.prefix_slots == 0 {
-            motion
-        } else {
-            Tensor::cat(&[&motion, &self.project_text(&batch.text)?], 0)?
-        };
-        for block in &self.blocks {
-            h = block.forward(&h, |qkv| {
-                fused::prefix_attention(qkv, &batch.layout, &self.rope, block.attn.heads)
-            })?;
+    /// Run `f` with read access to the values of every weight.
+    fn with_weights<R>(&self, f: impl FnOnce(&Weights) -> Result<R>) -> Result<R> {
+        let guards: Vec<_> = self
+            .tensors()
+            .into_iter()
+            .map(|t| t.storage_and_layout())
+            .collect();
+        let v = guards
+            .iter()
+            .map(|(s, l)| cpu_values(s, l))
+            .collect::<Result<Vec<_>>>()?;
+        let blocks = v[3..v.len() - 2]
+            .chunks(6)
+            .map(|b| BlockWeights {
+                n1: b[0],
+                wqkv: b[1],
+                wo: b[2],
+                n2: b[3],
+                w13: b[4],
+                w2: b[5],
+            })
+            .collect();
+        f(&Weights {
+            tok_emb: v[0],
+            proj_w: v[1],
+            proj_b: v[2],
+            blocks,
+            norm: v[v.len() - 2],
+            head: v[v.len() - 1],
+        })
+    }
+
+    fn check(&self, layout: &SeqLayout) -> Result<()> {
+        if layout.max_position() >= self.rope.max_positions() {
+            candle_core::bail!(
+                "position {} beyond the {} of the rotary table",
+                layout.max_position(),
+                self.rope.max_positions()
+            )
         }
-        let motion_rows = batch.layout.batch * batch.layout.motion_slots;
-        self.norm.linear(&h.narrow(0, 0, motion_rows)?, &self.head)
+        Ok(())
     }
 
-    /// Mean cross-entropy over the targets of `batch`.
-    pub fn loss(&self, batch: &LmBatch) -> Result<Tensor> {
-        fused::cross_entropy(&self.forward(batch)?, &batch.targets)
+    /// `text · Wᵀ + b` of text rows (`rows × E`).
+    fn project_text(&self, w: &Weights, text: &[f32]) -> Vec<f32> {
+        let (d, e) = (self.config.d_model, self.config.text_dim);
+        let rows = text.len() / e;
+        let mut out = fused::matmul_new((text, false), (w.proj_w, true), (rows, d, e));
+        out.chunks_mut(d)
+            .for_each(|r| r.iter_mut().zip(w.proj_b).for_each(|(x, b)| *x += b));
+        out
+    }
+
+    /// Rows of the input embedding for `tokens`.
+    fn embed(&self, w: &Weights, tokens: &[u32]) -> Vec<f32> {
+        let d = self.config.d_model;
+        tokens
+            .iter()
+            .flat_map(|&t| &w.tok_emb[t as usize * d..][..d])
+            .copied()
+            .collect()
+    }
+
+    /// Forward pass: the logits of every motion slot and, when `keep`, the trace.
+    fn run(&self, w: &Weights, batch: &LmBatch, keep: bool) -> Result<(Vec<f32>, Trace)> {
+        let (c, layout) = (&self.config, &batch.layout);
+        self.check(layout)?;
+        let attn = self.attention(layout);
+        let mut h = self.embed(w, &batch.inputs);
+        h.extend(self.project_text(w, &batch.text));
+        let mut blocks = Vec::new();
+        for bw in &w.blocks {
+            let (next, trace) = Block::forward(c, bw, h, |qkv| attn.forward(qkv));
+            if keep {
+                blocks.push(trace);
+            }
+            h = next;
+        }
+        let logits = self.head(w, &h[..batch.inputs.len() * c.d_model]);
+        Ok((logits, Trace { blocks, h }))
+    }
+
+    fn attention<'a>(&'a self, layout: &'a SeqLayout) -> fused::Attention<'a> {
+        fused::Attention {
+            layout,
+            rope: &self.rope,
+            heads: self.config.n_heads,
+            d: self.config.d_model,
+        }
+    }
+
+    /// `RMSNorm(h; norm) · headᵀ`.
+    fn head(&self, w: &Weights, h: &[f32]) -> Vec<f32> {
+        let (d, v) = (self.config.d_model, self.config.vocab_size());
+        let xn = fused::rms_norm(h, w.norm, self.config.norm_eps as f32);
+        fused::matmul_new((&xn, false), (w.head, true), (h.len() / d, v, d))
+    }
+
+    /// Logits of every motion slot, `batch · motion_slots × V` (sequence-major).
+    pub fn forward(&self, batch: &LmBatch) -> Result<Tensor> {
+        let logits = self.with_weights(|w| Ok(self.run(w, batch, false)?.0))?;
+        let rows = batch.inputs.len();
+        Tensor::from_vec(logits, (rows, self.config.vocab_size()), &Device::Cpu)
+    }
+
+    /// Mean cross-entropy over the targets of `batch` and the gradient of every weight
+    /// (keyed by the weight tensors, as `loss.backward()` would key them).
+    pub fn loss_and_grads(&self, batch: &LmBatch) -> Result<(f32, GradStore)> {
+        let (loss, grads) = self.with_weights(|w| {
+            let (logits, trace) = self.run(w, batch, true)?;
+            let (loss, g_logits) =
+                fused::cross_entropy(&logits, self.config.vocab_size(), &batch.targets);
+            Ok((loss, self.backward(w, batch, &trace, &g_logits)))
+        })?;
+        let mut store = GradStore::default();
+        for (t, g) in self.tensors().into_iter().zip(grads) {
+            store.insert(t, Tensor::from_vec(g, t.shape(), &Device::Cpu)?);
+        }
+        Ok((loss, store))
+    }
+
+    /// Backward pass from the logits' gradient: the gradient of every weight, in
+    /// [`Self::tensors`] order.
+    fn backward(
+        &self,
+        w: &Weights,
+        batch: &LmBatch,
+        trace: &Trace,
+        g_logits: &[f32],
+    ) -> Vec<Vec<f32>> {
+        let c = &self.config;
+        let (d, v, e, eps) = (c.d_model, c.vocab_size(), c.text_dim, c.norm_eps as f32);
+        let motion = batch.inputs.len();
+        let attn = self.attention(&batch.layout);
+        // logits = RMSNorm(h_motion; norm)·headᵀ.
+        let hm = &trace.h[..motion * d];
+        let xn = fused::rms_norm(hm, w.norm, eps);
+        let g_head = fused::matmul_new((g_logits, true), (&xn, false), (v, d, motion));
+        let g_xn = fused::matmul_new((g_logits, false), (w.head, false), (motion, d, v));
+        let mut gh = vec![0f32; trace.h.len()];
+        let g_norm = fused::rms_norm_backward(hm, w.norm, &g_xn, eps, &mut gh[..motion * d]);
+        let mut g_blocks: Vec<BlockGrads> = w
+            .blocks
+            .iter()
+            .zip(&trace.blocks)
+            .rev()
+            .map(|(bw, bt)| Block::backward(c, bw, bt, &attn, &mut gh))
+            .collect();
+        g_blocks.reverse();
+        // Inputs: embedding rows of the motion inputs, projection of the text rows.
+        let mut g_emb = vec![0f32; v * d];
+        for (&t, g) in batch.inputs.iter().zip(gh.chunks(d)) {
+            let row = &mut g_emb[t as usize * d..][..d];
+            row.iter_mut().zip(g).for_each(|(a, b)| *a += b);
+        }
+        let gt = &gh[motion * d..];
+        let g_proj_w = fused::matmul_new((gt, true), (&batch.text, false), (d, e, gt.len() / d));
+        let mut grads = vec![g_emb, g_proj_w, fused::column_sums(gt, d)];
+        grads.extend(g_blocks.into_iter().flatten());
+        grads.extend([g_norm, g_head]);
+        grads
     }
 
     /// An empty key/value cache for sequences laid out by `layout`.
@@ -516,53 +717,53 @@ impl PrefixLm {
 
     /// Run slots `from..to` of every sequence through the model against `cache` (filled
     /// below `from`) and return the logits of each sequence's last new slot (`batch × V`).
-    /// `text` (`batch · prefix_slots × E`) is needed while `from < prefix_slots`;
-    /// `tokens` holds the motion inputs of the new motion slots, sample-major.
+    /// `text` (`batch · prefix_slots × E`) is read for new text slots; `tokens` holds the
+    /// inputs of the new motion slots, sequence-major.
     pub fn forward_cached(
         &self,
         cache: &mut [LayerCache],
         layout: &SeqLayout,
-        text: Option<&Tensor>,
-        tokens: &Tensor,
+        text: &[f32],
+        tokens: &[u32],
         (from, to): (usize, usize),
     ) -> Result<Tensor> {
-        let (b, p, d) = (layout.batch, layout.prefix_slots, self.config.d_model);
-        if to > layout.slots() || layout.max_position() >= self.rope.max_positions() {
-            candle_core::bail!("slots {from}..{to} do not fit the layout or the rotary table")
+        let (c, p, n_new) = (&self.config, layout.prefix_slots, to - from);
+        let d = c.d_model;
+        self.check(layout)?;
+        if to > layout.slots() || tokens.len() != layout.batch * (to - from.max(p)) {
+            candle_core::bail!(
+                "slots {from}..{to} and {} tokens do not fit the layout",
+                tokens.len()
+            )
         }
-        let new_text = p.saturating_sub(from).min(to - from);
-        let motion = self.tok_emb.embedding(tokens)?.reshape((b, (), d))?;
-        let mut h = if new_text > 0 {
-            let Some(text) = text else {
-                candle_core::bail!("prefix slots need the text embeddings")
+        let logits = self.with_weights(|w| {
+            let projected = if from < p {
+                self.project_text(w, text)
+            } else {
+                Vec::new()
             };
-            let text = self
-                .project_text(text)?
-                .reshape((b, p, d))?
-                .narrow(1, from, new_text)?;
-            Tensor::cat(&[&text, &motion], 1)?
-        } else {
-            motion
-        };
-        h = h.reshape((b * (to - from), d))?;
-        for (block, layer) in self.blocks.iter().zip(cache.iter_mut()) {
-            h = block.forward(&h, |qkv| {
-                let values = qkv.flatten_all()?.to_vec1::<f32>()?;
-                let heads = block.attn.heads;
-                let out = fused::cached_attention(
-                    &values,
-                    layer,
-                    layout,
-                    &self.rope,
-                    heads,
-                    d,
-                    (from, to),
-                );
-                Tensor::from_vec(out, (qkv.dim(0)?, d), qkv.device())
-            })?;
-        }
-        let last = h.reshape((b, to - from, d))?.narrow(1, to - from - 1, 1)?;
-        self.norm.linear(&last.reshape((b, d))?, &self.head)
+            let motion = self.embed(w, tokens);
+            let per_seq = to - from.max(p);
+            let mut h = Vec::with_capacity(layout.batch * n_new * d);
+            for b in 0..layout.batch {
+                for s in from..to.min(p) {
+                    h.extend_from_slice(&projected[(b * p + s) * d..][..d]);
+                }
+                h.extend_from_slice(&motion[b * per_seq * d..][..per_seq * d]);
+            }
+            let attn = self.attention(layout);
+            for (bw, layer) in w.blocks.iter().zip(cache.iter_mut()) {
+                let attend = |qkv: &[f32]| (attn.cached(qkv, layer, (from, to)), Vec::new());
+                h = Block::forward(c, bw, h, attend).0;
+            }
+            let last: Vec<f32> = h
+                .chunks(n_new * d)
+                .flat_map(|rows| &rows[(n_new - 1) * d..])
+                .copied()
+                .collect();
+            Ok(self.head(w, &last))
+        })?;
+        Tensor::from_vec(logits, (layout.batch, c.vocab_size()), &Device::Cpu)
     }
 }
 
@@ -614,6 +815,7 @@ pub fn init_model(config: &PrefixLmConfig, seed: u64) -> Result<(PrefixLm, VarMa
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::HashMap;
 
     fn tiny() -> PrefixLmConfig {
         PrefixLmConfig::new(32, 2, 4, 20, 6)
@@ -625,7 +827,7 @@ mod tests {
     }
 
     fn logits(model: &PrefixLm, texts: &[&[f32]], motions: &[(&[u32], bool)]) -> Vec<Vec<f32>> {
-        let batch = LmBatch::new(model.config(), texts, motions, &Device::Cpu).unwrap();
+        let batch = LmBatch::new(model.config(), texts, motions);
         model.forward(&batch).unwrap().to_vec2::<f32>().unwrap()
     }
 
@@ -709,7 +911,6 @@ mod tests {
         let mut text_rows = vec![0f32; 2 * 4 * 6];
         text_rows[..t0.len()].copy_from_slice(&t0);
         text_rows[24..24 + t1.len()].copy_from_slice(&t1);
-        let text_rows = Tensor::from_vec(text_rows, (8, 6), &Device::Cpu).unwrap();
         let mut cache = model.new_cache(&layout);
         let p = layout.prefix_slots;
         let mut worst = 0f32;
@@ -717,14 +918,13 @@ mod tests {
             let input: Vec<u32> = (0..2)
                 .map(|b| if t == 0 { c.bos() } else { tokens[b][t - 1] })
                 .collect();
-            let input = Tensor::new(input.as_slice(), &Device::Cpu).unwrap();
             let (from, to) = if t == 0 {
                 (0, p + 1)
             } else {
                 (p + t, p + t + 1)
             };
             let step = model
-                .forward_cached(&mut cache, &layout, Some(&text_rows), &input, (from, to))
+                .forward_cached(&mut cache, &layout, &text_rows, &input, (from, to))
                 .unwrap()
                 .to_vec2::<f32>()
                 .unwrap();
@@ -733,5 +933,168 @@ mod tests {
             }
         }
         assert!(worst <= 1e-4, "cached vs full: {worst}");
+    }
+
+    /// The loss of `batch` with candle's composite ops (autograd-differentiable): the
+    /// reference for [`PrefixLm::loss_and_grads`].
+    fn reference_loss(c: &PrefixLmConfig, vars: &HashMap<String, Var>, batch: &LmBatch) -> Tensor {
+        use candle_nn::ops::{rms_norm_slow, silu, softmax};
+        let dev = &Device::Cpu;
+        let w = |n: &str| vars[n].as_tensor().clone();
+        let (l, d, f, hd) = (&batch.layout, c.d_model, c.ffn_hidden, c.head_dim());
+        let eps = c.norm_eps as f32;
+        let lin = |x: &Tensor, name: &str| x.matmul(&w(name).t().unwrap()).unwrap();
+        let text =
+            Tensor::from_slice(&batch.text, (l.batch * l.prefix_slots, c.text_dim), dev).unwrap();
+        let text = lin(&text, "prefix_proj.weight")
+            .broadcast_add(&w("prefix_proj.bias"))
+            .unwrap();
+        let inputs = Tensor::from_slice(&batch.inputs, batch.inputs.len(), dev).unwrap();
+        let mut h = Tensor::cat(
+            &[&w("tok_emb.weight").embedding(&inputs).unwrap(), &text],
+            0,
+        )
+        .unwrap();
+        // Rows in slot order, sequence by sequence, and back.
+        let order: Vec<u32> = (0..l.batch)
+            .flat_map(|b| (0..l.slots()).map(move |s| l.row(b, s) as u32))
+            .collect();
+        let mut back = vec![0u32; order.len()];
+        order
+            .iter()
+            .enumerate()
+            .for_each(|(i, &r)| back[r as usize] = i as u32);
+        let (order, back) = (
+            Tensor::new(order, dev).unwrap(),
+            Tensor::new(back, dev).unwrap(),
+        );
+        let rope = Rope::new(hd, c.rope_base, 64);
+        let table = |sin: bool| {
+            let v: Vec<f32> = (0..l.batch)
+                .flat_map(|b| (0..l.slots()).map(move |s| l.position(b, s)))
+                .flat_map(|p| {
+                    let (cos, s) = rope.at(p);
+                    let t = if sin { s } else { cos };
+                    t.iter().chain(t).copied().collect::<Vec<_>>()
+                })
+                .collect();
+            Tensor::from_vec(v, (l.rows(), hd), dev).unwrap()
+        };
+        let (cos, sin) = (table(false), table(true));
+        let rotate = |x: &Tensor| {
+            let (x1, x2) = (
+                x.narrow(1, 0, hd / 2).unwrap(),
+                x.narrow(1, hd / 2, hd / 2).unwrap(),
+            );
+            let half = Tensor::cat(&[&x2.neg().unwrap(), &x1], 1).unwrap();
+            ((x * &cos).unwrap() + (half * &sin).unwrap()).unwrap()
+        };
+        let mask: Vec<f32> = (0..l.batch * l.slots() * l.slots())
+            .map(|ij| {
+                let (b, i, j) = (
+                    ij / l.slots() / l.slots(),
+                    ij / l.slots() % l.slots(),
+                    ij % l.slots(),
+                );
+                if l.allowed(b, i, j) {
+                    0.0
+                } else {
+                    -1e9
+                }
+            })
+            .collect();
+        let mask = Tensor::from_vec(mask, (l.batch, l.slots(), l.slots()), dev).unwrap();
+        for i in 0..c.n_layers {
+            let p = |n: &str| format!("blocks.{i}.{n}");
+            let xn = rms_norm_slow(&h, &w(&p("n1.weight")), eps).unwrap();
+            let qkv = lin(&xn, &p("attn.wqkv.weight"))
+                .index_select(&order, 0)
+                .unwrap();
+            let heads: Vec<Tensor> = (0..c.n_heads)
+                .map(|k| {
+                    let part = |o: usize| qkv.narrow(1, o * d + k * hd, hd).unwrap();
+                    let seq = |x: Tensor| x.reshape((l.batch, l.slots(), hd)).unwrap();
+                    let (q, kk, v) = (seq(rotate(&part(0))), seq(rotate(&part(1))), seq(part(2)));
+                    let scores =
+                        (q.matmul(&kk.t().unwrap()).unwrap() / (hd as f64).sqrt()).unwrap();
+                    let probs = softmax(&(scores + &mask).unwrap(), 2).unwrap();
+                    probs.matmul(&v).unwrap().reshape((l.rows(), hd)).unwrap()
+                })
+                .collect();
+            let a = Tensor::cat(&heads, 1)
+                .unwrap()
+                .index_select(&back, 0)
+                .unwrap();
+            h = (&h + lin(&a, &p("attn.wo.weight"))).unwrap();
+            let ab = lin(
+                &rms_norm_slow(&h, &w(&p("n2.weight")), eps).unwrap(),
+                &p("ffn.w13.weight"),
+            );
+            let act = (silu(&ab.narrow(1, 0, f).unwrap()).unwrap() * ab.narrow(1, f, f).unwrap())
+                .unwrap();
+            h = (&h + lin(&act, &p("ffn.w2.weight"))).unwrap();
+        }
+        let hm = h.narrow(0, 0, batch.inputs.len()).unwrap();
+        let logits = lin(
+            &rms_norm_slow(&hm, &w("norm.weight"), eps).unwrap(),
+            "head.weight",
+        );
+        let (rows, targets): (Vec<u32>, Vec<u32>) = batch
+            .targets
+            .iter()
+            .enumerate()
+            .filter(|(_, &t)| t != fused::IGNORE)
+            .map(|(r, &t)| (r as u32, t))
+            .unzip();
+        let picked = logits
+            .index_select(&Tensor::new(rows, dev).unwrap(), 0)
+            .unwrap();
+        candle_nn::loss::cross_entropy(&picked, &Tensor::new(targets, dev).unwrap()).unwrap()
+    }
+
+    #[test]
+    fn loss_and_gradients_match_candle_autograd_of_composite_ops() {
+        let config = tiny();
+        let (model, varmap) = init_model(&config, 11).unwrap();
+        let (t0, t1) = (text(4, 6, 12), text(2, 6, 13));
+        let (m0, m1) = ([4u32, 17, 2, 9, 0], [11u32, 3, 3]);
+        let batch = LmBatch::new(&config, &[&t0, &t1], &[(&m0, true), (&m1, false)]);
+        let (loss, grads) = model.loss_and_grads(&batch).unwrap();
+        let vars = varmap.data().lock().unwrap().clone();
+        let reference = reference_loss(&config, &vars, &batch);
+        let expected = reference.to_scalar::<f32>().unwrap();
+        assert!((loss - expected).abs() < 1e-5, "{loss} vs {expected}");
+        let expected_grads = reference.backward().unwrap();
+        let mut names: Vec<&String> = vars.keys().collect();
+        names.sort();
+        for name in names {
+            let t = vars[name].as_tensor();
+            let (ours, theirs) = (grads.get(t).unwrap(), expected_grads.get(t).unwrap());
+            let scale = theirs
+                .abs()
+                .unwrap()
+                .max_keepdim(0)
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .max(0)
+                .unwrap();
+            let diff = (ours - theirs)
+                .unwrap()
+                .abs()
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .max(0)
+                .unwrap();
+            let (diff, scale) = (
+                diff.to_scalar::<f32>().unwrap(),
+                scale.to_scalar::<f32>().unwrap(),
+            );
+            assert!(
+                diff <= 1e-4 * scale.max(1e-3),
+                "{name}: max |Δ| {diff} (max |g| {scale})"
+            );
+        }
     }
 }

@@ -418,9 +418,11 @@ impl Run {
     fn step(&mut self) -> Result<TrainEvent, ModelError> {
         let (c, started) = (&self.config.train, Instant::now());
         let items = self.data.train_items(self.state.step, c.batch_size, c.seed);
-        let batch = self.data.batch(&self.config.model, &items, &Device::Cpu)?;
-        let loss = self.model.loss(&batch).map_err(ModelError::inference)?;
-        let grads = loss.backward().map_err(ModelError::inference)?;
+        let batch = self.data.batch(&self.config.model, &items);
+        let (loss, grads) = self
+            .model
+            .loss_and_grads(&batch)
+            .map_err(ModelError::inference)?;
         let lr = self.config.schedule.at(self.state.step);
         self.opt
             .step(&grads, lr, Some(c.grad_clip))
@@ -438,7 +440,7 @@ impl Run {
             c.batch_size as f64 * accounting::train_flops_exact(&self.config.model, shape);
         Ok(TrainEvent::Step {
             step: s.step,
-            loss: loss.to_scalar::<f32>().map_err(ModelError::inference)?,
+            loss,
             lr,
             tokens_seen: s.tokens_seen,
             tokens_per_s: tokens as f64 / started.elapsed().as_secs_f64(),
