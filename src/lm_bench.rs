@@ -108,12 +108,17 @@ fn time<F: FnMut() -> Result<()>>(
             break;
         }
     }
-    let foreign = foreign_load(before, cpu_snapshot());
+    let after = cpu_snapshot();
+    let foreign = foreign_load(before, after);
+    // /proc reports jiffies of 1/100 s.
+    let own_cpu = before.zip(after).map(|(a, b)| (b.2 - a.2) as f64 / 100.0);
+    let calls = samples.len() as f64;
     samples.sort_by(f64::total_cmp);
     Ok(
         json!({"median_s": samples[samples.len() / 2], "min_s": samples[0],
               "max_s": samples[samples.len() - 1], "n": samples.len(),
-              "foreign_cpu_fraction": foreign}),
+              "foreign_cpu_fraction": foreign,
+              "own_cpu_s_per_call": own_cpu.map(|c| c / calls)}),
     )
 }
 
@@ -181,6 +186,10 @@ fn bench_train_step(args: &BenchTrainArgs, d: usize, layers: usize) -> Result<Va
     let tokens = (args.batch * SequenceShape::BENCH.motion) as f64;
     let gflops = flops / step_s / 1e9;
     let params = accounting::param_count(&config);
+    // On a busy machine: the step time if this process's CPU time were spread over all
+    // threads without waiting (a lower bound of a quiet run's time; 0 when unmeasured).
+    let cpu_bound_s =
+        st["own_cpu_s_per_call"].as_f64().unwrap_or(0.0) / rayon::current_num_threads() as f64;
     Ok(json!({
         "d_model": d, "n_layers": layers, "n_heads": d / 64, "ffn_hidden": config.ffn_hidden,
         "vocab": config.vocab_size(), "batch": args.batch, "n_nv": params.n_nv, "n_v": params.n_v,
@@ -188,6 +197,8 @@ fn bench_train_step(args: &BenchTrainArgs, d: usize, layers: usize) -> Result<Va
         "motion_tokens_per_s": tokens / step_s,
         "flops_per_step_exact": flops, "flops_per_step_6N": six_n,
         "achieved_gflops_exact": gflops, "mfu": gflops / args.peak_gflops,
+        "cpu_time_equivalent": {"step_s": cpu_bound_s, "motion_tokens_per_s": tokens / cpu_bound_s,
+                                "gflops_exact": flops / cpu_bound_s / 1e9},
     }))
 }
 
@@ -299,6 +310,13 @@ pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
             ours["step_time"]["foreign_cpu_fraction"]
                 .as_f64()
                 .unwrap_or(f64::NAN),
+        );
+        let cpu = &ours["cpu_time_equivalent"];
+        println!(
+            "  own CPU time per step / threads: {:.0} ms → {:.0} motion tok/s, {:.1} GFLOP/s if the threads never waited for a busy core",
+            1e3 * cpu["step_s"].as_f64().unwrap_or(0.0),
+            cpu["motion_tokens_per_s"].as_f64().unwrap_or(0.0),
+            cpu["gflops_exact"].as_f64().unwrap_or(0.0),
         );
         if args.reference {
             let reference = run_reference(&args, "train", d, layers)?;
