@@ -16,6 +16,9 @@ use rayon::prelude::*;
 /// Target id of a position without loss (padding).
 pub const IGNORE: u32 = u32::MAX;
 
+/// Multiply-adds below which one product runs on one thread.
+const PARALLEL_MIN_MACS: usize = 1 << 24;
+
 /// Rows per parallel work item of the row-wise kernels (fixed, so reductions are too).
 const ROW_BLOCK: usize = 32;
 
@@ -68,7 +71,8 @@ fn gemm_with(
     let (lhs_rs, lhs_cs) = if lhs_t { (1, m) } else { (k, 1) };
     let (rhs_rs, rhs_cs) = if rhs_t { (1, k) } else { (n, 1) };
     let threads = rayon::current_num_threads();
-    let parallelism = if parallel && threads > 1 {
+    // Small products (decoding a few rows) lose more to waking threads than they gain.
+    let parallelism = if parallel && threads > 1 && m * n * k >= PARALLEL_MIN_MACS {
         gemm::Parallelism::Rayon(threads)
     } else {
         gemm::Parallelism::None

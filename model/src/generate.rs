@@ -46,11 +46,21 @@ impl Default for Sampling {
 pub fn sample(logits: &[f32], candidates: usize, s: &Sampling, rng: &mut SplitMix64) -> usize {
     let mut ranked: Vec<(usize, f64)> =
         (0..candidates).map(|i| (i, f64::from(logits[i]))).collect();
-    ranked.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+    let order = |a: &(usize, f64), b: &(usize, f64)| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0));
+    let keep = if s.temperature <= 0.0 {
+        1
+    } else {
+        s.top_k.unwrap_or(candidates).clamp(1, candidates)
+    };
+    // Only the `keep` best need ordering.
+    if keep < ranked.len() {
+        ranked.select_nth_unstable_by(keep - 1, order);
+        ranked.truncate(keep);
+    }
+    ranked.sort_by(order);
     if s.temperature <= 0.0 {
         return ranked[0].0;
     }
-    ranked.truncate(s.top_k.unwrap_or(candidates).max(1));
     let max = ranked[0].1;
     let mut probs: Vec<f64> = ranked
         .iter()
