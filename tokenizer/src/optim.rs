@@ -8,7 +8,7 @@
 
 use crate::error::TokenizerError;
 use candle_core::backprop::GradStore;
-use candle_core::{DType, Device, Tensor, Var};
+use candle_core::{Device, Tensor, Var};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -65,6 +65,9 @@ impl LrSchedule {
     }
 }
 
+/// Elements per parallel task of the update.
+const CHUNK: usize = 16 * 1024;
+
 /// One parameter with its moments.
 struct Slot {
     name: String,
@@ -109,31 +112,36 @@ impl AdamW {
         self.step
     }
 
-    /// Global L2 norm of the gradients of the optimised variables.
-    pub fn grad_norm(&self, grads: &GradStore) -> Result<f64, TokenizerError> {
-        let mut total = 0f64;
-        for slot in &self.slots {
-            if let Some(g) = grads.get(slot.var.as_tensor()) {
-                total += g
-                    .to_dtype(DType::F64)?
-                    .sqr()?
-                    .sum_all()?
-                    .to_scalar::<f64>()?;
-            }
-        }
-        Ok(total.sqrt())
-    }
-
     /// One AdamW step at learning rate `lr`, gradients first scaled so their global norm is
     /// at most `max_norm` (none when `None`). Variables without a gradient are left alone.
-    /// Returns the gradient norm before clipping.
+    /// Returns the global gradient norm before clipping.
     pub fn step(
         &mut self,
         grads: &GradStore,
         lr: f64,
         max_norm: Option<f64>,
     ) -> Result<f64, TokenizerError> {
-        let norm = self.grad_norm(grads)?;
+        let grads: Vec<Option<Vec<f32>>> = self
+            .slots
+            .iter()
+            .map(|slot| {
+                grads
+                    .get(slot.var.as_tensor())
+                    .map(|g| g.flatten_all()?.to_vec1::<f32>())
+                    .transpose()
+            })
+            .collect::<candle_core::Result<_>>()?;
+        // Sums of squares per fixed chunk in parallel, added in order: deterministic.
+        let squares: Vec<f64> = grads
+            .iter()
+            .flatten()
+            .flat_map(|g| {
+                g.par_chunks(CHUNK)
+                    .map(|c| c.iter().map(|&v| (v as f64) * (v as f64)).sum::<f64>())
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        let norm = squares.iter().sum::<f64>().sqrt();
         let scale = match max_norm {
             Some(max) if norm > max => (max / (norm + 1e-6)) as f32,
             _ => 1.0,
@@ -146,17 +154,16 @@ impl AdamW {
         let bias2_sqrt = bias2.sqrt() as f32;
         let decay = (1.0 - lr * c.weight_decay) as f32;
         let (b1, b2, eps) = (c.beta1 as f32, c.beta2 as f32, c.eps as f32);
-        for slot in &mut self.slots {
-            let Some(grad) = grads.get(slot.var.as_tensor()) else {
+        for (slot, grad) in self.slots.iter_mut().zip(grads) {
+            let Some(grad) = grad else {
                 continue;
             };
-            let grad = grad.flatten_all()?.to_vec1::<f32>()?;
             let var = slot.var.as_tensor();
             let mut p = var.flatten_all()?.to_vec1::<f32>()?;
-            p.par_chunks_mut(4096)
-                .zip(slot.m.par_chunks_mut(4096))
-                .zip(slot.v.par_chunks_mut(4096))
-                .zip(grad.par_chunks(4096))
+            p.par_chunks_mut(CHUNK)
+                .zip(slot.m.par_chunks_mut(CHUNK))
+                .zip(slot.v.par_chunks_mut(CHUNK))
+                .zip(grad.par_chunks(CHUNK))
                 .for_each(|(((p, m), v), g)| {
                     for i in 0..p.len() {
                         let g = g[i] * scale;
