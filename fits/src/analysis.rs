@@ -94,7 +94,7 @@ pub struct FitOptions {
     pub grid_name: String,
     /// Bootstrap resamples (0: none).
     pub bootstrap: usize,
-    /// Starts per bootstrap refit: the k best distinct end points of the full-data grid, or
+    /// Starts per bootstrap refit: the k best distinct local optima of the full-data grid, or
     /// `None` for the whole grid.
     pub bootstrap_starts: Option<usize>,
     /// Seed of the bootstrap.
@@ -164,7 +164,7 @@ pub struct Settings {
     pub grid: StartGrid,
     /// Bootstrap resamples requested.
     pub bootstrap: usize,
-    /// Starts per bootstrap refit (`full` or `best K distinct end points`).
+    /// Starts per bootstrap refit (`full`, or the best K distinct local optima).
     pub bootstrap_starts: String,
     /// L-BFGS settings.
     pub lbfgs: LbfgsRecord,
@@ -548,7 +548,9 @@ pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
             grid: opts.grid.clone(),
             bootstrap: opts.bootstrap,
             bootstrap_starts: match opts.bootstrap_starts {
-                Some(k) => format!("best {k} distinct end points of the full-data grid"),
+                Some(k) => {
+                    format!("the best (up to {k}) distinct local optima of the full-data grid")
+                }
                 None => "full".into(),
             },
             lbfgs: LbfgsRecord {

@@ -12,6 +12,16 @@ use std::path::{Path, PathBuf};
 /// Palette index for the markers of interior minima (black).
 const MINIMA_COLOR: usize = 7;
 
+/// Palette index of the i-th curve, skipping the minima's black.
+fn curve_color(i: usize) -> usize {
+    let i = i % (plot::PALETTE_LEN - 1);
+    if i >= MINIMA_COLOR {
+        i + 1
+    } else {
+        i
+    }
+}
+
 /// The charts of a fit, each with its file stem.
 pub fn charts(f: &Fits) -> Vec<(String, Chart)> {
     let mut out = Vec::new();
@@ -37,10 +47,13 @@ pub fn charts(f: &Fits) -> Vec<(String, Chart)> {
     iso.log_x = true;
     for (i, b) in f.budgets.iter().enumerate() {
         let pts = b.min.points.iter().map(|p| (p[0], p[1])).collect();
-        iso.series
-            .push(Series::points(format!("C = {}", format_tick(b.min.budget)), pts).with_color(i));
+        iso.series.push(
+            Series::points(format!("C = {}", format_tick(b.min.budget)), pts)
+                .with_color(curve_color(i)),
+        );
         if let Some(curve) = parabola_curve(&b.min.points, b.min.parabola) {
-            iso.series.push(Series::line("", curve).with_color(i));
+            iso.series
+                .push(Series::line("", curve).with_color(curve_color(i)));
         }
     }
     let minima: Vec<(f64, f64)> = f
@@ -55,27 +68,41 @@ pub fn charts(f: &Fits) -> Vec<(String, Chart)> {
     }
     out.push(("isoflop_n".to_string(), iso));
 
-    if !f.vocab_minima.is_empty() {
+    // One chart of vocabulary curves per budget (one curve per N).
+    let mut budgets: Vec<f64> = f.vocab_minima.iter().map(|m| m.budget).collect();
+    budgets.dedup();
+    for (k, &c) in budgets.iter().enumerate() {
         let mut v = Chart::new(
-            "IsoFLOP curves over V at fixed N, fitted parabolas in log10 V",
+            format!(
+                "IsoFLOP curves over V at C = {}, parabolas in log10 V",
+                format_tick(c)
+            ),
             "vocabulary size V",
             format!("loss ({loss_name})"),
         );
         v.log_x = true;
-        for (i, m) in f.vocab_minima.iter().enumerate() {
-            let name = format!(
-                "C = {}, N = {}",
-                format_tick(m.budget),
-                format_tick(m.fixed_n.unwrap_or(f64::NAN))
-            );
-            v.series.push(
-                Series::points(name, m.points.iter().map(|p| (p[0], p[1])).collect()).with_color(i),
-            );
+        let at_c = f.vocab_minima.iter().filter(|m| m.budget == c);
+        for (i, m) in at_c.enumerate() {
+            let name = format!("N = {}", format_tick(m.fixed_n.unwrap_or(f64::NAN)));
+            let pts = m.points.iter().map(|p| (p[0], p[1])).collect();
+            v.series
+                .push(Series::points(name, pts).with_color(curve_color(i)));
             if let Some(curve) = parabola_curve(&m.points, m.parabola) {
-                v.series.push(Series::line("", curve).with_color(i));
+                v.series
+                    .push(Series::line("", curve).with_color(curve_color(i)));
             }
         }
-        out.push(("isoflop_v".to_string(), v));
+        let minima: Vec<(f64, f64)> = f
+            .vocab_minima
+            .iter()
+            .filter(|m| m.budget == c && m.interior)
+            .filter_map(|m| Some((m.opt?, m.loss_opt?)))
+            .collect();
+        if !minima.is_empty() {
+            v.series
+                .push(Series::points("interior minimum", minima).with_color(MINIMA_COLOR));
+        }
+        out.push((format!("isoflop_v_{}", k + 1), v));
     }
 
     for (key, law) in &f.power_laws {

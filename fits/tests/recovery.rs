@@ -96,8 +96,8 @@ fn chinchilla_standin_parameters_lie_in_their_bootstrap_intervals() {
 
 #[test]
 fn bootstrap_subset_starts_reach_the_full_grid_optimum() {
-    // The bootstrap refits each resample from the 16 best distinct end points of the full-data
-    // grid instead of all 4,500 starts; on resamples, that must find the same optimum.
+    // The bootstrap refits each resample from the best distinct local optima (up to 16) of the
+    // full-data grid instead of all 4,500 starts; on resamples, that must find the same optimum.
     let runs_raw = synth::chinchilla_standin(2);
     let n: Vec<f64> = runs_raw.iter().map(|r| r.n).collect();
     let d: Vec<f64> = runs_raw.iter().map(|r| r.d).collect();
