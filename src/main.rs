@@ -3,6 +3,7 @@
 
 mod bench;
 mod commands;
+mod fit;
 mod quickstart;
 mod text;
 
@@ -48,6 +49,10 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+    /// Fit scaling laws to a sweep's results table: fits.json + plots.
+    Fit(fit::FitArgs),
+    /// Predict model size, vocabulary, data and loss at a compute budget.
+    Predict(fit::PredictArgs),
     /// Measure throughput against the reference figures.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -99,6 +104,8 @@ enum BenchCommand {
     Ingest(bench::BenchIngestArgs),
     /// Time synthetic corpus building: generation + features, and the whole ingest.
     Synth(bench::BenchSynthArgs),
+    /// Time the whole `fit` command (4,500 starts + bootstrap) on a Chinchilla-like stand-in.
+    Fit(fit::BenchFitArgs),
 }
 
 fn main() -> ExitCode {
@@ -136,6 +143,9 @@ fn main() -> ExitCode {
         Command::Demo { out } => commands::demo(&out),
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
         Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
+        Command::Fit(args) => fit::fit(args),
+        Command::Predict(args) => fit::predict(args),
+        Command::Bench(BenchCommand::Fit(args)) => fit::bench(args),
     };
     match result {
         Ok(code) => code,
