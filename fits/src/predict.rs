@@ -27,8 +27,11 @@ pub const SCAMO_MODELS: [(&str, u32, u32); 6] = [
     ("ScaMo-3B", 24, 3200),
 ];
 
-/// Relative disagreement beyond which a consistency check fails (25%).
+/// Relative disagreement beyond which a consistency check of two quantities fails (25%).
 const TOLERANCE: f64 = 0.25;
+
+/// Absolute disagreement beyond which a consistency check of two exponents fails.
+const EXPONENT_TOLERANCE: f64 = 0.05;
 
 /// The laws a prediction uses.
 #[derive(Debug, Clone, PartialEq)]
@@ -145,23 +148,49 @@ pub struct Check {
     pub reference: f64,
     /// value / reference.
     pub ratio: f64,
-    /// Within ±25%.
+    /// The agreement required.
+    pub rule: String,
+    /// True when the rule holds.
     pub ok: bool,
     /// How the numbers were obtained.
     pub note: String,
 }
 
 impl Check {
-    fn new(name: &str, value: f64, reference: f64, note: String) -> Self {
-        let ratio = value / reference;
+    fn with(name: &str, value: f64, reference: f64, rule: String, ok: bool, note: String) -> Self {
         Self {
             name: name.into(),
             value,
             reference,
-            ratio,
-            ok: ratio.is_finite() && (ratio - 1.0).abs() <= TOLERANCE,
+            ratio: value / reference,
+            rule,
+            ok,
             note,
         }
+    }
+
+    /// Quantities that should agree within ±25%.
+    fn ratio(name: &str, value: f64, reference: f64, note: String) -> Self {
+        let r = value / reference;
+        let ok = r.is_finite() && (r - 1.0).abs() <= TOLERANCE;
+        let rule = format!("ratio within 1 ± {TOLERANCE}");
+        Self::with(name, value, reference, rule, ok, note)
+    }
+
+    /// Exponents that should agree within ±0.05.
+    fn exponent(name: &str, value: f64, reference: f64, note: String) -> Self {
+        let ok = (value - reference).abs() <= EXPONENT_TOLERANCE;
+        let rule = format!("difference within ± {EXPONENT_TOLERANCE}");
+        Self::with(name, value, reference, rule, ok, note)
+    }
+
+    /// A codebook size that should round to the FSQ level set of `reference`, inside the
+    /// available sizes (2^8..2^16, one octave of slack at either end).
+    fn codebook(name: &str, value: f64, reference: f64, note: String) -> Self {
+        let ok = fsq_for(value).0 == fsq_for(reference).0
+            && (2f64.powi(7)..=2f64.powi(17)).contains(&value);
+        let rule = "rounds to the same FSQ level set".to_string();
+        Self::with(name, value, reference, rule, ok, note)
     }
 }
 
@@ -330,7 +359,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
 
     // Consistency between the laws.
     if let (Some(t), Some(dd)) = (total, d) {
-        checks.push(Check::new(
+        checks.push(Check::ratio(
             "compute: 6·(N_nv + N_v)·D vs C",
             6.0 * t * dd.value,
             c,
@@ -338,7 +367,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         ));
     }
     if let (Some(a), Some(b)) = (&n_v, &n_v_from_n_nv_law) {
-        checks.push(Check::new(
+        checks.push(Check::ratio(
             "N_v: C-law vs N_nv-law",
             a.value,
             b.value,
@@ -346,7 +375,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         ));
     }
     if let (Some(n), Some(dl)) = (&laws.n, &laws.d) {
-        checks.push(Check::new(
+        checks.push(Check::exponent(
             "exponents: b + c (N_nv·D ∝ C^(b+c)) vs 1",
             n.exponent() + dl.exponent(),
             1.0,
@@ -354,7 +383,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         ));
     }
     if let (Some(nv), Some(dl)) = (&laws.nv, &laws.d) {
-        checks.push(Check::new(
+        checks.push(Check::exponent(
             "exponents: a + c (N_v·D ∝ C^(a+c)) vs 1",
             nv.exponent() + dl.exponent(),
             1.0,
@@ -362,7 +391,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         ));
     }
     if let (Some(n), Some(nv), Some(g)) = (&laws.n, &laws.nv, &laws.nv_vs_n) {
-        checks.push(Check::new(
+        checks.push(Check::exponent(
             "exponents: a / b (N_v ∝ N_nv^(a/b) from the C-laws) vs γ",
             nv.exponent() / n.exponent(),
             g.exponent(),
@@ -370,15 +399,24 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         ));
     }
     if laws.is_scamo {
-        paper_checks(c, &n_nv, &n_v, &d, &mut checks, &mut warnings);
+        paper_checks(
+            c,
+            &n_nv,
+            &n_v,
+            &n_v_from_n_nv_law,
+            &d,
+            &mut checks,
+            &mut warnings,
+        );
     }
     for ch in checks.iter().filter(|ch| !ch.ok) {
         warnings.push(format!(
-            "inconsistent: {}: {} vs {} (ratio {:.3}); {}",
+            "inconsistent: {}: {} vs {} (ratio {:.3}; needs {}); {}",
             ch.name,
             crate::report::sig(ch.value),
             crate::report::sig(ch.reference),
             ch.ratio,
+            ch.rule,
             ch.note
         ));
     }
@@ -410,6 +448,7 @@ fn paper_checks(
     c: f64,
     n_nv: &Option<Estimate>,
     n_v: &Option<Estimate>,
+    n_v_from_n_nv: &Option<Estimate>,
     d: &Option<Estimate>,
     checks: &mut Vec<Check>,
     warnings: &mut Vec<String>,
@@ -417,13 +456,13 @@ fn paper_checks(
     let paper_n = 12.0 * 24.0 * 3200f64.powi(2);
     let paper_v = 65536.0;
     let paper_d = 10f64.powf(7.5);
-    checks.push(Check::new(
+    checks.push(Check::exponent(
         "paper: N_v/N_nv exponent (text says C^1.315)",
         0.75 - 0.57,
         1.315,
         "N_v/N_nv ∝ C^(0.75−0.57) = C^0.18; 1.315 is the ratio 0.75/0.57, not an exponent".into(),
     ));
-    checks.push(Check::new(
+    checks.push(Check::exponent(
         "paper: N_nv/D exponent (text says C^1.325)",
         0.57 - 0.43,
         1.325,
@@ -437,7 +476,7 @@ fn paper_checks(
         return;
     }
     if let Some(n) = n_nv {
-        checks.push(Check::new(
+        checks.push(Check::ratio(
             "paper at 1e18: N_nv vs the 3B model trained",
             n.value,
             paper_n,
@@ -445,22 +484,30 @@ fn paper_checks(
         ));
     }
     if let Some(nv) = n_v {
-        checks.push(Check::new(
-            "paper at 1e18: V = N_v / 3200 vs 2^16",
+        checks.push(Check::codebook(
+            "paper at 1e18: V = N_v / 3200 (C-law) vs 2^16",
             nv.value / 3200.0,
             paper_v,
-            "the paper's codebook at its 3B width".into(),
+            "N_v from its C-law at the paper's 3B width".into(),
+        ));
+    }
+    if let Some(nv) = n_v_from_n_nv {
+        checks.push(Check::codebook(
+            "paper at 1e18: V = N_v / 3200 (N_nv-law) vs 2^16",
+            nv.value / 3200.0,
+            paper_v,
+            "N_v from the N_v–N_nv law at the predicted N_nv, at the paper's 3B width".into(),
         ));
     }
     if let Some(dd) = d {
-        checks.push(Check::new(
+        checks.push(Check::ratio(
             "paper at 1e18: D vs 10^7.5 tokens",
             dd.value,
             paper_d,
             "the paper states about 10^7.5 tokens".into(),
         ));
     }
-    checks.push(Check::new(
+    checks.push(Check::ratio(
         "paper at 1e18: 6·(N_nv + N_v)·D of the run trained vs C",
         6.0 * (paper_n + paper_v * 3200.0) * paper_d,
         c,
@@ -547,7 +594,20 @@ mod tests {
         let from_n = 10f64.powf(-5.604 + 1.467 * n_nv.log10());
         assert!((laws.ratio - n_v / from_n).abs() < 1e-9 && !laws.ok);
         assert!(!check("paper at 1e18: N_nv").ok);
-        assert!(check("paper at 1e18: V").ok, "N_v/3200 rounds to 2^16");
+        assert!(
+            check("paper at 1e18: V = N_v / 3200 (C-law)").ok,
+            "N_v/3200 rounds to 2^16"
+        );
+        assert!(
+            !check("paper at 1e18: V = N_v / 3200 (N_nv-law)").ok,
+            "151k is past 2^17"
+        );
+        assert!(!check("exponents: a + c").ok, "0.75 + 0.43 = 1.18");
+        assert!(check("exponents: b + c").ok, "0.57 + 0.43 = 1");
+        assert!(
+            !check("exponents: a / b").ok,
+            "0.75 / 0.57 = 1.316 vs 1.467"
+        );
         assert!(!check("paper at 1e18: D").ok);
         assert!(p
             .warnings
