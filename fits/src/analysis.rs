@@ -470,29 +470,26 @@ pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
     };
 
     // The parametric fit.
-    let param_loss = match optional(t, &cs.param_loss, "--param-loss-col")? {
-        Some(l) => {
-            used.insert("parametric_loss".into(), Some(cs.param_loss.name.clone()));
-            Some((cs.param_loss.name.clone(), l))
-        }
+    let (name, pl) = match optional(t, &cs.param_loss, "--param-loss-col")? {
+        Some(l) => (cs.param_loss.name.clone(), l),
         None => {
             notes.push(format!(
                 "no column {:?}: the parametric fit uses {:?}",
                 cs.param_loss.name, cs.loss.name
             ));
-            used.insert("parametric_loss".into(), Some(cs.loss.name.clone()));
-            Some((cs.loss.name.clone(), loss.clone()))
+            (cs.loss.name.clone(), loss.clone())
         }
     };
-    let parametric = match (&d, param_loss) {
-        (None, _) | (_, None) => {
+    used.insert("parametric_loss".into(), Some(name.clone()));
+    let parametric = match &d {
+        None => {
             skipped.push(format!(
                 "parametric L(N, D): no tokens column {:?}",
                 cs.d.name
             ));
             None
         }
-        (Some(d), Some((name, pl))) => {
+        Some(d) => {
             if let Some(row) = pl.iter().position(|&l| l <= 0.0) {
                 skipped.push(format!(
                     "parametric L(N, D): {name:?} has a non-positive loss ({}) at row {}; fit a positive loss with --param-loss-col",

@@ -51,6 +51,8 @@ pub struct LineFit {
     pub slope: Estimate,
     /// cov(intercept, slope).
     pub cov: Option<f64>,
+    /// Points fitted.
+    pub n_points: usize,
     /// Residual degrees of freedom (points − 2).
     pub dof: usize,
     /// R² of the line.
@@ -70,6 +72,7 @@ impl LineFit {
             intercept: Estimate::with_se(line.intercept, line.ols.se(0), dof),
             slope: Estimate::with_se(line.slope, line.ols.se(1), dof),
             cov: line.ols.cov.as_ref().map(|c| c[0][1]),
+            n_points: x.len(),
             dof,
             r2: line.ols.r2.is_finite().then_some(line.ols.r2),
             points: x.iter().zip(y).map(|(&a, &b)| [a, b]).collect(),
@@ -83,6 +86,7 @@ impl LineFit {
             intercept: Estimate::exact(intercept),
             slope: Estimate::exact(slope),
             cov: None,
+            n_points: 0,
             dof: 0,
             r2: None,
             points: Vec::new(),

@@ -4,6 +4,7 @@
 
 pub mod analysis;
 mod error;
+mod fastmath;
 pub mod isoflop;
 pub mod laws;
 pub mod lbfgs;

@@ -283,7 +283,7 @@ pub fn summary(f: &Fits) -> String {
             law.equation(),
             estimate_text(&law.fit.slope),
             r2_text(law.fit.r2),
-            law.fit.points.len()
+            law.fit.n_points
         );
     }
     if let Some(law) = &f.log_law {
