@@ -518,6 +518,7 @@ pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
     };
     if power_laws.is_empty() && log_law.is_none() && parametric.is_none() {
         return Err(FitError::TooFew {
+            path: t.path().to_path_buf(),
             fit: "any law".into(),
             message: format!(
                 "{} rows in {} budget group(s), {} interior IsoFLOP minima; {}",

@@ -46,8 +46,10 @@ pub enum FitError {
         problem: String,
     },
     /// Not enough data for a required fit.
-    #[error("too few runs for {fit}: {message}")]
+    #[error("{}: too few runs for {fit}: {message}", path.display())]
     TooFew {
+        /// The results file.
+        path: PathBuf,
         /// The fit.
         fit: String,
         /// Counts and what is needed.

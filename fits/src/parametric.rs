@@ -10,9 +10,6 @@ use crate::rng::Rng;
 use crate::FitError;
 use rayon::prelude::*;
 
-/// Index of each parameter in θ.
-pub const PARAM_NAMES: [&str; 5] = ["a", "b", "e", "alpha", "beta"];
-
 /// Runs in log space: ln N, ln D, ln L.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LogRuns {

@@ -221,7 +221,7 @@ fn bad_inputs_name_the_file_the_column_and_the_row() {
     let err = fit_table(&t, &FitOptions::default())
         .unwrap_err()
         .to_string();
-    assert!(err.contains("too few runs"), "{err}");
+    assert!(err.contains("bad.csv: too few runs"), "{err}");
 
     std::fs::write(&csv, "n_nv,budget,norm_test_loss\n-1,1e15,2.0\n").unwrap();
     let err = fit_table(&Table::read(&csv).unwrap(), &FitOptions::default())
