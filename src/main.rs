@@ -4,6 +4,7 @@
 mod bench;
 mod bench_tokenizer;
 mod commands;
+mod fit;
 mod quickstart;
 mod text;
 mod tokenizer_cmd;
@@ -55,6 +56,10 @@ enum Command {
     Tokenizer(TokenizerCommand),
     /// Turn every clip of a corpus into token ids with a trained tokenizer (a token set).
     Tokenize(tokenizer_cmd::TokenizeArgs),
+    /// Fit scaling laws to a sweep's results table: fits.json + plots.
+    Fit(fit::FitArgs),
+    /// Predict model size, vocabulary, data and loss at a compute budget.
+    Predict(fit::PredictArgs),
     /// Measure throughput against the reference figures.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -120,6 +125,8 @@ enum BenchCommand {
     Synth(bench::BenchSynthArgs),
     /// Time tokenizer training steps (FSQ, VQ) at the T2M-GPT shape; --reference runs PyTorch too.
     Tokenizer(bench_tokenizer::BenchTokenizerArgs),
+    /// Time the whole `fit` command (4,500 starts + bootstrap) on a Chinchilla-like stand-in.
+    Fit(fit::BenchFitArgs),
 }
 
 fn main() -> ExitCode {
@@ -163,6 +170,9 @@ fn main() -> ExitCode {
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
         Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
         Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
+        Command::Fit(args) => fit::fit(args),
+        Command::Predict(args) => fit::predict(args),
+        Command::Bench(BenchCommand::Fit(args)) => fit::bench(args),
     };
     match result {
         Ok(code) => code,
