@@ -12,7 +12,6 @@ pub mod ols;
 pub mod parametric;
 pub mod predict;
 pub mod report;
-pub mod rng;
 pub mod synth;
 pub mod table;
 

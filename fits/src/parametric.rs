@@ -6,8 +6,8 @@
 
 use crate::fastmath;
 use crate::lbfgs::{minimize, LbfgsOptions, Minimum, Termination};
-use crate::rng::Rng;
 use crate::FitError;
+use ingest::rng::SplitMix64;
 use rayon::prelude::*;
 
 /// Runs in log space: ln N, ln D, ln L.
@@ -390,8 +390,8 @@ pub fn bootstrap(
 
 /// Bootstrap resample `i` of `runs` for `seed`: as many runs as the original, drawn with replacement.
 pub fn resample(runs: &LogRuns, seed: u64, i: usize) -> LogRuns {
-    let mut rng = Rng::new(seed, i as u64);
-    let idx: Vec<usize> = (0..runs.len()).map(|_| rng.below(runs.len())).collect();
+    let mut rng = SplitMix64::stream(seed, i as u64);
+    let idx: Vec<usize> = (0..runs.len()).map(|_| rng.index(runs.len())).collect();
     runs.select(&idx)
 }
 

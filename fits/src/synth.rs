@@ -1,7 +1,7 @@
 //! Synthetic results tables with known laws and noise: for checking that the fitters recover
 //! what they should, and for the `bench fit` timing.
 
-use crate::rng::Rng;
+use ingest::rng::SplitMix64;
 use std::io::Write;
 use std::path::Path;
 
@@ -74,13 +74,13 @@ pub fn isoflop_runs(
     c_jitter: f64,
     seed: u64,
 ) -> Vec<Run> {
-    let mut rng = Rng::new(seed, 0);
+    let mut rng = SplitMix64::stream(seed, 0);
     let mut out = Vec::with_capacity(budgets.len() * per_budget);
     for &budget in budgets {
         let centre = law.n_opt(budget).log10();
         for k in 0..per_budget {
             let frac = k as f64 / (per_budget.max(2) - 1) as f64;
-            let ln = centre - 0.8 + 1.6 * frac + 0.02 * (2.0 * rng.uniform() - 1.0);
+            let ln = centre - 0.8 + 1.6 * frac + 0.02 * (2.0 * rng.unit() - 1.0);
             let n = 10f64.powf(ln);
             let c = budget * (c_jitter * rng.normal()).exp();
             let d = c / (6.0 * n);
@@ -189,13 +189,14 @@ pub const SWEEP_COLUMNS: [&str; 14] = [
 ];
 
 /// A ScaMo-style sweep from [`VOCAB_LAW`]: 7 budgets (1e15–1e18) × 7 widths (64–512, layers =
-/// d/32, N_nv = 12·layers·d²) × 5 codebooks (2^8–2^16), with 1% log-normal loss noise.
+/// d/32, N_nv = 12·layers·d²) × 6 codebooks (2^6–2^16, so that even the narrowest width's
+/// optimum, near 2^8, is interior), with 1% log-normal loss noise.
 pub fn vocab_sweep(seed: u64) -> Vec<SweepRow> {
     let law = VOCAB_LAW;
-    let mut rng = Rng::new(seed, 1);
+    let mut rng = SplitMix64::stream(seed, 1);
     let budgets = [1e15, 3e15, 1e16, 3e16, 1e17, 3e17, 1e18];
     let widths = [64u32, 96, 128, 192, 256, 384, 512];
-    let vocabs = [256.0, 1024.0, 4096.0, 16384.0, 65536.0];
+    let vocabs = [64.0, 256.0, 1024.0, 4096.0, 16384.0, 65536.0];
     let mut rows = Vec::new();
     for &c in &budgets {
         for &d in &widths {
