@@ -4,6 +4,7 @@
 mod bench;
 mod bench_tokenizer;
 mod commands;
+mod fit;
 mod lm;
 mod lm_bench;
 mod quickstart;
@@ -57,6 +58,10 @@ enum Command {
     Tokenizer(TokenizerCommand),
     /// Turn every clip of a corpus into token ids with a trained tokenizer (a token set).
     Tokenize(tokenizer_cmd::TokenizeArgs),
+    /// Fit scaling laws to a sweep's results table: fits.json + plots.
+    Fit(fit::FitArgs),
+    /// Predict model size, vocabulary, data and loss at a compute budget.
+    Predict(fit::PredictArgs),
     /// Measure throughput against the reference figures.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -139,6 +144,8 @@ enum BenchCommand {
     Train(lm_bench::BenchTrainArgs),
     /// Time tokenizer training steps (FSQ, VQ) at the T2M-GPT shape; --reference runs PyTorch too.
     Tokenizer(bench_tokenizer::BenchTokenizerArgs),
+    /// Time the whole `fit` command (4,500 starts + bootstrap) on a Chinchilla-like stand-in.
+    Fit(fit::BenchFitArgs),
 }
 
 fn main() -> ExitCode {
@@ -187,6 +194,9 @@ fn main() -> ExitCode {
         Command::Train(args) => lm::train(args),
         Command::Generate(args) => lm::generate(args),
         Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
+        Command::Fit(args) => fit::fit(args),
+        Command::Predict(args) => fit::predict(args),
+        Command::Bench(BenchCommand::Fit(args)) => fit::bench(args),
     };
     match result {
         Ok(code) => code,

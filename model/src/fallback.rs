@@ -59,7 +59,7 @@ impl FallbackEncoder {
         let mut rng = SplitMix64(seed);
         let std = (1.0 / dim as f64).sqrt();
         let table = (0..vocab.len() * dim)
-            .map(|_| (normal(&mut rng) * std) as f32)
+            .map(|_| (rng.normal() * std) as f32)
             .collect();
         Self::from_parts(vocab, table, dim).map_err(ModelError::Argument)
     }
@@ -175,13 +175,6 @@ fn serialize(
     let weights =
         safetensors::serialize([(EMBEDDINGS_KEY, view)], None).map_err(ModelError::inference)?;
     Ok((vocab_bytes, weights))
-}
-
-/// A standard normal draw (Box–Muller on two uniforms in (0, 1]).
-fn normal(rng: &mut SplitMix64) -> f64 {
-    let uniform = |rng: &mut SplitMix64| ((rng.next_u64() >> 11) + 1) as f64 / (1u64 << 53) as f64;
-    let (u1, u2) = (uniform(rng), uniform(rng));
-    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }
 
 impl TextEncoder for FallbackEncoder {

@@ -13,6 +13,9 @@ pub const WIDTH: u32 = 960;
 /// Chart height in pixels (PNG) and user units (SVG).
 pub const HEIGHT: u32 = 640;
 
+/// Number of palette colours ([`Series::with_color`] indices wrap around).
+pub const PALETTE_LEN: usize = 12;
+
 /// How a series is drawn.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Style {
@@ -194,7 +197,10 @@ mod tests {
         ));
         chart.series.push(Series::line(
             "VQ",
-            sizes.iter().map(|&v| (v, 1.2 - v.log2() * 0.06)).collect(),
+            (0..50)
+                .map(|k| 256.0 * 1.12f64.powi(k))
+                .map(|v| (v, 1.2 - v.log2() * 0.06))
+                .collect(),
         ));
         chart
     }
@@ -218,6 +224,10 @@ mod tests {
             );
         }
         assert!(svg.contains("<circle"), "markers are drawn");
+        assert!(
+            svg.contains("\n16384\n</text>"),
+            "powers-of-two ticks from the markers"
+        );
         assert!(svg.contains("<polyline"), "the line is drawn");
     }
 

@@ -8,8 +8,8 @@ use plotters::prelude::*;
 use std::ops::Range;
 use std::sync::OnceLock;
 
-/// Line and marker colours (colour-blind-safe Okabe–Ito order, then greys).
-const PALETTE: [RGBColor; 9] = [
+/// Line and marker colours (colour-blind-safe Okabe–Ito order, black, grey, then three more).
+const PALETTE: [RGBColor; crate::PALETTE_LEN] = [
     RGBColor(0, 114, 178),
     RGBColor(213, 94, 0),
     RGBColor(0, 158, 115),
@@ -19,6 +19,9 @@ const PALETTE: [RGBColor; 9] = [
     RGBColor(120, 94, 240),
     RGBColor(0, 0, 0),
     RGBColor(128, 128, 128),
+    RGBColor(140, 86, 75),
+    RGBColor(150, 150, 0),
+    RGBColor(0, 128, 128),
 ];
 
 /// Font family name the embedded DejaVu Sans is registered under.
@@ -84,7 +87,8 @@ struct Axis {
 }
 
 impl Axis {
-    fn new(log: bool, values: &[f64], explicit: Option<&[f64]>) -> Self {
+    /// `values` set the range; `marks` (the measured points) choose between tick systems.
+    fn new(log: bool, values: &[f64], marks: &[f64], explicit: Option<&[f64]>) -> Self {
         let (mut lo, mut hi) = values
             .iter()
             .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
@@ -105,7 +109,7 @@ impl Axis {
         hi = from_plot(phi);
         let ticks = match explicit {
             Some(t) => t.to_vec(),
-            None if log => log_ticks(lo, hi, values),
+            None if log => log_ticks(lo, hi, marks),
             None => linear_ticks(lo, hi),
         };
         let ticks = ticks
@@ -163,8 +167,23 @@ impl Layout {
                 title: chart.title.clone(),
             });
         }
-        let x = Axis::new(chart.log_x, &xs, chart.x_ticks.as_deref());
-        let y = Axis::new(chart.log_y, &ys, None);
+        // Tick systems follow the measured points (markers), not sampled fitted curves.
+        let marks = |pick: fn(&(f64, f64)) -> f64| -> Vec<f64> {
+            let m: Vec<f64> = chart
+                .series
+                .iter()
+                .zip(&kept)
+                .filter(|(s, _)| s.style == Style::Points)
+                .flat_map(|(_, pts)| pts.iter().map(pick))
+                .collect();
+            if m.is_empty() {
+                kept.iter().flatten().map(pick).collect()
+            } else {
+                m
+            }
+        };
+        let x = Axis::new(chart.log_x, &xs, &marks(|p| p.0), chart.x_ticks.as_deref());
+        let y = Axis::new(chart.log_y, &ys, &marks(|p| p.1), None);
         let series: Vec<Vec<(f64, f64)>> = kept
             .into_iter()
             .map(|pts| {

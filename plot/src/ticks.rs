@@ -20,14 +20,16 @@ pub fn linear_ticks(lo: f64, hi: f64) -> Vec<f64> {
 
 /// Tick positions (in data units, all > 0) for a log axis covering `[lo, hi]` (`0 < lo < hi`).
 ///
-/// Powers of two when every data value is a power of two (codebook sizes: 256, 1024, 4096),
+/// Powers of two when at least 3/4 of the data values are powers of two (codebook sizes:
+/// 256, 1024, 4096, with a few fitted optima among them),
 /// otherwise decades (every k-th decade when there are many), with 2× and 5× marks when the
 /// range spans few decades, and plain linear ticks inside a single decade.
 pub fn log_ticks(lo: f64, hi: f64, data: &[f64]) -> Vec<f64> {
     if !(lo > 0.0 && hi > lo) {
         return vec![lo];
     }
-    let powers_of_two = !data.is_empty() && data.iter().all(|&v| is_power_of_two(v));
+    let twos = data.iter().filter(|&&v| is_power_of_two(v)).count();
+    let powers_of_two = !data.is_empty() && 4 * twos >= 3 * data.len();
     if powers_of_two {
         let first = lo.log2().ceil() as i32;
         let last = hi.log2().floor() as i32;
@@ -89,8 +91,13 @@ pub fn format_tick(v: f64) -> String {
     if (1e-3..1e6).contains(&a) {
         return trim(format!("{:.*}", decimals(a), v));
     }
-    let exp = a.log10().floor() as i32;
-    let mantissa = v / 10f64.powi(exp);
+    let mut exp = a.log10().floor() as i32;
+    // The mantissa as shown (two decimals); 9.998 rounds up to the next power.
+    let mut mantissa = (v / 10f64.powi(exp) * 100.0).round() / 100.0;
+    if mantissa.abs() >= 10.0 {
+        mantissa /= 10.0;
+        exp += 1;
+    }
     let power = format!("10{}", superscript(exp));
     if (mantissa.abs() - 1.0).abs() < 1e-9 {
         if mantissa < 0.0 {
@@ -144,6 +151,10 @@ mod tests {
         let labels: Vec<String> = ticks.iter().map(|&t| format_tick(t)).collect();
         assert!(labels.contains(&"1024".to_string()), "{labels:?}");
         assert!(labels.contains(&"4096".to_string()), "{labels:?}");
+        let mixed = [256.0, 1024.0, 4096.0, 700.0];
+        assert_eq!(log_ticks(200.0, 5000.0, &mixed).first(), Some(&256.0));
+        let measured = [240.0, 1000.0, 4375.0];
+        assert_eq!(log_ticks(200.0, 5000.0, &measured).first(), Some(&200.0));
     }
 
     #[test]
@@ -175,5 +186,7 @@ mod tests {
         assert_eq!(format_tick(3e-4), "3×10⁻⁴");
         assert_eq!(format_tick(2.5e9), "2.5×10⁹");
         assert_eq!(format_tick(-1e7), "−10⁷");
+        assert_eq!(format_tick(9.998e19), "10²⁰");
+        assert_eq!(format_tick(6.006e18), "6.01×10¹⁸");
     }
 }

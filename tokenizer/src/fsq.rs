@@ -152,20 +152,11 @@ impl FsqQuantizer {
     /// `shift`, `half_width`, `basis`), so a saved state dict loads there strictly.
     pub fn buffers(&self) -> Vec<(&'static str, Vec<f32>)> {
         let levels: Vec<f64> = self.levels.iter().map(|&l| l as f64).collect();
-        let half_l: Vec<f64> = levels
-            .iter()
-            .map(|l| (l - 1.0) * (1.0 + TANH_EPS) / 2.0)
-            .collect();
-        let offset: Vec<f64> = self
-            .levels
-            .iter()
-            .map(|&l| if l % 2 == 0 { 0.5 } else { 0.0 })
-            .collect();
-        let shift: Vec<f64> = offset
-            .iter()
-            .zip(&half_l)
-            .map(|(o, h)| (o / h).atanh())
-            .collect();
+        let TanhConstants {
+            half_l,
+            offset,
+            shift,
+        } = self.tanh_constants();
         let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
         vec![
             ("L", f32s(&levels)),
@@ -181,21 +172,11 @@ impl FsqQuantizer {
     pub fn bound(&self, z: &Tensor) -> Result<Tensor, TokenizerError> {
         let bounded = match self.bound {
             Bound::Tanh => {
-                let half_l: Vec<f64> = self
-                    .levels
-                    .iter()
-                    .map(|&l| (l as f64 - 1.0) * (1.0 + TANH_EPS) / 2.0)
-                    .collect();
-                let offset: Vec<f64> = self
-                    .levels
-                    .iter()
-                    .map(|&l| if l % 2 == 0 { 0.5 } else { 0.0 })
-                    .collect();
-                let shift: Vec<f64> = offset
-                    .iter()
-                    .zip(&half_l)
-                    .map(|(o, h)| (o / h).atanh())
-                    .collect();
+                let TanhConstants {
+                    half_l,
+                    offset,
+                    shift,
+                } = self.tanh_constants();
                 z.broadcast_add(&channel_const(&shift, z)?)?
                     .tanh()?
                     .broadcast_mul(&channel_const(&half_l, z)?)?
@@ -249,6 +230,30 @@ impl FsqQuantizer {
         Ok(digits.broadcast_sub(&half)?.broadcast_div(&half)?)
     }
 
+    /// Per-channel constants of the tanh bound (see [`Bound::Tanh`]).
+    fn tanh_constants(&self) -> TanhConstants {
+        let half_l: Vec<f64> = self
+            .levels
+            .iter()
+            .map(|&l| (l as f64 - 1.0) * (1.0 + TANH_EPS) / 2.0)
+            .collect();
+        let offset: Vec<f64> = self
+            .levels
+            .iter()
+            .map(|&l| if l % 2 == 0 { 0.5 } else { 0.0 })
+            .collect();
+        let shift = offset
+            .iter()
+            .zip(&half_l)
+            .map(|(o, h)| (o / h).atanh())
+            .collect();
+        TanhConstants {
+            half_l,
+            offset,
+            shift,
+        }
+    }
+
     /// `L_i / 2` (integer division) per channel: the divisor that normalises levels.
     fn half_widths(&self) -> Vec<f64> {
         self.levels.iter().map(|&l| (l / 2) as f64).collect()
@@ -265,6 +270,13 @@ impl FsqQuantizer {
             })
             .collect()
     }
+}
+
+/// `half_l`, `offset` and `shift` of the tanh bound, per channel.
+struct TanhConstants {
+    half_l: Vec<f64>,
+    offset: Vec<f64>,
+    shift: Vec<f64>,
 }
 
 /// A per-channel constant (`d_q`) on the device and in the dtype of `like`, broadcasting

@@ -1,11 +1,17 @@
-//! Quantizers of the motion tokenizers (issue 3) and their codebook metrics.
+//! Motion tokenizers (issue 3): T2M-GPT convolutional VAEs with an FSQ or VQ bottleneck that
+//! turn HumanML3D-263 motion into one token per 4 frames, and everything around them.
 //!
-//! [`FsqQuantizer`] (finite scalar quantization, Mentzer et al.) and [`VqQuantizer`]
-//! (nearest-code VQ with an EMA codebook and dead-code reset, as in T2M-GPT) both map
-//! encoder outputs (`..., dim`) to a straight-through quantized tensor and one code index
-//! per position; [`CodeUsage`] turns those indices into utilisation and perplexity.
-//! [`ConvEncoder`] and [`ConvDecoder`] are the T2M-GPT convolutional networks around them.
-//! The `cuda` feature (off by default) builds candle with CUDA.
+//! - [`ConvEncoder`] / [`ConvDecoder`]: the T2M-GPT networks, channels-last, on the fused
+//!   convolution of [`conv_op`] (im2col + AVX-512 gemm with ReLU and up-sampling fused in).
+//! - [`FsqQuantizer`] (Mentzer et al.'s finite scalar quantization, tanh or ScaMo's sigmoid
+//!   bound) and [`VqQuantizer`] (EMA codebook with dead-code reset); [`CodeUsage`] metrics.
+//! - [`model::MotionTokenizer`]: encoder + quantizer + decoder + normalisation statistics,
+//!   saved as a checkpoint PyTorch loads; [`train`], [`evaluate`], [`sweep`] and [`tokens`]
+//!   (token sets, the transformer stage's input). [`optim`] (AdamW with saveable state and a
+//!   warm-up + cosine schedule) and [`checkpoint`] are shared with later training stages.
+//!
+//! The `cuda` feature (off by default) builds candle with CUDA; the fused CPU ops then fall
+//! back to candle's own ops on GPU tensors.
 
 pub mod checkpoint;
 pub mod conv;

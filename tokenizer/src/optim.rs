@@ -8,12 +8,11 @@
 
 use crate::error::TokenizerError;
 use candle_core::backprop::GradStore;
-use candle_core::{CpuStorage, DType, Device, InplaceOp2, Layout, Storage, Tensor, Var};
+use candle_core::{Device, Tensor, Var};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::Path;
-use std::sync::Mutex;
 
 /// AdamW hyper-parameters (the learning rate comes from the schedule at every step).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -66,6 +65,9 @@ impl LrSchedule {
     }
 }
 
+/// Elements per parallel task of the update.
+const CHUNK: usize = 16 * 1024;
+
 /// One parameter with its moments.
 struct Slot {
     name: String,
@@ -110,34 +112,36 @@ impl AdamW {
         self.step
     }
 
-    /// Global L2 norm of the gradients of the optimised variables.
-    pub fn grad_norm(&self, grads: &GradStore) -> Result<f64, TokenizerError> {
-        let mut total = 0f64;
-        for slot in &self.slots {
-            if let Some(g) = grads.get(slot.var.as_tensor()) {
-                total += match cpu_sum_of_squares(g) {
-                    Some(sum) => sum,
-                    None => g
-                        .to_dtype(DType::F64)?
-                        .sqr()?
-                        .sum_all()?
-                        .to_scalar::<f64>()?,
-                };
-            }
-        }
-        Ok(total.sqrt())
-    }
-
     /// One AdamW step at learning rate `lr`, gradients first scaled so their global norm is
     /// at most `max_norm` (none when `None`). Variables without a gradient are left alone.
-    /// Returns the gradient norm before clipping.
+    /// Returns the global gradient norm before clipping.
     pub fn step(
         &mut self,
         grads: &GradStore,
         lr: f64,
         max_norm: Option<f64>,
     ) -> Result<f64, TokenizerError> {
-        let norm = self.grad_norm(grads)?;
+        let grads: Vec<Option<Vec<f32>>> = self
+            .slots
+            .iter()
+            .map(|slot| {
+                grads
+                    .get(slot.var.as_tensor())
+                    .map(|g| g.flatten_all()?.to_vec1::<f32>())
+                    .transpose()
+            })
+            .collect::<candle_core::Result<_>>()?;
+        // Sums of squares per fixed chunk in parallel, added in order: deterministic.
+        let squares: Vec<f64> = grads
+            .iter()
+            .flatten()
+            .flat_map(|g| {
+                g.par_chunks(CHUNK)
+                    .map(|c| c.iter().map(|&v| (v as f64) * (v as f64)).sum::<f64>())
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        let norm = squares.iter().sum::<f64>().sqrt();
         let scale = match max_norm {
             Some(max) if norm > max => (max / (norm + 1e-6)) as f32,
             _ => 1.0,
@@ -146,29 +150,29 @@ impl AdamW {
         let c = self.config;
         let t = self.step as i32;
         let (bias1, bias2) = (1.0 - c.beta1.powi(t), 1.0 - c.beta2.powi(t));
-        let update = Update {
-            scale,
-            step_size: (lr / bias1) as f32,
-            bias2_sqrt: bias2.sqrt() as f32,
-            decay: (1.0 - lr * c.weight_decay) as f32,
-            b1: c.beta1 as f32,
-            b2: c.beta2 as f32,
-            eps: c.eps as f32,
-        };
-        for slot in &mut self.slots {
-            let Some(grad) = grads.get(slot.var.as_tensor()) else {
+        let step_size = (lr / bias1) as f32;
+        let bias2_sqrt = bias2.sqrt() as f32;
+        let decay = (1.0 - lr * c.weight_decay) as f32;
+        let (b1, b2, eps) = (c.beta1 as f32, c.beta2 as f32, c.eps as f32);
+        for (slot, grad) in self.slots.iter_mut().zip(grads) {
+            let Some(grad) = grad else {
                 continue;
             };
             let var = slot.var.as_tensor();
-            if var.device().is_cpu() && var.is_contiguous() {
-                // The parameter is updated in its own storage (no copies).
-                let moments = Mutex::new((&mut slot.m, &mut slot.v));
-                var.inplace_op2(&grad.contiguous()?, &InPlace { update, moments })?;
-                continue;
-            }
-            let grad = grad.flatten_all()?.to_vec1::<f32>()?;
             let mut p = var.flatten_all()?.to_vec1::<f32>()?;
-            update.apply(&mut p, &mut slot.m, &mut slot.v, &grad);
+            p.par_chunks_mut(CHUNK)
+                .zip(slot.m.par_chunks_mut(CHUNK))
+                .zip(slot.v.par_chunks_mut(CHUNK))
+                .zip(grad.par_chunks(CHUNK))
+                .for_each(|(((p, m), v), g)| {
+                    for i in 0..p.len() {
+                        let g = g[i] * scale;
+                        m[i] = b1 * m[i] + (1.0 - b1) * g;
+                        v[i] = b2 * v[i] + (1.0 - b2) * g * g;
+                        let denom = v[i].sqrt() / bias2_sqrt + eps;
+                        p[i] = p[i] * decay - step_size * m[i] / denom;
+                    }
+                });
             let shape = var.shape().clone();
             slot.var.set(&Tensor::from_vec(p, shape, var.device())?)?;
         }
@@ -224,87 +228,6 @@ impl AdamW {
         }
         let halves = get("step")?.to_vec1::<u32>()?;
         self.step = u64::from(halves[0]) | (u64::from(halves[1]) << 32);
-        Ok(())
-    }
-}
-
-/// Sum of squares of a contiguous f32 CPU tensor, read in place: f64 sums of 4096-value
-/// chunks added in order (`None` for any other tensor).
-fn cpu_sum_of_squares(t: &Tensor) -> Option<f64> {
-    let (storage, layout) = t.storage_and_layout();
-    let (Storage::Cpu(CpuStorage::F32(values)), Some((start, end))) =
-        (&*storage, layout.contiguous_offsets())
-    else {
-        return None;
-    };
-    let chunks: Vec<f64> = values[start..end]
-        .par_chunks(4096)
-        .map(|c| c.iter().map(|&x| f64::from(x) * f64::from(x)).sum())
-        .collect();
-    Some(chunks.iter().sum())
-}
-
-/// The scalars of one AdamW step.
-#[derive(Clone, Copy)]
-struct Update {
-    scale: f32,
-    step_size: f32,
-    bias2_sqrt: f32,
-    decay: f32,
-    b1: f32,
-    b2: f32,
-    eps: f32,
-}
-
-impl Update {
-    /// Update parameters `p` and moments `m`, `v` from gradients `g`, in place.
-    fn apply(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
-        let u = *self;
-        p.par_chunks_mut(4096)
-            .zip(m.par_chunks_mut(4096))
-            .zip(v.par_chunks_mut(4096))
-            .zip(g.par_chunks(4096))
-            .for_each(|(((p, m), v), g)| {
-                for i in 0..p.len() {
-                    let g = g[i] * u.scale;
-                    m[i] = u.b1 * m[i] + (1.0 - u.b1) * g;
-                    v[i] = u.b2 * v[i] + (1.0 - u.b2) * g * g;
-                    let denom = v[i].sqrt() / u.bias2_sqrt + u.eps;
-                    p[i] = p[i] * u.decay - u.step_size * m[i] / denom;
-                }
-            });
-    }
-}
-
-/// [`Update`] as an in-place candle op on a CPU parameter, its gradient the one source.
-struct InPlace<'a> {
-    update: Update,
-    moments: Mutex<(&'a mut Vec<f32>, &'a mut Vec<f32>)>,
-}
-
-impl InplaceOp2 for InPlace<'_> {
-    fn name(&self) -> &'static str {
-        "adamw-update"
-    }
-
-    fn cpu_fwd(
-        &self,
-        dst: &mut CpuStorage,
-        dst_l: &Layout,
-        src: &CpuStorage,
-        src_l: &Layout,
-    ) -> candle_core::Result<()> {
-        let (CpuStorage::F32(p), CpuStorage::F32(g)) = (dst, src) else {
-            candle_core::bail!("adamw-update: f32 parameters and gradients only")
-        };
-        let (Some((p0, p1)), Some((g0, g1))) =
-            (dst_l.contiguous_offsets(), src_l.contiguous_offsets())
-        else {
-            candle_core::bail!("adamw-update: contiguous tensors only")
-        };
-        let mut moments = self.moments.lock().expect("moments lock");
-        let (m, v) = &mut *moments;
-        self.update.apply(&mut p[p0..p1], m, v, &g[g0..g1]);
         Ok(())
     }
 }

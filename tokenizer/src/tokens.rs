@@ -74,7 +74,7 @@ pub struct TokenizerInfo {
     pub quantizer: String,
     /// Number of distinct token ids (the real codebook size, e.g. 1000 for FSQ "2^10").
     pub codebook_size: usize,
-    /// Codebook size as requested (e.g. 1024 for FSQ's [8,5,5,5]).
+    /// Codebook size as requested (e.g. 1024 for FSQ's `[8, 5, 5, 5]`).
     pub nominal_codebook: usize,
     /// Frames per token.
     pub downsample: usize,

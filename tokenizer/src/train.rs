@@ -165,6 +165,9 @@ pub fn train(
     };
     let corpus = Corpus::open(corpus_dir).map_err(|e| corpus_error(corpus_dir, e))?;
     let (mut model, mut state) = resume_or_start(&spec, &corpus, out, device)?;
+    if state.step >= config.steps {
+        return Ok(state);
+    }
     let mut optimizer = optimizer_for(&model, &config);
     let optimizer_path = out.join("optimizer.safetensors");
     if state.step > 0 {

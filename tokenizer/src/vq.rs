@@ -87,7 +87,7 @@ impl VqQuantizer {
     pub fn new(config: &VqConfig, device: &Device, seed: u64) -> Result<Self, TokenizerError> {
         let mut rng = SplitMix64(seed);
         let values: Vec<f32> = (0..config.codebook_size * config.dim)
-            .map(|_| normal(&mut rng) as f32)
+            .map(|_| rng.normal() as f32)
             .collect();
         let codebook = Tensor::from_vec(values, (config.codebook_size, config.dim), device)?;
         Self::from_codebook(config, codebook, rng.next_u64())
@@ -322,7 +322,7 @@ impl VqQuantizer {
         }
         let sigma = 0.01 / (self.config.dim as f64).sqrt();
         let noise: Vec<f32> = (0..count * self.config.dim)
-            .map(|_| (normal(&mut self.rng) * sigma) as f32)
+            .map(|_| (self.rng.normal() * sigma) as f32)
             .collect();
         Ok((drawn + Tensor::from_vec(noise, (count, self.config.dim), flat.device())?)?)
     }
@@ -337,13 +337,6 @@ impl VqQuantizer {
             ))),
         }
     }
-}
-
-/// A standard normal draw (Box–Muller).
-fn normal(rng: &mut SplitMix64) -> f64 {
-    let u1 = 1.0 - rng.unit();
-    let u2 = rng.unit();
-    (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
 }
 
 #[cfg(test)]

@@ -1,0 +1,64 @@
+//! Errors of the fits crate; each names the file, column or fit it is about.
+
+use std::path::PathBuf;
+
+/// Why reading a table, fitting or predicting failed.
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    /// The results file could not be opened or read.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// The results file is not valid CSV/Parquet, or has an unsupported extension.
+    #[error("{}: {message}", path.display())]
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// A requested column is absent.
+    #[error("{}: no column {column:?} (columns: {available}); {hint}", path.display())]
+    MissingColumn {
+        /// The file.
+        path: PathBuf,
+        /// The column asked for.
+        column: String,
+        /// The file's columns, comma-separated.
+        available: String,
+        /// Which flag sets it.
+        hint: String,
+    },
+    /// A cell that must be a number is not.
+    #[error("{}: column {column:?}, row {row} (data row, 1-based): {problem}", path.display())]
+    BadCell {
+        /// The file.
+        path: PathBuf,
+        /// The column.
+        column: String,
+        /// 1-based data row (the CSV header is not counted).
+        row: usize,
+        /// What is wrong with the cell.
+        problem: String,
+    },
+    /// Not enough data for a required fit.
+    #[error("{}: too few runs for {fit}: {message}", path.display())]
+    TooFew {
+        /// The results file.
+        path: PathBuf,
+        /// The fit.
+        fit: String,
+        /// Counts and what is needed.
+        message: String,
+    },
+    /// A fits file or option is inconsistent.
+    #[error("{0}")]
+    Invalid(String),
+    /// A plot could not be written.
+    #[error(transparent)]
+    Plot(#[from] plot::PlotError),
+}

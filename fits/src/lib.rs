@@ -1,0 +1,21 @@
+//! Scaling-law fits for IsoFLOP sweeps (scaling-laws.md, "Fits"): IsoFLOP minima (Chinchilla
+//! approach 2), log–log power laws, the log law, the parametric L(N, D) by Huber + L-BFGS from
+//! a grid of starts with bootstrap intervals (approach 3), predictions at a budget, and plots.
+
+pub mod analysis;
+mod error;
+mod fastmath;
+pub mod isoflop;
+pub mod laws;
+pub mod lbfgs;
+pub mod ols;
+pub mod parametric;
+pub mod predict;
+pub mod report;
+pub mod synth;
+pub mod table;
+
+pub use analysis::{fit_table, ColumnChoice, ColumnSpec, FitOptions, Fits};
+pub use error::FitError;
+pub use predict::{predict, Laws, PredictOptions, Prediction};
+pub use table::Table;

@@ -1,0 +1,328 @@
+//! Writing a fit: `fits.json`, the plots (SVG + PNG) and a short text summary.
+
+use crate::analysis::Fits;
+use crate::laws::{Estimate, PowerLaw};
+use crate::FitError;
+use plot::ticks::format_tick;
+use plot::{Chart, Series};
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+
+/// Palette index for the markers of interior minima (black).
+const MINIMA_COLOR: usize = 7;
+
+/// Palette index of the i-th curve, skipping the minima's black.
+fn curve_color(i: usize) -> usize {
+    let i = i % (plot::PALETTE_LEN - 1);
+    if i >= MINIMA_COLOR {
+        i + 1
+    } else {
+        i
+    }
+}
+
+/// The charts of a fit, each with its file stem.
+pub fn charts(f: &Fits) -> Vec<(String, Chart)> {
+    let mut out = Vec::new();
+    let n_name = f
+        .input
+        .columns
+        .get("N")
+        .cloned()
+        .flatten()
+        .unwrap_or_default();
+    let loss_name = f
+        .input
+        .columns
+        .get("loss")
+        .cloned()
+        .flatten()
+        .unwrap_or_default();
+    let mut iso = Chart::new(
+        "IsoFLOP curves: loss vs N per budget, fitted parabolas in log10 N",
+        format!("N ({n_name})"),
+        format!("loss ({loss_name})"),
+    );
+    iso.log_x = true;
+    for (i, b) in f.budgets.iter().enumerate() {
+        let pts = b.min.points.iter().map(|p| (p[0], p[1])).collect();
+        iso.series.push(
+            Series::points(format!("C = {}", format_tick(b.min.budget)), pts)
+                .with_color(curve_color(i)),
+        );
+        if let Some(curve) = parabola_curve(&b.min.points, b.min.parabola) {
+            iso.series
+                .push(Series::line("", curve).with_color(curve_color(i)));
+        }
+    }
+    let minima: Vec<(f64, f64)> = f
+        .budgets
+        .iter()
+        .filter(|b| b.min.interior)
+        .filter_map(|b| Some((b.min.opt?, b.min.loss_opt?)))
+        .collect();
+    if !minima.is_empty() {
+        iso.series
+            .push(Series::points("interior minimum", minima).with_color(MINIMA_COLOR));
+    }
+    out.push(("isoflop_n".to_string(), iso));
+
+    // One chart of vocabulary curves per budget (one curve per N).
+    let mut budgets: Vec<f64> = f.vocab_minima.iter().map(|m| m.budget).collect();
+    budgets.dedup();
+    for (k, &c) in budgets.iter().enumerate() {
+        let mut v = Chart::new(
+            format!(
+                "IsoFLOP curves over V at C = {}, parabolas in log10 V",
+                format_tick(c)
+            ),
+            "vocabulary size V",
+            format!("loss ({loss_name})"),
+        );
+        v.log_x = true;
+        let at_c = f.vocab_minima.iter().filter(|m| m.budget == c);
+        for (i, m) in at_c.enumerate() {
+            let name = format!("N = {}", format_tick(m.fixed_n.unwrap_or(f64::NAN)));
+            let pts = m.points.iter().map(|p| (p[0], p[1])).collect();
+            v.series
+                .push(Series::points(name, pts).with_color(curve_color(i)));
+            if let Some(curve) = parabola_curve(&m.points, m.parabola) {
+                v.series
+                    .push(Series::line("", curve).with_color(curve_color(i)));
+            }
+        }
+        let minima: Vec<(f64, f64)> = f
+            .vocab_minima
+            .iter()
+            .filter(|m| m.budget == c && m.interior)
+            .filter_map(|m| Some((m.opt?, m.loss_opt?)))
+            .collect();
+        if !minima.is_empty() {
+            v.series
+                .push(Series::points("interior minimum", minima).with_color(MINIMA_COLOR));
+        }
+        out.push((format!("isoflop_v_{}", k + 1), v));
+    }
+
+    for (key, law) in &f.power_laws {
+        out.push((format!("law_{key}"), power_law_chart(law)));
+    }
+    if let Some(law) = &f.log_law {
+        let pts: Vec<(f64, f64)> = law
+            .fit
+            .points
+            .iter()
+            .map(|p| (10f64.powf(p[0]), p[1]))
+            .collect();
+        let (lo, hi) = x_range(&pts);
+        let mut chart = Chart::new(
+            format!(
+                "Log law: {}  (R² = {})",
+                law.equation(),
+                r2_text(law.fit.r2)
+            ),
+            "compute C (FLOPs)",
+            format!("loss at the IsoFLOP minimum ({loss_name})"),
+        );
+        chart.log_x = true;
+        chart.series.push(Series::points("IsoFLOP minima", pts));
+        chart.series.push(Series::line(
+            "fit",
+            [lo, hi].iter().map(|&c| (c, law.at(c).value)).collect(),
+        ));
+        out.push(("log_law".to_string(), chart));
+    }
+    out
+}
+
+fn r2_text(r2: Option<f64>) -> String {
+    r2.map_or("n/a".into(), |v| format!("{v:.4}"))
+}
+
+fn x_range(pts: &[(f64, f64)]) -> (f64, f64) {
+    pts.iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
+            (a.min(p.0), b.max(p.0))
+        })
+}
+
+/// 60 points of a fitted parabola across the sampled x range.
+fn parabola_curve(points: &[[f64; 2]], parabola: Option<[f64; 4]>) -> Option<Vec<(f64, f64)>> {
+    let [centre, c0, c1, c2] = parabola?;
+    let lo = points.first()?[0].log10();
+    let hi = points.last()?[0].log10();
+    Some(
+        (0..60)
+            .map(|k| {
+                let x = lo + (hi - lo) * k as f64 / 59.0;
+                let u = x - centre;
+                (10f64.powf(x), c0 + c1 * u + c2 * u * u)
+            })
+            .collect(),
+    )
+}
+
+fn power_law_chart(law: &PowerLaw) -> Chart {
+    let pts: Vec<(f64, f64)> = law
+        .fit
+        .points
+        .iter()
+        .map(|p| (10f64.powf(p[0]), 10f64.powf(p[1])))
+        .collect();
+    let (lo, hi) = x_range(&pts);
+    let mut chart = Chart::new(
+        format!("{}  (R² = {})", law.equation(), r2_text(law.fit.r2)),
+        law.x.clone(),
+        law.y.clone(),
+    );
+    chart.log_x = true;
+    chart.log_y = true;
+    chart.series.push(Series::points("IsoFLOP minima", pts));
+    chart.series.push(Series::line(
+        "fit",
+        [lo, hi].iter().map(|&x| (x, law.at(x).value)).collect(),
+    ));
+    chart
+}
+
+/// Writes the plots and `fits.json` into `dir` (created if needed); records the plot stems in
+/// `fits.plots`. Returns the paths written.
+pub fn write_outputs(fits: &mut Fits, dir: &Path) -> Result<Vec<PathBuf>, FitError> {
+    std::fs::create_dir_all(dir).map_err(|source| FitError::Io {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let mut written = Vec::new();
+    fits.plots.clear();
+    for (stem, chart) in charts(fits) {
+        written.extend(chart.write(&dir.join(&stem))?);
+        fits.plots.push(stem);
+    }
+    let path = dir.join("fits.json");
+    let json = serde_json::to_vec_pretty(fits).map_err(|e| FitError::Invalid(e.to_string()))?;
+    let io = |source| FitError::Io {
+        path: path.clone(),
+        source,
+    };
+    let mut tmp = tempfile::NamedTempFile::new_in(dir).map_err(io)?;
+    tmp.write_all(&json).map_err(io)?;
+    tmp.as_file().sync_all().map_err(io)?;
+    tmp.persist(&path).map_err(|e| io(e.error))?;
+    written.push(path);
+    Ok(written)
+}
+
+/// `value [ci_low, ci_high]` with a given number of significant digits.
+pub fn estimate_text(e: &Estimate) -> String {
+    match (e.ci_low, e.ci_high) {
+        (Some(lo), Some(hi)) => format!("{} [{}, {}]", sig(e.value), sig(lo), sig(hi)),
+        _ => sig(e.value),
+    }
+}
+
+/// Four significant digits, scientific for very large or small magnitudes.
+pub fn sig(v: f64) -> String {
+    if v != 0.0 && (v.abs() >= 1e5 || v.abs() < 1e-3) {
+        format!("{v:.3e}")
+    } else {
+        format!("{v:.4}")
+    }
+}
+
+/// A short human summary of a fit.
+pub fn summary(f: &Fits) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "input: {} ({} rows, {} budget groups by {})",
+        f.input.file, f.input.rows, f.input.groups, f.input.grouping
+    );
+    for note in &f.input.notes {
+        let _ = writeln!(s, "  note: {note}");
+    }
+    let interior = f.budgets.iter().filter(|b| b.min.interior).count();
+    let _ = writeln!(
+        s,
+        "IsoFLOP minima over N: {interior} of {} interior",
+        f.budgets.len()
+    );
+    for b in &f.budgets {
+        match (b.min.interior, b.min.opt, b.min.loss_opt) {
+            (true, Some(n), Some(l)) => {
+                let _ = writeln!(
+                    s,
+                    "  C = {:.3e}: N_opt = {:.3e}, loss = {}",
+                    b.min.budget,
+                    n,
+                    sig(l)
+                );
+            }
+            _ => {
+                let _ = writeln!(
+                    s,
+                    "  C = {:.3e}: not interior: {}",
+                    b.min.budget,
+                    b.min.reason.as_deref().unwrap_or("?")
+                );
+            }
+        }
+    }
+    if !f.vocab_minima.is_empty() {
+        let ok = f.vocab_minima.iter().filter(|m| m.interior).count();
+        let _ = writeln!(
+            s,
+            "minima over V at fixed N: {ok} of {} interior",
+            f.vocab_minima.len()
+        );
+    }
+    for (key, law) in &f.power_laws {
+        let _ = writeln!(
+            s,
+            "{key}: {}; exponent {}, R² {}, {} points",
+            law.equation(),
+            estimate_text(&law.fit.slope),
+            r2_text(law.fit.r2),
+            law.fit.n_points
+        );
+    }
+    if let Some(law) = &f.log_law {
+        let _ = writeln!(
+            s,
+            "log law: {}; slope {}, R² {}",
+            law.equation(),
+            estimate_text(&law.fit.slope),
+            r2_text(law.fit.r2)
+        );
+    }
+    if let Some(p) = &f.parametric {
+        let _ = writeln!(
+            s,
+            "parametric L(N, D) = E + A/N^alpha + B/D^beta on {:?} ({} runs; {} starts, {} at the optimum; {} of {} bootstrap refits, 95% percentile intervals):",
+            p.loss_column,
+            p.n_runs,
+            p.starts,
+            p.starts_at_optimum,
+            p.bootstrap.succeeded,
+            p.bootstrap.resamples
+        );
+        for (name, e) in [
+            ("E", &p.e),
+            ("A", &p.a),
+            ("B", &p.b),
+            ("alpha", &p.alpha),
+            ("beta", &p.beta),
+        ] {
+            let _ = writeln!(s, "  {name:<5} = {}", estimate_text(e));
+        }
+        let _ = writeln!(s, "  N_opt ∝ C^{}", estimate_text(&p.n_opt_exponent));
+        let _ = writeln!(s, "  D_opt ∝ C^{}", estimate_text(&p.d_opt_exponent));
+    }
+    for k in &f.skipped {
+        let _ = writeln!(s, "skipped: {k}");
+    }
+    for w in &f.warnings {
+        let _ = writeln!(s, "warning: {w}");
+    }
+    s
+}

@@ -1,0 +1,354 @@
+//! `motionscale fit`, `motionscale predict` and `motionscale bench fit`: scaling-law fits of a
+//! sweep's results table, predictions at a compute budget, and the timing of a full fit.
+
+use anyhow::{bail, Context, Result};
+use fits::analysis::{ColumnChoice, ColumnSpec, FitOptions};
+use fits::parametric::StartGrid;
+use fits::report::{estimate_text, sig};
+use fits::{Laws, PredictOptions, Prediction, Table};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+/// Arguments of `motionscale fit`.
+#[derive(clap::Args, Debug)]
+#[command(
+    long_about = "Fit scaling laws to a results table (CSV with a header row, or Parquet).\n\n\
+    Per budget, a parabola of loss in log10 N gives the IsoFLOP minimum (used only when it is \
+    convex with its vertex inside the sampled sizes); likewise over log10 V at each fixed N. \
+    Log-log OLS then gives N_opt ∝ C^b, D_opt ∝ C^c, N_v,opt ∝ C^a and N_v ∝ N^γ (with SEs, \
+    95% t intervals, R²), and L_opt = α·log10 C + β. The parametric L(N, D) = E + A/N^α + B/D^β \
+    minimises the summed Huber loss of log residuals with L-BFGS from every start of a grid, \
+    and bootstraps runs for 95% percentile intervals.\n\n\
+    Writes OUT/fits.json and plots (isoflop_n, isoflop_v, law_*, log_law; .svg and .png).\n\n\
+    Columns default to the sweep's results table: n_nv, tokens, budget, norm_test_loss, \
+    test_loss, vocab, n_v, d_model. A default column that is missing only disables what needs \
+    it; a column named with a flag must exist."
+)]
+pub struct FitArgs {
+    /// Results table: .csv (header row) or .parquet.
+    #[arg(long, value_name = "FILE")]
+    pub results: PathBuf,
+    /// Output folder for fits.json and the plots (created if needed).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+    /// Model-size column N [default: n_nv].
+    #[arg(long, value_name = "COL")]
+    pub n_col: Option<String>,
+    /// Training-tokens column D [default: tokens].
+    #[arg(long, value_name = "COL")]
+    pub d_col: Option<String>,
+    /// Compute column C in FLOPs [default: budget; if absent, C = 6·(N + N_v)·D].
+    #[arg(long, value_name = "COL")]
+    pub c_col: Option<String>,
+    /// Loss for the IsoFLOP minima, power laws and log law [default: norm_test_loss].
+    #[arg(long, value_name = "COL")]
+    pub loss_col: Option<String>,
+    /// Loss for the parametric L(N, D), must be > 0 [default: test_loss, else --loss-col].
+    #[arg(long, value_name = "COL")]
+    pub param_loss_col: Option<String>,
+    /// Vocabulary (codebook) size column V [default: vocab].
+    #[arg(long, value_name = "COL")]
+    pub v_col: Option<String>,
+    /// Vocabulary-parameter column N_v [default: n_v].
+    #[arg(long, value_name = "COL")]
+    pub nv_col: Option<String>,
+    /// Model-width column d, for N_v = V·d [default: d_model; else N_v / V].
+    #[arg(long, value_name = "COL")]
+    pub width_col: Option<String>,
+    /// Budget-group column [default: budget; else C values within --group-tol dex form a group].
+    #[arg(long, value_name = "COL")]
+    pub group_col: Option<String>,
+    /// Grouping tolerance in log10 C, used without a group column.
+    #[arg(long, default_value_t = 0.05, value_name = "DEX")]
+    pub group_tol: f64,
+    /// L-BFGS starts: `epoch` (4,500: alpha, beta in 0..2 step 0.5; e in -1..1 step 0.5;
+    /// a, b in 0..25 step 5), `coarse` (243), or e.g. `alpha=0:2:0.25,a=0:30:5,e=-1/0/1`.
+    #[arg(long, default_value = "epoch", value_name = "GRID")]
+    pub starts_grid: String,
+    /// Bootstrap resamples over runs for the parametric intervals (0: none).
+    #[arg(long, default_value_t = 500, value_name = "N")]
+    pub bootstrap: usize,
+    /// Starts per bootstrap refit: K (the K best distinct local optima of the full-data grid,
+    /// distinct = objectives more than 1e-6 apart) or `full` (the whole grid for every
+    /// resample: slow).
+    #[arg(long, default_value = "16", value_name = "K|full")]
+    pub bootstrap_starts: String,
+    /// Bootstrap seed (recorded in fits.json).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Huber threshold δ on log-loss residuals.
+    #[arg(long, default_value_t = 1e-3)]
+    pub huber_delta: f64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub workers: Option<usize>,
+}
+
+impl FitArgs {
+    fn options(&self) -> Result<FitOptions> {
+        let col = |given: &Option<String>, default: &str| {
+            ColumnChoice::or_default(given.clone(), default)
+        };
+        let d = ColumnSpec::default();
+        let bootstrap_starts = match self.bootstrap_starts.as_str() {
+            "full" => None,
+            k => Some(
+                k.parse::<usize>()
+                    .ok()
+                    .filter(|&k| k > 0)
+                    .with_context(|| {
+                        format!("--bootstrap-starts {k:?}: want a positive count or `full`")
+                    })?,
+            ),
+        };
+        if self.huber_delta.is_nan() || self.huber_delta <= 0.0 {
+            bail!("--huber-delta {}: must be > 0", self.huber_delta);
+        }
+        Ok(FitOptions {
+            columns: ColumnSpec {
+                n: col(&self.n_col, &d.n.name),
+                d: col(&self.d_col, &d.d.name),
+                c: col(&self.c_col, &d.c.name),
+                loss: col(&self.loss_col, &d.loss.name),
+                param_loss: col(&self.param_loss_col, &d.param_loss.name),
+                v: col(&self.v_col, &d.v.name),
+                nv: col(&self.nv_col, &d.nv.name),
+                width: col(&self.width_col, &d.width.name),
+                group: col(&self.group_col, &d.group.name),
+            },
+            group_tol_dex: self.group_tol,
+            grid: StartGrid::parse(&self.starts_grid)?,
+            grid_name: self.starts_grid.clone(),
+            bootstrap: self.bootstrap,
+            bootstrap_starts,
+            seed: self.seed,
+            huber_delta: self.huber_delta,
+            ..FitOptions::default()
+        })
+    }
+}
+
+/// `motionscale fit`: fits, fits.json, plots and a summary on stdout.
+pub fn fit(args: FitArgs) -> Result<ExitCode> {
+    let t0 = Instant::now();
+    let opts = args.options()?;
+    let pool = crate::commands::thread_pool(args.workers)?;
+    let table = Table::read(&args.results)?;
+    let mut result = pool.install(|| fits::fit_table(&table, &opts))?;
+    let written = fits::report::write_outputs(&mut result, &args.out)?;
+    print!("{}", fits::report::summary(&result));
+    println!(
+        "wrote {} ({} files: fits.json and {} plots as SVG + PNG) in {:.2} s on {} threads",
+        args.out.display(),
+        written.len(),
+        result.plots.len(),
+        t0.elapsed().as_secs_f64(),
+        pool.current_num_threads()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Built-in sets of published coefficients.
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum Preset {
+    /// ScaMo Eqs. 10-14: N_v = 10^-5.29·C^0.75, N_nv = 10^-0.52·C^0.57, D = 10^-0.05·C^0.43,
+    /// N_v = 10^-5.604·N_nv^1.467, L_u = -1.062·log10 C + 13.839.
+    Scamo,
+}
+
+/// Arguments of `motionscale predict`.
+#[derive(clap::Args, Debug)]
+#[command(
+    long_about = "Predict N_nv, N_v, the codebook V (rounded to an FSQ level set: nominal \
+    2^8..2^16, real 240, 1000, 4375, 15360, 64000), D and the loss at a compute budget, with \
+    95% intervals where the laws carry uncertainty (OLS standard errors, parametric bootstrap). \
+    Consistency checks between the laws (6·N·D vs C, the two N_v laws, the exponents, and for \
+    the scamo preset the paper's own 1e18 run) are printed; failed ones become warnings."
+)]
+pub struct PredictArgs {
+    /// A fits.json written by `motionscale fit`.
+    #[arg(
+        long,
+        value_name = "FILE",
+        required_unless_present = "preset",
+        conflicts_with = "preset"
+    )]
+    pub fits: Option<PathBuf>,
+    /// Built-in published coefficients instead of a fits file.
+    #[arg(long, value_enum)]
+    pub preset: Option<Preset>,
+    /// Compute budget C in FLOPs, e.g. 1e18.
+    #[arg(long)]
+    pub budget: f64,
+    /// Model width d, to turn N_v into V [default: the ScaMo configuration nearest to N_nv].
+    #[arg(long)]
+    pub width: Option<f64>,
+    /// Fixed codebook size V (N_v = V·d instead of the N_v law).
+    #[arg(long)]
+    pub vocab: Option<f64>,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `motionscale predict`.
+pub fn predict(args: PredictArgs) -> Result<ExitCode> {
+    let laws = match (&args.fits, args.preset) {
+        (Some(path), _) => Laws::read(path)?,
+        (None, Some(Preset::Scamo)) => Laws::scamo(),
+        (None, None) => bail!("give --fits FILE or --preset scamo"),
+    };
+    let p = fits::predict(
+        &laws,
+        &PredictOptions {
+            budget: args.budget,
+            width: args.width,
+            vocab: args.vocab,
+        },
+    )?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&p)?);
+    } else {
+        print!("{}", prediction_text(&p));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn prediction_text(p: &Prediction) -> String {
+    let mut lines = vec![
+        format!("laws: {}", p.source),
+        format!("budget C = {:.3e} FLOPs", p.budget),
+    ];
+    for e in &p.equations {
+        lines.push(format!("  {e}"));
+    }
+    let mut row = |name: &str, e: &Option<fits::laws::Estimate>| {
+        if let Some(e) = e {
+            lines.push(format!("{name:<22} {}", estimate_text(e)));
+        }
+    };
+    row("N_nv", &p.n_nv);
+    row("N_v", &p.n_v);
+    row("N_v (from N_nv law)", &p.n_v_from_n_nv_law);
+    row("D", &p.d);
+    row("loss", &p.loss);
+    if let Some(d) = p.d_from_budget {
+        lines.push(format!("{:<22} {}", "D spending C exactly", sig(d)));
+    }
+    if let Some(w) = &p.width {
+        lines.push(format!("{:<22} {} ({})", "width d", w.value, w.source));
+    }
+    if let Some(v) = &p.vocab {
+        lines.push(format!(
+            "{:<22} N_v/d = {} -> FSQ 2^{} (nominal {}, real {} = {:?})",
+            "vocabulary V",
+            estimate_text(&v.exact),
+            v.nominal_log2,
+            v.nominal,
+            v.real,
+            v.levels
+        ));
+    }
+    if let Some(pp) = &p.parametric {
+        lines.push(format!(
+            "parametric: N_opt {}, D_opt {}, loss {}",
+            estimate_text(&pp.n_opt),
+            estimate_text(&pp.d_opt),
+            estimate_text(&pp.loss)
+        ));
+    }
+    lines.push("consistency:".into());
+    for c in &p.consistency {
+        lines.push(format!(
+            "  [{}] {}: {} vs {} (ratio {:.3})",
+            if c.ok { "ok" } else { "!!" },
+            c.name,
+            sig(c.value),
+            sig(c.reference),
+            c.ratio
+        ));
+    }
+    for w in &p.warnings {
+        lines.push(format!("warning: {w}"));
+    }
+    lines.join("\n") + "\n"
+}
+
+/// Arguments of `motionscale bench fit`.
+#[derive(clap::Args, Debug)]
+pub struct BenchFitArgs {
+    /// Seed of the synthetic Chinchilla stand-in (252 runs on 9 IsoFLOP budgets, 1% noise).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Bootstrap resamples passed to `fit`.
+    #[arg(long, default_value_t = 500)]
+    pub bootstrap: usize,
+    /// Start grid passed to `fit`.
+    #[arg(long, default_value = "epoch")]
+    pub starts_grid: String,
+    /// Worker threads passed to `fit` (default: all cores).
+    #[arg(long)]
+    pub workers: Option<usize>,
+    /// Keep the stand-in CSV (DIR/chinchilla_standin.csv) and the fit (DIR/fits/) here
+    /// instead of a temporary folder.
+    #[arg(long, value_name = "DIR")]
+    pub keep: Option<PathBuf>,
+}
+
+/// Target wall time of a full 4,500-start fit of ~250 runs on 2 cores.
+const TARGET_SECONDS: f64 = 10.0;
+
+/// `motionscale bench fit`: writes a Chinchilla-like stand-in CSV with Epoch's column names and
+/// times the whole `motionscale fit` command on it (a child process: parse, fit, bootstrap,
+/// plots, fits.json).
+pub fn bench(args: BenchFitArgs) -> Result<ExitCode> {
+    let tmp = tempfile::tempdir().context("creating a temporary folder")?;
+    let dir = match &args.keep {
+        Some(d) => {
+            std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+            d.clone()
+        }
+        None => tmp.path().to_path_buf(),
+    };
+    let csv = dir.join("chinchilla_standin.csv");
+    let runs = fits::synth::chinchilla_standin(args.seed);
+    fits::synth::write_epoch_csv(&csv, &runs)
+        .with_context(|| format!("writing {}", csv.display()))?;
+    let out = dir.join("fits");
+    let exe = std::env::current_exe().context("locating the motionscale binary")?;
+    let mut cmd = std::process::Command::new(exe);
+    cmd.arg("fit")
+        .arg("--results")
+        .arg(&csv)
+        .args(["--n-col", "Model Size", "--d-col", "Training Tokens"])
+        .args(["--c-col", "Training FLOP", "--loss-col", "loss"])
+        .args(["--starts-grid", &args.starts_grid])
+        .args(["--bootstrap", &args.bootstrap.to_string()])
+        .arg("--out")
+        .arg(&out);
+    if let Some(w) = args.workers {
+        cmd.args(["--workers", &w.to_string()]);
+    }
+    let t0 = Instant::now();
+    let output = cmd.output().context("running motionscale fit")?;
+    let secs = t0.elapsed().as_secs_f64();
+    print!("{}", String::from_utf8_lossy(&output.stdout));
+    if !output.status.success() {
+        bail!(
+            "motionscale fit failed: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+    }
+    let threads = args
+        .workers
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    println!(
+        "bench fit: {} runs, grid {:?}, {} bootstrap resamples, {threads} threads: whole command {secs:.2} s (target < {TARGET_SECONDS} s on 2 cores: {})",
+        runs.len(),
+        args.starts_grid,
+        args.bootstrap,
+        if secs < TARGET_SECONDS { "met" } else { "MISSED" }
+    );
+    Ok(ExitCode::SUCCESS)
+}

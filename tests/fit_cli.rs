@@ -1,0 +1,163 @@
+//! End-to-end: `motionscale fit` on a Chinchilla-like stand-in with Epoch's column names,
+//! `motionscale predict` from its fits.json and from the scamo preset, and bad inputs.
+
+mod common;
+
+use common::*;
+use fits::synth;
+
+#[test]
+fn fit_standin_through_the_cli_then_predict_from_its_fits() {
+    let tmp = tempfile::tempdir().unwrap();
+    let csv = tmp.path().join("chinchilla.csv");
+    synth::write_epoch_csv(&csv, &synth::chinchilla_standin(21)).unwrap();
+    let out = tmp.path().join("fits");
+    let run = motionscale(&[
+        "fit",
+        "--results",
+        csv.to_str().unwrap(),
+        "--n-col",
+        "Model Size",
+        "--d-col",
+        "Training Tokens",
+        "--c-col",
+        "Training FLOP",
+        "--loss-col",
+        "loss",
+        "--bootstrap",
+        "40",
+        "--seed",
+        "3",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert_eq!(code(&run), 0, "{}", text(&run));
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        stdout.contains("IsoFLOP minima over N: 9 of 9 interior"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("parametric L(N, D)"), "{stdout}");
+
+    let fits: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("fits.json")).unwrap()).unwrap();
+    assert_eq!(fits["settings"]["starts"], 4500);
+    assert_eq!(fits["settings"]["seed"], 3);
+    assert_eq!(fits["settings"]["huber_delta"], 1e-3);
+    assert_eq!(fits["settings"]["bootstrap"], 40);
+    assert_eq!(fits["input"]["columns"]["N"], "Model Size");
+    assert_eq!(fits["input"]["columns"]["C"], "Training FLOP");
+    assert_eq!(fits["parametric"]["n_runs"], 252);
+    for key in ["E", "A", "B", "alpha", "beta"] {
+        let p = &fits["parametric"][key];
+        let (v, lo, hi) = (
+            p["value"].as_f64().unwrap(),
+            p["ci_low"].as_f64().unwrap(),
+            p["ci_high"].as_f64().unwrap(),
+        );
+        assert!(lo <= v && v <= hi, "{key}: {p}");
+    }
+    let alpha = fits["parametric"]["alpha"]["value"].as_f64().unwrap();
+    assert!((alpha - 0.34).abs() < 0.05, "alpha {alpha}");
+    for stem in ["isoflop_n", "law_n_opt_vs_c", "law_d_opt_vs_c", "log_law"] {
+        let png = std::fs::read(out.join(format!("{stem}.png"))).unwrap();
+        assert!(png.starts_with(b"\x89PNG"), "{stem}.png");
+        let svg = std::fs::read_to_string(out.join(format!("{stem}.svg"))).unwrap();
+        assert!(svg.contains("<svg"), "{stem}.svg");
+    }
+
+    let fits_path = out.join("fits.json");
+    let pred = motionscale(&[
+        "predict",
+        "--fits",
+        fits_path.to_str().unwrap(),
+        "--budget",
+        "1e22",
+        "--json",
+    ]);
+    assert_eq!(code(&pred), 0, "{}", text(&pred));
+    let p: serde_json::Value = serde_json::from_slice(&pred.stdout).unwrap();
+    let n = p["n_nv"]["value"].as_f64().unwrap();
+    let truth = synth::CHINCHILLA.n_opt(1e22);
+    assert!((n / truth).log10().abs() < 0.1, "N_opt {n:e} vs {truth:e}");
+    assert!(
+        p["n_nv"]["ci_low"].as_f64().unwrap() < n && n < p["n_nv"]["ci_high"].as_f64().unwrap()
+    );
+    let par = p["parametric"]["n_opt"]["value"].as_f64().unwrap();
+    assert!(
+        (par / truth).log10().abs() < 0.1,
+        "parametric N_opt {par:e} vs {truth:e}"
+    );
+}
+
+#[test]
+fn predict_scamo_preset_states_the_inconsistencies() {
+    let out = motionscale(&["predict", "--preset", "scamo", "--budget", "1e18", "--json"]);
+    assert_eq!(code(&out), 0, "{}", text(&out));
+    let p: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let n_nv = p["n_nv"]["value"].as_f64().unwrap();
+    assert!((n_nv / 10f64.powf(-0.52 + 0.57 * 18.0) - 1.0).abs() < 1e-9);
+    assert!((n_nv / 5.5e9 - 1.0).abs() < 0.01, "{n_nv:e}");
+    assert_eq!(p["vocab"]["nominal"], 65536);
+    assert_eq!(p["vocab"]["real"], 64000);
+    let checks = p["consistency"].as_array().unwrap();
+    let failed: Vec<&str> = checks
+        .iter()
+        .filter(|c| c["ok"] == false)
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    for name in [
+        "compute",
+        "N_v: C-law vs N_nv-law",
+        "paper at 1e18: N_nv",
+        "paper at 1e18: D",
+    ] {
+        assert!(
+            failed.iter().any(|f| f.starts_with(name)),
+            "{name} not flagged: {failed:?}"
+        );
+    }
+    let warnings = p["warnings"].as_array().unwrap();
+    assert!(warnings.len() >= failed.len());
+
+    let human = motionscale(&["predict", "--preset", "scamo", "--budget", "1e18"]);
+    assert_eq!(code(&human), 0);
+    assert!(String::from_utf8_lossy(&human.stdout).contains("warning: inconsistent: compute"));
+}
+
+#[test]
+fn fit_errors_name_the_file_and_the_problem() {
+    let tmp = tempfile::tempdir().unwrap();
+    let csv = tmp.path().join("runs.csv");
+    std::fs::write(
+        &csv,
+        "n_nv,budget,norm_test_loss\n1e6,1e15,2.0\n2e6,1e15,x\n",
+    )
+    .unwrap();
+    let out_dir = tmp.path().join("out");
+    let args = |extra: &[&str]| {
+        let mut a = vec![
+            "fit",
+            "--results",
+            csv.to_str().unwrap(),
+            "--out",
+            out_dir.to_str().unwrap(),
+        ];
+        a.extend_from_slice(extra);
+        motionscale(&a)
+    };
+    let out = args(&[]);
+    assert_eq!(code(&out), 1);
+    let msg = text(&out);
+    assert!(
+        msg.contains("runs.csv") && msg.contains("row 2") && msg.contains("\"x\" is not a number"),
+        "{msg}"
+    );
+
+    let out = args(&["--loss-col", "L"]);
+    assert_eq!(code(&out), 1);
+    assert!(text(&out).contains("no column \"L\""), "{}", text(&out));
+
+    let out = motionscale(&["predict", "--budget", "1e18"]);
+    assert_ne!(code(&out), 0, "needs --fits or --preset");
+}
