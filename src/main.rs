@@ -5,6 +5,8 @@ mod bench;
 mod bench_tokenizer;
 mod commands;
 mod fit;
+mod lm;
+mod lm_bench;
 mod quickstart;
 mod text;
 mod tokenizer_cmd;
@@ -63,6 +65,21 @@ enum Command {
     /// Measure throughput against the reference figures.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Inspect prefix-LM shapes: parameters and FLOPs.
+    #[command(subcommand)]
+    Model(ModelCommand),
+    /// Train (or resume) a text-prefix autoregressive motion transformer on a token set.
+    Train(lm::TrainArgs),
+    /// Generate motion for a text with a trained prefix LM.
+    Generate(lm::GenerateArgs),
+}
+
+#[derive(Subcommand)]
+enum ModelCommand {
+    /// N_nv, N_v, N and FLOPs per token (6N and exact) of one shape.
+    Info(lm::InfoArgs),
+    /// The preset table at one codebook size.
+    Presets(lm::PresetsArgs),
 }
 
 #[derive(Subcommand)]
@@ -123,6 +140,8 @@ enum BenchCommand {
     Ingest(bench::BenchIngestArgs),
     /// Time synthetic corpus building: generation + features, and the whole ingest.
     Synth(bench::BenchSynthArgs),
+    /// Prefix-LM training step and generation: tokens/s, GFLOP/s, MFU, PyTorch ratio.
+    Train(lm_bench::BenchTrainArgs),
     /// Time tokenizer training steps (FSQ, VQ) at the T2M-GPT shape; --reference runs PyTorch too.
     Tokenizer(bench_tokenizer::BenchTokenizerArgs),
     /// Time the whole `fit` command (4,500 starts + bootstrap) on a Chinchilla-like stand-in.
@@ -169,6 +188,11 @@ fn main() -> ExitCode {
         Command::Tokenize(args) => tokenizer_cmd::tokenize_cmd(args),
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
         Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
+        Command::Bench(BenchCommand::Train(args)) => lm_bench::train(args),
+        Command::Model(ModelCommand::Info(args)) => lm::info(args),
+        Command::Model(ModelCommand::Presets(args)) => lm::presets(args),
+        Command::Train(args) => lm::train(args),
+        Command::Generate(args) => lm::generate(args),
         Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
         Command::Fit(args) => fit::fit(args),
         Command::Predict(args) => fit::predict(args),

@@ -295,7 +295,7 @@ pub struct DecodeArgs {
 }
 
 /// Write decoded features to `out` as features/joints `.npy` or BVH (by extension).
-fn write_motion(out: &Path, features: &[f32], joints: bool) -> Result<()> {
+pub fn write_motion(out: &Path, features: &[f32], joints: bool) -> Result<()> {
     let frames = features.len() / ingest::hml263::FEATURE_DIM;
     match out.extension().and_then(|e| e.to_str()) {
         Some("bvh") => {

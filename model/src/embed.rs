@@ -122,10 +122,17 @@ fn sha256_hex(bytes: &[u8]) -> String {
     crate::hex(&Sha256::digest(bytes))
 }
 
-/// The distinct captions of a corpus, sorted (only the `captions` column is decoded).
+/// The distinct captions of a corpus, sorted.
 pub fn corpus_captions(corpus_dir: &Path) -> Result<Vec<String>, ModelError> {
+    let captions: BTreeSet<String> = clip_captions(corpus_dir)?.into_values().flatten().collect();
+    Ok(captions.into_iter().collect())
+}
+
+/// Every clip's captions by motion id (only the `motion_id` and `captions` columns are
+/// decoded).
+pub fn clip_captions(corpus_dir: &Path) -> Result<HashMap<String, Vec<String>>, ModelError> {
     let manifest = Manifest::read(corpus_dir).map_err(ModelError::Corpus)?;
-    let mut captions = BTreeSet::new();
+    let mut out = HashMap::new();
     for shard in &manifest.shards {
         let path = corpus_dir.join(&shard.file);
         let file = std::fs::File::open(&path).map_err(|e| ModelError::io(&path, e))?;
@@ -134,7 +141,7 @@ pub fn corpus_captions(corpus_dir: &Path) -> Result<Vec<String>, ModelError> {
         let mask = projection(
             builder.parquet_schema(),
             builder.schema(),
-            &[corpus_col::CAPTIONS],
+            &[corpus_col::MOTION_ID, corpus_col::CAPTIONS],
         );
         let reader = builder
             .with_projection(mask)
@@ -142,18 +149,26 @@ pub fn corpus_captions(corpus_dir: &Path) -> Result<Vec<String>, ModelError> {
             .map_err(|e| ModelError::invalid(&path, e))?;
         for batch in reader {
             let batch = batch.map_err(|e| ModelError::invalid(&path, e))?;
+            let ids = batch
+                .column_by_name(corpus_col::MOTION_ID)
+                .and_then(|c| c.as_string_opt::<i32>())
+                .ok_or_else(|| ModelError::invalid(&path, "motion_id column is not utf8"))?;
             let lists = batch
                 .column_by_name(corpus_col::CAPTIONS)
                 .and_then(|c| c.as_list_opt::<i32>())
                 .ok_or_else(|| ModelError::invalid(&path, "captions column is not a list"))?;
-            let values = lists
-                .values()
-                .as_string_opt::<i32>()
-                .ok_or_else(|| ModelError::invalid(&path, "captions are not utf8"))?;
-            captions.extend(values.iter().flatten().map(str::to_string));
+            for (row, id) in ids.iter().enumerate() {
+                let id = id.ok_or_else(|| ModelError::invalid(&path, "null motion_id"))?;
+                let list = lists.value(row);
+                let values = list
+                    .as_string_opt::<i32>()
+                    .ok_or_else(|| ModelError::invalid(&path, "captions are not utf8"))?;
+                let captions = values.iter().flatten().map(str::to_string).collect();
+                out.insert(id.to_string(), captions);
+            }
         }
     }
-    Ok(captions.into_iter().collect())
+    Ok(out)
 }
 
 fn projection(descr: &SchemaDescriptor, schema: &Schema, names: &[&str]) -> ProjectionMask {

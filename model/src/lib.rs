@@ -1,4 +1,6 @@
-//! Frozen text encoders for caption conditioning and the corpus caption embeddings.
+//! Frozen text encoders for caption conditioning, the corpus caption embeddings, and the
+//! text-prefix autoregressive motion transformer ([`PrefixLm`]) with its parameter/FLOP
+//! [`accounting`], training ([`train()`](train::train)) and generation ([`generate()`](generate::generate)).
 //!
 //! Encoders: [`BertEncoder`] (the default, all-MiniLM-L6-v2), [`T5Encoder`] and the
 //! dependency-free [`FallbackEncoder`], which is untrained and must be learned downstream.
@@ -12,17 +14,25 @@
 //! The `cuda` feature (off by default) builds candle with CUDA and [`default_device`] then
 //! picks the first GPU.
 
+pub mod accounting;
 pub mod bert;
 pub mod embed;
 pub mod error;
+pub mod evaluate;
 pub mod fallback;
+pub mod fused;
+pub mod generate;
+pub mod lm_data;
+pub mod prefix_lm;
 pub mod t5;
+pub mod train;
 mod transformer;
 
 pub use bert::BertEncoder;
 pub use embed::{embed_corpus, embed_corpus_sharded, CaptionEmbeddings, EmbedReport};
 pub use error::ModelError;
 pub use fallback::FallbackEncoder;
+pub use prefix_lm::{LmBatch, PrefixLm, PrefixLmConfig, SeqLayout};
 pub use t5::T5Encoder;
 
 use candle_core::Device;

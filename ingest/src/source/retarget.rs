@@ -170,6 +170,15 @@ impl RigMap {
         )
     }
 
+    /// The SMPL-22 rig of our own BVH export (`export bvh`, `generate`): joint names as in
+    /// [`JOINT_NAMES`].
+    pub fn smpl22() -> Self {
+        RigMap {
+            name: "smpl22".to_string(),
+            joints: JOINT_NAMES.iter().map(|n| j(n)).collect(),
+        }
+    }
+
     /// Mixamo rig with joint names prefixed by `prefix` (`"mixamorig:"`, `""`, or another `name:`).
     pub fn mixamo(prefix: &str) -> Self {
         let p = |n: &str| j(&format!("{prefix}{n}"));
@@ -260,7 +269,7 @@ impl RigMap {
 /// Pick the built-in rig map whose joint names are all present, or reject naming the
 /// SMPL joints the closest built-in map could not find.
 pub fn detect(names: &[&str]) -> Result<RigMap, Reject> {
-    let mut candidates = vec![RigMap::bandai(), RigMap::cmu()];
+    let mut candidates = vec![RigMap::smpl22(), RigMap::bandai(), RigMap::cmu()];
     let mut prefixes: Vec<&str> = names
         .iter()
         .filter_map(|n| n.strip_suffix("Hips"))
@@ -284,7 +293,7 @@ pub fn detect(names: &[&str]) -> Result<RigMap, Reject> {
     Err(Reject::new(
         "retarget",
         format!(
-            "unknown rig: no built-in map fits (bandai, cmu, mixamo); closest is {} with {} of 22 \
+            "unknown rig: no built-in map fits (smpl22, bandai, cmu, mixamo); closest is {} with {} of 22 \
              SMPL joints missing: {}; use a TOML map (--map) for this rig",
             map.name,
             missing.len(),
@@ -513,5 +522,7 @@ mod tests {
         assert_eq!(detect(&refs).unwrap().name, "mixamo");
         let e = detect(&refs[1..]).unwrap_err();
         assert!(e.reason.contains("pelvis (expects 'Hips')"), "{}", e.reason);
+        // Our own SMPL-22 export reads back.
+        assert_eq!(detect(&JOINT_NAMES).unwrap(), RigMap::smpl22());
     }
 }

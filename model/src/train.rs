@@ -1,0 +1,577 @@
+//! Training of the prefix LM: AdamW (`tokenizer::optim`) with linear warm-up and cosine decay
+//! sized to the token budget D, global gradient-norm clipping, seeded batches, periodic
+//! evaluation on the test split, and atomic checkpoints a re-run resumes from.
+//!
+//! ```text
+//! OUT/config.json           format, the train config, the resolved model config, text encoder,
+//!                           tokenizer, schedule (total/warm-up steps), accounting
+//! OUT/model.safetensors     weights (PyTorch key names, see prefix_lm)
+//! OUT/optimizer.safetensors AdamW moments and step
+//! OUT/state.json            step, tokens seen, executed FLOPs, data position, sha256 of both
+//!                           safetensors files (written last: it commits the checkpoint)
+//! OUT/eval.json             the latest evaluation; OUT/evals.jsonl every evaluation
+//! ```
+//!
+//! A run is a pure function of its config: batch k is fixed by the seed, every kernel reduces
+//! in a fixed order, so killing a run and re-running the same command ends with the same
+//! weights as an uninterrupted run.
+
+use crate::accounting::{self, Accounting, SequenceShape};
+use crate::evaluate::{evaluate, SplitLoss};
+use crate::lm_data::{Limits, LmData};
+use crate::prefix_lm::{init_model, PrefixLm, PrefixLmConfig};
+use crate::ModelError;
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+use ingest::npy::write_atomic;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use tokenizer::optim::{AdamW, AdamWConfig, LrSchedule};
+
+/// Format tag of `config.json`.
+pub const FORMAT: &str = "motionscale-prefix-lm-v1";
+
+/// The model shape to train: a named preset or explicit sizes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ModelShape {
+    /// A preset of [`crate::prefix_lm::PRESETS`].
+    Preset(String),
+    /// Explicit width, depth and heads (SwiGLU width by the reference rule unless given).
+    Custom {
+        /// Width.
+        d_model: usize,
+        /// Blocks.
+        n_layers: usize,
+        /// Heads.
+        n_heads: usize,
+        /// SwiGLU width (default round(8d/3)).
+        ffn_hidden: Option<usize>,
+    },
+}
+
+impl ModelShape {
+    /// The model configuration for `codebook_size` codes and `text_dim`-wide text.
+    pub fn resolve(
+        &self,
+        codebook_size: usize,
+        text_dim: usize,
+    ) -> Result<PrefixLmConfig, ModelError> {
+        let config = match self {
+            Self::Preset(name) => PrefixLmConfig::preset(name, codebook_size, text_dim)
+                .ok_or_else(|| ModelError::Argument(format!("no model preset {name:?}")))?,
+            Self::Custom {
+                d_model,
+                n_layers,
+                n_heads,
+                ffn_hidden,
+            } => {
+                let mut c =
+                    PrefixLmConfig::new(*d_model, *n_layers, *n_heads, codebook_size, text_dim);
+                c.ffn_hidden = ffn_hidden.unwrap_or(c.ffn_hidden);
+                c
+            }
+        };
+        config.validate()?;
+        Ok(config)
+    }
+}
+
+/// Everything a training run depends on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// Token set folder.
+    pub tokens: PathBuf,
+    /// Corpus folder with the caption embeddings (default: the token set's corpus).
+    pub corpus: Option<PathBuf>,
+    /// Text encoder id of the embeddings (default: the corpus's only one).
+    pub text_encoder: Option<String>,
+    /// Model shape.
+    pub model: ModelShape,
+    /// Token budget D: motion loss positions to train on (rounded up to whole batches).
+    pub tokens_budget: u64,
+    /// Clips per batch.
+    pub batch_size: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Final learning rate as a fraction of the peak.
+    pub final_lr_ratio: f64,
+    /// Warm-up steps as a fraction of all steps (at least one step).
+    pub warmup_fraction: f64,
+    /// AdamW (β1, β2).
+    pub betas: (f64, f64),
+    /// AdamW decoupled weight decay (all parameters, as the reference).
+    pub weight_decay: f64,
+    /// Global gradient-norm clip.
+    pub grad_clip: f64,
+    /// Seed of the initial weights and of the batch order.
+    pub seed: u64,
+    /// Text tokens kept per caption.
+    pub max_text_tokens: usize,
+    /// Motion tokens kept per clip.
+    pub max_motion_tokens: usize,
+    /// Evaluate every this many steps (default: ten times per run, and at the end).
+    #[serde(skip)]
+    pub eval_every: Option<u64>,
+    /// Checkpoint every this many steps (default: ten times per run, and at the end).
+    #[serde(skip)]
+    pub checkpoint_every: Option<u64>,
+    /// Stop (with a checkpoint) after this many steps of the schedule; a re-run continues.
+    #[serde(skip)]
+    pub stop_after: Option<u64>,
+    /// Output folder.
+    #[serde(skip)]
+    pub out: PathBuf,
+}
+
+impl TrainConfig {
+    /// Defaults for everything but the token set, model, budget and output folder: batch 32,
+    /// lr 1e-3 → 1e-4 with 5% warm-up, AdamW (0.9, 0.95) with weight decay 0.1, clip 1.0,
+    /// seed 0, 64 text and 64 motion tokens, 10 evaluations and checkpoints per run.
+    pub fn new(tokens: &Path, model: ModelShape, tokens_budget: u64, out: &Path) -> Self {
+        Self {
+            tokens: tokens.to_path_buf(),
+            corpus: None,
+            text_encoder: None,
+            model,
+            tokens_budget,
+            batch_size: 32,
+            lr: 1e-3,
+            final_lr_ratio: 0.1,
+            warmup_fraction: 0.05,
+            betas: (0.9, 0.95),
+            weight_decay: 0.1,
+            grad_clip: 1.0,
+            seed: 0,
+            max_text_tokens: 64,
+            max_motion_tokens: 64,
+            eval_every: None,
+            checkpoint_every: None,
+            stop_after: None,
+            out: out.to_path_buf(),
+        }
+    }
+}
+
+/// `OUT/config.json`: the run as resolved.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunConfig {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// The training configuration.
+    pub train: TrainConfig,
+    /// The model as built.
+    pub model: PrefixLmConfig,
+    /// Corpus folder of the captions.
+    pub corpus: PathBuf,
+    /// Text encoder id.
+    pub text_encoder: String,
+    /// The tokenizer of the token set.
+    pub tokenizer: tokenizer::TokenizerInfo,
+    /// The learning-rate schedule (total steps = the whole budget).
+    pub schedule: LrSchedule,
+    /// Parameters and FLOPs per token (exact count at the configured maximum lengths).
+    pub accounting: Accounting,
+}
+
+/// `OUT/state.json`: how far the checkpoint beside it got.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainState {
+    /// Optimiser steps taken.
+    pub step: u64,
+    /// Motion loss positions trained on (D so far).
+    pub tokens_seen: u64,
+    /// Exact FLOPs executed so far (padding included).
+    pub flops_exact: f64,
+    /// Train-stream items consumed (batch k holds items k·B..(k+1)·B).
+    pub data_position: u64,
+    /// sha256 of `model.safetensors`.
+    pub model_sha256: String,
+    /// sha256 of `optimizer.safetensors`.
+    pub optimizer_sha256: String,
+}
+
+/// `OUT/eval.json`: one evaluation with the accounting of the run so far.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvalRecord {
+    /// Step of the evaluation.
+    pub step: u64,
+    /// Motion tokens trained on so far (D).
+    pub tokens_seen: u64,
+    /// Mean training loss since the previous evaluation.
+    pub train_loss: f64,
+    /// Test losses (cross-entropy, L_u, unigram entropy…).
+    pub test: SplitLoss,
+    /// C = 6·(N_nv + N_v)·D.
+    pub flops_6n: f64,
+    /// Exact FLOPs executed (padding included).
+    pub flops_exact: f64,
+    /// Non-vocabulary parameters.
+    pub n_nv: u64,
+    /// Vocabulary parameters (2·V·d: untied).
+    pub n_v: u64,
+    /// Whether embedding and head are tied (false).
+    pub tied: bool,
+}
+
+/// What a training run reports as it goes.
+#[derive(Debug, Clone)]
+pub enum TrainEvent {
+    /// About to train steps `from..total`.
+    Started {
+        /// First step (non-zero when resuming).
+        from: u64,
+        /// Steps of the whole schedule.
+        total: u64,
+        /// The resolved run.
+        run: Box<RunConfig>,
+    },
+    /// One optimiser step done.
+    Step {
+        /// Steps done.
+        step: u64,
+        /// Training loss of the step.
+        loss: f32,
+        /// Learning rate used.
+        lr: f64,
+        /// Motion tokens trained on so far.
+        tokens_seen: u64,
+        /// Motion tokens of this step per second.
+        tokens_per_s: f64,
+    },
+    /// An evaluation finished.
+    Eval(Box<EvalRecord>),
+}
+
+/// Result of [`train`].
+#[derive(Debug, Clone, Serialize)]
+pub struct TrainReport {
+    /// Steps done (less than the schedule when stopped early).
+    pub steps: u64,
+    /// Steps of the whole schedule.
+    pub total_steps: u64,
+    /// The last evaluation.
+    pub eval: EvalRecord,
+    /// Output folder.
+    pub out: PathBuf,
+}
+
+/// The trained model in `dir` (`model.safetensors`, memory-mapped) and its run config.
+pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), ModelError> {
+    let run: RunConfig = read_json(&dir.join("config.json"))?;
+    let weights = dir.join("model.safetensors");
+    // SAFETY: the checkpoint is only read; it must not change while the model lives.
+    let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, &Device::Cpu) }
+        .map_err(|e| ModelError::invalid(&weights, e))?;
+    let model = PrefixLm::new(&run.model, vb).map_err(|e| ModelError::invalid(&weights, e))?;
+    Ok((model, run))
+}
+
+fn write_json(path: &Path, value: &impl Serialize) -> Result<(), ModelError> {
+    let text = serde_json::to_string_pretty(value).map_err(|e| ModelError::invalid(path, e))?;
+    write_atomic(path, text.as_bytes()).map_err(|e| ModelError::io(path, e))
+}
+
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, ModelError> {
+    let text = std::fs::read_to_string(path).map_err(|e| ModelError::io(path, e))?;
+    serde_json::from_str(&text).map_err(|e| ModelError::invalid(path, e))
+}
+
+fn file_sha256(path: &Path) -> Result<String, ModelError> {
+    let bytes = std::fs::read(path).map_err(|e| ModelError::io(path, e))?;
+    Ok(crate::hex(&Sha256::digest(bytes)))
+}
+
+fn tensors(vars: &HashMap<String, candle_core::Var>) -> HashMap<String, Tensor> {
+    vars.iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+        .collect()
+}
+
+/// Train (or resume) the run `config` describes, calling `on_event` as it goes.
+pub fn train(
+    config: &TrainConfig,
+    on_event: &mut dyn FnMut(&TrainEvent),
+) -> Result<TrainReport, ModelError> {
+    let mut run = Run::start(config)?;
+    let total = run.config.schedule.total;
+    on_event(&TrainEvent::Started {
+        from: run.state.step,
+        total,
+        run: Box::new(run.config.clone()),
+    });
+    let end = config.stop_after.map_or(total, |s| total.min(s));
+    let every = |n: Option<u64>| n.unwrap_or(total.div_ceil(10)).max(1);
+    let (mut loss_sum, mut loss_steps) = (0f64, 0u64);
+    let mut last_eval = None;
+    while run.state.step < end {
+        let event = run.step()?;
+        if let TrainEvent::Step { loss, .. } = event {
+            (loss_sum, loss_steps) = (loss_sum + f64::from(loss), loss_steps + 1);
+        }
+        on_event(&event);
+        let (step, done) = (run.state.step, run.state.step == end);
+        if step % every(config.eval_every) == 0 || done {
+            let record = run.evaluate(loss_sum / loss_steps.max(1) as f64)?;
+            (loss_sum, loss_steps) = (0.0, 0);
+            on_event(&TrainEvent::Eval(Box::new(record.clone())));
+            last_eval = Some(record);
+        }
+        if step % every(config.checkpoint_every) == 0 || done {
+            run.checkpoint()?;
+        }
+    }
+    let eval = match last_eval {
+        Some(e) => e,
+        None => read_json(&run.paths.eval)?,
+    };
+    Ok(TrainReport {
+        steps: run.state.step,
+        total_steps: total,
+        eval,
+        out: config.out.clone(),
+    })
+}
+
+/// A run in progress: data, model, optimiser and where it stands.
+struct Run {
+    config: RunConfig,
+    data: LmData,
+    model: PrefixLm,
+    vars: HashMap<String, candle_core::Var>,
+    opt: AdamW,
+    state: TrainState,
+    paths: Paths,
+}
+
+impl Run {
+    /// Load the data, resolve the run, build the model and optimiser, and restore the
+    /// checkpoint in the output folder if there is one.
+    fn start(config: &TrainConfig) -> Result<Self, ModelError> {
+        let corpus = match &config.corpus {
+            Some(c) => c.clone(),
+            None => {
+                tokenizer::TokenSet::open(&config.tokens)
+                    .map_err(|e| ModelError::invalid(&config.tokens, e))?
+                    .manifest
+                    .corpus
+            }
+        };
+        let limits = Limits {
+            text_tokens: config.max_text_tokens,
+            motion_tokens: config.max_motion_tokens,
+        };
+        let encoder = config.text_encoder.as_deref();
+        let data = LmData::load(&config.tokens, &corpus, encoder, limits)?;
+        let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
+        let total = data
+            .steps_for_tokens(config.tokens_budget, config.batch_size, config.seed)
+            .ok_or_else(|| ModelError::Argument("no train clips with motion tokens".into()))?;
+        let seq = SequenceShape {
+            prefix: config.max_text_tokens,
+            motion: config.max_motion_tokens + 1,
+        };
+        let run = RunConfig {
+            format: FORMAT.into(),
+            train: config.clone(),
+            accounting: Accounting::of(&model_config, seq),
+            model: model_config,
+            corpus,
+            text_encoder: data.encoder.clone(),
+            tokenizer: data.tokens.tokenizer.clone(),
+            schedule: LrSchedule {
+                peak: config.lr,
+                warmup: ((total as f64 * config.warmup_fraction).round() as u64).max(1),
+                total,
+                final_ratio: config.final_lr_ratio,
+            },
+        };
+        std::fs::create_dir_all(&config.out).map_err(|e| ModelError::io(&config.out, e))?;
+        let (model, varmap) = init_model(&run.model, config.seed).map_err(ModelError::inference)?;
+        let vars = varmap.data().lock().expect("varmap lock").clone();
+        let (beta1, beta2) = config.betas;
+        let adamw = AdamWConfig {
+            beta1,
+            beta2,
+            eps: 1e-8,
+            weight_decay: config.weight_decay,
+        };
+        let mut opt = AdamW::new(&vars, adamw);
+        let paths = Paths::new(&config.out);
+        let state = resume(&paths, &run, &varmap, &mut opt)?;
+        write_json(&paths.config, &run)?;
+        Ok(Self {
+            config: run,
+            data,
+            model,
+            vars,
+            opt,
+            state,
+            paths,
+        })
+    }
+
+    /// One optimiser step on the next batch.
+    fn step(&mut self) -> Result<TrainEvent, ModelError> {
+        let (c, started) = (&self.config.train, Instant::now());
+        let items = self.data.train_items(self.state.step, c.batch_size, c.seed);
+        let batch = self.data.batch(&self.config.model, &items, &Device::Cpu)?;
+        let loss = self.model.loss(&batch).map_err(ModelError::inference)?;
+        let grads = loss.backward().map_err(ModelError::inference)?;
+        let lr = self.config.schedule.at(self.state.step);
+        self.opt
+            .step(&grads, lr, Some(c.grad_clip))
+            .map_err(ModelError::inference)?;
+        let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
+        let shape = SequenceShape {
+            prefix: batch.layout.prefix_slots,
+            motion: batch.layout.motion_slots,
+        };
+        let s = &mut self.state;
+        s.step += 1;
+        s.tokens_seen += tokens;
+        s.data_position += c.batch_size as u64;
+        s.flops_exact +=
+            c.batch_size as f64 * accounting::train_flops_exact(&self.config.model, shape);
+        Ok(TrainEvent::Step {
+            step: s.step,
+            loss: loss.to_scalar::<f32>().map_err(ModelError::inference)?,
+            lr,
+            tokens_seen: s.tokens_seen,
+            tokens_per_s: tokens as f64 / started.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Evaluate the test split and record it in `eval.json` and `evals.jsonl`.
+    fn evaluate(&self, train_loss: f64) -> Result<EvalRecord, ModelError> {
+        let test = evaluate(
+            &self.model,
+            &self.data,
+            "test",
+            self.config.train.batch_size,
+        )?;
+        let params = self.config.accounting.params;
+        let record = EvalRecord {
+            step: self.state.step,
+            tokens_seen: self.state.tokens_seen,
+            train_loss,
+            test,
+            flops_6n: accounting::budget(&self.config.model, self.state.tokens_seen as f64),
+            flops_exact: self.state.flops_exact,
+            n_nv: params.n_nv,
+            n_v: params.n_v,
+            tied: params.tied,
+        };
+        write_json(&self.paths.eval, &record)?;
+        append_eval(&self.paths.evals, &record)?;
+        Ok(record)
+    }
+
+    /// Write weights and optimiser state atomically, then `state.json` naming their hashes.
+    fn checkpoint(&mut self) -> Result<(), ModelError> {
+        let paths = &self.paths;
+        tokenizer::checkpoint::save_safetensors(&tensors(&self.vars), &paths.model)
+            .map_err(|e| ModelError::invalid(&paths.model, e))?;
+        self.opt
+            .save(&paths.optimizer)
+            .map_err(|e| ModelError::invalid(&paths.optimizer, e))?;
+        self.state.model_sha256 = file_sha256(&paths.model)?;
+        self.state.optimizer_sha256 = file_sha256(&paths.optimizer)?;
+        write_json(&paths.state, &self.state)
+    }
+}
+
+/// The files of a run folder.
+struct Paths {
+    config: PathBuf,
+    model: PathBuf,
+    optimizer: PathBuf,
+    state: PathBuf,
+    eval: PathBuf,
+    evals: PathBuf,
+}
+
+impl Paths {
+    fn new(out: &Path) -> Self {
+        Self {
+            config: out.join("config.json"),
+            model: out.join("model.safetensors"),
+            optimizer: out.join("optimizer.safetensors"),
+            state: out.join("state.json"),
+            eval: out.join("eval.json"),
+            evals: out.join("evals.jsonl"),
+        }
+    }
+}
+
+/// Restore the checkpoint in the run folder, if any, after checking it belongs to `run`;
+/// evaluations recorded after it are dropped (they will be redone).
+fn resume(
+    paths: &Paths,
+    run: &RunConfig,
+    varmap: &candle_nn::VarMap,
+    opt: &mut AdamW,
+) -> Result<TrainState, ModelError> {
+    let fresh = TrainState {
+        step: 0,
+        tokens_seen: 0,
+        flops_exact: 0.0,
+        data_position: 0,
+        model_sha256: String::new(),
+        optimizer_sha256: String::new(),
+    };
+    if !paths.state.is_file() {
+        let _ = std::fs::remove_file(&paths.evals);
+        return Ok(fresh);
+    }
+    let old: serde_json::Value = read_json(&paths.config)?;
+    if serde_json::to_value(run).ok() != Some(old) {
+        return Err(ModelError::invalid(
+            &paths.config,
+            "this folder holds a run with a different configuration; use another --out",
+        ));
+    }
+    let state: TrainState = read_json(&paths.state)?;
+    for (path, sha) in [
+        (&paths.model, &state.model_sha256),
+        (&paths.optimizer, &state.optimizer_sha256),
+    ] {
+        if file_sha256(path)? != *sha {
+            return Err(ModelError::invalid(
+                path,
+                "does not match state.json (interrupted while checkpointing); remove the folder to restart",
+            ));
+        }
+    }
+    let mut varmap = varmap.clone();
+    varmap
+        .load(&paths.model)
+        .map_err(|e| ModelError::invalid(&paths.model, e))?;
+    opt.load(&paths.optimizer)
+        .map_err(|e| ModelError::invalid(&paths.optimizer, e))?;
+    if paths.evals.is_file() {
+        let text =
+            std::fs::read_to_string(&paths.evals).map_err(|e| ModelError::io(&paths.evals, e))?;
+        let kept: String = text
+            .lines()
+            .filter(|l| serde_json::from_str::<EvalRecord>(l).is_ok_and(|r| r.step <= state.step))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        write_atomic(&paths.evals, kept.as_bytes()).map_err(|e| ModelError::io(&paths.evals, e))?;
+    }
+    Ok(state)
+}
+
+fn append_eval(path: &Path, record: &EvalRecord) -> Result<(), ModelError> {
+    use std::io::Write;
+    let line = serde_json::to_string(record).map_err(|e| ModelError::invalid(path, e))?;
+    let mut file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(|e| ModelError::io(path, e))?;
+    writeln!(file, "{line}").map_err(|e| ModelError::io(path, e))
+}

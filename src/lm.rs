@@ -1,0 +1,507 @@
+//! `motionscale model info|presets`, `motionscale train` and `motionscale generate`: the
+//! text-prefix autoregressive motion transformer.
+
+use anyhow::{bail, Context, Result};
+use model::accounting::{Accounting, SequenceShape};
+use model::generate::Sampling;
+use model::prefix_lm::{PrefixLmConfig, PRESETS};
+use model::train::{ModelShape, RunConfig, TrainConfig, TrainEvent};
+use model::{BertEncoder, FallbackEncoder, TextEncoder};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use tokenizer::model::MotionTokenizer;
+
+/// A model shape on the command line: `--preset P` or `--width W --layers L --heads H`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ShapeArgs {
+    /// A named preset (ScaMo's 44M, 111M, 343M, 775M, 1.4B, 3B, or a cpu-… ladder size).
+    #[arg(long, conflicts_with_all = ["width", "layers", "heads"])]
+    pub preset: Option<String>,
+    /// Model width d.
+    #[arg(long, requires_all = ["layers", "heads"])]
+    pub width: Option<usize>,
+    /// Blocks.
+    #[arg(long)]
+    pub layers: Option<usize>,
+    /// Attention heads.
+    #[arg(long)]
+    pub heads: Option<usize>,
+    /// SwiGLU width (default round(8d/3)).
+    #[arg(long)]
+    pub ffn: Option<usize>,
+}
+
+impl ShapeArgs {
+    fn shape(&self) -> Result<ModelShape> {
+        match (&self.preset, self.width, self.layers, self.heads) {
+            (Some(p), ..) => Ok(ModelShape::Preset(p.clone())),
+            (None, Some(d_model), Some(n_layers), Some(n_heads)) => Ok(ModelShape::Custom {
+                d_model,
+                n_layers,
+                n_heads,
+                ffn_hidden: self.ffn,
+            }),
+            _ => bail!("give --preset P or --width W --layers L --heads H"),
+        }
+    }
+}
+
+/// Arguments of `motionscale model info`.
+#[derive(clap::Args, Debug)]
+pub struct InfoArgs {
+    /// Model shape.
+    #[command(flatten)]
+    pub shape: ShapeArgs,
+    /// Motion codebook size K (the vocabulary adds BOS, EOS and PAD).
+    #[arg(long)]
+    pub vocab: usize,
+    /// Width of the frozen text embeddings (MiniLM: 384).
+    #[arg(long, default_value_t = 384)]
+    pub text_dim: usize,
+    /// Prefix positions of the exact FLOP count.
+    #[arg(long, default_value_t = SequenceShape::BENCH.prefix)]
+    pub prefix_len: usize,
+    /// Motion positions of the exact FLOP count.
+    #[arg(long, default_value_t = SequenceShape::BENCH.motion)]
+    pub motion_len: usize,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Arguments of `motionscale model presets`.
+#[derive(clap::Args, Debug)]
+pub struct PresetsArgs {
+    /// Motion codebook size K.
+    #[arg(long, default_value_t = 1024)]
+    pub vocab: usize,
+    /// Width of the frozen text embeddings.
+    #[arg(long, default_value_t = 384)]
+    pub text_dim: usize,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Keep freed memory for reuse. glibc hands blocks of 128 KiB and more back to the OS
+/// (munmap, heap trimming), so a training loop, which frees and reallocates the same
+/// activations every step, pays a page fault per 4 KiB of them (~110 K faults per d512 step
+/// here). Blocks up to 32 MiB then stay on the heap, and the heap is never trimmed.
+pub fn keep_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only tunes the allocator; it is called before any worker thread starts.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+    }
+}
+
+fn millions(n: u64) -> String {
+    format!("{:.2}M", n as f64 / 1e6)
+}
+
+/// `motionscale model info`.
+pub fn info(args: InfoArgs) -> Result<ExitCode> {
+    let config = args.shape.shape()?.resolve(args.vocab, args.text_dim)?;
+    let seq = SequenceShape {
+        prefix: args.prefix_len,
+        motion: args.motion_len,
+    };
+    let acc = Accounting::of(&config, seq);
+    if args.json {
+        let value = serde_json::json!({"config": config, "accounting": acc});
+        println!("{}", serde_json::to_string_pretty(&value)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let p = acc.params;
+    println!(
+        "d {} · {} layers · {} heads (head width {}) · SwiGLU {} · vocabulary {} = {} codes + BOS/EOS/PAD · text {}",
+        config.d_model,
+        config.n_layers,
+        config.n_heads,
+        config.head_dim(),
+        config.ffn_hidden,
+        config.vocab_size(),
+        config.codebook_size,
+        config.text_dim
+    );
+    println!(
+        "N_nv {} (blocks {}, text projection {}, final norm {})",
+        millions(p.n_nv),
+        millions(p.blocks),
+        millions(p.text_projection),
+        p.final_norm
+    );
+    println!(
+        "N_v  {} = embedding {} + head {} (untied: both counted)",
+        millions(p.n_v),
+        millions(p.embedding),
+        millions(p.head)
+    );
+    println!("N    {} ({} parameters)", millions(p.total), p.total);
+    println!(
+        "FLOPs per motion token: 6N {:.4e}; exact {:.4e} (training, {} prefix + {} motion positions, attention {:.1}% of forward)",
+        acc.flops_6n_per_token,
+        acc.flops_exact_per_token,
+        seq.prefix,
+        seq.motion,
+        100.0 * acc.forward_per_sequence.attention / acc.forward_per_sequence.total
+    );
+    println!("budget C = 6·N·D = {:.4e}·D", acc.flops_6n_per_token);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `motionscale model presets`.
+pub fn presets(args: PresetsArgs) -> Result<ExitCode> {
+    let rows: Vec<(String, Option<f64>, PrefixLmConfig, Accounting)> = PRESETS
+        .iter()
+        .map(|p| {
+            let c = PrefixLmConfig::preset(p.name, args.vocab, args.text_dim).expect("preset");
+            let acc = Accounting::of(&c, SequenceShape::BENCH);
+            (p.name.to_string(), p.nominal_params, c, acc)
+        })
+        .collect();
+    if args.json {
+        let value: Vec<_> = rows
+            .iter()
+            .map(|(name, nominal, c, acc)| {
+                serde_json::json!({"preset": name, "nominal_params": nominal, "config": c, "accounting": acc})
+            })
+            .collect();
+        println!("{}", serde_json::to_string_pretty(&value)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "{:<9} {:>6} {:>6} {:>5} {:>6} {:>10} {:>10} {:>10} {:>9}  (K = {}, E = {})",
+        "preset",
+        "layers",
+        "heads",
+        "d",
+        "ffn",
+        "N_nv",
+        "N_v",
+        "N",
+        "nominal",
+        args.vocab,
+        args.text_dim
+    );
+    for (name, nominal, c, acc) in &rows {
+        let p = acc.params;
+        println!(
+            "{:<9} {:>6} {:>6} {:>5} {:>6} {:>10} {:>10} {:>10} {:>9}",
+            name,
+            c.n_layers,
+            c.n_heads,
+            c.d_model,
+            c.ffn_hidden,
+            millions(p.n_nv),
+            millions(p.n_v),
+            millions(p.total),
+            nominal.map_or("-".into(), |n| format!("{:.0}M", n / 1e6))
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale train`.
+#[derive(clap::Args, Debug)]
+pub struct TrainArgs {
+    /// Token set folder (`motionscale tokenize`).
+    #[arg(long)]
+    pub tokens: PathBuf,
+    /// Corpus folder with caption embeddings (default: the token set's corpus).
+    #[arg(long)]
+    pub corpus: Option<PathBuf>,
+    /// Text encoder id of the caption embeddings (default: the corpus's only one).
+    #[arg(long)]
+    pub text_emb: Option<String>,
+    /// Model shape.
+    #[command(flatten)]
+    pub shape: ShapeArgs,
+    /// Expected codebook size (checked against the token set).
+    #[arg(long)]
+    pub vocab: Option<usize>,
+    /// Token budget D: motion tokens to train on.
+    #[arg(long)]
+    pub tokens_budget: u64,
+    /// Output folder (a re-run of the same command resumes from its checkpoint).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Clips per batch.
+    #[arg(long, default_value_t = 32)]
+    pub batch: usize,
+    /// Peak learning rate.
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    /// Final learning rate as a fraction of the peak.
+    #[arg(long, default_value_t = 0.1)]
+    pub final_lr_ratio: f64,
+    /// Warm-up as a fraction of all steps.
+    #[arg(long, default_value_t = 0.05)]
+    pub warmup: f64,
+    /// AdamW weight decay.
+    #[arg(long, default_value_t = 0.1)]
+    pub weight_decay: f64,
+    /// Global gradient-norm clip.
+    #[arg(long, default_value_t = 1.0)]
+    pub grad_clip: f64,
+    /// Seed of the initial weights and the batch order.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Text tokens kept per caption.
+    #[arg(long, default_value_t = 64)]
+    pub max_text_tokens: usize,
+    /// Motion tokens kept per clip.
+    #[arg(long, default_value_t = 64)]
+    pub max_motion_tokens: usize,
+    /// Evaluate every N steps (default: 10 times per run).
+    #[arg(long)]
+    pub eval_every: Option<u64>,
+    /// Checkpoint every N steps (default: 10 times per run).
+    #[arg(long)]
+    pub checkpoint_every: Option<u64>,
+    /// Stop after this many steps of the schedule (checkpointed; re-run to continue).
+    #[arg(long)]
+    pub stop_after: Option<u64>,
+    /// Print the final report as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `motionscale train`.
+pub fn train(args: TrainArgs) -> Result<ExitCode> {
+    keep_freed_memory();
+    let mut config = TrainConfig::new(
+        &args.tokens,
+        args.shape.shape()?,
+        args.tokens_budget,
+        &args.out,
+    );
+    config.corpus = args.corpus.clone();
+    config.text_encoder = args.text_emb.clone();
+    config.batch_size = args.batch;
+    config.lr = args.lr;
+    config.final_lr_ratio = args.final_lr_ratio;
+    config.warmup_fraction = args.warmup;
+    config.weight_decay = args.weight_decay;
+    config.grad_clip = args.grad_clip;
+    config.seed = args.seed;
+    config.max_text_tokens = args.max_text_tokens;
+    config.max_motion_tokens = args.max_motion_tokens;
+    config.stop_after = args.stop_after;
+    config.eval_every = args.eval_every;
+    config.checkpoint_every = args.checkpoint_every;
+    let bar = crate::commands::progress_bar("train", "steps");
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} train [{bar:30}] {pos}/{len} steps {msg} eta {eta}",
+        )?
+        .progress_chars("=> "),
+    );
+    let mut tokens_per_s = 0.0;
+    let report = model::train::train(&config, &mut |event| match event {
+        TrainEvent::Started { from, total, run } => {
+            bar.set_length(*total);
+            bar.set_position(*from);
+            check_vocab(args.vocab, run);
+            let p = run.accounting.params;
+            bar.println(format!(
+                    "model d {} × {} layers, N_nv {} N_v {} (untied), vocabulary {}, text {}; {} steps{}",
+                    run.model.d_model,
+                    run.model.n_layers,
+                    p.n_nv,
+                    p.n_v,
+                    run.model.vocab_size(),
+                    run.text_encoder,
+                    total,
+                    if *from > 0 { format!(", resuming at step {from}") } else { String::new() }
+                ));
+        }
+        TrainEvent::Step {
+            step,
+            loss,
+            lr,
+            tokens_per_s: tps,
+            ..
+        } => {
+            tokens_per_s = if tokens_per_s == 0.0 {
+                *tps
+            } else {
+                0.9 * tokens_per_s + 0.1 * tps
+            };
+            bar.set_position(*step);
+            bar.set_message(format!(
+                "loss {loss:.4} lr {lr:.2e} {tokens_per_s:.0} tok/s"
+            ));
+        }
+        TrainEvent::Eval(e) => bar.println(format!(
+            "step {}: train {:.4}, test CE {:.4}, L_u {:.4} (unigram CE {:.4}), D {}, C {:.3e}",
+            e.step,
+            e.train_loss,
+            e.test.cross_entropy,
+            e.test.normalized_loss,
+            e.test.unigram_cross_entropy,
+            e.tokens_seen,
+            e.flops_6n
+        )),
+    });
+    bar.finish_and_clear();
+    let report = report?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        let e = &report.eval;
+        println!(
+            "{} steps of {}: test CE {:.4} nats (unigram CE {:.4}, entropy {:.4}), L_u {:.4}; D {} tokens, C {:.3e} FLOPs (exact {:.3e}) → {}",
+            report.steps,
+            report.total_steps,
+            e.test.cross_entropy,
+            e.test.unigram_cross_entropy,
+            e.test.unigram_entropy,
+            e.test.normalized_loss,
+            e.tokens_seen,
+            e.flops_6n,
+            e.flops_exact,
+            report.out.display()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn check_vocab(expected: Option<usize>, run: &RunConfig) {
+    if let Some(v) = expected {
+        let t = &run.tokenizer;
+        if v != t.codebook_size && v != t.nominal_codebook {
+            eprintln!(
+                "warning: --vocab {v} but the token set has {} codes (nominal {})",
+                t.codebook_size, t.nominal_codebook
+            );
+        }
+    }
+}
+
+/// Arguments of `motionscale generate`.
+#[derive(clap::Args, Debug)]
+pub struct GenerateArgs {
+    /// Trained model folder (`motionscale train --out`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Tokenizer checkpoint folder (default: the one that made the model's token set).
+    #[arg(long)]
+    pub tokenizer: Option<PathBuf>,
+    /// The text to animate.
+    #[arg(long)]
+    pub text: String,
+    /// Output file: .json (tokens), .npy (n × 263 HumanML3D features, de-normalised) or
+    /// .bvh (SMPL-22 hierarchy, 20 fps, centimetres: Blender's import scale 0.01 gives metres).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// BERT-family text encoder folder (default: the one the model was trained with).
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+    /// Softmax temperature (0: greedy).
+    #[arg(long, default_value_t = 1.0)]
+    pub temperature: f64,
+    /// Sample among the k most likely tokens (0: all).
+    #[arg(long, default_value_t = 50)]
+    pub top_k: usize,
+    /// Nucleus sampling threshold.
+    #[arg(long)]
+    pub top_p: Option<f64>,
+    /// Sampling seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Most motion tokens.
+    #[arg(long, default_value_t = 64)]
+    pub max_tokens: usize,
+    /// Recompute the whole sequence every step instead of using the key/value cache.
+    #[arg(long)]
+    pub no_cache: bool,
+}
+
+/// The text encoder a run was trained with: `--encoder`, the fetched MiniLM, or the
+/// fallback table saved in the corpus; its id must match the run's.
+fn load_text_encoder(run: &RunConfig, dir: Option<&Path>) -> Result<Box<dyn TextEncoder>> {
+    let fallback_dir = run
+        .corpus
+        .join("text")
+        .join(&run.text_encoder)
+        .join("encoder");
+    let encoder: Box<dyn TextEncoder> = match dir {
+        Some(d) => Box::new(BertEncoder::load(d)?),
+        None if fallback_dir.is_dir() => Box::new(FallbackEncoder::load(&fallback_dir)?),
+        None => Box::new(BertEncoder::load(&model::default_encoder_dir())?),
+    };
+    if encoder.id() != run.text_encoder {
+        bail!(
+            "text encoder {} differs from the model's {} (pass --encoder DIR)",
+            encoder.id(),
+            run.text_encoder
+        );
+    }
+    Ok(encoder)
+}
+
+/// Decode `tokens` with the run's tokenizer (or `dir`, which must hold the same checkpoint)
+/// and write HumanML3D features (.npy) or a BVH of the recovered joints.
+fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path) -> Result<()> {
+    let dir = dir.unwrap_or(&run.tokenizer.dir);
+    let id = MotionTokenizer::content_id(dir)
+        .with_context(|| format!("reading the tokenizer checkpoint in {}", dir.display()))?;
+    if id != run.tokenizer.id {
+        bail!(
+            "{}: tokenizer {id} is not the model's {} (pass --tokenizer DIR)",
+            dir.display(),
+            run.tokenizer.id
+        );
+    }
+    let decoder = MotionTokenizer::load(dir, &candle_core::Device::Cpu)?;
+    let features = decoder.detokenize(tokens)?;
+    crate::tokenizer_cmd::write_motion(out, &features, false)
+}
+
+/// `motionscale generate`.
+pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
+    keep_freed_memory();
+    let (model, run) = model::train::load_model(&args.model)?;
+    let encoder = load_text_encoder(&run, args.encoder.as_deref())?;
+    let text = encoder.encode(&[args.text.as_str()])?.remove(0);
+    let rows = text.len().min(run.train.max_text_tokens);
+    let prefix = &text.embeddings[..rows * text.dim];
+    let sampling = Sampling {
+        temperature: args.temperature,
+        top_k: (args.top_k > 0).then_some(args.top_k),
+        top_p: args.top_p,
+        seed: args.seed,
+        max_tokens: args.max_tokens,
+        allow_eos: true,
+        kv_cache: !args.no_cache,
+    };
+    let started = std::time::Instant::now();
+    let tokens = model::generate::generate(&model, &[prefix], &sampling)?.remove(0);
+    let seconds = started.elapsed().as_secs_f64();
+    let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
+    match ext {
+        "json" => {
+            let value = serde_json::json!({
+                "text": args.text,
+                "tokens": tokens,
+                "model": args.model,
+                "text_encoder": run.text_encoder,
+                "tokenizer": run.tokenizer,
+                "sampling": sampling,
+            });
+            ingest::npy::write_atomic(&args.out, serde_json::to_string_pretty(&value)?.as_bytes())?;
+        }
+        "npy" | "bvh" => write_motion(&tokens, &run, args.tokenizer.as_deref(), &args.out)?,
+        _ => bail!("--out must end in .json, .npy or .bvh"),
+    }
+    println!(
+        "{} motion tokens in {:.2} s ({:.0} tokens/s) → {}",
+        tokens.len(),
+        seconds,
+        tokens.len() as f64 / seconds,
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,365 @@
+//! `motionscale bench train`: the prefix-LM training step (forward, backward, clipped AdamW)
+//! and generation with and without the key/value cache, on the layout of
+//! `../shared/bench/pytorch_prefix_lm.py` (batch 32, 16 text positions of 384-d embeddings,
+//! 64 motion positions, 1024 codes + 3 specials); `--reference` runs that script in the same
+//! session and prints the ratios.
+
+use anyhow::{bail, Context, Result};
+use model::accounting::{self, SequenceShape};
+use model::generate::Sampling;
+use model::prefix_lm::{init_model, LmBatch, PrefixLmConfig};
+use serde_json::{json, Value};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+use tokenizer::optim::{AdamW, AdamWConfig};
+
+/// Motion codes of the benchmark model (the reference's N_CODES).
+const CODES: usize = 1024;
+/// Text embedding width (the reference's PREFIX_DIM).
+const TEXT_DIM: usize = 384;
+
+/// Arguments of `motionscale bench train`.
+#[derive(clap::Args, Debug)]
+pub struct BenchTrainArgs {
+    /// Model sizes as WIDTHxLAYERS (heads of width 64).
+    #[arg(long, value_delimiter = ',', default_value = "256x4,512x8")]
+    pub sizes: Vec<String>,
+    /// Sequences per training step.
+    #[arg(long, default_value_t = 32)]
+    pub batch: usize,
+    /// Untimed warm-up steps.
+    #[arg(long, default_value_t = 2)]
+    pub warmup: usize,
+    /// Timed steps (at least; more until --min-time seconds).
+    #[arg(long, default_value_t = 5)]
+    pub reps: usize,
+    /// Seconds of timed work per measurement.
+    #[arg(long, default_value_t = 3.0)]
+    pub min_time: f64,
+    /// fp32 peak of this machine for MFU (oneDNN sgemm, `../shared/bench/sgemm_peak.py`).
+    #[arg(long, default_value_t = 447.0)]
+    pub peak_gflops: f64,
+    /// Also run the PyTorch reference and print the ratios.
+    #[arg(long)]
+    pub reference: bool,
+    /// The PyTorch reference script.
+    #[arg(long, default_value = "../shared/bench/pytorch_prefix_lm.py")]
+    pub reference_script: PathBuf,
+    /// Threads the reference uses (ours: all cores, or RAYON_NUM_THREADS).
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Skip the generation benchmark.
+    #[arg(long)]
+    pub no_generate: bool,
+    /// Write all figures as JSON to this file.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// CPU jiffies so far: (idle of all cores, total of all cores, this process).
+fn cpu_snapshot() -> Option<(u64, u64, u64)> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    let all: Vec<u64> = stat
+        .lines()
+        .next()?
+        .split_whitespace()
+        .skip(1)
+        .filter_map(|v| v.parse().ok())
+        .collect();
+    let own = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command name: state is field 3, utime 14, stime 15.
+    let fields: Vec<&str> = own.rsplit_once(')')?.1.split_whitespace().collect();
+    let utime: u64 = fields.get(11)?.parse().ok()?;
+    let stime: u64 = fields.get(12)?.parse().ok()?;
+    Some((all.get(3)? + all.get(4)?, all.iter().sum(), utime + stime))
+}
+
+/// Share of all cores' time between two snapshots that other processes used (0: a quiet
+/// machine; 0.5 on 2 cores: one whole core was busy elsewhere), as `pytorch_prefix_lm.py`'s
+/// `foreign_cpu_fraction`.
+fn foreign_load(a: Option<(u64, u64, u64)>, b: Option<(u64, u64, u64)>) -> Option<f64> {
+    let ((idle0, total0, own0), (idle1, total1, own1)) = (a?, b?);
+    let total = total1.checked_sub(total0).filter(|&t| t > 0)? as f64;
+    let busy = total - (idle1 - idle0) as f64;
+    Some(((busy - (own1 - own0) as f64) / total).max(0.0))
+}
+
+/// Median, min and max of `f`'s wall time after `warmup` calls, over at least `reps` calls
+/// and `min_time` seconds, with the foreign CPU load meanwhile.
+fn time<F: FnMut() -> Result<()>>(
+    warmup: usize,
+    reps: usize,
+    min_time: f64,
+    mut f: F,
+) -> Result<Value> {
+    for _ in 0..warmup {
+        f()?;
+    }
+    let before = cpu_snapshot();
+    let mut samples = Vec::new();
+    let mut total = 0.0;
+    while samples.len() < reps || total < min_time {
+        let t = Instant::now();
+        f()?;
+        samples.push(t.elapsed().as_secs_f64());
+        total += samples.last().expect("pushed");
+        if samples.len() >= 200 {
+            break;
+        }
+    }
+    let foreign = foreign_load(before, cpu_snapshot());
+    samples.sort_by(f64::total_cmp);
+    Ok(
+        json!({"median_s": samples[samples.len() / 2], "min_s": samples[0],
+              "max_s": samples[samples.len() - 1], "n": samples.len(),
+              "foreign_cpu_fraction": foreign}),
+    )
+}
+
+fn parse_size(s: &str) -> Result<(usize, usize)> {
+    let (d, l) = s.split_once('x').context("sizes look like 512x8")?;
+    Ok((d.trim().parse()?, l.trim().parse()?))
+}
+
+/// The reference's batch: random text embeddings and 64 random codes per sequence.
+fn bench_batch(config: &PrefixLmConfig, batch: usize, seed: u64) -> Result<LmBatch> {
+    let mut rng = ingest::rng::SplitMix64(seed);
+    let seq = SequenceShape::BENCH;
+    let texts: Vec<Vec<f32>> = (0..batch)
+        .map(|_| {
+            (0..seq.prefix * TEXT_DIM)
+                .map(|_| rng.range(-1.7, 1.7) as f32)
+                .collect()
+        })
+        .collect();
+    let motions: Vec<Vec<u32>> = (0..batch)
+        .map(|_| (0..seq.motion).map(|_| rng.index(CODES) as u32).collect())
+        .collect();
+    let texts: Vec<&[f32]> = texts.iter().map(Vec::as_slice).collect();
+    let motions: Vec<(&[u32], bool)> = motions.iter().map(|m| (m.as_slice(), false)).collect();
+    Ok(LmBatch::new(
+        config,
+        &texts,
+        &motions,
+        &candle_core::Device::Cpu,
+    )?)
+}
+
+fn bench_train_step(args: &BenchTrainArgs, d: usize, layers: usize) -> Result<Value> {
+    let config = PrefixLmConfig::new(d, layers, d / 64, CODES, TEXT_DIM);
+    let (model, varmap) = init_model(&config, 0)?;
+    let vars = varmap.data().lock().expect("varmap lock").clone();
+    let mut opt = AdamW::new(
+        &vars,
+        AdamWConfig {
+            beta1: 0.9,
+            beta2: 0.95,
+            eps: 1e-8,
+            weight_decay: 0.1,
+        },
+    );
+    let batch = bench_batch(&config, args.batch, 1)?;
+    let mut phases = [Vec::new(), Vec::new(), Vec::new()];
+    let st = time(args.warmup, args.reps, args.min_time, || {
+        let t0 = Instant::now();
+        let loss = model.loss(&batch)?;
+        let t1 = Instant::now();
+        let grads = loss.backward()?;
+        let t2 = Instant::now();
+        opt.step(&grads, 3e-4, Some(1.0))?;
+        let t3 = Instant::now();
+        for (p, (a, b)) in phases.iter_mut().zip([(t0, t1), (t1, t2), (t2, t3)]) {
+            p.push((b - a).as_secs_f64());
+        }
+        Ok(())
+    })?;
+    let median = |v: &mut Vec<f64>| {
+        let v = &mut v[args.warmup..];
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let [fwd, bwd, optim] = phases.each_mut().map(median);
+    let step_s = st["median_s"].as_f64().expect("median");
+    let flops = args.batch as f64 * accounting::train_flops_exact(&config, SequenceShape::BENCH);
+    let six_n = args.batch as f64
+        * SequenceShape::BENCH.motion as f64
+        * accounting::flops_6n_per_token(&config);
+    let tokens = (args.batch * SequenceShape::BENCH.motion) as f64;
+    let gflops = flops / step_s / 1e9;
+    let params = accounting::param_count(&config);
+    Ok(json!({
+        "d_model": d, "n_layers": layers, "n_heads": d / 64, "ffn_hidden": config.ffn_hidden,
+        "vocab": config.vocab_size(), "batch": args.batch, "n_nv": params.n_nv, "n_v": params.n_v,
+        "step_time": st, "phase_median_s": {"fwd": fwd, "bwd": bwd, "opt": optim},
+        "motion_tokens_per_s": tokens / step_s,
+        "flops_per_step_exact": flops, "flops_per_step_6N": six_n,
+        "achieved_gflops_exact": gflops, "mfu": gflops / args.peak_gflops,
+    }))
+}
+
+fn bench_generate(args: &BenchTrainArgs) -> Result<Value> {
+    let config = PrefixLmConfig::new(256, 4, 4, CODES, TEXT_DIM);
+    let (model, _) = init_model(&config, 0)?;
+    let mut out = serde_json::Map::new();
+    for batch in [1usize, 32] {
+        let b = bench_batch(&config, batch, 2)?;
+        let text = b.text.flatten_all()?.to_vec1::<f32>()?;
+        let texts: Vec<&[f32]> = text.chunks(16 * TEXT_DIM).collect();
+        for cached in [true, false] {
+            let s = Sampling {
+                temperature: 0.0,
+                max_tokens: SequenceShape::BENCH.motion,
+                allow_eos: false,
+                kv_cache: cached,
+                ..Sampling::default()
+            };
+            let st = time(1, 3, args.min_time / 2.0, || {
+                model::generate::generate(&model, &texts, &s)?;
+                Ok(())
+            })?;
+            let tps = (batch * s.max_tokens) as f64 / st["median_s"].as_f64().expect("median");
+            let key = format!(
+                "batch{batch}_{}",
+                if cached { "cached" } else { "uncached" }
+            );
+            out.insert(key, json!({"tokens_per_s": tps, "time": st}));
+        }
+    }
+    Ok(Value::Object(out))
+}
+
+fn run_reference(args: &BenchTrainArgs, mode: &str, d: usize, layers: usize) -> Result<Value> {
+    let out = tempfile::NamedTempFile::new()?;
+    let status = std::process::Command::new("python3")
+        .arg(&args.reference_script)
+        .args([
+            "--mode",
+            mode,
+            "--d",
+            &d.to_string(),
+            "--layers",
+            &layers.to_string(),
+        ])
+        .args([
+            "--heads",
+            &(d / 64).to_string(),
+            "--batch",
+            &args.batch.to_string(),
+        ])
+        .args([
+            "--threads",
+            &args.threads.to_string(),
+            "--min-time",
+            &args.min_time.to_string(),
+        ])
+        .arg("--out")
+        .arg(out.path())
+        .stdout(std::process::Stdio::null())
+        .status()
+        .with_context(|| format!("running {}", args.reference_script.display()))?;
+    if !status.success() {
+        bail!("{} failed ({status})", args.reference_script.display());
+    }
+    Ok(serde_json::from_str(&std::fs::read_to_string(out.path())?)?)
+}
+
+/// candle's sgemm on 2048² now (context for the MFU figures on a shared machine).
+fn sgemm_now() -> Result<f64> {
+    let a = candle_core::Tensor::ones(
+        (2048, 2048),
+        candle_core::DType::F32,
+        &candle_core::Device::Cpu,
+    )?;
+    let st = time(1, 5, 0.5, || {
+        a.matmul(&a)?;
+        Ok(())
+    })?;
+    Ok(2.0 * 2048f64.powi(3) / st["median_s"].as_f64().expect("median") / 1e9)
+}
+
+/// `motionscale bench train`.
+pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
+    crate::lm::keep_freed_memory();
+    let mut report =
+        json!({"peak_gflops": args.peak_gflops, "threads": rayon::current_num_threads()});
+    let sgemm = sgemm_now()?;
+    report["candle_sgemm_2048_gflops"] = json!(sgemm);
+    println!(
+        "fp32 peak for MFU {:.0} GFLOP/s (sgemm_peak.py oneDNN); candle sgemm 2048³ now {sgemm:.0} GFLOP/s; {} threads",
+        args.peak_gflops,
+        rayon::current_num_threads()
+    );
+    let mut sizes = Vec::new();
+    for size in &args.sizes {
+        let (d, layers) = parse_size(size)?;
+        let mut ours = bench_train_step(&args, d, layers)?;
+        let phases = &ours["phase_median_s"];
+        println!(
+            "train d{d}/{layers}L B{}: {:.0} motion tok/s, {:.1} GFLOP/s exact, MFU {:.1}% ({:.0} ms/step: fwd {:.0} bwd {:.0} opt {:.0}; foreign load {:.2})",
+            args.batch,
+            ours["motion_tokens_per_s"].as_f64().unwrap_or(0.0),
+            ours["achieved_gflops_exact"].as_f64().unwrap_or(0.0),
+            100.0 * ours["mfu"].as_f64().unwrap_or(0.0),
+            1e3 * ours["step_time"]["median_s"].as_f64().unwrap_or(0.0),
+            1e3 * phases["fwd"].as_f64().unwrap_or(0.0),
+            1e3 * phases["bwd"].as_f64().unwrap_or(0.0),
+            1e3 * phases["opt"].as_f64().unwrap_or(0.0),
+            ours["step_time"]["foreign_cpu_fraction"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
+        );
+        if args.reference {
+            let reference = run_reference(&args, "train", d, layers)?;
+            let ratio = ours["motion_tokens_per_s"].as_f64().unwrap_or(0.0)
+                / reference["motion_tokens_per_s"]
+                    .as_f64()
+                    .unwrap_or(f64::NAN);
+            let same_flops =
+                reference["flops_per_step_exact"].as_f64() == ours["flops_per_step_exact"].as_f64();
+            println!(
+                "  PyTorch: {:.0} motion tok/s, {:.1} GFLOP/s → ratio {ratio:.2}× (same exact FLOPs per step: {same_flops}; foreign load {:.2})",
+                reference["motion_tokens_per_s"].as_f64().unwrap_or(0.0),
+                reference["achieved_gflops_exact"].as_f64().unwrap_or(0.0),
+                reference["step_time"]["foreign_cpu_fraction"]
+                    .as_f64()
+                    .unwrap_or(f64::NAN),
+            );
+            ours["reference"] = json!({"motion_tokens_per_s": reference["motion_tokens_per_s"],
+                "achieved_gflops_exact": reference["achieved_gflops_exact"],
+                "flops_per_step_exact": reference["flops_per_step_exact"], "ratio": ratio});
+        }
+        sizes.push(ours);
+    }
+    report["train"] = json!(sizes);
+    if !args.no_generate {
+        let mut gen = bench_generate(&args)?;
+        for (key, v) in gen.as_object().expect("object") {
+            println!(
+                "generate d256/4L {key}: {:.0} tokens/s",
+                v["tokens_per_s"].as_f64().unwrap_or(0.0)
+            );
+        }
+        if args.reference {
+            let reference = run_reference(&args, "generate", 256, 4)?;
+            for batch in ["1", "32"] {
+                let r = reference["by_batch"][batch]["tokens_per_s"]
+                    .as_f64()
+                    .unwrap_or(f64::NAN);
+                let ours = gen[format!("batch{batch}_cached")]["tokens_per_s"]
+                    .as_f64()
+                    .unwrap_or(0.0);
+                println!(
+                    "  PyTorch cached batch {batch}: {r:.0} tokens/s → ratio {:.2}×",
+                    ours / r
+                );
+                gen[format!("reference_batch{batch}_cached")] = json!(r);
+            }
+        }
+        report["generate"] = gen;
+    }
+    if let Some(path) = &args.json {
+        ingest::npy::write_atomic(path, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,207 @@
+//! The prefix LM through the binary: synthetic corpus → fallback caption embeddings → tiny
+//! tokenizer → token set → `train` → `generate` (tokens, features, BVH), and the BVH read back
+//! by our own `ingest bvh:` without rejects; `model info --json` accounting.
+
+mod common;
+
+use common::*;
+use std::path::Path;
+
+fn ok(args: &[&str]) -> String {
+    let out = motionscale(args);
+    assert_eq!(code(&out), 0, "{args:?}: {}", text(&out));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+fn path(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
+#[test]
+fn train_then_generate_a_bvh_that_ingest_reads_back() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (corpus, tok, tokens, run) = (
+        tmp.path().join("corpus"),
+        tmp.path().join("tok"),
+        tmp.path().join("tokens"),
+        tmp.path().join("run"),
+    );
+    ok(&[
+        "synth",
+        "--clips",
+        "40",
+        "--seed",
+        "2",
+        "--out",
+        path(&corpus),
+    ]);
+    ok(&[
+        "embed-text",
+        "--corpus",
+        path(&corpus),
+        "--fallback",
+        "--fallback-dim",
+        "32",
+    ]);
+    ok(&[
+        "tokenizer",
+        "train",
+        "--corpus",
+        path(&corpus),
+        "--quantizer",
+        "fsq",
+        "--codebook",
+        "256",
+        "--steps",
+        "6",
+        "--width",
+        "32",
+        "--batch",
+        "8",
+        "--out",
+        path(&tok),
+    ]);
+    ok(&[
+        "tokenize",
+        "--tokenizer",
+        path(&tok),
+        "--corpus",
+        path(&corpus),
+        "--out",
+        path(&tokens),
+    ]);
+    let report = ok(&[
+        "train",
+        "--tokens",
+        path(&tokens),
+        "--preset",
+        "cpu-50K",
+        "--vocab",
+        "240",
+        "--tokens-budget",
+        "3000",
+        "--batch",
+        "8",
+        "--out",
+        path(&run),
+        "--json",
+    ]);
+    let report: serde_json::Value = serde_json::from_str(&report).unwrap();
+    assert_eq!(report["steps"], report["total_steps"]);
+    let eval = &report["eval"];
+    assert!(eval["tokens_seen"].as_u64().unwrap() >= 3000);
+    assert!(eval["test"]["cross_entropy"].as_f64().unwrap().is_finite());
+    assert_eq!(eval["tied"], false);
+    let eval_file: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(&eval_file, eval);
+
+    let caption = "a person walks forward, looking sad";
+    let json = tmp.path().join("gen.json");
+    ok(&[
+        "generate",
+        "--model",
+        path(&run),
+        "--text",
+        caption,
+        "--seed",
+        "1",
+        "--out",
+        path(&json),
+    ]);
+    let gen: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let n = gen["tokens"].as_array().unwrap().len();
+    assert!(
+        n > 0
+            && gen["tokens"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .all(|t| t.as_u64().unwrap() < 240)
+    );
+    // The same seed without the cache draws the same tokens.
+    let again = tmp.path().join("again.json");
+    ok(&[
+        "generate",
+        "--model",
+        path(&run),
+        "--text",
+        caption,
+        "--seed",
+        "1",
+        "--no-cache",
+        "--out",
+        path(&again),
+    ]);
+    let again: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&again).unwrap()).unwrap();
+    assert_eq!(again["tokens"], gen["tokens"]);
+
+    let npy = tmp.path().join("gen.npy");
+    ok(&[
+        "generate",
+        "--model",
+        path(&run),
+        "--text",
+        caption,
+        "--seed",
+        "1",
+        "--out",
+        path(&npy),
+    ]);
+    let header = std::fs::read(&npy).unwrap();
+    let header = String::from_utf8_lossy(&header[..128]);
+    assert!(header.contains(&format!("({}, 263)", 4 * n)), "{header}");
+
+    let bvh_dir = tmp.path().join("bvh");
+    std::fs::create_dir_all(&bvh_dir).unwrap();
+    ok(&[
+        "generate",
+        "--model",
+        path(&run),
+        "--text",
+        caption,
+        "--seed",
+        "1",
+        "--out",
+        path(&bvh_dir.join("gen.bvh")),
+    ]);
+    let back = tmp.path().join("back");
+    let out = motionscale(&[
+        "ingest",
+        "--source",
+        &format!("bvh:{}", path(&bvh_dir)),
+        "--out",
+        path(&back),
+        "--min-frames",
+        "4",
+        "--static-threshold",
+        "0",
+        "--json",
+    ]);
+    assert_eq!(
+        code(&out),
+        0,
+        "ingest rejected the generated BVH: {}",
+        text(&out)
+    );
+    let rejects = std::fs::read_to_string(back.join("rejects.jsonl")).unwrap();
+    assert!(rejects.trim().is_empty(), "{rejects}");
+}
+
+#[test]
+fn model_info_prints_the_accounting() {
+    let out = ok(&[
+        "model", "info", "--preset", "343M", "--vocab", "65536", "--json",
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let p = &v["accounting"]["params"];
+    let (n_nv, n_v) = (p["n_nv"].as_u64().unwrap(), p["n_v"].as_u64().unwrap());
+    assert_eq!(n_v, 2 * 65539 * 1024);
+    assert_eq!(p["total"].as_u64().unwrap(), n_nv + n_v);
+    assert_eq!(p["tied"], false);
+    let six_n = v["accounting"]["flops_6n_per_token"].as_f64().unwrap();
+    assert_eq!(six_n, 6.0 * (n_nv + n_v) as f64);
+    assert!(v["accounting"]["flops_exact_per_token"].as_f64().unwrap() > 0.0);
+}
