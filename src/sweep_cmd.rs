@@ -22,7 +22,8 @@ pub struct PlanArgs {
     /// Compute budgets C in FLOPs (6·N·D convention), comma-separated.
     #[arg(long, value_delimiter = ',', required = true)]
     pub budgets: Vec<f64>,
-    /// Model presets, comma-separated; `cpu` = the CPU ladder, `scamo` = ScaMo's six sizes.
+    /// Models, comma-separated: presets, `cpu` (the CPU ladder), `scamo` (ScaMo's six sizes)
+    /// or WIDTHxLAYERS[xHEADS] shapes (heads of width 64 by default).
     #[arg(long, value_delimiter = ',', required = true)]
     pub models: Vec<String>,
     /// Nominal codebook sizes, comma-separated.

@@ -252,7 +252,7 @@ pub struct PlanRequest {
     pub text_encoder: Option<String>,
     /// Compute budgets C.
     pub budgets: Vec<f64>,
-    /// Model presets (or ladder names, see [`expand_models`]).
+    /// Model presets, ladder names or `WxL[xH]` shapes (see [`expand_models`]).
     pub models: Vec<String>,
     /// Nominal codebook size and token source of each vocabulary.
     pub vocabularies: Vec<(usize, VocabSource)>,
@@ -260,8 +260,32 @@ pub struct PlanRequest {
     pub train: TrainSettings,
 }
 
-/// Preset names for `names`, where `cpu` stands for the whole CPU ladder and `scamo` for
-/// ScaMo's six sizes; unknown names are an error.
+/// The shape a plan's model name stands for: a preset, or `WxL` / `WxLxH` (width W, L
+/// blocks, H heads; by default heads of width 64 as in the CPU ladder, at least one).
+pub fn model_shape(name: &str) -> Result<ModelShape, SweepError> {
+    if model::prefix_lm::preset(name).is_some() {
+        return Ok(ModelShape::Preset(name.to_string()));
+    }
+    let numbers: Option<Vec<usize>> = name.split('x').map(|n| n.parse().ok()).collect();
+    match numbers.as_deref() {
+        Some(&[d_model, n_layers]) => Ok((d_model, n_layers, (d_model / 64).max(1))),
+        Some(&[d_model, n_layers, n_heads]) => Ok((d_model, n_layers, n_heads)),
+        _ => Err(SweepError::Argument(format!(
+            "model {name:?}: not a preset (known: cpu, scamo, {}) nor WIDTHxLAYERS[xHEADS]",
+            PRESETS.map(|p| p.name).join(", ")
+        ))),
+    }
+    .map(|(d_model, n_layers, n_heads)| ModelShape::Custom {
+        d_model,
+        n_layers,
+        n_heads,
+        ffn_hidden: None,
+    })
+}
+
+/// Model names for `names`, where `cpu` stands for the whole CPU ladder and `scamo` for
+/// ScaMo's six sizes; presets and `WxL[xH]` shapes stand for themselves, anything else is an
+/// error.
 pub fn expand_models(names: &[String]) -> Result<Vec<String>, SweepError> {
     let mut out = Vec::new();
     for name in names {
@@ -276,13 +300,9 @@ pub fn expand_models(names: &[String]) -> Result<Vec<String>, SweepError> {
                 .filter(|p| p.nominal_params.is_some())
                 .map(|p| p.name)
                 .collect(),
-            n if model::prefix_lm::preset(n).is_some() => vec![n],
             n => {
-                let known: Vec<&str> = PRESETS.iter().map(|p| p.name).collect();
-                return Err(SweepError::Argument(format!(
-                    "no model preset {n:?} (known: cpu, scamo, {})",
-                    known.join(", ")
-                )));
+                model_shape(n)?;
+                vec![n]
             }
         };
         out.extend(ladder.into_iter().map(String::from));
@@ -397,8 +417,8 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
     for &budget in &request.budgets {
         for name in &models {
             for vocab in &vocabularies {
-                let shape = ModelShape::Preset(name.clone());
-                let config: PrefixLmConfig = shape.resolve(vocab.codebook_size, text_dim)?;
+                let config: PrefixLmConfig =
+                    model_shape(name)?.resolve(vocab.codebook_size, text_dim)?;
                 let params = accounting::param_count(&config);
                 let tokens = accounting::tokens_for_budget(&config, budget).round() as u64;
                 let per_step = settings.batch_size as f64 * vocab.train_tokens as f64
@@ -492,19 +512,22 @@ impl IsoFlopPlan {
             if self.vocabulary(p.codebook).is_none() {
                 return bad(format!("point {}: no vocabulary {}", p.run_id, p.codebook));
             }
+            if let Err(e) = model_shape(&p.model) {
+                return bad(format!("point {}: {e}", p.run_id));
+            }
         }
         Ok(())
     }
 
     /// The training configuration of `point` writing into `out`, reading `tokens`.
-    pub fn train_config(&self, point: &PlanPoint, tokens: &Path, out: &Path) -> TrainConfig {
+    pub fn train_config(
+        &self,
+        point: &PlanPoint,
+        tokens: &Path,
+        out: &Path,
+    ) -> Result<TrainConfig, SweepError> {
         let s = &self.train;
-        let mut c = TrainConfig::new(
-            tokens,
-            ModelShape::Preset(point.model.clone()),
-            point.tokens,
-            out,
-        );
+        let mut c = TrainConfig::new(tokens, model_shape(&point.model)?, point.tokens, out);
         c.corpus = Some(self.corpus.clone());
         c.text_encoder = Some(self.text_encoder.clone());
         c.batch_size = s.batch_size;
@@ -518,7 +541,7 @@ impl IsoFlopPlan {
         c.max_motion_tokens = s.max_motion_tokens;
         c.eval_every = Some(s.checkpoint_every);
         c.checkpoint_every = Some(s.checkpoint_every);
-        c
+        Ok(c)
     }
 }
 
@@ -535,6 +558,21 @@ mod tests {
         let two = expand_models(&["cpu-50K".into(), "cpu-400K".into()]).unwrap();
         assert_eq!(two, ["cpu-50K", "cpu-400K"]);
         assert!(expand_models(&["cpu-1B".into()]).is_err());
+        assert!(expand_models(&["32x1x1x1".into()]).is_err());
+        assert_eq!(expand_models(&["32x1".into()]).unwrap(), ["32x1"]);
+        let custom = |d_model, n_layers, n_heads| ModelShape::Custom {
+            d_model,
+            n_layers,
+            n_heads,
+            ffn_hidden: None,
+        };
+        assert_eq!(model_shape("32x1").unwrap(), custom(32, 1, 1));
+        assert_eq!(model_shape("256x4").unwrap(), custom(256, 4, 4));
+        assert_eq!(model_shape("96x2x3").unwrap(), custom(96, 2, 3));
+        assert_eq!(
+            model_shape("cpu-3M").unwrap(),
+            ModelShape::Preset("cpu-3M".into())
+        );
     }
 
     #[test]

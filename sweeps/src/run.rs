@@ -119,7 +119,7 @@ fn train_point(
     let tokens = prepare_vocabulary(plan, vocab, runs, log)?;
     let dir = run_dir(runs, &point.run_id);
     let train_dir = dir.join("train");
-    let config = plan.train_config(point, &tokens, &train_dir);
+    let config = plan.train_config(point, &tokens, &train_dir)?;
     let wall_path = dir.join("wall.json");
     let before = match std::fs::read_to_string(&wall_path) {
         Ok(text) => {
