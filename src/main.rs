@@ -8,6 +8,7 @@ mod fit;
 mod lm;
 mod lm_bench;
 mod quickstart;
+mod sweep_cmd;
 mod text;
 mod tokenizer_cmd;
 
@@ -72,6 +73,23 @@ enum Command {
     Train(lm::TrainArgs),
     /// Generate motion for a text with a trained prefix LM.
     Generate(lm::GenerateArgs),
+    /// IsoFLOP sweeps: plan, run (local pool or Slurm array), status, collect.
+    #[command(subcommand)]
+    Sweep(SweepCommand),
+}
+
+#[derive(Subcommand)]
+enum SweepCommand {
+    /// Plan every (budget, model, vocabulary) point: D = C / (6·(N_nv + N_v)), as TOML.
+    Plan(Box<sweep_cmd::PlanArgs>),
+    /// Run every missing point of a plan (resumable; kill it at any time and run it again).
+    Run(sweep_cmd::RunArgs),
+    /// Done / running / failed / pending per point of a sweep folder.
+    Status(sweep_cmd::StatusArgs),
+    /// Submit the plan as a Slurm job array plus a collect-and-fit job (afterok).
+    Submit(sweep_cmd::SubmitArgs),
+    /// Rebuild results.csv / results.parquet from every run's result.json.
+    Collect(sweep_cmd::CollectArgs),
 }
 
 #[derive(Subcommand)]
@@ -197,6 +215,11 @@ fn main() -> ExitCode {
         Command::Fit(args) => fit::fit(args),
         Command::Predict(args) => fit::predict(args),
         Command::Bench(BenchCommand::Fit(args)) => fit::bench(args),
+        Command::Sweep(SweepCommand::Plan(args)) => sweep_cmd::plan_cmd(*args),
+        Command::Sweep(SweepCommand::Run(args)) => sweep_cmd::run_cmd(args),
+        Command::Sweep(SweepCommand::Status(args)) => sweep_cmd::status_cmd(args),
+        Command::Sweep(SweepCommand::Submit(args)) => sweep_cmd::submit_cmd(args),
+        Command::Sweep(SweepCommand::Collect(args)) => sweep_cmd::collect_cmd(args),
     };
     match result {
         Ok(code) => code,

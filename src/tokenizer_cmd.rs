@@ -7,10 +7,10 @@ use candle_core::Device;
 use ingest::corpus::Corpus;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use tokenizer::evaluate::{evaluate, mpjpe, tokenize_corpus, EvalReport};
+use tokenizer::evaluate::{evaluate, mpjpe, write_token_set, EvalReport};
 use tokenizer::model::{MotionTokenizer, TokenizerConfig};
 use tokenizer::train::{train, StepReport, TrainConfig};
-use tokenizer::{Bound, ConvConfig, TokenSet, TokenizerInfo};
+use tokenizer::{Bound, ConvConfig, TokenSet};
 
 /// Architecture and optimisation flags shared by `train` and `sweep`.
 #[derive(clap::Args, Debug, Clone)]
@@ -74,7 +74,22 @@ impl TrainFlags {
         }
     }
 
-    fn train_config(&self) -> TrainConfig {
+    /// The tokenizer architecture these flags describe for `quantizer` at a nominal `codebook`.
+    pub(crate) fn tokenizer_config(
+        &self,
+        quantizer: &str,
+        codebook: usize,
+    ) -> Result<TokenizerConfig> {
+        Ok(TokenizerConfig::new(
+            quantizer,
+            codebook,
+            self.bound(),
+            self.conv(),
+        )?)
+    }
+
+    /// The training settings these flags describe.
+    pub(crate) fn train_config(&self) -> TrainConfig {
         let eval_every = self.eval_every.unwrap_or((self.steps / 20).max(1));
         TrainConfig {
             steps: self.steps,
@@ -141,12 +156,9 @@ fn step_bar(label: &str, steps: u64) -> impl FnMut(StepReport) {
 
 /// `motionscale tokenizer train`.
 pub fn train_cmd(args: TrainArgs) -> Result<ExitCode> {
-    let config = TokenizerConfig::new(
-        &args.quantizer,
-        args.codebook,
-        args.flags.bound(),
-        args.flags.conv(),
-    )?;
+    let config = args
+        .flags
+        .tokenizer_config(&args.quantizer, args.codebook)?;
     let train_config = args.flags.train_config();
     let started = std::time::Instant::now();
     let label = format!("{} {}", args.quantizer, args.codebook);
@@ -241,23 +253,12 @@ pub struct TokenizeArgs {
 /// `motionscale tokenize`: every clip of a corpus → token ids.
 pub fn tokenize_cmd(args: TokenizeArgs) -> Result<ExitCode> {
     let corpus = open_corpus(&args.corpus)?;
-    let tokenizer = MotionTokenizer::load(&args.tokenizer, &Device::Cpu)?;
     let bar = progress_bar("tokenize", "clips");
-    let clips = tokenize_corpus(&tokenizer, &corpus, &[], |done, total| {
+    let manifest = write_token_set(&args.tokenizer, &corpus, &args.out, |done, total| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     })?;
     bar.finish_and_clear();
-    let config = tokenizer.config();
-    let info = TokenizerInfo {
-        dir: args.tokenizer.clone(),
-        id: MotionTokenizer::content_id(&args.tokenizer)?,
-        quantizer: config.quantizer_name().into(),
-        codebook_size: config.codebook_size(),
-        nominal_codebook: config.nominal_codebook,
-        downsample: tokenizer.downsample(),
-    };
-    let manifest = TokenSet::write(&args.out, info, &args.corpus, clips)?;
     for (split, count) in &manifest.splits {
         println!("{split}: {} clips, {} tokens", count.clips, count.tokens);
     }

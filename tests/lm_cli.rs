@@ -26,23 +26,7 @@ fn train_then_generate_a_bvh_that_ingest_reads_back() {
         tmp.path().join("tokens"),
         tmp.path().join("run"),
     );
-    ok(&[
-        "synth",
-        "--clips",
-        "40",
-        "--seed",
-        "2",
-        "--out",
-        path(&corpus),
-    ]);
-    ok(&[
-        "embed-text",
-        "--corpus",
-        path(&corpus),
-        "--fallback",
-        "--fallback-dim",
-        "32",
-    ]);
+    tiny_lm_corpus(&corpus);
     ok(&[
         "tokenizer",
         "train",

@@ -13,6 +13,18 @@ pub fn motionscale(args: &[&str]) -> Output {
         .expect("motionscale runs")
 }
 
+/// Run the motionscale binary, panic with its output unless it exits 0, return its stdout.
+pub fn motionscale_ok(args: &[&str]) -> String {
+    let out = motionscale(args);
+    assert_eq!(code(&out), 0, "{args:?}: {}", text(&out));
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// A path as a command-line argument (tests use UTF-8 temporary paths).
+pub fn arg(p: &Path) -> &str {
+    p.to_str().expect("utf-8 path")
+}
+
 /// Exit code of a finished command, with its output in the panic message if it was killed.
 pub fn code(out: &Output) -> i32 {
     out.status
@@ -112,3 +124,23 @@ for shard in manifest["shards"]:
     rows += t.num_rows
 print(rows, frames)
 "#;
+
+/// A 40-clip synthetic corpus with 32-d fallback caption embeddings in `dir`: the smallest
+/// input the prefix LM trains on (sweep tests).
+pub fn tiny_lm_corpus(dir: &Path) {
+    let path = dir.to_str().expect("utf-8 path");
+    for args in [
+        &["synth", "--clips", "40", "--seed", "2", "--out", path][..],
+        &[
+            "embed-text",
+            "--corpus",
+            path,
+            "--fallback",
+            "--fallback-dim",
+            "32",
+        ][..],
+    ] {
+        let out = motionscale(args);
+        assert_eq!(code(&out), 0, "{args:?}: {}", text(&out));
+    }
+}

@@ -8,12 +8,13 @@
 
 use crate::error::TokenizerError;
 use crate::model::{MotionTokenizer, FEATURES};
-use crate::tokens::TokenClip;
+use crate::tokens::{TokenClip, TokenManifest, TokenSet, TokenizerInfo};
 use crate::usage::CodeUsage;
+use candle_core::Device;
 use ingest::corpus::Corpus;
 use ingest::hml263::recover_joints;
 use serde::{Deserialize, Serialize};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// The metrics of one tokenizer on one split.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -77,6 +78,28 @@ pub fn tokenize_corpus(
         on_clip(done + 1, total);
     }
     Ok(out)
+}
+
+/// Tokenize every clip of `corpus` with the checkpoint in `tokenizer_dir` (on the CPU) and
+/// write the token set to `out` (manifest last); `on_clip` sees (done, total).
+pub fn write_token_set(
+    tokenizer_dir: &Path,
+    corpus: &Corpus,
+    out: &Path,
+    on_clip: impl FnMut(usize, usize),
+) -> Result<TokenManifest, TokenizerError> {
+    let tokenizer = MotionTokenizer::load(tokenizer_dir, &Device::Cpu)?;
+    let clips = tokenize_corpus(&tokenizer, corpus, &[], on_clip)?;
+    let config = tokenizer.config();
+    let info = TokenizerInfo {
+        dir: tokenizer_dir.to_path_buf(),
+        id: MotionTokenizer::content_id(tokenizer_dir)?,
+        quantizer: config.quantizer_name().into(),
+        codebook_size: config.codebook_size(),
+        nominal_codebook: config.nominal_codebook,
+        downsample: tokenizer.downsample(),
+    };
+    TokenSet::write(out, info, corpus.dir(), clips)
 }
 
 fn corpus_error(corpus: &Corpus, message: String) -> TokenizerError {

@@ -1,0 +1,423 @@
+//! `motionscale sweep plan|run|status|submit|collect`: IsoFLOP sweeps of the prefix LM
+//! (the `sweeps` crate), locally or on Slurm.
+
+use crate::tokenizer_cmd::TrainFlags;
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use std::path::PathBuf;
+use std::process::{Command, ExitCode};
+use std::time::Duration;
+use sweeps::local::{self, LocalOptions};
+use sweeps::plan::{self, PlanRequest, TrainSettings, VocabSource};
+use sweeps::slurm::{self, SlurmOptions};
+use sweeps::status::PointState;
+use sweeps::IsoFlopPlan;
+
+/// Arguments of `motionscale sweep plan`.
+#[derive(clap::Args, Debug)]
+pub struct PlanArgs {
+    /// Corpus with caption embeddings (`embed-text`); tokenizers the plan trains learn on it.
+    #[arg(long)]
+    pub corpus: PathBuf,
+    /// Compute budgets C in FLOPs (6·N·D convention), comma-separated.
+    #[arg(long, value_delimiter = ',', required = true)]
+    pub budgets: Vec<f64>,
+    /// Models, comma-separated: presets, `cpu` (the CPU ladder), `scamo` (ScaMo's six sizes)
+    /// or WIDTHxLAYERS[xHEADS] shapes (heads of width 64 by default).
+    #[arg(long, value_delimiter = ',', required = true)]
+    pub models: Vec<String>,
+    /// Nominal codebook sizes, comma-separated.
+    #[arg(long, value_delimiter = ',', required = true)]
+    pub vocabs: Vec<usize>,
+    /// Trained tokenizers to use: `V=DIR,…` (tokenized into RUNS/tokens/V).
+    #[arg(long, value_delimiter = ',')]
+    pub tokenizers: Vec<String>,
+    /// Token sets to use as they are: `V=DIR,…`.
+    #[arg(long, value_delimiter = ',')]
+    pub token_sets: Vec<String>,
+    /// Quantizer of the tokenizers the plan trains (vocabularies given neither way).
+    #[arg(long, default_value = "fsq", value_parser = ["fsq", "vq"])]
+    pub quantizer: String,
+    /// `tokenizer train` flags of the tokenizers the plan trains, e.g.
+    /// "--width 64 --batch 64 --steps 1200 --lr 5e-4 --grad-clip 1".
+    #[arg(long, default_value = "", allow_hyphen_values = true)]
+    pub tokenizer_flags: String,
+    /// Text encoder id of the caption embeddings (default: the corpus's only one).
+    #[arg(long)]
+    pub text_emb: Option<String>,
+    /// Clips per batch.
+    #[arg(long)]
+    pub batch: Option<usize>,
+    /// Peak learning rate.
+    #[arg(long)]
+    pub lr: Option<f64>,
+    /// Final learning rate as a fraction of the peak.
+    #[arg(long)]
+    pub final_lr_ratio: Option<f64>,
+    /// Warm-up as a fraction of all steps.
+    #[arg(long)]
+    pub warmup: Option<f64>,
+    /// AdamW weight decay.
+    #[arg(long)]
+    pub weight_decay: Option<f64>,
+    /// Global gradient-norm clip.
+    #[arg(long)]
+    pub grad_clip: Option<f64>,
+    /// Seed of weights and batch order.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Text tokens kept per caption.
+    #[arg(long)]
+    pub max_text_tokens: Option<usize>,
+    /// Motion tokens kept per clip.
+    #[arg(long)]
+    pub max_motion_tokens: Option<usize>,
+    /// Checkpoint and evaluate the test split every N steps (and at the end) [default: 100].
+    #[arg(long)]
+    pub checkpoint_every: Option<u64>,
+    /// Output plan file (.toml).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// `tokenizer train` flags given as one string.
+#[derive(Parser, Debug)]
+#[command(no_binary_name = true)]
+struct TokenizerFlagsLine {
+    #[command(flatten)]
+    flags: TrainFlags,
+}
+
+/// `V=DIR` pairs.
+fn vocab_dirs(pairs: &[String], flag: &str) -> Result<Vec<(usize, PathBuf)>> {
+    pairs
+        .iter()
+        .map(|p| {
+            let (v, dir) = p
+                .split_once('=')
+                .with_context(|| format!("--{flag} {p:?}: want V=DIR"))?;
+            let v = v
+                .parse()
+                .with_context(|| format!("--{flag} {p:?}: {v:?} is not a codebook size"))?;
+            Ok((v, PathBuf::from(dir)))
+        })
+        .collect()
+}
+
+impl PlanArgs {
+    fn settings(&self) -> TrainSettings {
+        let mut s = TrainSettings::default();
+        s.batch_size = self.batch.unwrap_or(s.batch_size);
+        s.lr = self.lr.unwrap_or(s.lr);
+        s.final_lr_ratio = self.final_lr_ratio.unwrap_or(s.final_lr_ratio);
+        s.warmup_fraction = self.warmup.unwrap_or(s.warmup_fraction);
+        s.weight_decay = self.weight_decay.unwrap_or(s.weight_decay);
+        s.grad_clip = self.grad_clip.unwrap_or(s.grad_clip);
+        s.seed = self.seed.unwrap_or(s.seed);
+        s.max_text_tokens = self.max_text_tokens.unwrap_or(s.max_text_tokens);
+        s.max_motion_tokens = self.max_motion_tokens.unwrap_or(s.max_motion_tokens);
+        s.checkpoint_every = self.checkpoint_every.unwrap_or(s.checkpoint_every);
+        s
+    }
+
+    fn request(&self) -> Result<PlanRequest> {
+        let flags = TokenizerFlagsLine::try_parse_from(self.tokenizer_flags.split_whitespace())
+            .with_context(|| format!("--tokenizer-flags {:?}", self.tokenizer_flags))?
+            .flags;
+        let tokenizers = vocab_dirs(&self.tokenizers, "tokenizers")?;
+        let token_sets = vocab_dirs(&self.token_sets, "token-sets")?;
+        for (v, _) in tokenizers.iter().chain(&token_sets) {
+            if !self.vocabs.contains(v) {
+                bail!("vocabulary {v} is given a folder but is not in --vocabs");
+            }
+        }
+        let mut vocabularies = Vec::new();
+        for &v in &self.vocabs {
+            let given = |list: &[(usize, PathBuf)]| {
+                list.iter().find(|(k, _)| *k == v).map(|(_, d)| d.clone())
+            };
+            let source = match (given(&token_sets), given(&tokenizers)) {
+                (Some(_), Some(_)) => {
+                    bail!("vocabulary {v}: give a token set or a tokenizer, not both")
+                }
+                (Some(dir), None) => VocabSource::TokenSet { dir },
+                (None, Some(dir)) => VocabSource::Tokenizer { dir },
+                (None, None) => VocabSource::Train {
+                    tokenizer: Box::new(flags.tokenizer_config(&self.quantizer, v)?),
+                    train: Box::new(flags.train_config()),
+                },
+            };
+            vocabularies.push((v, source));
+        }
+        Ok(PlanRequest {
+            corpus: self.corpus.clone(),
+            text_encoder: self.text_emb.clone(),
+            budgets: self.budgets.clone(),
+            models: self.models.clone(),
+            vocabularies,
+            train: self.settings(),
+        })
+    }
+}
+
+/// `motionscale sweep plan`.
+pub fn plan_cmd(args: PlanArgs) -> Result<ExitCode> {
+    let plan = plan::plan(&args.request()?)?;
+    plan.write(&args.out)?;
+    println!(
+        "{:>4}  {:<26} {:>9} {:>10} {:>6} {:>10} {:>9} {:>12} {:>7}  flags",
+        "row", "run", "C", "model", "V", "N_nv", "N_v", "D", "epochs"
+    );
+    for p in &plan.points {
+        let flags: Vec<&str> = p.flags.iter().map(|f| f.as_str()).collect();
+        println!(
+            "{:>4}  {:<26} {:>9.2e} {:>10} {:>6} {:>10} {:>9} {:>12} {:>7.2}  {}",
+            p.index,
+            p.run_id,
+            p.budget,
+            p.model,
+            p.codebook,
+            p.n_nv,
+            p.n_v,
+            p.tokens,
+            p.epochs,
+            flags.join(",")
+        );
+    }
+    for v in &plan.vocabularies {
+        println!(
+            "vocabulary {} ({} codes): {} train clips, {} train tokens per epoch",
+            v.codebook, v.codebook_size, v.train_clips, v.train_tokens
+        );
+    }
+    let skipped = plan.points.iter().filter(|p| !p.runnable()).count();
+    println!(
+        "{} points ({} below one step, not run) → {}",
+        plan.points.len(),
+        skipped,
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale sweep run`.
+#[derive(clap::Args, Debug)]
+pub struct RunArgs {
+    /// Plan file (`sweep plan`).
+    #[arg(long)]
+    pub plan: PathBuf,
+    /// Sweep folder: one folder per run, results.csv / results.parquet.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Points trained at once, each in a worker process with cores / N threads.
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// Run only this plan row (the Slurm array task id).
+    #[arg(long)]
+    pub only_index: Option<usize>,
+    /// Only train / tokenize the vocabularies, then stop.
+    #[arg(long, conflicts_with = "only_index")]
+    pub prepare_only: bool,
+}
+
+fn log_line(line: &str) {
+    eprintln!("sweep: {line}");
+}
+
+/// `motionscale sweep run`.
+pub fn run_cmd(args: RunArgs) -> Result<ExitCode> {
+    crate::lm::keep_freed_memory();
+    let plan = IsoFlopPlan::read(&args.plan)?;
+    if args.prepare_only {
+        let runs = local::adopt_plan(&plan, &args.out)?;
+        let points = local::select(&plan, None)?;
+        local::prepare_all(&plan, &runs, &points, &log_line)?;
+        println!("vocabularies ready in {}", runs.display());
+        return Ok(ExitCode::SUCCESS);
+    }
+    let exe = std::env::current_exe().context("locating the motionscale executable")?;
+    let runs = std::path::absolute(&args.out)?;
+    let plan_file = runs.join(local::PLAN_FILE);
+    let worker = |index: usize| {
+        let mut c = Command::new(&exe);
+        c.arg("sweep")
+            .arg("run")
+            .arg("--plan")
+            .arg(&plan_file)
+            .arg("--out")
+            .arg(&runs)
+            .arg("--only-index")
+            .arg(index.to_string());
+        c
+    };
+    let options = LocalOptions {
+        jobs: args.jobs.max(1),
+        only: args.only_index.map(|i| vec![i]),
+        worker: &worker,
+    };
+    let started = std::time::Instant::now();
+    let summary = local::run_local(&plan, &runs, &options, &log_line)?;
+    println!(
+        "{} trained, {} already done, {} failed, {} not runnable; results.csv has {} rows ({:.1} s) → {}",
+        summary.trained,
+        summary.already_done,
+        summary.failed.len(),
+        summary.not_runnable.len(),
+        summary.rows,
+        started.elapsed().as_secs_f64(),
+        runs.display()
+    );
+    for (id, error) in &summary.failed {
+        eprintln!("failed: {id}: {error}");
+    }
+    Ok(if summary.failed.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
+}
+
+/// Arguments of `motionscale sweep status`.
+#[derive(clap::Args, Debug)]
+pub struct StatusArgs {
+    /// Sweep folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `motionscale sweep status`.
+pub fn status_cmd(args: StatusArgs) -> Result<ExitCode> {
+    let plan = local::read_adopted_plan(&args.out)?;
+    let points = sweeps::status::status(&plan, &args.out)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&points)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    for p in &points {
+        println!(
+            "{:>4}  {:<26} {:<12} {:>10}  {}",
+            p.index,
+            p.run_id,
+            p.state.as_str(),
+            p.step.map(|s| format!("step {s}")).unwrap_or_default(),
+            p.detail.as_deref().unwrap_or("")
+        );
+    }
+    let count = |s: PointState| points.iter().filter(|p| p.state == s).count();
+    println!(
+        "{} points: {} done, {} running, {} failed, {} pending, {} not runnable",
+        points.len(),
+        count(PointState::Done),
+        count(PointState::Running),
+        count(PointState::Failed),
+        count(PointState::Pending),
+        count(PointState::NotRunnable)
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale sweep submit`.
+#[derive(clap::Args, Debug)]
+pub struct SubmitArgs {
+    /// Plan file (`sweep plan`).
+    #[arg(long)]
+    pub plan: PathBuf,
+    /// Sweep folder (must be visible to the compute nodes).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Scheduler.
+    #[arg(long, value_parser = ["slurm"])]
+    pub backend: String,
+    /// At most this many array tasks at once.
+    #[arg(long)]
+    pub array_throttle: Option<usize>,
+    /// Partition.
+    #[arg(long)]
+    pub partition: Option<String>,
+    /// CPUs per task (RAYON_NUM_THREADS in the task).
+    #[arg(long, default_value_t = 1)]
+    pub cpus_per_task: usize,
+    /// Time limit per job, e.g. 2:00:00.
+    #[arg(long)]
+    pub time: Option<String>,
+    /// Extra argument of the fit job's `motionscale fit` (repeat for several).
+    #[arg(long = "fit-arg", allow_hyphen_values = true)]
+    pub fit_args: Vec<String>,
+    /// Wait for every job to finish and fail unless all COMPLETED.
+    #[arg(long)]
+    pub wait: bool,
+    /// Longest wait in seconds.
+    #[arg(long, default_value_t = 86_400)]
+    pub timeout: u64,
+}
+
+/// `motionscale sweep submit`.
+pub fn submit_cmd(args: SubmitArgs) -> Result<ExitCode> {
+    let plan = IsoFlopPlan::read(&args.plan)?;
+    let options = SlurmOptions {
+        exe: std::env::current_exe().context("locating the motionscale executable")?,
+        array_throttle: args.array_throttle,
+        partition: args.partition.clone(),
+        cpus_per_task: args.cpus_per_task.max(1),
+        time: args.time.clone(),
+        fit_args: args.fit_args.clone(),
+    };
+    let submission = slurm::submit(&plan, &args.out, &options)?;
+    if let Some(job) = &submission.prepare {
+        println!("prepare job {job}");
+    }
+    if let Some(job) = &submission.array {
+        println!(
+            "array job {job}: plan rows {} ({} tasks)",
+            slurm::array_spec(&submission.rows),
+            submission.rows.len()
+        );
+    }
+    println!(
+        "fit job {} (afterok) → {}",
+        submission.fit,
+        args.out.join(slurm::FITS_DIR).display()
+    );
+    if args.wait {
+        let started = std::time::Instant::now();
+        slurm::wait(&submission, Duration::from_secs(args.timeout))?;
+        println!(
+            "all {} jobs COMPLETED in {:.1} s",
+            submission.jobs().len(),
+            started.elapsed().as_secs_f64()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale sweep collect`.
+#[derive(clap::Args, Debug)]
+pub struct CollectArgs {
+    /// Sweep folder.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// `motionscale sweep collect`: rebuild results.csv / results.parquet from every run's
+/// result.json; exit 2 when some runnable points have none.
+pub fn collect_cmd(args: CollectArgs) -> Result<ExitCode> {
+    let (rows, missing) = local::collect(&args.out)?;
+    println!(
+        "{} rows → {}, {}",
+        rows.len(),
+        args.out.join("results.csv").display(),
+        args.out.join("results.parquet").display()
+    );
+    if missing.is_empty() {
+        return Ok(ExitCode::SUCCESS);
+    }
+    eprintln!(
+        "{} points have no result: {}",
+        missing.len(),
+        missing.join(", ")
+    );
+    Ok(ExitCode::from(2))
+}

@@ -1,0 +1,229 @@
+//! IsoFLOP sweeps through the binary on a tiny corpus: the plan (D from C, flags, one
+//! tokenizer per vocabulary), then a sweep killed with SIGKILL at random moments five times
+//! and run again to completion. The tables must be whole after every kill, and the final
+//! table must hold exactly one row per runnable point, equal to an uninterrupted sweep's in
+//! every deterministic column.
+
+mod common;
+
+use common::*;
+use ingest::rng::SplitMix64;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+use sweeps::plan::{PointFlag, VocabSource};
+use sweeps::{IsoFlopPlan, RunRow};
+
+/// `sweep plan` on `corpus` with budgets `budgets`: one model, two trained vocabularies.
+fn make_plan(corpus: &Path, budgets: &str, out: &Path) -> IsoFlopPlan {
+    motionscale_ok(&[
+        "sweep",
+        "plan",
+        "--corpus",
+        arg(corpus),
+        "--budgets",
+        budgets,
+        "--models",
+        "cpu-50K",
+        "--vocabs",
+        "256,1024",
+        "--tokenizer-flags=--width 32 --batch 8 --steps 30",
+        "--batch",
+        "8",
+        "--checkpoint-every",
+        "10",
+        "--out",
+        arg(out),
+    ]);
+    IsoFlopPlan::read(out).expect("the plan reads back")
+}
+
+/// Python: both tables of a sweep folder as JSON rows, after checking they agree.
+const TABLES: &str = r#"
+import csv, json, sys, pyarrow.parquet as pq
+runs = sys.argv[1]
+rows = pq.read_table(f"{runs}/results.parquet").to_pylist()
+with open(f"{runs}/results.csv") as f:
+    text = list(csv.DictReader(f))
+assert len(text) == len(rows), (len(text), len(rows))
+for t, r in zip(text, rows):
+    for k, v in r.items():
+        assert (t[k] == v) if isinstance(v, str) else (float(t[k]) == float(v)), (k, t[k], v)
+print(json.dumps(rows))
+"#;
+
+/// The rows of both tables (which must agree), or none before the first rebuild.
+fn table_rows(runs: &Path) -> Vec<RunRow> {
+    if !runs.join("results.parquet").exists() {
+        return Vec::new();
+    }
+    serde_json::from_str(&python(TABLES, &[arg(runs)])).expect("rows parse")
+}
+
+/// Every column a re-run reproduces exactly (all but wall time, host and revision).
+fn deterministic(row: &RunRow) -> RunRow {
+    RunRow {
+        wall_s: 0.0,
+        hostname: String::new(),
+        git_revision: String::new(),
+        ..row.clone()
+    }
+}
+
+fn run_sweep(plan: &Path, runs: &Path) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_motionscale"));
+    c.args([
+        "sweep",
+        "run",
+        "--plan",
+        arg(plan),
+        "--out",
+        arg(runs),
+        "--jobs",
+        "2",
+    ]);
+    c
+}
+
+#[test]
+fn a_sweep_killed_five_times_ends_with_one_row_per_point() {
+    let tmp = tempfile::tempdir().unwrap();
+    let corpus = tmp.path().join("corpus");
+    tiny_lm_corpus(&corpus);
+    let plan_path = tmp.path().join("plan.toml");
+    let plan = make_plan(&corpus, "1e6,1.5e10,3e10", &plan_path);
+
+    // The plan: 3 budgets × 1 model × 2 vocabularies, D from model::accounting.
+    assert_eq!(plan.points.len(), 6);
+    assert_eq!(plan.vocabularies.len(), 2);
+    for (v, codes) in plan.vocabularies.iter().zip([240, 1000]) {
+        assert_eq!(v.codebook_size, codes, "FSQ level sets 2^8 and 2^10");
+        assert!(matches!(v.source, VocabSource::Train { .. }));
+        assert!(v.train_tokens > 0 && v.train_clips > 0);
+    }
+    for p in &plan.points {
+        let n6 = 6.0 * (p.n_nv + p.n_v) as f64;
+        assert!(
+            (n6 * p.tokens as f64 - p.budget).abs() <= n6,
+            "C = 6(N_nv+N_v)·D: {p:?}"
+        );
+        let vocab = plan.vocabulary(p.codebook).unwrap();
+        assert_eq!(
+            p.n_v,
+            2 * (vocab.codebook_size as u64 + 3) * 64,
+            "untied 2·V·d"
+        );
+        assert_eq!(
+            p.flags.contains(&PointFlag::ExceedsData),
+            p.tokens > vocab.train_tokens
+        );
+        assert_eq!(
+            p.flags.contains(&PointFlag::BelowOneStep),
+            p.budget == 1e6,
+            "{p:?}"
+        );
+    }
+    let runnable: Vec<&str> = plan
+        .points
+        .iter()
+        .filter(|p| p.runnable())
+        .map(|p| p.run_id.as_str())
+        .collect();
+    assert_eq!(runnable.len(), 4);
+    assert!(plan
+        .points
+        .iter()
+        .any(|p| p.flags.contains(&PointFlag::ExceedsData)));
+
+    // The uninterrupted sweep.
+    let reference = tmp.path().join("reference");
+    let started = Instant::now();
+    let out = run_sweep(&plan_path, &reference).output().unwrap();
+    let full = started.elapsed();
+    assert_eq!(code(&out), 0, "{}", text(&out));
+    eprintln!("uninterrupted sweep: {:.2} s", full.as_secs_f64());
+    let expected = table_rows(&reference);
+    assert_eq!(
+        expected
+            .iter()
+            .map(|r| r.run_id.as_str())
+            .collect::<Vec<_>>(),
+        runnable
+    );
+
+    // Five SIGKILLs at random moments, then a run to completion.
+    let killed = tmp.path().join("killed");
+    let mut rng = SplitMix64::stream(0x5EED, 5);
+    for kill in 0..5 {
+        let mut child = run_sweep(&plan_path, &killed)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let delay = full.mul_f64(rng.range(0.1, 0.9));
+        std::thread::sleep(delay);
+        let _ = child.kill(); // SIGKILL; the child may have finished already
+        child.wait().unwrap();
+        // Worker processes die with their parent (PR_SET_PDEATHSIG): wait for their locks.
+        std::thread::sleep(Duration::from_millis(300));
+        let rows = table_rows(&killed);
+        let ids: std::collections::HashSet<&str> = rows.iter().map(|r| r.run_id.as_str()).collect();
+        assert_eq!(ids.len(), rows.len(), "a duplicate row after kill {kill}");
+        for row in &rows {
+            let done = sweeps::results::read_row(&killed, &row.run_id).unwrap();
+            assert_eq!(
+                done.as_ref(),
+                Some(row),
+                "table row without its result.json"
+            );
+        }
+        let status = motionscale_ok(&["sweep", "status", "--out", arg(&killed)]);
+        eprintln!(
+            "kill {} after {:.2} s: {} of {} rows\n{status}",
+            kill + 1,
+            delay.as_secs_f64(),
+            rows.len(),
+            runnable.len()
+        );
+        if kill == 0 {
+            assert!(
+                rows.len() < runnable.len(),
+                "the first kill came after the whole sweep"
+            );
+        }
+        assert!(
+            status.contains(" 0 running"),
+            "no process is left: {status}"
+        );
+    }
+    motionscale_ok(&[
+        "sweep",
+        "run",
+        "--plan",
+        arg(&plan_path),
+        "--out",
+        arg(&killed),
+        "--jobs",
+        "2",
+    ]);
+    let rows = table_rows(&killed);
+    assert_eq!(rows.len(), expected.len(), "one row per point");
+    for (got, want) in rows.iter().zip(&expected) {
+        assert_eq!(deterministic(got), deterministic(want));
+    }
+    let status = motionscale_ok(&["sweep", "status", "--out", arg(&killed)]);
+    assert!(
+        status.contains("6 points: 4 done, 0 running, 0 failed, 0 pending, 2 not runnable"),
+        "{status}"
+    );
+    let collected = motionscale_ok(&["sweep", "collect", "--out", arg(&killed)]);
+    assert!(collected.starts_with("4 rows"), "{collected}");
+    assert_eq!(table_rows(&killed), rows, "collect rebuilds the same table");
+
+    // A sweep folder belongs to one plan.
+    let other = tmp.path().join("other.toml");
+    make_plan(&corpus, "2e10", &other);
+    let out = motionscale(&["sweep", "run", "--plan", arg(&other), "--out", arg(&killed)]);
+    assert_eq!(code(&out), 1);
+    assert!(text(&out).contains("different plan"), "{}", text(&out));
+}
