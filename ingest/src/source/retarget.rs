@@ -269,7 +269,7 @@ impl RigMap {
 /// Pick the built-in rig map whose joint names are all present, or reject naming the
 /// SMPL joints the closest built-in map could not find.
 pub fn detect(names: &[&str]) -> Result<RigMap, Reject> {
-    let mut candidates = vec![RigMap::smpl22(), RigMap::bandai(), RigMap::cmu()];
+    let mut candidates = vec![RigMap::bandai(), RigMap::cmu()];
     let mut prefixes: Vec<&str> = names
         .iter()
         .filter_map(|n| n.strip_suffix("Hips"))
@@ -279,6 +279,8 @@ pub fn detect(names: &[&str]) -> Result<RigMap, Reject> {
         prefixes.push("mixamorig:");
     }
     candidates.extend(prefixes.into_iter().map(RigMap::mixamo));
+    // Our own export rig last: on a tie, the error should name a common capture rig.
+    candidates.push(RigMap::smpl22());
     let mut best: Option<(Vec<String>, &RigMap)> = None;
     for map in &candidates {
         let missing = map.missing(names);
@@ -293,7 +295,7 @@ pub fn detect(names: &[&str]) -> Result<RigMap, Reject> {
     Err(Reject::new(
         "retarget",
         format!(
-            "unknown rig: no built-in map fits (smpl22, bandai, cmu, mixamo); closest is {} with {} of 22 \
+            "unknown rig: no built-in map fits (bandai, cmu, mixamo, smpl22); closest is {} with {} of 22 \
              SMPL joints missing: {}; use a TOML map (--map) for this rig",
             map.name,
             missing.len(),
