@@ -6,9 +6,9 @@
 //! OUT/config.json           format, the train config, the resolved model config, text encoder,
 //!                           tokenizer, schedule (total/warm-up steps), accounting
 //! OUT/model.safetensors     weights (PyTorch key names, see prefix_lm)
-//! OUT/optimizer.safetensors AdamW moments and step
-//! OUT/state.json            step, tokens seen, executed FLOPs, data position, sha256 of both
-//!                           safetensors files (written last: it commits the checkpoint)
+//! OUT/state.json            step, tokens seen, executed FLOPs, data position (written last:
+//!                           it commits the checkpoint)
+//! OUT/resume/<step>/        that step's model.safetensors and optimizer.safetensors (AdamW)
 //! OUT/eval.json             the latest evaluation; OUT/evals.jsonl every evaluation
 //! ```
 //!
@@ -25,9 +25,14 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use ingest::npy::write_atomic;
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use tokenizer::checkpoint::{save_safetensors, ResumeFiles};
+
+/// The weights file of a run folder and of each resume step.
+const MODEL_FILE: &str = "model.safetensors";
+/// The optimiser state inside a resume step.
+const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 use std::time::Instant;
 use tokenizer::optim::{AdamW, AdamWConfig, LrSchedule};
 
@@ -188,10 +193,6 @@ pub struct TrainState {
     pub flops_exact: f64,
     /// Train-stream items consumed (batch k holds items k·B..(k+1)·B).
     pub data_position: u64,
-    /// sha256 of `model.safetensors`.
-    pub model_sha256: String,
-    /// sha256 of `optimizer.safetensors`.
-    pub optimizer_sha256: String,
 }
 
 /// `OUT/eval.json`: one evaluation with the accounting of the run so far.
@@ -262,7 +263,7 @@ pub struct TrainReport {
 /// The trained model in `dir` (`model.safetensors`, memory-mapped) and its run config.
 pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), ModelError> {
     let run: RunConfig = read_json(&dir.join("config.json"))?;
-    let weights = dir.join("model.safetensors");
+    let weights = dir.join(MODEL_FILE);
     // SAFETY: the checkpoint is only read; it must not change while the model lives.
     let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, &Device::Cpu) }
         .map_err(|e| ModelError::invalid(&weights, e))?;
@@ -278,11 +279,6 @@ fn write_json(path: &Path, value: &impl Serialize) -> Result<(), ModelError> {
 fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, ModelError> {
     let text = std::fs::read_to_string(path).map_err(|e| ModelError::io(path, e))?;
     serde_json::from_str(&text).map_err(|e| ModelError::invalid(path, e))
-}
-
-fn file_sha256(path: &Path) -> Result<String, ModelError> {
-    let bytes = std::fs::read(path).map_err(|e| ModelError::io(path, e))?;
-    Ok(crate::hex(&Sha256::digest(bytes)))
 }
 
 fn tensors(vars: &HashMap<String, candle_core::Var>) -> HashMap<String, Tensor> {
@@ -472,17 +468,22 @@ impl Run {
         Ok(record)
     }
 
-    /// Write weights and optimiser state atomically, then `state.json` naming their hashes.
+    /// Write the weights others load, then the resume files, committed by `state.json`.
     fn checkpoint(&mut self) -> Result<(), ModelError> {
         let paths = &self.paths;
-        tokenizer::checkpoint::save_safetensors(&tensors(&self.vars), &paths.model)
+        let weights = tensors(&self.vars);
+        save_safetensors(&weights, &paths.model)
             .map_err(|e| ModelError::invalid(&paths.model, e))?;
+        let invalid = |e| ModelError::invalid(paths.resume.state_path(), e);
+        let stage = paths.resume.stage().map_err(invalid)?;
+        save_safetensors(&weights, &stage.join(MODEL_FILE)).map_err(invalid)?;
         self.opt
-            .save(&paths.optimizer)
-            .map_err(|e| ModelError::invalid(&paths.optimizer, e))?;
-        self.state.model_sha256 = file_sha256(&paths.model)?;
-        self.state.optimizer_sha256 = file_sha256(&paths.optimizer)?;
-        write_json(&paths.state, &self.state)
+            .save(&stage.join(OPTIMIZER_FILE))
+            .map_err(invalid)?;
+        paths
+            .resume
+            .commit(self.state.step, &self.state)
+            .map_err(invalid)
     }
 }
 
@@ -490,8 +491,7 @@ impl Run {
 struct Paths {
     config: PathBuf,
     model: PathBuf,
-    optimizer: PathBuf,
-    state: PathBuf,
+    resume: ResumeFiles,
     eval: PathBuf,
     evals: PathBuf,
 }
@@ -500,9 +500,8 @@ impl Paths {
     fn new(out: &Path) -> Self {
         Self {
             config: out.join("config.json"),
-            model: out.join("model.safetensors"),
-            optimizer: out.join("optimizer.safetensors"),
-            state: out.join("state.json"),
+            model: out.join(MODEL_FILE),
+            resume: ResumeFiles::new(out),
             eval: out.join("eval.json"),
             evals: out.join("evals.jsonl"),
         }
@@ -522,10 +521,8 @@ fn resume(
         tokens_seen: 0,
         flops_exact: 0.0,
         data_position: 0,
-        model_sha256: String::new(),
-        optimizer_sha256: String::new(),
     };
-    if !paths.state.is_file() {
+    if !paths.resume.state_path().is_file() {
         let _ = std::fs::remove_file(&paths.evals);
         return Ok(fresh);
     }
@@ -536,24 +533,15 @@ fn resume(
             "this folder holds a run with a different configuration; use another --out",
         ));
     }
-    let state: TrainState = read_json(&paths.state)?;
-    for (path, sha) in [
-        (&paths.model, &state.model_sha256),
-        (&paths.optimizer, &state.optimizer_sha256),
-    ] {
-        if file_sha256(path)? != *sha {
-            return Err(ModelError::invalid(
-                path,
-                "does not match state.json (interrupted while checkpointing); remove the folder to restart",
-            ));
-        }
-    }
+    let state: TrainState = read_json(paths.resume.state_path())?;
+    let files = paths.resume.files(state.step);
+    let (weights, moments) = (files.join(MODEL_FILE), files.join(OPTIMIZER_FILE));
     let mut varmap = varmap.clone();
     varmap
-        .load(&paths.model)
-        .map_err(|e| ModelError::invalid(&paths.model, e))?;
-    opt.load(&paths.optimizer)
-        .map_err(|e| ModelError::invalid(&paths.optimizer, e))?;
+        .load(&weights)
+        .map_err(|e| ModelError::invalid(&weights, e))?;
+    opt.load(&moments)
+        .map_err(|e| ModelError::invalid(&moments, e))?;
     if paths.evals.is_file() {
         let text =
             std::fs::read_to_string(&paths.evals).map_err(|e| ModelError::io(&paths.evals, e))?;

@@ -7,15 +7,15 @@
 //!
 //! ```text
 //! DIR/train.json             TrainConfig + corpus (what `--resume` must match)
-//! DIR/optimizer.safetensors  AdamW moments and step
-//! DIR/state.json             step, VQ generator state, last losses
+//! DIR/state.json             step, VQ generator state, last losses (the commit record)
+//! DIR/resume/<step>/         that step's tokenizer files and optimizer.safetensors (AdamW)
 //! DIR/log.jsonl              one line per validation: step, lr, train and val losses
 //! ```
 //!
-//! Batch `s` is drawn with seed `hash(seed, s)`, so a run killed after any checkpoint and
-//! started again reproduces the uninterrupted run exactly.
+//! Batch `s` is drawn with seed `hash(seed, s)`, so a run killed at any moment and started
+//! again reproduces the uninterrupted run exactly.
 
-use crate::checkpoint::{read_json, write_json};
+use crate::checkpoint::{read_json, write_json, ResumeFiles};
 use crate::error::TokenizerError;
 use crate::loss::reconstruction_losses;
 use crate::model::{MotionTokenizer, TokenizerConfig, FEATURES};
@@ -26,6 +26,9 @@ use ingest::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::{Path, PathBuf};
+
+/// The optimiser state inside a resume folder.
+const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 
 /// Training hyper-parameters (T2M-GPT's defaults where it has one).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -164,14 +167,14 @@ pub fn train(
         train: config.clone(),
     };
     let corpus = Corpus::open(corpus_dir).map_err(|e| corpus_error(corpus_dir, e))?;
-    let (mut model, mut state) = resume_or_start(&spec, &corpus, out, device)?;
+    let resume = ResumeFiles::new(out);
+    let (mut model, mut state) = resume_or_start(&spec, &corpus, out, &resume, device)?;
     if state.step >= config.steps {
         return Ok(state);
     }
     let mut optimizer = optimizer_for(&model, &config);
-    let optimizer_path = out.join("optimizer.safetensors");
     if state.step > 0 {
-        optimizer.load(&optimizer_path)?;
+        optimizer.load(&resume.files(state.step).join(OPTIMIZER_FILE))?;
     }
     let schedule = LrSchedule {
         peak: config.lr,
@@ -230,8 +233,10 @@ pub fn train(
             state.vq_rng = model.vq_rng_state().unwrap_or(0);
             state.wall_s = wall_before + started.elapsed().as_secs_f64();
             model.save(out)?;
-            optimizer.save(&optimizer_path)?;
-            write_json(&out.join("state.json"), &state)?;
+            let stage = resume.stage()?;
+            model.save(&stage)?;
+            optimizer.save(&stage.join(OPTIMIZER_FILE))?;
+            resume.commit(state.step, &state)?;
         }
         on_step(report);
     }
@@ -278,10 +283,11 @@ fn resume_or_start(
     spec: &TrainSpec,
     corpus: &Corpus,
     out: &Path,
+    resume: &ResumeFiles,
     device: &Device,
 ) -> Result<(MotionTokenizer, TrainState), TokenizerError> {
     let spec_path = out.join("train.json");
-    let state_path = out.join("state.json");
+    let state_path = resume.state_path();
     if spec_path.exists() {
         let saved: TrainSpec = read_json(&spec_path)?;
         if &saved != spec {
@@ -291,9 +297,9 @@ fn resume_or_start(
             });
         }
         if state_path.exists() {
-            let state: TrainState = read_json(&state_path)?;
+            let state: TrainState = read_json(state_path)?;
             truncate_log(out, state.step)?;
-            let mut model = MotionTokenizer::load(out, device)?;
+            let mut model = MotionTokenizer::load(&resume.files(state.step), device)?;
             model.set_vq_rng_state(state.vq_rng);
             return Ok((model, state));
         }
