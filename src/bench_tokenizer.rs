@@ -135,6 +135,7 @@ fn time_reference(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> R
 
 /// `motionscale bench tokenizer`.
 pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
+    crate::memory::keep_freed_memory();
     println!(
         "tokenizer training step, width 512, 64 × 263 windows, {} threads, fp32 peak {:.0} GFLOP/s",
         rayon::current_num_threads(),

@@ -83,19 +83,6 @@ pub struct PresetsArgs {
     pub json: bool,
 }
 
-/// Keep freed memory for reuse. glibc hands blocks of 128 KiB and more back to the OS
-/// (munmap, heap trimming), so a training loop, which frees and reallocates the same
-/// activations every step, pays a page fault per 4 KiB of them (~110 K faults per d512 step
-/// here). Blocks up to 32 MiB then stay on the heap, and the heap is never trimmed.
-pub fn keep_freed_memory() {
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only tunes the allocator; it is called before any worker thread starts.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
-    }
-}
-
 fn millions(n: u64) -> String {
     format!("{:.2}M", n as f64 / 1e6)
 }
@@ -270,7 +257,7 @@ pub struct TrainArgs {
 
 /// `motionscale train`.
 pub fn train(args: TrainArgs) -> Result<ExitCode> {
-    keep_freed_memory();
+    crate::memory::keep_freed_memory();
     let mut config = TrainConfig::new(
         &args.tokens,
         args.shape.shape()?,
@@ -462,7 +449,7 @@ fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path)
 
 /// `motionscale generate`.
 pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
-    keep_freed_memory();
+    crate::memory::keep_freed_memory();
     let (model, run) = model::train::load_model(&args.model)?;
     let encoder = load_text_encoder(&run, args.encoder.as_deref())?;
     let text = encoder.encode(&[args.text.as_str()])?.remove(0);

@@ -283,7 +283,7 @@ fn sgemm_now() -> Result<f64> {
 
 /// `motionscale bench train`.
 pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
-    crate::lm::keep_freed_memory();
+    crate::memory::keep_freed_memory();
     let mut report =
         json!({"peak_gflops": args.peak_gflops, "threads": rayon::current_num_threads()});
     let sgemm = sgemm_now()?;

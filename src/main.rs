@@ -7,6 +7,7 @@ mod commands;
 mod fit;
 mod lm;
 mod lm_bench;
+mod memory;
 mod quickstart;
 mod sweep_cmd;
 mod text;

@@ -226,7 +226,7 @@ fn log_line(line: &str) {
 
 /// `motionscale sweep run`.
 pub fn run_cmd(args: RunArgs) -> Result<ExitCode> {
-    crate::lm::keep_freed_memory();
+    crate::memory::keep_freed_memory();
     let plan = IsoFlopPlan::read(&args.plan)?;
     if args.prepare_only {
         let runs = local::adopt_plan(&plan, &args.out)?;

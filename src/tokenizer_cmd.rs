@@ -156,6 +156,7 @@ fn step_bar(label: &str, steps: u64) -> impl FnMut(StepReport) {
 
 /// `motionscale tokenizer train`.
 pub fn train_cmd(args: TrainArgs) -> Result<ExitCode> {
+    crate::memory::keep_freed_memory();
     let config = args
         .flags
         .tokenizer_config(&args.quantizer, args.codebook)?;
@@ -408,6 +409,7 @@ pub struct SweepArgs {
 
 /// `motionscale tokenizer sweep`: train and evaluate every (quantizer, codebook) pair.
 pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
+    crate::memory::keep_freed_memory();
     use tokenizer::sweep::{sweep, SweepEvent, SweepPlan};
     if let Some(q) = args
         .quantizers
