@@ -12,12 +12,10 @@
 
 use crate::prefix_lm::SeqLayout;
 use rayon::prelude::*;
+use tokenizer::matmul::{gemm_with, Operand};
 
 /// Target id of a position without loss (padding).
 pub const IGNORE: u32 = u32::MAX;
-
-/// Multiply-adds below which one product runs on one thread.
-const PARALLEL_MIN_MACS: usize = 1 << 24;
 
 /// Rows per parallel work item of the row-wise kernels (fixed, so reductions are too).
 const ROW_BLOCK: usize = 32;
@@ -51,55 +49,6 @@ impl SharedMut {
     /// The pointer `offset` elements in (a method, so closures capture the whole wrapper).
     fn at(self, offset: usize) -> *mut f32 {
         self.0.wrapping_add(offset)
-    }
-}
-
-/// A matrix operand: row-major values, read transposed when the flag is set.
-pub type Operand<'a> = (&'a [f32], bool);
-
-/// `dst (+)= scale · op(lhs) · op(rhs)` for row-major matrices: `op(lhs)` is m×k (stored
-/// k×m when transposed), `op(rhs)` is k×n (stored n×k when transposed), `dst` is m×n and
-/// is added to when `accumulate`. Single-threaded unless `parallel`.
-fn gemm_with(
-    dst: &mut [f32],
-    (lhs, lhs_t): Operand,
-    (rhs, rhs_t): Operand,
-    (m, n, k): (usize, usize, usize),
-    (accumulate, scale, parallel): (bool, f32, bool),
-) {
-    assert!(dst.len() >= m * n && lhs.len() >= m * k && rhs.len() >= k * n);
-    let (lhs_rs, lhs_cs) = if lhs_t { (1, m) } else { (k, 1) };
-    let (rhs_rs, rhs_cs) = if rhs_t { (1, k) } else { (n, 1) };
-    let threads = rayon::current_num_threads();
-    // Small products (decoding a few rows) lose more to waking threads than they gain.
-    let parallelism = if parallel && threads > 1 && m * n * k >= PARALLEL_MIN_MACS {
-        gemm::Parallelism::Rayon(threads)
-    } else {
-        gemm::Parallelism::None
-    };
-    // SAFETY: the assert above bounds every index gemm reads or writes.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr(),
-            1,
-            n as isize,
-            accumulate,
-            lhs.as_ptr(),
-            lhs_cs as isize,
-            lhs_rs as isize,
-            rhs.as_ptr(),
-            rhs_cs as isize,
-            rhs_rs as isize,
-            if accumulate { 1.0 } else { 0.0 },
-            scale,
-            false,
-            false,
-            false,
-            parallelism,
-        )
     }
 }
 

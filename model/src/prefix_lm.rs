@@ -932,6 +932,7 @@ mod tests {
                 worst = worst.max(row_diff(&step[b], &full[b * layout.motion_slots + t]));
             }
         }
+        eprintln!("KV cache: largest logit difference from full recomputation {worst:.2e}");
         assert!(worst <= 1e-4, "cached vs full: {worst}");
     }
 

@@ -14,8 +14,8 @@
 //! output `(batch, out_frames, out)`. The im2col matrix has one row per output frame and
 //! columns `k·in + c` (tap-major, so each tap is one contiguous copy of a frame).
 
+use crate::matmul::gemm_with;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
-use gemm::{gemm, Parallelism};
 use rayon::prelude::*;
 
 /// Geometry of a convolution and the pre-ops fused into its input read.
@@ -74,53 +74,6 @@ impl ConvGeometry {
 
 /// Rows per parallel task of the copies (large enough to amortise scheduling).
 const ROWS_PER_TASK: usize = 64;
-
-/// `dst (m×n) = [dst +] lhs (m×k) · rhs (k×n)` with row/column strides, on all rayon threads.
-#[allow(clippy::too_many_arguments)]
-fn sgemm(
-    (m, n, k): (usize, usize, usize),
-    dst: &mut [f32],
-    accumulate: bool,
-    lhs: &[f32],
-    (lhs_rs, lhs_cs): (usize, usize),
-    rhs: &[f32],
-    (rhs_rs, rhs_cs): (usize, usize),
-) {
-    assert!(dst.len() >= m * n, "gemm destination too small");
-    assert!(m == 0 || k == 0 || lhs.len() > (m - 1) * lhs_rs + (k - 1) * lhs_cs);
-    assert!(n == 0 || k == 0 || rhs.len() > (k - 1) * rhs_rs + (n - 1) * rhs_cs);
-    let threads = rayon::current_num_threads();
-    let parallelism = if threads > 1 {
-        Parallelism::Rayon(threads)
-    } else {
-        Parallelism::None
-    };
-    // SAFETY: the asserts above keep every index the strides reach inside the slices, and
-    // `dst` does not alias `lhs` or `rhs` (distinct borrows).
-    unsafe {
-        gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr(),
-            1,
-            n as isize,
-            accumulate,
-            lhs.as_ptr(),
-            lhs_cs as isize,
-            lhs_rs as isize,
-            rhs.as_ptr(),
-            rhs_cs as isize,
-            rhs_rs as isize,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            parallelism,
-        )
-    }
-}
 
 /// The im2col matrix of `x` (batch × frames × channels): (batch·out_frames) × (kernel·channels).
 fn im2col(
@@ -278,14 +231,12 @@ impl CustomOp3 for ConvOp {
                 .chunks_exact_mut(out_ch)
                 .for_each(|r| r.copy_from_slice(bias))
         });
-        sgemm(
-            (rows, out_ch, width),
+        gemm_with(
             &mut y,
-            true,
-            lhs,
-            (width, 1),
-            &wt,
-            (1, width),
+            (lhs, false),
+            (&wt, true),
+            (rows, out_ch, width),
+            (true, 1.0, true),
         );
         Ok((CpuStorage::F32(y), Shape::from((batch, out, out_ch))))
     }
@@ -314,14 +265,12 @@ impl CustomOp3 for ConvOp {
         };
         // dW (out × kernel·in) = dYᵀ · cols.
         let mut dwt = vec![0f32; out_ch * width];
-        sgemm(
-            (out_ch, width, rows),
+        gemm_with(
             &mut dwt,
-            false,
-            &dy,
-            (1, out_ch),
-            lhs,
-            (width, 1),
+            (&dy, true),
+            (lhs, false),
+            (out_ch, width, rows),
+            (false, 1.0, true),
         );
         let dw = channels_major(&dwt, (out_ch, inp, kernel));
         // db = column sums of dY: per fixed chunk of rows in parallel, then summed in order
@@ -342,14 +291,12 @@ impl CustomOp3 for ConvOp {
         }
         // dcols (rows × kernel·in) = dY · Wt, then scattered back onto the input frames.
         let mut dcols = vec![0f32; rows * width];
-        sgemm(
-            (rows, width, out_ch),
+        gemm_with(
             &mut dcols,
-            false,
-            &dy,
-            (out_ch, 1),
-            &wt,
-            (width, 1),
+            (&dy, false),
+            (&wt, false),
+            (rows, width, out_ch),
+            (false, 1.0, true),
         );
         let dx = if g.is_pointwise() {
             dcols

@@ -8,7 +8,8 @@
 //! - [`model::MotionTokenizer`]: encoder + quantizer + decoder + normalisation statistics,
 //!   saved as a checkpoint PyTorch loads; [`train`], [`evaluate`], [`sweep`] and [`tokens`]
 //!   (token sets, the transformer stage's input). [`optim`] (AdamW with saveable state and a
-//!   warm-up + cosine schedule) and [`checkpoint`] are shared with later training stages.
+//!   warm-up + cosine schedule), [`checkpoint`] and [`matmul`] are shared with later training
+//!   stages.
 //!
 //! The `cuda` feature (off by default) builds candle with CUDA; the fused CPU ops then fall
 //! back to candle's own ops on GPU tensors.
@@ -20,6 +21,7 @@ pub mod error;
 pub mod evaluate;
 pub mod fsq;
 pub mod loss;
+pub mod matmul;
 pub mod model;
 pub mod optim;
 pub mod ste;
