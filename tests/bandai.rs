@@ -46,9 +46,7 @@ fn both_bandai_archives_ingest_with_every_input_accounted_for() {
         "{report}"
     );
 
-    let manifest: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(corpus.join("manifest.json")).unwrap())
-            .unwrap();
+    let manifest: serde_json::Value = read_json(&corpus.join("manifest.json"));
     let ingested: u64 = manifest["sources"]
         .as_array()
         .unwrap()
@@ -126,9 +124,7 @@ for s in json.load(open(f"{c}/manifest.json"))["shards"]:
             "3",
         ]);
         assert_eq!(code(&run), 0, "{}", text(&run));
-        let sets: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("datasets.json")).unwrap())
-                .unwrap();
+        let sets: serde_json::Value = read_json(&out.join("datasets.json"));
         let datasets = sets["datasets"].as_array().unwrap();
         assert_eq!(datasets.len(), 5, "{split}");
         let mut total = 0;

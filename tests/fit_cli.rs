@@ -39,8 +39,7 @@ fn fit_standin_through_the_cli_then_predict_from_its_fits() {
     );
     assert!(stdout.contains("parametric L(N, D)"), "{stdout}");
 
-    let fits: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("fits.json")).unwrap()).unwrap();
+    let fits: serde_json::Value = read_json(&out.join("fits.json"));
     assert_eq!(fits["settings"]["starts"], 4500);
     assert_eq!(fits["settings"]["seed"], 3);
     assert_eq!(fits["settings"]["huber_delta"], 1e-3);

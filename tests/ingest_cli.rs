@@ -32,9 +32,7 @@ fn demo_corpus_end_to_end_and_byte_identical_rerun() {
     assert_eq!(report["rejects"], 0);
     assert_eq!(report["clips"], 12, "6 clips and their mirrored copies");
 
-    let manifest: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(corpus.join("manifest.json")).unwrap())
-            .unwrap();
+    let manifest: serde_json::Value = read_json(&corpus.join("manifest.json"));
     assert_eq!(manifest["feature_convention"], "humanml3d-263");
     assert_eq!(manifest["sources"][0]["files"], 6);
     assert_eq!(manifest["sources"][0]["ingested_files"], 6);

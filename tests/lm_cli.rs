@@ -7,16 +7,6 @@ mod common;
 use common::*;
 use std::path::Path;
 
-fn ok(args: &[&str]) -> String {
-    let out = motionscale(args);
-    assert_eq!(code(&out), 0, "{args:?}: {}", text(&out));
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn path(p: &Path) -> &str {
-    p.to_str().expect("utf-8 path")
-}
-
 #[test]
 fn train_then_generate_a_bvh_that_ingest_reads_back() {
     let tmp = tempfile::tempdir().unwrap();
@@ -27,11 +17,11 @@ fn train_then_generate_a_bvh_that_ingest_reads_back() {
         tmp.path().join("run"),
     );
     tiny_lm_corpus(&corpus);
-    ok(&[
+    motionscale_ok(&[
         "tokenizer",
         "train",
         "--corpus",
-        path(&corpus),
+        arg(&corpus),
         "--quantizer",
         "fsq",
         "--codebook",
@@ -43,21 +33,21 @@ fn train_then_generate_a_bvh_that_ingest_reads_back() {
         "--batch",
         "8",
         "--out",
-        path(&tok),
+        arg(&tok),
     ]);
-    ok(&[
+    motionscale_ok(&[
         "tokenize",
         "--tokenizer",
-        path(&tok),
+        arg(&tok),
         "--corpus",
-        path(&corpus),
+        arg(&corpus),
         "--out",
-        path(&tokens),
+        arg(&tokens),
     ]);
-    let report = ok(&[
+    let report = motionscale_ok(&[
         "train",
         "--tokens",
-        path(&tokens),
+        arg(&tokens),
         "--preset",
         "cpu-50K",
         "--vocab",
@@ -67,7 +57,7 @@ fn train_then_generate_a_bvh_that_ingest_reads_back() {
         "--batch",
         "8",
         "--out",
-        path(&run),
+        arg(&run),
         "--json",
     ]);
     let report: serde_json::Value = serde_json::from_str(&report).unwrap();
@@ -76,25 +66,30 @@ fn train_then_generate_a_bvh_that_ingest_reads_back() {
     assert!(eval["tokens_seen"].as_u64().unwrap() >= 3000);
     assert!(eval["test"]["cross_entropy"].as_f64().unwrap().is_finite());
     assert_eq!(eval["tied"], false);
-    let eval_file: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(run.join("eval.json")).unwrap()).unwrap();
-    assert_eq!(&eval_file, eval);
+    assert_eq!(
+        &read_json::<serde_json::Value>(&run.join("eval.json")),
+        eval
+    );
 
-    let caption = "a person walks forward, looking sad";
+    // Every generation: the same caption and seed, written to `out`.
+    let generate = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "generate",
+            "--model",
+            arg(&run),
+            "--text",
+            "a person walks forward, looking sad",
+            "--seed",
+            "1",
+            "--out",
+            arg(out),
+        ];
+        args.extend_from_slice(extra);
+        motionscale_ok(&args);
+    };
     let json = tmp.path().join("gen.json");
-    ok(&[
-        "generate",
-        "--model",
-        path(&run),
-        "--text",
-        caption,
-        "--seed",
-        "1",
-        "--out",
-        path(&json),
-    ]);
-    let gen: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    generate(&json, &[]);
+    let gen: serde_json::Value = read_json(&json);
     let n = gen["tokens"].as_array().unwrap().len();
     assert!(
         n > 0
@@ -106,58 +101,26 @@ fn train_then_generate_a_bvh_that_ingest_reads_back() {
     );
     // The same seed without the cache draws the same tokens.
     let again = tmp.path().join("again.json");
-    ok(&[
-        "generate",
-        "--model",
-        path(&run),
-        "--text",
-        caption,
-        "--seed",
-        "1",
-        "--no-cache",
-        "--out",
-        path(&again),
-    ]);
-    let again: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&again).unwrap()).unwrap();
+    generate(&again, &["--no-cache"]);
+    let again: serde_json::Value = read_json(&again);
     assert_eq!(again["tokens"], gen["tokens"]);
 
     let npy = tmp.path().join("gen.npy");
-    ok(&[
-        "generate",
-        "--model",
-        path(&run),
-        "--text",
-        caption,
-        "--seed",
-        "1",
-        "--out",
-        path(&npy),
-    ]);
+    generate(&npy, &[]);
     let header = std::fs::read(&npy).unwrap();
     let header = String::from_utf8_lossy(&header[..128]);
     assert!(header.contains(&format!("({}, 263)", 4 * n)), "{header}");
 
     let bvh_dir = tmp.path().join("bvh");
     std::fs::create_dir_all(&bvh_dir).unwrap();
-    ok(&[
-        "generate",
-        "--model",
-        path(&run),
-        "--text",
-        caption,
-        "--seed",
-        "1",
-        "--out",
-        path(&bvh_dir.join("gen.bvh")),
-    ]);
+    generate(&bvh_dir.join("gen.bvh"), &[]);
     let back = tmp.path().join("back");
     let out = motionscale(&[
         "ingest",
         "--source",
-        &format!("bvh:{}", path(&bvh_dir)),
+        &format!("bvh:{}", arg(&bvh_dir)),
         "--out",
-        path(&back),
+        arg(&back),
         "--min-frames",
         "4",
         "--static-threshold",
@@ -176,7 +139,7 @@ fn train_then_generate_a_bvh_that_ingest_reads_back() {
 
 #[test]
 fn model_info_prints_the_accounting() {
-    let out = ok(&[
+    let out = motionscale_ok(&[
         "model", "info", "--preset", "343M", "--vocab", "65536", "--json",
     ]);
     let v: serde_json::Value = serde_json::from_str(&out).unwrap();

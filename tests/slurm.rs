@@ -120,9 +120,7 @@ fn slurm_sweep_end_to_end() {
         array.contains("--only-index \"$SLURM_ARRAY_TASK_ID\""),
         "{array}"
     );
-    let jobs: sweeps::slurm::Submission =
-        serde_json::from_str(&std::fs::read_to_string(runs.join("slurm/jobs.json")).unwrap())
-            .unwrap();
+    let jobs: sweeps::slurm::Submission = read_json(&runs.join("slurm/jobs.json"));
     let array_job = jobs.array.as_deref().expect("an array job");
     let states = sweeps::slurm::job_states(array_job).unwrap();
     assert_eq!(states, vec!["COMPLETED"; 6], "one task per plan row");
@@ -138,9 +136,7 @@ fn slurm_sweep_end_to_end() {
         assert!(row.test_loss.is_finite() && row.test_loss > 0.0, "{row:?}");
         assert!(row.tokens >= row.tokens_planned, "{row:?}");
     }
-    let fits: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(runs.join("fits/fits.json")).unwrap())
-            .unwrap();
+    let fits: serde_json::Value = read_json(&runs.join("fits/fits.json"));
     let e = &fits["parametric"]["E"]["value"];
     assert!(
         e.as_f64().is_some_and(f64::is_finite),

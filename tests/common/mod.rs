@@ -20,6 +20,12 @@ pub fn motionscale_ok(args: &[&str]) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// Parse the JSON file at `p` (panics naming the file).
+pub fn read_json<T: serde::de::DeserializeOwned>(p: &Path) -> T {
+    let text = std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
 /// A path as a command-line argument (tests use UTF-8 temporary paths).
 pub fn arg(p: &Path) -> &str {
     p.to_str().expect("utf-8 path")
