@@ -20,6 +20,12 @@ enum Cells {
     Other(String),
 }
 
+/// Column names, columns and row count of a parsed file.
+type Parsed = (Vec<String>, Vec<Cells>, usize);
+
+/// Builds the format error about the file being read.
+type FormatError<'a> = dyn Fn(String) -> FitError + 'a;
+
 /// A results table read from a file, with its columns in file order.
 #[derive(Debug, Clone)]
 pub struct Table {
@@ -36,25 +42,33 @@ impl Table {
             .extension()
             .and_then(|e| e.to_str())
             .map(str::to_ascii_lowercase);
-        match ext.as_deref() {
-            Some("csv") => Self::read_csv(path),
-            Some("parquet") | Some("pq") => Self::read_parquet(path),
-            _ => Err(FitError::Format {
-                path: path.to_path_buf(),
-                message: "unsupported extension: expected .csv or .parquet".into(),
-            }),
-        }
-    }
-
-    fn read_csv(path: &Path) -> Result<Self, FitError> {
         let format = |message: String| FitError::Format {
             path: path.to_path_buf(),
             message,
+        };
+        let parse = match ext.as_deref() {
+            Some("csv") => Self::parse_csv,
+            Some("parquet") | Some("pq") => Self::parse_parquet,
+            _ => {
+                return Err(format(
+                    "unsupported extension: expected .csv or .parquet".into(),
+                ))
+            }
         };
         let file = std::fs::File::open(path).map_err(|source| FitError::Io {
             path: path.to_path_buf(),
             source,
         })?;
+        let (names, columns, rows) = parse(file, &format)?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            names,
+            columns,
+            rows,
+        })
+    }
+
+    fn parse_csv(file: std::fs::File, format: &FormatError) -> Result<Parsed, FitError> {
         let mut reader = csv::ReaderBuilder::new()
             .trim(csv::Trim::All)
             .from_reader(file);
@@ -72,23 +86,10 @@ impl Table {
             }
         }
         let rows = text.first().map_or(0, Vec::len);
-        Ok(Self {
-            path: path.to_path_buf(),
-            names,
-            columns: text.into_iter().map(Cells::Text).collect(),
-            rows,
-        })
+        Ok((names, text.into_iter().map(Cells::Text).collect(), rows))
     }
 
-    fn read_parquet(path: &Path) -> Result<Self, FitError> {
-        let format = |message: String| FitError::Format {
-            path: path.to_path_buf(),
-            message,
-        };
-        let file = std::fs::File::open(path).map_err(|source| FitError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
+    fn parse_parquet(file: std::fs::File, format: &FormatError) -> Result<Parsed, FitError> {
         let builder =
             ParquetRecordBatchReaderBuilder::try_new(file).map_err(|e| format(e.to_string()))?;
         let schema = builder.schema().clone();
@@ -114,12 +115,7 @@ impl Table {
                     .map_err(|m| format(format!("column {:?}: {m}", names[i])))?;
             }
         }
-        Ok(Self {
-            path: path.to_path_buf(),
-            names,
-            columns,
-            rows,
-        })
+        Ok((names, columns, rows))
     }
 
     /// The file this table was read from.

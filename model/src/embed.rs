@@ -6,7 +6,7 @@
 //! records each finished shard's sha256, and a shard whose file no longer matches is redone.
 
 use crate::error::ModelError;
-use crate::{TextEncoder, TokenEmbeddings};
+use crate::{write_json, TextEncoder, TokenEmbeddings};
 use arrow_array::builder::{Float32Builder, ListBuilder, StringBuilder, UInt32Builder};
 use arrow_array::cast::AsArray;
 use arrow_array::types::Float32Type;
@@ -324,11 +324,6 @@ fn read_index(path: &Path) -> Result<Option<Index>, ModelError> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
         Err(e) => Err(ModelError::io(path, e)),
     }
-}
-
-fn write_json(path: &Path, value: &impl Serialize) -> Result<(), ModelError> {
-    let text = serde_json::to_string_pretty(value).map_err(|e| ModelError::invalid(path, e))?;
-    ingest::npy::write_atomic(path, text.as_bytes()).map_err(|e| ModelError::io(path, e))
 }
 
 /// Embed `texts` in batches of similar length (less padding), returning them in input order.

@@ -126,6 +126,18 @@ fn short_hash(hasher: Sha256) -> String {
 }
 
 /// Lowercase hex of `bytes`.
+/// Write `value` as pretty JSON to `path`, atomically.
+fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), ModelError> {
+    let text = serde_json::to_string_pretty(value).map_err(|e| ModelError::invalid(path, e))?;
+    ingest::npy::write_atomic(path, text.as_bytes()).map_err(|e| ModelError::io(path, e))
+}
+
+/// Parse the JSON file at `path`.
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, ModelError> {
+    let text = std::fs::read_to_string(path).map_err(|e| ModelError::io(path, e))?;
+    serde_json::from_str(&text).map_err(|e| ModelError::invalid(path, e))
+}
+
 fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }

@@ -20,7 +20,7 @@ use crate::accounting::{self, Accounting, SequenceShape};
 use crate::evaluate::{evaluate, SplitLoss};
 use crate::lm_data::{Limits, LmData};
 use crate::prefix_lm::{init_model, PrefixLm, PrefixLmConfig};
-use crate::ModelError;
+use crate::{read_json, write_json, ModelError};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use ingest::npy::write_atomic;
@@ -269,16 +269,6 @@ pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), ModelError> {
         .map_err(|e| ModelError::invalid(&weights, e))?;
     let model = PrefixLm::new(&run.model, vb).map_err(|e| ModelError::invalid(&weights, e))?;
     Ok((model, run))
-}
-
-fn write_json(path: &Path, value: &impl Serialize) -> Result<(), ModelError> {
-    let text = serde_json::to_string_pretty(value).map_err(|e| ModelError::invalid(path, e))?;
-    write_atomic(path, text.as_bytes()).map_err(|e| ModelError::io(path, e))
-}
-
-fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, ModelError> {
-    let text = std::fs::read_to_string(path).map_err(|e| ModelError::io(path, e))?;
-    serde_json::from_str(&text).map_err(|e| ModelError::invalid(path, e))
 }
 
 fn tensors(vars: &HashMap<String, candle_core::Var>) -> HashMap<String, Tensor> {
