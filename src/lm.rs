@@ -377,10 +377,32 @@ pub struct GenerateArgs {
     #[arg(long)]
     pub tokenizer: Option<PathBuf>,
     /// The text to animate.
+    #[arg(
+        long,
+        required_unless_present = "captions_from",
+        conflicts_with = "captions_from"
+    )]
+    pub text: Option<String>,
+    /// Batch mode: animate one caption of every clip of `--split` in this corpus, into a
+    /// HumanML3D-layout folder `--out` that `motionscale eval --motions` reads.
     #[arg(long)]
-    pub text: String,
-    /// Output file: .json (tokens), .npy (n × 263 HumanML3D features, de-normalised) or
-    /// .bvh (SMPL-22 hierarchy, 20 fps, centimetres: Blender's import scale 0.01 gives metres).
+    pub captions_from: Option<PathBuf>,
+    /// Batch mode: the corpus split whose captions to animate.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Batch mode: texts (drawn by the seed) that get `--mm-samples` samples each, for
+    /// multimodality.
+    #[arg(long, default_value_t = 100)]
+    pub mm_texts: usize,
+    /// Batch mode: samples for each multimodality text.
+    #[arg(long, default_value_t = 10)]
+    pub mm_samples: usize,
+    /// Batch mode: sequences generated together.
+    #[arg(long, default_value_t = 32)]
+    pub batch: usize,
+    /// Output: with --text a file, .json (tokens), .npy (n × 263 HumanML3D features,
+    /// de-normalised) or .bvh (SMPL-22 hierarchy, 20 fps, centimetres: Blender's import
+    /// scale 0.01 gives metres); with --captions-from a folder.
     #[arg(long)]
     pub out: PathBuf,
     /// BERT-family text encoder folder (default: the one the model was trained with).
@@ -401,6 +423,9 @@ pub struct GenerateArgs {
     /// Most motion tokens.
     #[arg(long, default_value_t = 64)]
     pub max_tokens: usize,
+    /// Fewest motion tokens: EOS cannot end a sequence before this many (a motion needs one).
+    #[arg(long, default_value_t = 1)]
+    pub min_tokens: usize,
     /// Recompute the whole sequence every step instead of using the key/value cache.
     #[arg(long)]
     pub no_cache: bool,
@@ -408,7 +433,7 @@ pub struct GenerateArgs {
 
 /// The text encoder a run was trained with: `--encoder`, the fetched MiniLM, or the
 /// fallback table saved in the corpus; its id must match the run's.
-fn load_text_encoder(run: &RunConfig, dir: Option<&Path>) -> Result<Box<dyn TextEncoder>> {
+pub fn load_text_encoder(run: &RunConfig, dir: Option<&Path>) -> Result<Box<dyn TextEncoder>> {
     let fallback_dir = run
         .corpus
         .join("text")
@@ -429,9 +454,8 @@ fn load_text_encoder(run: &RunConfig, dir: Option<&Path>) -> Result<Box<dyn Text
     Ok(encoder)
 }
 
-/// Decode `tokens` with the run's tokenizer (or `dir`, which must hold the same checkpoint)
-/// and write HumanML3D features (.npy) or a BVH of the recovered joints.
-fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path) -> Result<()> {
+/// The run's tokenizer (or `dir`, which must hold the same checkpoint), for decoding.
+pub fn run_tokenizer(run: &RunConfig, dir: Option<&Path>) -> Result<MotionTokenizer> {
     let dir = dir.unwrap_or(&run.tokenizer.dir);
     let id = MotionTokenizer::content_id(dir)
         .with_context(|| format!("reading the tokenizer checkpoint in {}", dir.display()))?;
@@ -442,8 +466,13 @@ fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path)
             run.tokenizer.id
         );
     }
-    let decoder = MotionTokenizer::load(dir, &candle_core::Device::Cpu)?;
-    let features = decoder.detokenize(tokens)?;
+    Ok(MotionTokenizer::load(dir, &candle_core::Device::Cpu)?)
+}
+
+/// Decode `tokens` with the run's tokenizer and write HumanML3D features (.npy) or a BVH
+/// of the recovered joints.
+fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path) -> Result<()> {
+    let features = run_tokenizer(run, dir)?.detokenize(tokens)?;
     crate::tokenizer_cmd::write_motion(out, &features, false)
 }
 
@@ -452,9 +481,6 @@ pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
     let (model, run) = model::train::load_model(&args.model)?;
     let encoder = load_text_encoder(&run, args.encoder.as_deref())?;
-    let text = encoder.encode(&[args.text.as_str()])?.remove(0);
-    let rows = text.len().min(run.train.max_text_tokens);
-    let prefix = &text.embeddings[..rows * text.dim];
     let sampling = Sampling {
         temperature: args.temperature,
         top_k: (args.top_k > 0).then_some(args.top_k),
@@ -462,8 +488,21 @@ pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
         seed: args.seed,
         max_tokens: args.max_tokens,
         allow_eos: true,
+        min_tokens: args.min_tokens,
         kv_cache: !args.no_cache,
     };
+    let Some(caption) = args.text.as_deref() else {
+        return crate::generate_batch::generate_batch(
+            &args,
+            &model,
+            &run,
+            encoder.as_ref(),
+            sampling,
+        );
+    };
+    let text = encoder.encode(&[caption])?.remove(0);
+    let rows = text.len().min(run.train.max_text_tokens);
+    let prefix = &text.embeddings[..rows * text.dim];
     let started = std::time::Instant::now();
     let tokens = model::generate::generate(&model, &[prefix], &sampling)?.remove(0);
     let seconds = started.elapsed().as_secs_f64();
@@ -471,7 +510,7 @@ pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
     match ext {
         "json" => {
             let value = serde_json::json!({
-                "text": args.text,
+                "text": caption,
                 "tokens": tokens,
                 "model": args.model,
                 "text_encoder": run.text_encoder,

@@ -4,7 +4,9 @@
 mod bench;
 mod bench_tokenizer;
 mod commands;
+mod eval_cmd;
 mod fit;
+mod generate_batch;
 mod lm;
 mod lm_bench;
 mod memory;
@@ -74,6 +76,12 @@ enum Command {
     Train(lm::TrainArgs),
     /// Generate motion for a text with a trained prefix LM.
     Generate(lm::GenerateArgs),
+    /// Train the text–motion evaluator that `eval` scores motions with.
+    #[command(subcommand)]
+    Evaluator(EvaluatorCommand),
+    /// Generation metrics (FID, R-precision, matching score, diversity, multimodality,
+    /// emotion F1, action accuracy) of a motion set, with 95% intervals over repeats.
+    Eval(eval_cmd::EvalArgs),
     /// IsoFLOP sweeps: plan, run (local pool or Slurm array), status, collect.
     #[command(subcommand)]
     Sweep(SweepCommand),
@@ -91,6 +99,13 @@ enum SweepCommand {
     Submit(sweep_cmd::SubmitArgs),
     /// Rebuild results.csv / results.parquet from every run's result.json.
     Collect(sweep_cmd::CollectArgs),
+}
+
+#[derive(Subcommand)]
+enum EvaluatorCommand {
+    /// Train an evaluator on a corpus (contrastive text–motion encoders + emotion and action
+    /// classifiers); re-running resumes.
+    Train(eval_cmd::EvaluatorTrainArgs),
 }
 
 #[derive(Subcommand)]
@@ -212,6 +227,8 @@ fn main() -> ExitCode {
         Command::Model(ModelCommand::Presets(args)) => lm::presets(args),
         Command::Train(args) => lm::train(args),
         Command::Generate(args) => lm::generate(args),
+        Command::Evaluator(EvaluatorCommand::Train(args)) => eval_cmd::evaluator_train(args),
+        Command::Eval(args) => eval_cmd::eval(args),
         Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
         Command::Fit(args) => fit::fit(args),
         Command::Predict(args) => fit::predict(args),

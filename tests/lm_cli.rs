@@ -10,56 +10,9 @@ use std::path::Path;
 #[test]
 fn train_then_generate_a_bvh_that_ingest_reads_back() {
     let tmp = tempfile::tempdir().unwrap();
-    let (corpus, tok, tokens, run) = (
-        tmp.path().join("corpus"),
-        tmp.path().join("tok"),
-        tmp.path().join("tokens"),
-        tmp.path().join("run"),
-    );
+    let corpus = tmp.path().join("corpus");
     tiny_lm_corpus(&corpus);
-    motionscale_ok(&[
-        "tokenizer",
-        "train",
-        "--corpus",
-        arg(&corpus),
-        "--quantizer",
-        "fsq",
-        "--codebook",
-        "256",
-        "--steps",
-        "6",
-        "--width",
-        "32",
-        "--batch",
-        "8",
-        "--out",
-        arg(&tok),
-    ]);
-    motionscale_ok(&[
-        "tokenize",
-        "--tokenizer",
-        arg(&tok),
-        "--corpus",
-        arg(&corpus),
-        "--out",
-        arg(&tokens),
-    ]);
-    let report = motionscale_ok(&[
-        "train",
-        "--tokens",
-        arg(&tokens),
-        "--preset",
-        "cpu-50K",
-        "--vocab",
-        "240",
-        "--tokens-budget",
-        "3000",
-        "--batch",
-        "8",
-        "--out",
-        arg(&run),
-        "--json",
-    ]);
+    let (run, report) = tiny_lm_run(&corpus, tmp.path());
     let report: serde_json::Value = serde_json::from_str(&report).unwrap();
     assert_eq!(report["steps"], report["total_steps"]);
     let eval = &report["eval"];

@@ -23,6 +23,9 @@ pub struct Sampling {
     pub max_tokens: usize,
     /// Whether EOS may be sampled (otherwise every sequence runs to `max_tokens`).
     pub allow_eos: bool,
+    /// Motion tokens every sequence has before EOS may be sampled.
+    #[serde(default)]
+    pub min_tokens: usize,
     /// Decode with the key/value cache.
     pub kv_cache: bool,
 }
@@ -37,6 +40,7 @@ impl Default for Sampling {
             seed: 0,
             max_tokens: 64,
             allow_eos: true,
+            min_tokens: 0,
             kv_cache: true,
         }
     }
@@ -93,11 +97,13 @@ pub fn sample(logits: &[f32], candidates: usize, s: &Sampling, rng: &mut SplitMi
 pub fn generate(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<Vec<u32>>> {
     let c = model.config();
     let (batch, eos) = (texts.len(), c.eos() as usize);
-    // Candidates: the codes, then (BOS masked out) EOS.
-    let candidates = if s.allow_eos {
-        eos + 1
-    } else {
-        c.codebook_size
+    // Candidates: the codes, then (BOS masked out) EOS once `min_tokens` are out.
+    let candidates = |len: usize| {
+        if s.allow_eos && len >= s.min_tokens {
+            eos + 1
+        } else {
+            c.codebook_size
+        }
     };
     let bos = c.bos() as usize;
     let mut rngs: Vec<SplitMix64> = (0..batch as u64)
@@ -143,7 +149,7 @@ pub fn generate(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<
                 continue;
             }
             logits[b][bos] = f32::NEG_INFINITY;
-            let token = sample(&logits[b], candidates, s, &mut rngs[b]);
+            let token = sample(&logits[b], candidates(out[b].len()), s, &mut rngs[b]);
             if token == eos {
                 done[b] = true;
             } else {
@@ -217,5 +223,11 @@ mod tests {
         .unwrap();
         assert_eq!(cached, full);
         assert!(cached.iter().all(|t| t.iter().all(|&v| v < 12)));
+        let at_least_three = Sampling {
+            min_tokens: 3,
+            ..s.clone()
+        };
+        let long = generate(&model, &texts, &at_least_three).unwrap();
+        assert!(long.iter().all(|t| t.len() >= 3), "{long:?}");
     }
 }

@@ -19,10 +19,14 @@ pub mod bert;
 pub mod embed;
 pub mod error;
 pub mod evaluate;
+pub mod evaluator;
+pub mod evaluator_train;
 pub mod fallback;
 pub mod fused;
 pub mod generate;
 pub mod lm_data;
+pub mod metrics;
+pub mod motion_eval;
 pub mod prefix_lm;
 pub mod t5;
 pub mod train;
@@ -125,7 +129,6 @@ fn short_hash(hasher: Sha256) -> String {
     hex(&hasher.finalize()[..6])
 }
 
-/// Lowercase hex of `bytes`.
 /// Write `value` as pretty JSON to `path`, atomically.
 fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), ModelError> {
     let text = serde_json::to_string_pretty(value).map_err(|e| ModelError::invalid(path, e))?;
@@ -138,6 +141,19 @@ fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T, ModelErro
     serde_json::from_str(&text).map_err(|e| ModelError::invalid(path, e))
 }
 
+/// Append `value` as one JSON line to `path` (created if missing).
+fn append_json_line(path: &Path, value: &impl serde::Serialize) -> Result<(), ModelError> {
+    use std::io::Write;
+    let line = serde_json::to_string(value).map_err(|e| ModelError::invalid(path, e))?;
+    let mut file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(|e| ModelError::io(path, e))?;
+    writeln!(file, "{line}").map_err(|e| ModelError::io(path, e))
+}
+
+/// Lowercase hex of `bytes`.
 fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }

@@ -20,7 +20,7 @@ use crate::accounting::{self, Accounting, SequenceShape};
 use crate::evaluate::{evaluate, SplitLoss};
 use crate::lm_data::{Limits, LmData};
 use crate::prefix_lm::{init_model, PrefixLm, PrefixLmConfig};
-use crate::{read_json, write_json, ModelError};
+use crate::{append_json_line, read_json, write_json, ModelError};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use ingest::npy::write_atomic;
@@ -454,7 +454,7 @@ impl Run {
             tied: params.tied,
         };
         write_json(&self.paths.eval, &record)?;
-        append_eval(&self.paths.evals, &record)?;
+        append_json_line(&self.paths.evals, &record)?;
         Ok(record)
     }
 
@@ -543,15 +543,4 @@ fn resume(
         write_atomic(&paths.evals, kept.as_bytes()).map_err(|e| ModelError::io(&paths.evals, e))?;
     }
     Ok(state)
-}
-
-fn append_eval(path: &Path, record: &EvalRecord) -> Result<(), ModelError> {
-    use std::io::Write;
-    let line = serde_json::to_string(record).map_err(|e| ModelError::invalid(path, e))?;
-    let mut file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(path)
-        .map_err(|e| ModelError::io(path, e))?;
-    writeln!(file, "{line}").map_err(|e| ModelError::io(path, e))
 }

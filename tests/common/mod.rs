@@ -134,9 +134,14 @@ print(rows, frames)
 /// A 40-clip synthetic corpus with 32-d fallback caption embeddings in `dir`: the smallest
 /// input the prefix LM trains on (sweep tests).
 pub fn tiny_lm_corpus(dir: &Path) {
-    let path = dir.to_str().expect("utf-8 path");
+    synth_corpus(dir, 40);
+}
+
+/// A `clips`-clip synthetic corpus (seed 2) with 32-d fallback caption embeddings in `dir`.
+pub fn synth_corpus(dir: &Path, clips: usize) {
+    let (path, clips) = (dir.to_str().expect("utf-8 path"), clips.to_string());
     for args in [
-        &["synth", "--clips", "40", "--seed", "2", "--out", path][..],
+        &["synth", "--clips", &clips, "--seed", "2", "--out", path][..],
         &[
             "embed-text",
             "--corpus",
@@ -149,4 +154,55 @@ pub fn tiny_lm_corpus(dir: &Path) {
         let out = motionscale(args);
         assert_eq!(code(&out), 0, "{args:?}: {}", text(&out));
     }
+}
+
+/// A tiny prefix LM on `corpus` (FSQ 2^8 tokenizer of width 32 trained 6 steps, its token
+/// set, `cpu-50K` trained on 3,000 tokens) in `dir/{tok,tokens,run}`; returns the run folder
+/// and the `train --json` report.
+pub fn tiny_lm_run(corpus: &Path, dir: &Path) -> (PathBuf, String) {
+    let (tok, tokens, run) = (dir.join("tok"), dir.join("tokens"), dir.join("run"));
+    motionscale_ok(&[
+        "tokenizer",
+        "train",
+        "--corpus",
+        arg(corpus),
+        "--quantizer",
+        "fsq",
+        "--codebook",
+        "256",
+        "--steps",
+        "6",
+        "--width",
+        "32",
+        "--batch",
+        "8",
+        "--out",
+        arg(&tok),
+    ]);
+    motionscale_ok(&[
+        "tokenize",
+        "--tokenizer",
+        arg(&tok),
+        "--corpus",
+        arg(corpus),
+        "--out",
+        arg(&tokens),
+    ]);
+    let report = motionscale_ok(&[
+        "train",
+        "--tokens",
+        arg(&tokens),
+        "--preset",
+        "cpu-50K",
+        "--vocab",
+        "240",
+        "--tokens-budget",
+        "3000",
+        "--batch",
+        "8",
+        "--out",
+        arg(&run),
+        "--json",
+    ]);
+    (run, report)
 }

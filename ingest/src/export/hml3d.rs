@@ -87,10 +87,7 @@ impl Hml3dWriter {
         } else {
             clip.captions.iter().map(String::as_str).collect()
         };
-        let text: String = captions
-            .iter()
-            .map(|c| format!("{}#{}#0.0#0.0\n", one_line(c), tag_caption(c)))
-            .collect();
+        let text: String = captions.iter().map(|c| caption_line(c)).collect();
         npy::write_atomic(
             &self.out.join("texts").join(format!("{id}.txt")),
             text.as_bytes(),
@@ -146,6 +143,12 @@ fn id_list(ids: &[String]) -> String {
 }
 
 /// A caption on one line without the `#` field separator.
+/// One `texts/<id>.txt` line for a caption covering the whole clip:
+/// `caption#word/POS …#0.0#0.0`.
+pub fn caption_line(caption: &str) -> String {
+    format!("{}#{}#0.0#0.0\n", one_line(caption), tag_caption(caption))
+}
+
 fn one_line(caption: &str) -> String {
     caption
         .split(['\n', '\r', '#'])

@@ -1,0 +1,194 @@
+//! The evaluator through the binary: `evaluator train` on a synthetic corpus with fallback
+//! caption embeddings, `eval` on the corpus (halves, shuffled captions, noise), on its
+//! HumanML3D export (same motions → same metrics), and on motions from a tiny prefix LM
+//! (`generate --captions-from`), with the recorded split, seed, repeats and hashes.
+
+mod common;
+
+use common::*;
+use serde_json::Value;
+use std::path::Path;
+
+fn train_evaluator(corpus: &Path, out: &Path) -> String {
+    motionscale_ok(&[
+        "evaluator",
+        "train",
+        "--corpus",
+        arg(corpus),
+        "--out",
+        arg(out),
+        "--hidden",
+        "16",
+        "--embed-dim",
+        "16",
+        "--max-frames",
+        "64",
+        "--batch",
+        "16",
+        "--steps",
+        "30",
+        "--eval-every",
+        "15",
+    ])
+}
+
+fn eval(evaluator: &Path, motions: &Path, out: &Path, extra: &[&str]) -> Value {
+    let mut args = vec![
+        "eval",
+        "--evaluator",
+        arg(evaluator),
+        "--motions",
+        arg(motions),
+        "--split",
+        "train",
+        "--repeats",
+        "3",
+        "--out",
+        arg(out),
+    ];
+    args.extend_from_slice(extra);
+    motionscale_ok(&args);
+    read_json(out)
+}
+
+fn mean(v: &Value) -> f64 {
+    v["mean"]
+        .as_f64()
+        .unwrap_or_else(|| panic!("no mean in {v}"))
+}
+
+#[test]
+fn evaluator_trains_resumes_and_scores_corpus_export_and_generated_motions() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (corpus_dir, evaluator) = (tmp.path().join("corpus"), tmp.path().join("evaluator"));
+    // 251 train clips: enough texts for pools of 32 in two halves.
+    synth_corpus(&corpus_dir, 300);
+    train_evaluator(&corpus_dir, &evaluator);
+    for file in ["config.json", "model.safetensors", "mean.npy", "std.npy"] {
+        assert!(evaluator.join(file).is_file(), "{file} missing");
+    }
+    let log = std::fs::read_to_string(evaluator.join("log.jsonl")).unwrap();
+    assert_eq!(log.lines().count(), 2, "{log}");
+    let config: Value = read_json(&evaluator.join("config.json"));
+    assert_eq!(config["format"], "motionscale-evaluator-v1");
+    assert!(config["config"]["emotions"].as_array().unwrap().len() > 1);
+    assert!(config["config"]["actions"].as_array().unwrap().len() > 1);
+    // Re-running a finished training changes nothing.
+    let weights = std::fs::read(evaluator.join("model.safetensors")).unwrap();
+    train_evaluator(&corpus_dir, &evaluator);
+    assert_eq!(
+        std::fs::read(evaluator.join("model.safetensors")).unwrap(),
+        weights
+    );
+
+    // Ground truth against itself: two disjoint halves.
+    let halves = eval(
+        &evaluator,
+        &corpus_dir,
+        &tmp.path().join("halves.json"),
+        &["--halves"],
+    );
+    assert_eq!(halves["options"]["split"], "train");
+    assert_eq!(halves["options"]["seed"], 0);
+    assert_eq!(halves["options"]["repeats"], 3);
+    assert_eq!(halves["options"]["halves"], true);
+    assert_eq!(halves["evaluator_id"].as_str().unwrap().len(), 12);
+    assert_eq!(halves["corpus_id"].as_str().unwrap().len(), 12);
+    assert_eq!(halves["motions_id"].as_str().unwrap().len(), 12);
+    assert_eq!(halves["fid"]["values"].as_array().unwrap().len(), 3);
+    assert!(mean(&halves["fid"]) >= 0.0);
+    for r in halves["r_precision"].as_array().unwrap() {
+        assert!((0.0..=1.0).contains(&mean(r)));
+    }
+    assert!(mean(&halves["r_precision"][0]) <= mean(&halves["r_precision"][2]));
+    assert_eq!(halves["r_precision_chance"], 1.0 / 32.0);
+    assert!(halves["multimodality"].is_null(), "one motion per text");
+    let f1 = mean(&halves["emotion_weighted_f1"]);
+    assert!((0.0..=1.0).contains(&f1));
+    // Same seed, same numbers; another seed draws other halves.
+    let again = eval(
+        &evaluator,
+        &corpus_dir,
+        &tmp.path().join("again.json"),
+        &["--halves"],
+    );
+    assert_eq!(again["fid"], halves["fid"]);
+    let seed1 = eval(
+        &evaluator,
+        &corpus_dir,
+        &tmp.path().join("seed1.json"),
+        &["--halves", "--seed", "1"],
+    );
+    assert_ne!(seed1["fid"]["values"], halves["fid"]["values"]);
+
+    // Against the reference itself FID is 0; noise moves the motions away from it.
+    let own = eval(&evaluator, &corpus_dir, &tmp.path().join("own.json"), &[]);
+    assert!(mean(&own["fid"]).abs() < 1e-6, "{}", own["fid"]);
+    let noisy = eval(
+        &evaluator,
+        &corpus_dir,
+        &tmp.path().join("noisy.json"),
+        &["--noise", "1.0"],
+    );
+    assert!(mean(&noisy["fid"]) > mean(&own["fid"]));
+    assert_eq!(noisy["options"]["noise"], 1.0);
+    let shuffled = eval(
+        &evaluator,
+        &corpus_dir,
+        &tmp.path().join("shuffled.json"),
+        &["--shuffle-captions"],
+    );
+    assert_eq!(shuffled["options"]["shuffle_captions"], true);
+    assert_eq!(shuffled["fid"], own["fid"], "captions do not enter FID");
+
+    // The HumanML3D export of the same corpus scores exactly as the corpus.
+    let export = tmp.path().join("hml3d");
+    motionscale_ok(&["export", "hml3d", arg(&corpus_dir), arg(&export)]);
+    let exported = eval(&evaluator, &export, &tmp.path().join("export.json"), &[]);
+    assert_eq!(exported["motions_kind"], "hml3d");
+    for key in [
+        "fid",
+        "r_precision",
+        "matching_score",
+        "diversity",
+        "emotion_weighted_f1",
+        "action_accuracy",
+    ] {
+        assert_eq!(exported[key], own[key], "{key}");
+    }
+
+    // Motions generated by a tiny prefix LM, 10 samples for two of the texts.
+    let (run, _) = tiny_lm_run(&corpus_dir, tmp.path());
+    let generated = tmp.path().join("generated");
+    let out = motionscale(&[
+        "generate",
+        "--model",
+        arg(&run),
+        "--captions-from",
+        arg(&corpus_dir),
+        "--split",
+        "train",
+        "--mm-texts",
+        "2",
+        "--mm-samples",
+        "10",
+        "--seed",
+        "3",
+        "--out",
+        arg(&generated),
+    ]);
+    assert!([0, 2].contains(&code(&out)), "{}", text(&out));
+    let lines = std::fs::read_to_string(generated.join("generated.jsonl")).unwrap();
+    let rejects = std::fs::read_to_string(generated.join("rejects.jsonl")).unwrap();
+    assert_eq!(
+        lines.lines().count() + rejects.lines().count(),
+        251 + 2 * 9,
+        "every caption is written or rejected"
+    );
+    let scored = eval(&evaluator, &generated, &tmp.path().join("gen.json"), &[]);
+    assert_eq!(scored["motions_kind"], "hml3d");
+    assert!(mean(&scored["fid"]) > 0.0);
+    assert!(scored["multimodality_groups"].as_u64().unwrap() >= 1);
+    assert!(mean(&scored["multimodality"]) >= 0.0);
+    assert!(scored["group_count"].as_u64().unwrap() <= 251);
+}
