@@ -5,9 +5,11 @@ use crate::commands::progress_bar;
 use anyhow::{Context, Result};
 use model::evaluator::TrainedEvaluator;
 use model::evaluator_train::{corpus_clips, train_evaluator, EvaluatorEvent, EvaluatorTrainConfig};
-use model::motion_eval::{corpus_split, evaluate_motions, hml3d_folder, EvalOptions, EvalReport};
+use model::motion_eval::{
+    corpus_split, embed_set, evaluate_motions, hml3d_folder, EvalOptions, EvalReport, MotionSet,
+};
 use model::{BertEncoder, TextEncoder};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 /// Arguments of `motionscale evaluator train`.
@@ -169,19 +171,8 @@ pub fn eval(args: EvalArgs) -> Result<ExitCode> {
     };
     let started = std::time::Instant::now();
     let reference = corpus_split(&corpus, &options)?;
-    let set = if args.motions.join("manifest.json").is_file() {
-        corpus_split(&args.motions, &options)?
-    } else {
-        let labels = corpus_clips(&corpus, |_| true)?
-            .into_iter()
-            .map(|c| (c.motion_id.clone(), c))
-            .collect();
-        hml3d_folder(&args.motions, &options, &labels)?
-    };
-    let encoder = match &args.encoder {
-        Some(dir) => Some(BertEncoder::load(dir)?),
-        None => None,
-    };
+    let set = motion_set(&args.motions, &corpus, &options)?;
+    let encoder = args.encoder.as_deref().map(BertEncoder::load).transpose()?;
     let report = evaluate_motions(
         &evaluator,
         &args.evaluator,
@@ -201,6 +192,98 @@ pub fn eval(args: EvalArgs) -> Result<ExitCode> {
         report.reference_count,
         options.repeats,
         started.elapsed().as_secs_f64(),
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The motions at `motions`: a corpus folder's split, or a HumanML3D-layout folder whose
+/// labels come from the clips of `corpus` with the same ids (or source ids).
+fn motion_set(motions: &Path, corpus: &Path, options: &EvalOptions) -> Result<MotionSet> {
+    if motions.join("manifest.json").is_file() {
+        return Ok(corpus_split(motions, options)?);
+    }
+    let labels = corpus_clips(corpus, |_| true)?
+        .into_iter()
+        .map(|c| (c.motion_id.clone(), c))
+        .collect();
+    Ok(hml3d_folder(motions, options, &labels)?)
+}
+
+/// Arguments of `motionscale evaluator embed`.
+#[derive(clap::Args, Debug)]
+pub struct EmbedArgs {
+    /// Evaluator folder.
+    #[arg(long)]
+    pub evaluator: PathBuf,
+    /// Motions: a corpus folder or a HumanML3D-layout folder (as for `eval`).
+    #[arg(long)]
+    pub motions: PathBuf,
+    /// Corpus with the caption embeddings and labels (default: the evaluator's).
+    #[arg(long)]
+    pub corpus: Option<PathBuf>,
+    /// Split.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Only clips of this source kind.
+    #[arg(long)]
+    pub source: Option<String>,
+    /// BERT-family encoder folder for captions the corpus has not embedded.
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+    /// Output folder: motion_embeddings.npy, text_embeddings.npy (N × embed_dim, set order)
+    /// and motions.jsonl (id, group, first caption, predicted emotion and action).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// `motionscale evaluator embed`.
+pub fn embed(args: EmbedArgs) -> Result<ExitCode> {
+    let evaluator = TrainedEvaluator::load(&args.evaluator)
+        .with_context(|| format!("loading the evaluator in {}", args.evaluator.display()))?;
+    let corpus = args.corpus.unwrap_or_else(|| evaluator.file.corpus.clone());
+    let options = EvalOptions {
+        split: args.split,
+        source: args.source,
+        ..EvalOptions::default()
+    };
+    let set = motion_set(&args.motions, &corpus, &options)?;
+    let encoder = args.encoder.as_deref().map(BertEncoder::load).transpose()?;
+    let e = embed_set(
+        &evaluator,
+        &corpus,
+        &set,
+        encoder.as_ref().map(|e| e as &dyn TextEncoder),
+    )?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let dim = evaluator.net.config.embed_dim;
+    for (name, rows) in [
+        ("motion_embeddings.npy", &e.motions.embeddings),
+        ("text_embeddings.npy", &e.texts),
+    ] {
+        let flat: Vec<f32> = rows.iter().flatten().copied().collect();
+        let path = args.out.join(name);
+        ingest::npy::write_f32(&path, &[rows.len(), dim], &flat)
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    let config = &evaluator.net.config;
+    let mut lines = String::new();
+    for (i, m) in set.motions.iter().enumerate() {
+        let line = serde_json::json!({
+            "id": m.clip.motion_id,
+            "group": m.group,
+            "caption": m.clip.captions[0],
+            "emotion": config.emotions.get(e.motions.emotion[i]),
+            "action": config.actions.get(e.motions.action[i]),
+        });
+        lines.push_str(&format!("{line}\n"));
+    }
+    ingest::npy::write_atomic(&args.out.join("motions.jsonl"), lines.as_bytes())?;
+    println!(
+        "{} motions embedded by evaluator {} → {}",
+        set.motions.len(),
+        evaluator.id,
         args.out.display()
     );
     Ok(ExitCode::SUCCESS)

@@ -106,6 +106,9 @@ enum EvaluatorCommand {
     /// Train an evaluator on a corpus (contrastive text–motion encoders + emotion and action
     /// classifiers); re-running resumes.
     Train(eval_cmd::EvaluatorTrainArgs),
+    /// Write the evaluator's motion and caption embeddings and classifier predictions of a
+    /// motion set (.npy + JSON lines).
+    Embed(eval_cmd::EmbedArgs),
 }
 
 #[derive(Subcommand)]
@@ -228,6 +231,7 @@ fn main() -> ExitCode {
         Command::Train(args) => lm::train(args),
         Command::Generate(args) => lm::generate(args),
         Command::Evaluator(EvaluatorCommand::Train(args)) => eval_cmd::evaluator_train(args),
+        Command::Evaluator(EvaluatorCommand::Embed(args)) => eval_cmd::embed(args),
         Command::Eval(args) => eval_cmd::eval(args),
         Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
         Command::Fit(args) => fit::fit(args),

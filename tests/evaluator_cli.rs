@@ -81,6 +81,28 @@ fn evaluator_trains_resumes_and_scores_corpus_export_and_generated_motions() {
         weights
     );
 
+    // Embeddings of every train clip: one row per motion, unit length.
+    let embedded = tmp.path().join("embedded");
+    motionscale_ok(&[
+        "evaluator",
+        "embed",
+        "--evaluator",
+        arg(&evaluator),
+        "--motions",
+        arg(&corpus_dir),
+        "--split",
+        "train",
+        "--out",
+        arg(&embedded),
+    ]);
+    let listed = std::fs::read_to_string(embedded.join("motions.jsonl")).unwrap();
+    assert_eq!(listed.lines().count(), 251);
+    for name in ["motion_embeddings.npy", "text_embeddings.npy"] {
+        let bytes = std::fs::read(embedded.join(name)).unwrap();
+        let header = String::from_utf8_lossy(&bytes[..128]);
+        assert!(header.contains("(251, 16)"), "{name}: {header}");
+    }
+
     // Ground truth against itself: two disjoint halves.
     let halves = eval(
         &evaluator,

@@ -10,7 +10,7 @@
 //! source clip. Without it, ids that match corpus clips take those clips' labels.
 
 use crate::embed::CaptionEmbeddings;
-use crate::evaluator::TrainedEvaluator;
+use crate::evaluator::{MotionPredictions, TrainedEvaluator};
 use crate::evaluator_train::{class_of, corpus_clips, LabelledClip};
 use crate::metrics::{self, Interval};
 use crate::{ModelError, TextEncoder};
@@ -285,7 +285,7 @@ pub struct EvalReport {
 }
 
 /// Per-token caption embeddings: from the reference corpus, else encoded with `encoder`.
-fn caption_embeddings(
+pub fn caption_embeddings(
     captions: &[String],
     stored: &CaptionEmbeddings,
     encoder: Option<&dyn TextEncoder>,
@@ -492,6 +492,38 @@ pub fn evaluate_motions(
         emotion_weighted_f1: take("emotion_f1"),
         action_accuracy: take("action_accuracy"),
         r_precision_chance: 1.0 / options.pool as f64,
+    })
+}
+
+/// Every motion of a set in the evaluator's space, with the first caption's embedding and
+/// the classifiers' predictions (for inspection, retrieval, or checking against PyTorch).
+pub struct SetEmbeddings {
+    /// Motion embeddings, in set order.
+    pub motions: MotionPredictions,
+    /// Embedding of each motion's first caption.
+    pub texts: Vec<Vec<f32>>,
+}
+
+/// Embed every motion of `set` and its first caption (caption token embeddings from the
+/// corpus at `reference`, else from `encoder`).
+pub fn embed_set(
+    evaluator: &TrainedEvaluator,
+    reference: &Path,
+    set: &MotionSet,
+    encoder: Option<&dyn TextEncoder>,
+) -> Result<SetEmbeddings, ModelError> {
+    let stored = CaptionEmbeddings::open(reference, &evaluator.file.text_encoder)?;
+    let first: Vec<String> = set
+        .motions
+        .iter()
+        .map(|m| m.clip.captions[0].clone())
+        .collect();
+    let tokens = caption_embeddings(&first, &stored, encoder)?;
+    let rows: Vec<&[f32]> = first.iter().map(|c| tokens[c].as_slice()).collect();
+    let motions: Vec<&[f32]> = set.motions.iter().map(features).collect();
+    Ok(SetEmbeddings {
+        motions: evaluator.embed_motions(&motions, 128)?,
+        texts: evaluator.embed_texts(&rows, 128)?,
     })
 }
 
