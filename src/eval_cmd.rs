@@ -9,7 +9,7 @@ use model::motion_eval::{
     corpus_split, embed_set, evaluate_motions, hml3d_folder, EvalOptions, EvalReport, MotionSet,
 };
 use model::{BertEncoder, TextEncoder};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 
 /// Arguments of `motionscale evaluator train`.
@@ -112,9 +112,9 @@ pub fn evaluator_train(args: EvaluatorTrainArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// Arguments of `motionscale eval`.
+/// What both `eval` and `evaluator embed` read: the evaluator, the motions and the corpus.
 #[derive(clap::Args, Debug)]
-pub struct EvalArgs {
+pub struct MotionSetArgs {
     /// Evaluator folder (`motionscale evaluator train --out`).
     #[arg(long)]
     pub evaluator: PathBuf,
@@ -122,21 +122,76 @@ pub struct EvalArgs {
     /// (`new_joint_vecs/`, `texts/`, optional `<split>.txt` and `generated.jsonl`).
     #[arg(long)]
     pub motions: PathBuf,
-    /// Reference corpus (default: the one the evaluator was trained on).
+    /// Reference corpus: ground truth, caption embeddings and labels (default: the one the
+    /// evaluator was trained on).
     #[arg(long)]
     pub corpus: Option<PathBuf>,
     /// Split of the reference and of the motions.
     #[arg(long, default_value = "test")]
     pub split: String,
+    /// Only clips of this source kind (e.g. `synth`, `bvh`).
+    #[arg(long)]
+    pub source: Option<String>,
+    /// BERT-family encoder folder for captions the corpus has not embedded.
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+}
+
+/// The loaded inputs of [`MotionSetArgs`].
+struct Loaded {
+    evaluator: TrainedEvaluator,
+    corpus: PathBuf,
+    set: MotionSet,
+    encoder: Option<BertEncoder>,
+}
+
+impl MotionSetArgs {
+    /// Load the evaluator, the motion set (with `options`) and the optional encoder.
+    fn load(&self, options: &EvalOptions) -> Result<Loaded> {
+        let evaluator = TrainedEvaluator::load(&self.evaluator)
+            .with_context(|| format!("loading the evaluator in {}", self.evaluator.display()))?;
+        let corpus = self
+            .corpus
+            .clone()
+            .unwrap_or_else(|| evaluator.file.corpus.clone());
+        let set = if self.motions.join("manifest.json").is_file() {
+            corpus_split(&self.motions, options)?
+        } else {
+            // Labels of a HumanML3D folder come from the corpus clips with the same ids.
+            let labels = corpus_clips(&corpus, |_| true)?
+                .into_iter()
+                .map(|c| (c.motion_id.clone(), c))
+                .collect();
+            hml3d_folder(&self.motions, options, &labels)?
+        };
+        let encoder = self.encoder.as_deref().map(BertEncoder::load).transpose()?;
+        Ok(Loaded {
+            evaluator,
+            corpus,
+            set,
+            encoder,
+        })
+    }
+}
+
+impl Loaded {
+    fn encoder(&self) -> Option<&dyn TextEncoder> {
+        self.encoder.as_ref().map(|e| e as &dyn TextEncoder)
+    }
+}
+
+/// Arguments of `motionscale eval`.
+#[derive(clap::Args, Debug)]
+pub struct EvalArgs {
+    /// Evaluator, motions and reference corpus.
+    #[command(flatten)]
+    pub set: MotionSetArgs,
     /// Repeats (captions, samples, pools and pairs redrawn each time).
     #[arg(long, default_value_t = 20)]
     pub repeats: usize,
     /// Seed of every draw (recorded in the output).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Only clips of this source kind (e.g. `synth`, `bvh`).
-    #[arg(long)]
-    pub source: Option<String>,
     /// Compare two disjoint random halves of the motions with each other (FID floor).
     #[arg(long)]
     pub halves: bool,
@@ -146,9 +201,6 @@ pub struct EvalArgs {
     /// Sanity check: add Gaussian noise of this many standard deviations to every feature.
     #[arg(long, default_value_t = 0.0)]
     pub noise: f64,
-    /// BERT-family encoder folder for captions the corpus has not embedded.
-    #[arg(long)]
-    pub encoder: Option<PathBuf>,
     /// Output JSON file.
     #[arg(long)]
     pub out: PathBuf,
@@ -156,30 +208,26 @@ pub struct EvalArgs {
 
 /// `motionscale eval`.
 pub fn eval(args: EvalArgs) -> Result<ExitCode> {
-    let evaluator = TrainedEvaluator::load(&args.evaluator)
-        .with_context(|| format!("loading the evaluator in {}", args.evaluator.display()))?;
-    let corpus = args.corpus.unwrap_or_else(|| evaluator.file.corpus.clone());
     let options = EvalOptions {
-        split: args.split,
+        split: args.set.split.clone(),
         repeats: args.repeats.max(1),
         seed: args.seed,
-        source: args.source,
+        source: args.set.source.clone(),
         halves: args.halves,
         shuffle_captions: args.shuffle_captions,
         noise: args.noise,
         ..EvalOptions::default()
     };
     let started = std::time::Instant::now();
-    let reference = corpus_split(&corpus, &options)?;
-    let set = motion_set(&args.motions, &corpus, &options)?;
-    let encoder = args.encoder.as_deref().map(BertEncoder::load).transpose()?;
+    let loaded = args.set.load(&options)?;
+    let reference = corpus_split(&loaded.corpus, &options)?;
     let report = evaluate_motions(
-        &evaluator,
-        &args.evaluator,
+        &loaded.evaluator,
+        &args.set.evaluator,
         &reference,
-        &set,
+        &loaded.set,
         &options,
-        encoder.as_ref().map(|e| e as &dyn TextEncoder),
+        loaded.encoder(),
     )?;
     let text = serde_json::to_string_pretty(&report)?;
     ingest::npy::write_atomic(&args.out, text.as_bytes())
@@ -197,40 +245,12 @@ pub fn eval(args: EvalArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// The motions at `motions`: a corpus folder's split, or a HumanML3D-layout folder whose
-/// labels come from the clips of `corpus` with the same ids (or source ids).
-fn motion_set(motions: &Path, corpus: &Path, options: &EvalOptions) -> Result<MotionSet> {
-    if motions.join("manifest.json").is_file() {
-        return Ok(corpus_split(motions, options)?);
-    }
-    let labels = corpus_clips(corpus, |_| true)?
-        .into_iter()
-        .map(|c| (c.motion_id.clone(), c))
-        .collect();
-    Ok(hml3d_folder(motions, options, &labels)?)
-}
-
 /// Arguments of `motionscale evaluator embed`.
 #[derive(clap::Args, Debug)]
 pub struct EmbedArgs {
-    /// Evaluator folder.
-    #[arg(long)]
-    pub evaluator: PathBuf,
-    /// Motions: a corpus folder or a HumanML3D-layout folder (as for `eval`).
-    #[arg(long)]
-    pub motions: PathBuf,
-    /// Corpus with the caption embeddings and labels (default: the evaluator's).
-    #[arg(long)]
-    pub corpus: Option<PathBuf>,
-    /// Split.
-    #[arg(long, default_value = "test")]
-    pub split: String,
-    /// Only clips of this source kind.
-    #[arg(long)]
-    pub source: Option<String>,
-    /// BERT-family encoder folder for captions the corpus has not embedded.
-    #[arg(long)]
-    pub encoder: Option<PathBuf>,
+    /// Evaluator, motions and corpus.
+    #[command(flatten)]
+    pub set: MotionSetArgs,
     /// Output folder: motion_embeddings.npy, text_embeddings.npy (N × embed_dim, set order)
     /// and motions.jsonl (id, group, first caption, predicted emotion and action).
     #[arg(long)]
@@ -239,22 +259,14 @@ pub struct EmbedArgs {
 
 /// `motionscale evaluator embed`.
 pub fn embed(args: EmbedArgs) -> Result<ExitCode> {
-    let evaluator = TrainedEvaluator::load(&args.evaluator)
-        .with_context(|| format!("loading the evaluator in {}", args.evaluator.display()))?;
-    let corpus = args.corpus.unwrap_or_else(|| evaluator.file.corpus.clone());
     let options = EvalOptions {
-        split: args.split,
-        source: args.source,
+        split: args.set.split.clone(),
+        source: args.set.source.clone(),
         ..EvalOptions::default()
     };
-    let set = motion_set(&args.motions, &corpus, &options)?;
-    let encoder = args.encoder.as_deref().map(BertEncoder::load).transpose()?;
-    let e = embed_set(
-        &evaluator,
-        &corpus,
-        &set,
-        encoder.as_ref().map(|e| e as &dyn TextEncoder),
-    )?;
+    let loaded = args.set.load(&options)?;
+    let (evaluator, set) = (&loaded.evaluator, &loaded.set);
+    let e = embed_set(evaluator, &loaded.corpus, set, loaded.encoder())?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let dim = evaluator.net.config.embed_dim;
