@@ -29,10 +29,32 @@ pub struct ShapeArgs {
     /// SwiGLU width (default round(8d/3)).
     #[arg(long)]
     pub ffn: Option<usize>,
+    /// Train a LoRA adapter on this trained run (its weights frozen) instead of a new model.
+    #[arg(long, conflicts_with_all = ["preset", "width"])]
+    pub base: Option<PathBuf>,
+    /// LoRA rank r.
+    #[arg(long, default_value_t = 8, requires = "base")]
+    pub lora_rank: usize,
+    /// LoRA α (the update is scaled by α/r).
+    #[arg(long, default_value_t = 16.0, requires = "base")]
+    pub lora_alpha: f64,
+    /// Expert name of the adapter (its key prefix in adapter.safetensors).
+    #[arg(long, default_value = "expert0", requires = "base")]
+    pub expert: String,
 }
 
 impl ShapeArgs {
     fn shape(&self) -> Result<ModelShape> {
+        if let Some(base) = &self.base {
+            return Ok(ModelShape::Lora {
+                base: base.clone(),
+                lora: model::lora::LoraConfig {
+                    rank: self.lora_rank,
+                    alpha: self.lora_alpha,
+                },
+                expert: self.expert.clone(),
+            });
+        }
         match (&self.preset, self.width, self.layers, self.heads) {
             (Some(p), ..) => Ok(ModelShape::Preset(p.clone())),
             (None, Some(d_model), Some(n_layers), Some(n_heads)) => Ok(ModelShape::Custom {
@@ -41,7 +63,7 @@ impl ShapeArgs {
                 n_heads,
                 ffn_hidden: self.ffn,
             }),
-            _ => bail!("give --preset P or --width W --layers L --heads H"),
+            _ => bail!("give --preset P, --width W --layers L --heads H, or --base RUN"),
         }
     }
 }

@@ -1,6 +1,7 @@
 //! The prefix LM through the binary: synthetic corpus → fallback caption embeddings → tiny
 //! tokenizer → token set → `train` → `generate` (tokens, features, BVH), and the BVH read back
-//! by our own `ingest bvh:` without rejects; `model info --json` accounting.
+//! by our own `ingest bvh:` without rejects; `model info --json` accounting; a LoRA adapter
+//! trained on the model (only the adapted projections change; stopped and resumed exactly).
 
 mod common;
 
@@ -104,4 +105,78 @@ fn model_info_prints_the_accounting() {
     let six_n = v["accounting"]["flops_6n_per_token"].as_f64().unwrap();
     assert_eq!(six_n, 6.0 * (n_nv + n_v) as f64);
     assert!(v["accounting"]["flops_exact_per_token"].as_f64().unwrap() > 0.0);
+}
+
+#[test]
+fn lora_trains_only_the_adapted_projections_and_resumes_exactly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let corpus = tmp.path().join("corpus");
+    tiny_lm_corpus(&corpus);
+    let (base, _) = tiny_lm_run(&corpus, tmp.path());
+    let tokens = tmp.path().join("tokens");
+    let lora = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "train",
+            "--tokens",
+            arg(&tokens),
+            "--base",
+            arg(&base),
+            "--lora-rank",
+            "4",
+            "--expert",
+            "walking",
+            "--tokens-budget",
+            "2000",
+            "--batch",
+            "8",
+            "--out",
+            arg(out),
+        ];
+        args.extend_from_slice(extra);
+        motionscale_ok(&args)
+    };
+    let (whole, split) = (tmp.path().join("whole"), tmp.path().join("split"));
+    lora(&whole, &[]);
+    let adapter: serde_json::Value = python(
+        r#"
+import json, sys
+from safetensors.numpy import load_file
+a = load_file(sys.argv[1])
+m, b = load_file(sys.argv[2]), load_file(sys.argv[3])
+print(json.dumps({"keys": sorted(a), "changed": sorted(k for k in m if (m[k] != b[k]).any())}))
+"#,
+        &[
+            arg(&whole.join("adapter.safetensors")),
+            arg(&whole.join("model.safetensors")),
+            arg(&base.join("model.safetensors")),
+        ],
+    )
+    .parse()
+    .unwrap();
+    let keys = adapter["keys"].as_array().unwrap();
+    assert_eq!(keys.len(), 8, "A and B of 4 projections in one block");
+    assert!(keys.contains(&"experts.walking.blocks.0.attn.wqkv.lora_A.weight".into()));
+    let changed: Vec<&str> = adapter["changed"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    assert_eq!(
+        changed,
+        [
+            "blocks.0.attn.wo.weight",
+            "blocks.0.attn.wqkv.weight",
+            "blocks.0.ffn.w13.weight",
+            "blocks.0.ffn.w2.weight"
+        ],
+        "only the adapted projections differ from the base"
+    );
+    // Stopped after 4 steps and resumed: the same adapter as the uninterrupted run.
+    lora(&split, &["--stop-after", "4"]);
+    lora(&split, &[]);
+    assert_eq!(
+        std::fs::read(split.join("adapter.safetensors")).unwrap(),
+        std::fs::read(whole.join("adapter.safetensors")).unwrap()
+    );
 }

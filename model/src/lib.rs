@@ -25,6 +25,7 @@ pub mod fallback;
 pub mod fused;
 pub mod generate;
 pub mod lm_data;
+pub mod lora;
 pub mod metrics;
 pub mod motion_eval;
 pub mod prefix_lm;

@@ -19,7 +19,8 @@
 use crate::accounting::{self, Accounting, SequenceShape};
 use crate::evaluate::{evaluate, SplitLoss};
 use crate::lm_data::{Limits, LmData};
-use crate::prefix_lm::{init_model, PrefixLm, PrefixLmConfig};
+use crate::lora::{base_weights, LoraAdapter, LoraConfig};
+use crate::prefix_lm::{init_model, LmBatch, PrefixLm, PrefixLmConfig};
 use crate::{append_json_line, read_json, write_json, ModelError};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
@@ -31,6 +32,8 @@ use tokenizer::checkpoint::{save_safetensors, ResumeFiles};
 
 /// The weights file of a run folder and of each resume step.
 const MODEL_FILE: &str = "model.safetensors";
+/// The adapter of a LoRA run.
+const ADAPTER_FILE: &str = "adapter.safetensors";
 /// The optimiser state inside a resume step.
 const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 use std::time::Instant;
@@ -56,6 +59,17 @@ pub enum ModelShape {
         /// SwiGLU width (default round(8d/3)).
         ffn_hidden: Option<usize>,
     },
+    /// A LoRA adapter on every attention and FFN projection of a trained model, whose own
+    /// weights stay frozen (the run's `model.safetensors` is the merged model, and
+    /// `adapter.safetensors` the adapter alone).
+    Lora {
+        /// The trained run folder.
+        base: PathBuf,
+        /// Rank and scale.
+        lora: LoraConfig,
+        /// Expert name (the adapter's key prefix).
+        expert: String,
+    },
 }
 
 impl ModelShape {
@@ -66,6 +80,18 @@ impl ModelShape {
         text_dim: usize,
     ) -> Result<PrefixLmConfig, ModelError> {
         let config = match self {
+            Self::Lora { base, .. } => {
+                let run: RunConfig = read_json(&base.join("config.json"))?;
+                if (run.model.codebook_size, run.model.text_dim) != (codebook_size, text_dim) {
+                    return Err(ModelError::Argument(format!(
+                        "{}: the base model has {} codes and {}-d text, the data {codebook_size} and {text_dim}",
+                        base.display(),
+                        run.model.codebook_size,
+                        run.model.text_dim
+                    )));
+                }
+                run.model
+            }
             Self::Preset(name) => PrefixLmConfig::preset(name, codebook_size, text_dim)
                 .ok_or_else(|| ModelError::Argument(format!("no model preset {name:?}")))?,
             Self::Custom {
@@ -327,7 +353,9 @@ struct Run {
     config: RunConfig,
     data: LmData,
     model: PrefixLm,
+    /// The trained variables: the model's, or the adapter's on a frozen base.
     vars: HashMap<String, candle_core::Var>,
+    lora: Option<LoraRun>,
     opt: AdamW,
     state: TrainState,
     paths: Paths,
@@ -376,8 +404,20 @@ impl Run {
             },
         };
         std::fs::create_dir_all(&config.out).map_err(|e| ModelError::io(&config.out, e))?;
-        let (model, varmap) = init_model(&run.model, config.seed).map_err(ModelError::inference)?;
-        let vars = varmap.data().lock().expect("varmap lock").clone();
+        let (mut model, varmap) =
+            init_model(&run.model, config.seed).map_err(ModelError::inference)?;
+        let lora = match &config.model {
+            ModelShape::Lora { base, lora, expert } => Some(LoraRun {
+                adapter: LoraAdapter::new(&run.model, *lora, expert, config.seed)
+                    .map_err(ModelError::inference)?,
+                base: base_weights(&base.join(MODEL_FILE))?,
+            }),
+            _ => None,
+        };
+        let vars = match &lora {
+            Some(l) => l.adapter.vars(),
+            None => varmap.data().lock().expect("varmap lock").clone(),
+        };
         let (beta1, beta2) = config.betas;
         let adamw = AdamWConfig {
             beta1,
@@ -387,13 +427,17 @@ impl Run {
         };
         let mut opt = AdamW::new(&vars, adamw);
         let paths = Paths::new(&config.out);
-        let state = resume(&paths, &run, &varmap, &mut opt)?;
+        let state = resume(&paths, &run, &vars, &mut opt)?;
+        if let Some(l) = &lora {
+            model = l.model(&run.model).map_err(ModelError::inference)?.0;
+        }
         write_json(&paths.config, &run)?;
         Ok(Self {
             config: run,
             data,
             model,
             vars,
+            lora,
             opt,
             state,
             paths,
@@ -405,14 +449,21 @@ impl Run {
         let (c, started) = (&self.config.train, Instant::now());
         let items = self.data.train_items(self.state.step, c.batch_size, c.seed);
         let batch = self.data.batch(&self.config.model, &items);
-        let (loss, grads) = self
-            .model
-            .loss_and_grads(&batch)
-            .map_err(ModelError::inference)?;
+        let (loss, grads) = match &self.lora {
+            Some(l) => l.loss_and_grads(&self.config.model, &batch),
+            None => self.model.loss_and_grads(&batch),
+        }
+        .map_err(ModelError::inference)?;
         let lr = self.config.schedule.at(self.state.step);
         self.opt
             .step(&grads, lr, Some(c.grad_clip))
             .map_err(ModelError::inference)?;
+        if let Some(l) = &self.lora {
+            self.model = l
+                .model(&self.config.model)
+                .map_err(ModelError::inference)?
+                .0;
+        }
         let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
         let shape = SequenceShape {
             prefix: batch.layout.prefix_slots,
@@ -462,8 +513,18 @@ impl Run {
     fn checkpoint(&mut self) -> Result<(), ModelError> {
         let paths = &self.paths;
         let weights = tensors(&self.vars);
-        save_safetensors(&weights, &paths.model)
-            .map_err(|e| ModelError::invalid(&paths.model, e))?;
+        let model = match &self.lora {
+            Some(l) => {
+                let adapter = self.config.train.out.join(ADAPTER_FILE);
+                save_safetensors(&weights, &adapter)
+                    .map_err(|e| ModelError::invalid(&adapter, e))?;
+                l.model(&self.config.model)
+                    .map_err(ModelError::inference)?
+                    .1
+            }
+            None => weights.clone(),
+        };
+        save_safetensors(&model, &paths.model).map_err(|e| ModelError::invalid(&paths.model, e))?;
         let invalid = |e| ModelError::invalid(paths.resume.state_path(), e);
         let stage = paths.resume.stage().map_err(invalid)?;
         save_safetensors(&weights, &stage.join(MODEL_FILE)).map_err(invalid)?;
@@ -474,6 +535,33 @@ impl Run {
             .resume
             .commit(self.state.step, &self.state)
             .map_err(invalid)
+    }
+}
+
+/// A LoRA run: the adapter being trained and the frozen base weights.
+struct LoraRun {
+    adapter: LoraAdapter,
+    base: HashMap<String, Tensor>,
+}
+
+impl LoraRun {
+    /// The merged model and its weights.
+    fn model(
+        &self,
+        config: &PrefixLmConfig,
+    ) -> candle_core::Result<(PrefixLm, HashMap<String, Tensor>)> {
+        self.adapter.merged_model(config, &self.base)
+    }
+
+    /// Loss of `batch` and the adapter's gradients.
+    fn loss_and_grads(
+        &self,
+        config: &PrefixLmConfig,
+        batch: &LmBatch,
+    ) -> candle_core::Result<(f32, candle_core::backprop::GradStore)> {
+        let (model, merged) = self.model(config)?;
+        let (loss, grads) = model.loss_and_grads(batch)?;
+        Ok((loss, self.adapter.grads(&merged, &grads)?))
     }
 }
 
@@ -503,7 +591,7 @@ impl Paths {
 fn resume(
     paths: &Paths,
     run: &RunConfig,
-    varmap: &candle_nn::VarMap,
+    vars: &HashMap<String, candle_core::Var>,
     opt: &mut AdamW,
 ) -> Result<TrainState, ModelError> {
     let fresh = TrainState {
@@ -526,10 +614,13 @@ fn resume(
     let state: TrainState = read_json(paths.resume.state_path())?;
     let files = paths.resume.files(state.step);
     let (weights, moments) = (files.join(MODEL_FILE), files.join(OPTIMIZER_FILE));
-    let mut varmap = varmap.clone();
-    varmap
-        .load(&weights)
-        .map_err(|e| ModelError::invalid(&weights, e))?;
+    let saved = base_weights(&weights)?;
+    for (name, var) in vars {
+        let t = saved
+            .get(name)
+            .ok_or_else(|| ModelError::invalid(&weights, format!("no tensor {name}")))?;
+        var.set(t).map_err(|e| ModelError::invalid(&weights, e))?;
+    }
     opt.load(&moments)
         .map_err(|e| ModelError::invalid(&moments, e))?;
     if paths.evals.is_file() {

@@ -1,0 +1,288 @@
+//! Low-rank adapters (LoRA) on the prefix LM's attention and FFN projections, by
+//! reparameterisation: the model runs with W' = W + (α/r)·B·A for every adapted projection W
+//! (base frozen), so [`PrefixLm`]'s own forward and backward serve unchanged, and the
+//! adapters' gradients follow from W's by the chain rule: ∂L/∂B = s·(∂L/∂W')·Aᵀ and
+//! ∂L/∂A = s·Bᵀ·(∂L/∂W') (s = α/r).
+//!
+//! Shapes and names follow PEFT: `lora_A` is `r × in` (Kaiming-uniform, PyTorch's
+//! `nn.Linear` bound 1/√in), `lora_B` is `out × r` (zeros, so a new adapter leaves the model
+//! unchanged). Adapters of several experts share one safetensors file, keyed
+//! `experts.<expert>.blocks.<i>.<projection>.lora_{A,B}.weight`.
+
+use crate::prefix_lm::PrefixLm;
+use crate::prefix_lm::PrefixLmConfig;
+use crate::ModelError;
+use candle_core::backprop::GradStore;
+use candle_core::{DType, Device, Result, Tensor, Var};
+use candle_nn::VarBuilder;
+use ingest::rng::SplitMix64;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::Path;
+
+/// The adapted projections of every block (the attention's QKV and output, the FFN's
+/// gate/up and down projections).
+pub const TARGETS: [&str; 4] = ["attn.wqkv", "attn.wo", "ffn.w13", "ffn.w2"];
+
+/// Rank and scale of an adapter.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LoraConfig {
+    /// Rank r.
+    pub rank: usize,
+    /// α: the update is scaled by α/r.
+    pub alpha: f64,
+}
+
+impl LoraConfig {
+    /// The scale α/r.
+    pub fn scale(&self) -> f64 {
+        self.alpha / self.rank as f64
+    }
+}
+
+/// One adapter (one expert): an (A, B) pair for every adapted projection.
+pub struct LoraAdapter {
+    /// Rank and scale.
+    pub config: LoraConfig,
+    /// Expert name (its key prefix in the adapter file).
+    pub expert: String,
+    /// `(weight name, A, B)` per adapted projection, in block and [`TARGETS`] order.
+    pairs: Vec<(String, Var, Var)>,
+}
+
+/// Name and `(out, in)` shape of every adapted weight of a model.
+fn targets(model: &PrefixLmConfig) -> Vec<(String, (usize, usize))> {
+    let (d, f) = (model.d_model, model.ffn_hidden);
+    let shapes = [(3 * d, d), (d, d), (2 * f, d), (d, f)];
+    (0..model.n_layers)
+        .flat_map(|i| {
+            TARGETS
+                .iter()
+                .zip(shapes)
+                .map(move |(t, shape)| (format!("blocks.{i}.{t}.weight"), shape))
+        })
+        .collect()
+}
+
+impl LoraAdapter {
+    /// A new adapter for `model`: A drawn from `seed`, B zero.
+    pub fn new(
+        model: &PrefixLmConfig,
+        config: LoraConfig,
+        expert: &str,
+        seed: u64,
+    ) -> Result<Self> {
+        let pairs = targets(model)
+            .into_iter()
+            .enumerate()
+            .map(|(k, (name, (out, inp)))| {
+                let bound = 1.0 / (inp as f64).sqrt();
+                let mut rng = SplitMix64::stream(seed, k as u64);
+                let a: Vec<f32> = (0..config.rank * inp)
+                    .map(|_| rng.range(-bound, bound) as f32)
+                    .collect();
+                let a = Var::from_tensor(&Tensor::from_vec(a, (config.rank, inp), &Device::Cpu)?)?;
+                let b = Var::zeros((out, config.rank), DType::F32, &Device::Cpu)?;
+                Ok((name, a, b))
+            })
+            .collect::<Result<_>>()?;
+        Ok(Self {
+            config,
+            expert: expert.to_string(),
+            pairs,
+        })
+    }
+
+    /// The trainable variables, named as in the adapter file.
+    pub fn vars(&self) -> HashMap<String, Var> {
+        self.pairs
+            .iter()
+            .flat_map(|(name, a, b)| {
+                let stem = self.key(name);
+                [
+                    (format!("{stem}.lora_A.weight"), a.clone()),
+                    (format!("{stem}.lora_B.weight"), b.clone()),
+                ]
+            })
+            .collect()
+    }
+
+    /// `experts.<expert>.<projection>` for the weight `blocks.<i>.<projection>.weight`.
+    fn key(&self, weight: &str) -> String {
+        let stem = weight.strip_suffix(".weight").unwrap_or(weight);
+        format!("experts.{}.{stem}", self.expert)
+    }
+
+    /// The base weights with every adapted projection replaced by W + s·B·A.
+    pub fn merge(&self, base: &HashMap<String, Tensor>) -> Result<HashMap<String, Tensor>> {
+        let mut merged = base.clone();
+        let scale = self.config.scale();
+        for (name, a, b) in &self.pairs {
+            let w = base
+                .get(name)
+                .ok_or_else(|| candle_core::Error::Msg(format!("base has no {name}")))?;
+            let delta = (b.as_tensor().matmul(a.as_tensor())? * scale)?;
+            merged.insert(name.clone(), (w + delta)?);
+        }
+        Ok(merged)
+    }
+
+    /// The model with this adapter merged into `base` (its weight tensors are the entries
+    /// of the returned map, so gradients keyed by them can be read back).
+    pub fn merged_model(
+        &self,
+        config: &PrefixLmConfig,
+        base: &HashMap<String, Tensor>,
+    ) -> Result<(PrefixLm, HashMap<String, Tensor>)> {
+        let merged = self.merge(base)?;
+        let vb = VarBuilder::from_tensors(merged.clone(), DType::F32, &Device::Cpu);
+        Ok((PrefixLm::new(config, vb)?, merged))
+    }
+
+    /// The adapter's gradients from the gradients of the merged weights (chain rule).
+    pub fn grads(&self, merged: &HashMap<String, Tensor>, grads: &GradStore) -> Result<GradStore> {
+        let scale = self.config.scale();
+        let mut out = GradStore::default();
+        for (name, a, b) in &self.pairs {
+            let Some(g) = grads.get(&merged[name]) else {
+                continue;
+            };
+            let gb = (g.matmul(&a.as_tensor().t()?)? * scale)?;
+            let ga = (b.as_tensor().t()?.matmul(g)? * scale)?;
+            out.insert(a.as_tensor(), ga);
+            out.insert(b.as_tensor(), gb);
+        }
+        Ok(out)
+    }
+
+    /// Load this expert's A and B from an adapter file.
+    pub fn load(&self, path: &Path) -> std::result::Result<(), ModelError> {
+        let tensors = candle_core::safetensors::load(path, &Device::Cpu)
+            .map_err(|e| ModelError::invalid(path, e))?;
+        for (key, var) in self.vars() {
+            let t = tensors
+                .get(&key)
+                .ok_or_else(|| ModelError::invalid(path, format!("no tensor {key}")))?;
+            var.set(t).map_err(|e| ModelError::invalid(path, e))?;
+        }
+        Ok(())
+    }
+}
+
+/// Every weight of a model file, by name.
+pub fn base_weights(path: &Path) -> std::result::Result<HashMap<String, Tensor>, ModelError> {
+    candle_core::safetensors::load(path, &Device::Cpu).map_err(|e| ModelError::invalid(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::prefix_lm::{init_model, LmBatch};
+
+    fn weights(varmap: &candle_nn::VarMap) -> HashMap<String, Tensor> {
+        varmap
+            .data()
+            .lock()
+            .unwrap()
+            .iter()
+            .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+            .collect()
+    }
+
+    fn batch(config: &PrefixLmConfig) -> LmBatch {
+        let mut rng = SplitMix64(5);
+        let text: Vec<f32> = (0..3 * config.text_dim)
+            .map(|_| rng.range(-1.0, 1.0) as f32)
+            .collect();
+        let motion: Vec<u32> = vec![1, 4, 7, 2, 9];
+        LmBatch::new(config, &[&text], &[(&motion, false)])
+    }
+
+    /// A seeded base model of `layers` blocks, its weights and a new rank-`rank` adapter.
+    fn fixture(
+        layers: usize,
+        rank: usize,
+    ) -> (
+        PrefixLmConfig,
+        PrefixLm,
+        HashMap<String, Tensor>,
+        LoraAdapter,
+    ) {
+        let config = PrefixLmConfig::new(32, layers, 4, 20, 6);
+        let (base, varmap) = init_model(&config, 1).unwrap();
+        let lora = LoraConfig {
+            rank,
+            alpha: 2.0 * rank as f64,
+        };
+        let adapter = LoraAdapter::new(&config, lora, "e0", 2).unwrap();
+        (config, base, weights(&varmap), adapter)
+    }
+
+    fn loss(model: &PrefixLm, b: &LmBatch) -> f64 {
+        f64::from(model.loss_and_grads(b).unwrap().0)
+    }
+
+    #[test]
+    fn a_new_adapter_leaves_the_model_unchanged() {
+        let (config, base, w, lora) = fixture(2, 4);
+        let (merged, _) = lora.merged_model(&config, &w).unwrap();
+        let b = batch(&config);
+        let (x, y) = (base.forward(&b).unwrap(), merged.forward(&b).unwrap());
+        let diff: f32 = (x - y)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .max_all()
+            .unwrap()
+            .to_scalar()
+            .unwrap();
+        assert_eq!(diff, 0.0);
+        assert_eq!(lora.vars().len(), 2 * 4 * config.n_layers);
+    }
+
+    #[test]
+    fn adapter_gradients_match_finite_differences() {
+        let (config, _, w, lora) = fixture(1, 2);
+        // Non-zero B, so both A and B have gradients.
+        let mut rng = SplitMix64(9);
+        for (_, _, b) in &lora.pairs {
+            let values: Vec<f32> = (0..b.elem_count())
+                .map(|_| rng.range(-0.1, 0.1) as f32)
+                .collect();
+            b.set(&Tensor::from_vec(values, b.dims(), &Device::Cpu).unwrap())
+                .unwrap();
+        }
+        let b = batch(&config);
+        let (model, merged) = lora.merged_model(&config, &w).unwrap();
+        let (_, g) = model.loss_and_grads(&b).unwrap();
+        let g = lora.grads(&merged, &g).unwrap();
+        for (name, var) in lora.vars() {
+            let analytic: Vec<f32> = g
+                .get(var.as_tensor())
+                .unwrap()
+                .flatten_all()
+                .unwrap()
+                .to_vec1()
+                .unwrap();
+            let values: Vec<f32> = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+            for k in [0, values.len() / 2, values.len() - 1] {
+                let eps = 1e-2f32;
+                let at = |delta: f32| {
+                    let mut v = values.clone();
+                    v[k] += delta;
+                    var.set(&Tensor::from_vec(v, var.dims(), &Device::Cpu).unwrap())
+                        .unwrap();
+                    loss(&lora.merged_model(&config, &w).unwrap().0, &b)
+                };
+                let numeric = (at(eps) - at(-eps)) / (2.0 * f64::from(eps));
+                var.set(&Tensor::from_vec(values.clone(), var.dims(), &Device::Cpu).unwrap())
+                    .unwrap();
+                let a = f64::from(analytic[k]);
+                assert!(
+                    (a - numeric).abs() <= 2e-3 + 2e-2 * numeric.abs(),
+                    "{name}[{k}]: analytic {a}, numeric {numeric}"
+                );
+            }
+        }
+    }
+}
