@@ -132,6 +132,10 @@ pub struct MotionSetArgs {
     /// Only clips of this source kind (e.g. `synth`, `bvh`).
     #[arg(long)]
     pub source: Option<String>,
+    /// Take `--split`'s clips from `DIR/<split>.txt` (e.g. a scenario dataset from
+    /// `motionscale scenarios`) in both the motions and the reference.
+    #[arg(long)]
+    pub splits: Option<PathBuf>,
     /// BERT-family encoder folder for captions the corpus has not embedded.
     #[arg(long)]
     pub encoder: Option<PathBuf>,
@@ -213,6 +217,7 @@ pub fn eval(args: EvalArgs) -> Result<ExitCode> {
         repeats: args.repeats.max(1),
         seed: args.seed,
         source: args.set.source.clone(),
+        splits: args.set.splits.clone(),
         halves: args.halves,
         shuffle_captions: args.shuffle_captions,
         noise: args.noise,
@@ -262,6 +267,7 @@ pub fn embed(args: EmbedArgs) -> Result<ExitCode> {
     let options = EvalOptions {
         split: args.set.split.clone(),
         source: args.set.source.clone(),
+        splits: args.set.splits.clone(),
         ..EvalOptions::default()
     };
     let loaded = args.set.load(&options)?;

@@ -39,10 +39,20 @@ pub fn generate_batch(
     let corpus = Corpus::open(corpus_dir).map_err(anyhow::Error::msg)?;
     let captions = model::embed::clip_captions(corpus_dir)?;
     let mut rng = SplitMix64::stream(sampling.seed, 0);
+    let lists = args
+        .splits
+        .as_deref()
+        .map(ingest::corpus::split::read_split_lists)
+        .transpose()
+        .map_err(anyhow::Error::msg)?;
+    let split_of = |id: &str, own: &str| match &lists {
+        Some(l) => l.get(id).is_some_and(|s| *s == args.split),
+        None => own == args.split,
+    };
     let clips: Vec<(String, String)> = corpus
         .clips()
         .iter()
-        .filter(|c| c.split == args.split)
+        .filter(|c| split_of(&c.motion_id, &c.split))
         .filter_map(|c| {
             let list = captions.get(&c.motion_id).filter(|l| !l.is_empty())?;
             Some((c.motion_id.clone(), list[rng.index(list.len())].clone()))

@@ -224,6 +224,10 @@ pub struct TrainArgs {
     /// Text encoder id of the caption embeddings (default: the corpus's only one).
     #[arg(long)]
     pub text_emb: Option<String>,
+    /// Folder of `{train,val,test}.txt` clip lists (e.g. a scenario dataset from
+    /// `motionscale scenarios`) replacing the token set's splits.
+    #[arg(long)]
+    pub splits: Option<PathBuf>,
     /// Model shape.
     #[command(flatten)]
     pub shape: ShapeArgs,
@@ -288,6 +292,7 @@ pub fn train(args: TrainArgs) -> Result<ExitCode> {
     );
     config.corpus = args.corpus.clone();
     config.text_encoder = args.text_emb.clone();
+    config.splits = args.splits.clone();
     config.batch_size = args.batch;
     config.lr = args.lr;
     config.final_lr_ratio = args.final_lr_ratio;
@@ -412,6 +417,10 @@ pub struct GenerateArgs {
     /// Batch mode: the corpus split whose captions to animate.
     #[arg(long, default_value = "test")]
     pub split: String,
+    /// Batch mode: take the split's clips from `DIR/<split>.txt` (e.g. a scenario dataset)
+    /// instead of the corpus's own split.
+    #[arg(long)]
+    pub splits: Option<PathBuf>,
     /// Batch mode: texts (drawn by the seed) that get `--mm-samples` samples each, for
     /// multimodality.
     #[arg(long, default_value_t = 100)]

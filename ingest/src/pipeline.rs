@@ -274,19 +274,8 @@ fn discover(spec: &SourceSpec, reader: &Reader) -> Result<Vec<Item>, String> {
 }
 
 fn caption_sidecar(path: &Path) -> Result<Option<Vec<String>>, Reject> {
-    let txt = path.with_extension("txt");
-    if !txt.is_file() {
-        return Ok(None);
-    }
-    let text = std::fs::read_to_string(&txt)
-        .map_err(|e| Reject::new("captions", format!("{}: {e}", txt.display())))?;
-    Ok(Some(
-        text.lines()
-            .map(str::trim)
-            .filter(|l| !l.is_empty())
-            .map(str::to_string)
-            .collect(),
-    ))
+    crate::corpus::split::read_ids(&path.with_extension("txt"))
+        .map_err(|e| Reject::new("captions", e))
 }
 
 /// Attach labels and captions from sidecar files (Bandai `.json` + `cfg/`, `<clip>.txt`).

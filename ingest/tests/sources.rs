@@ -217,7 +217,7 @@ fn hml3d_folder_errors_name_the_problem() {
     std::fs::write(dir.path().join("val.txt"), "a\n").unwrap();
     let err = hml3d::Hml3dFolder::open(dir.path()).unwrap_err();
     assert!(
-        err.contains("val.txt: id a is also listed in train.txt"),
+        err.contains("a is listed in train.txt and val.txt"),
         "{err}"
     );
 }

@@ -95,12 +95,15 @@ fn mix(a: u64, b: u64) -> u64 {
 
 impl LmData {
     /// Load the token set in `tokens_dir` and the embeddings of encoder `encoder` (or the
-    /// corpus's only one) for the captions of its clips in `corpus_dir`.
+    /// corpus's only one) for the captions of its clips in `corpus_dir`. With `splits`
+    /// (clip id → split, e.g. a scenario dataset's lists) only the listed clips are kept,
+    /// in the listed splits.
     pub fn load(
         tokens_dir: &Path,
         corpus_dir: &Path,
         encoder: Option<&str>,
         limits: Limits,
+        splits: Option<&HashMap<String, String>>,
     ) -> Result<Self, ModelError> {
         let set = TokenSet::open(tokens_dir).map_err(|e| ModelError::invalid(tokens_dir, e))?;
         let encoder = resolve_encoder(corpus_dir, encoder)?;
@@ -108,8 +111,15 @@ impl LmData {
         let captions = clip_captions(corpus_dir)?;
         let mut index: HashMap<String, usize> = HashMap::new();
         let mut text = Vec::new();
-        let mut splits: BTreeMap<String, Vec<Example>> = BTreeMap::new();
+        let mut by_split: BTreeMap<String, Vec<Example>> = BTreeMap::new();
         for clip in &set.clips {
+            let split = match splits {
+                Some(lists) => match lists.get(&clip.motion_id) {
+                    Some(s) => s,
+                    None => continue,
+                },
+                None => &clip.split,
+            };
             let clip_captions = captions.get(&clip.motion_id).ok_or_else(|| {
                 ModelError::Corpus(format!(
                     "{}: clip {} of the token set is not in the corpus",
@@ -135,7 +145,7 @@ impl LmData {
                 ids.push(text.len() - 1);
             }
             let keep = clip.tokens.len().min(limits.motion_tokens);
-            splits.entry(clip.split.clone()).or_default().push(Example {
+            by_split.entry(split.clone()).or_default().push(Example {
                 captions: ids,
                 tokens: clip.tokens[..keep].to_vec(),
                 ends: keep == clip.tokens.len(),
@@ -147,7 +157,7 @@ impl LmData {
             encoder,
             text_dim: embeddings.dim(),
             text,
-            splits,
+            splits: by_split,
         })
     }
 

@@ -8,6 +8,8 @@
 //! then motions of one source clip form one group (one is drawn per repeat; groups of
 //! ≥ 10 give multimodality), the caption is the one generated from, and labels come from the
 //! source clip. Without it, ids that match corpus clips take those clips' labels.
+//! [`EvalOptions::splits`] (e.g. a scenario dataset) decides which clips (or, for generated
+//! motions, which source clips) form the split, in both sets.
 
 use crate::embed::CaptionEmbeddings;
 use crate::evaluator::{MotionPredictions, TrainedEvaluator};
@@ -32,6 +34,10 @@ pub struct EvalOptions {
     pub seed: u64,
     /// Only clips of this source kind (`bvh`, `synth`…), in both sets.
     pub source: Option<String>,
+    /// Folder of `{train,val,test}.txt` clip lists (e.g. a scenario dataset) that decides
+    /// which clips form `split`, in both sets.
+    #[serde(default)]
+    pub splits: Option<PathBuf>,
     /// Compare two disjoint random halves of the motion set with each other instead of the
     /// set with the reference (a floor for FID on ground truth).
     pub halves: bool,
@@ -54,6 +60,7 @@ impl Default for EvalOptions {
             repeats: 20,
             seed: 0,
             source: None,
+            splits: None,
             halves: false,
             shuffle_captions: false,
             noise: 0.0,
@@ -110,8 +117,13 @@ fn from_clip(clip: LabelledClip) -> EvalMotion {
 /// The ground-truth clips of `split` in the corpus at `dir` (those with a caption).
 pub fn corpus_split(dir: &Path, options: &EvalOptions) -> Result<MotionSet, ModelError> {
     let source = options.source.as_deref();
+    let lists = split_lists(options)?;
     let clips = corpus_clips(dir, |m| {
-        m.split == options.split && source.is_none_or(|s| m.source == s)
+        let split = match &lists {
+            Some(l) => l.get(&m.motion_id).map(String::as_str),
+            None => Some(m.split.as_str()),
+        };
+        split == Some(options.split.as_str()) && source.is_none_or(|s| m.source == s)
     })?;
     Ok(MotionSet {
         kind: "corpus".into(),
@@ -122,6 +134,17 @@ pub fn corpus_split(dir: &Path, options: &EvalOptions) -> Result<MotionSet, Mode
             .map(from_clip)
             .collect(),
     })
+}
+
+/// The clip lists of `options.splits`, when given.
+fn split_lists(options: &EvalOptions) -> Result<Option<HashMap<String, String>>, ModelError> {
+    options
+        .splits
+        .as_deref()
+        .map(|dir| {
+            ingest::corpus::split::read_split_lists(dir).map_err(|e| ModelError::invalid(dir, e))
+        })
+        .transpose()
 }
 
 /// A line of `generated.jsonl`.
@@ -150,15 +173,12 @@ pub fn hml3d_folder(
             what: "HumanML3D features folder (or pass a corpus folder)",
         });
     }
+    let lists = split_lists(options)?;
     let split_file = dir.join(format!("{}.txt", options.split));
-    let mut ids: Vec<String> = if split_file.is_file() {
-        let text =
-            std::fs::read_to_string(&split_file).map_err(|e| ModelError::io(&split_file, e))?;
-        text.lines()
-            .map(str::trim)
-            .filter(|l| !l.is_empty())
-            .map(str::to_string)
-            .collect()
+    let listed = ingest::corpus::split::read_ids(&split_file)
+        .map_err(|e| ModelError::invalid(&split_file, e))?;
+    let mut ids: Vec<String> = if let Some(ids) = listed {
+        ids
     } else {
         let entries = std::fs::read_dir(&vecs).map_err(|e| ModelError::io(&vecs, e))?;
         let mut ids = Vec::new();
@@ -212,6 +232,12 @@ pub fn hml3d_folder(
                 (id.clone(), lines.into_iter().map(|l| l.caption).collect())
             }
         };
+        if lists
+            .as_ref()
+            .is_some_and(|l| l.get(&group) != Some(&options.split))
+        {
+            continue;
+        }
         let label = labels.get(&group);
         if options
             .source

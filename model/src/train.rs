@@ -120,6 +120,10 @@ pub struct TrainConfig {
     pub corpus: Option<PathBuf>,
     /// Text encoder id of the embeddings (default: the corpus's only one).
     pub text_encoder: Option<String>,
+    /// Folder of `{train,val,test}.txt` clip lists (e.g. a scenario dataset) replacing the
+    /// token set's own splits: only the listed clips train and evaluate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub splits: Option<PathBuf>,
     /// Model shape.
     pub model: ModelShape,
     /// Token budget D: motion loss positions to train on (rounded up to whole batches).
@@ -167,6 +171,7 @@ impl TrainConfig {
             tokens: tokens.to_path_buf(),
             corpus: None,
             text_encoder: None,
+            splits: None,
             model,
             tokens_budget,
             batch_size: 32,
@@ -379,7 +384,13 @@ impl Run {
             motion_tokens: config.max_motion_tokens,
         };
         let encoder = config.text_encoder.as_deref();
-        let data = LmData::load(&config.tokens, &corpus, encoder, limits)?;
+        let lists = match &config.splits {
+            Some(dir) => {
+                Some(ingest::corpus::split::read_split_lists(dir).map_err(ModelError::Argument)?)
+            }
+            None => None,
+        };
+        let data = LmData::load(&config.tokens, &corpus, encoder, limits, lists.as_ref())?;
         let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
         let total = data
             .steps_for_tokens(config.tokens_budget, config.batch_size, config.seed)

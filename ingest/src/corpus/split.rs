@@ -2,6 +2,8 @@
 //! clip, its segments and its mirrored copy always share a split.
 
 use sha2::{Digest, Sha256};
+use std::collections::HashMap;
+use std::path::Path;
 
 /// The three splits, in manifest order.
 pub const SPLITS: [&str; 3] = ["train", "val", "test"];
@@ -15,6 +17,46 @@ pub fn split_of(source_clip: &str) -> &'static str {
         80..85 => "val",
         _ => "test",
     }
+}
+
+/// The lines of `path`, trimmed, blank ones dropped (ids of a split list, captions of a
+/// sidecar); `None` when it is absent.
+pub fn read_ids(path: &Path) -> Result<Option<Vec<String>>, String> {
+    if !path.exists() {
+        return Ok(None);
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(Some(
+        text.lines()
+            .map(str::trim)
+            .filter(|l| !l.is_empty())
+            .map(str::to_string)
+            .collect(),
+    ))
+}
+
+/// The split of every clip listed in `DIR/{train,val,test}.txt` (a scenario dataset's or a
+/// HumanML3D folder's layout; a missing file is an empty split). An id listed in two files,
+/// or a `dir` that is not a folder, is an error.
+pub fn read_split_lists(dir: &Path) -> Result<HashMap<String, String>, String> {
+    if !dir.is_dir() {
+        return Err(format!("{}: not a folder of split lists", dir.display()));
+    }
+    let mut splits = HashMap::new();
+    for split in SPLITS {
+        let path = dir.join(format!("{split}.txt"));
+        for id in read_ids(&path)?.unwrap_or_default() {
+            if let Some(other) = splits.insert(id.clone(), split.to_string()) {
+                if other != split {
+                    return Err(format!(
+                        "{}: {id} is listed in {other}.txt and {split}.txt",
+                        dir.display()
+                    ));
+                }
+            }
+        }
+    }
+    Ok(splits)
 }
 
 #[cfg(test)]
@@ -33,5 +75,25 @@ mod tests {
         assert!((pct(counts[1]) - 5.0).abs() < 1.0, "{counts:?}");
         assert!((pct(counts[2]) - 15.0).abs() < 1.5, "{counts:?}");
         assert_eq!(split_of("clip_00001"), split_of("clip_00001"));
+    }
+
+    #[test]
+    fn split_lists_read_every_file_and_refuse_an_id_in_two() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("train.txt"), "a\nb\n\n").unwrap();
+        std::fs::write(dir.path().join("test.txt"), "c\n").unwrap();
+        let lists = read_split_lists(dir.path()).unwrap();
+        assert_eq!(lists.len(), 3);
+        assert_eq!(lists["b"], "train");
+        assert_eq!(lists["c"], "test");
+        std::fs::write(dir.path().join("val.txt"), "a\n").unwrap();
+        let err = read_split_lists(dir.path()).unwrap_err();
+        assert!(
+            err.contains("a is listed in train.txt and val.txt"),
+            "{err}"
+        );
+        let empty = tempfile::tempdir().unwrap();
+        assert!(read_split_lists(empty.path()).unwrap().is_empty());
+        assert!(read_split_lists(&empty.path().join("missing")).is_err());
     }
 }

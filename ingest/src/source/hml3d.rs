@@ -47,25 +47,7 @@ impl Hml3dFolder {
                 dir.display()
             ));
         }
-        let mut splits = HashMap::new();
-        for split in ["train", "val", "test"] {
-            let file = dir.join(format!("{split}.txt"));
-            if !file.is_file() {
-                continue;
-            }
-            let text =
-                std::fs::read_to_string(&file).map_err(|e| format!("{}: {e}", file.display()))?;
-            for id in text.lines().map(str::trim).filter(|l| !l.is_empty()) {
-                if let Some(previous) = splits.insert(id.to_string(), split.to_string()) {
-                    if previous != split {
-                        return Err(format!(
-                            "{}: id {id} is also listed in {previous}.txt",
-                            file.display()
-                        ));
-                    }
-                }
-            }
-        }
+        let splits = crate::corpus::split::read_split_lists(dir)?;
         Ok(Self {
             root: dir.to_path_buf(),
             splits,
