@@ -41,6 +41,10 @@ pub struct ShapeArgs {
     /// Expert name of the adapter (its key prefix in adapter.safetensors).
     #[arg(long, default_value = "expert0", requires = "base")]
     pub expert: String,
+    /// Start from this adapter file's expert (e.g. the previous scenario's
+    /// adapter.safetensors: sequential LoRA) instead of a new adapter.
+    #[arg(long, requires = "base")]
+    pub lora_init: Option<PathBuf>,
 }
 
 impl ShapeArgs {
@@ -53,6 +57,7 @@ impl ShapeArgs {
                     alpha: self.lora_alpha,
                 },
                 expert: self.expert.clone(),
+                init: self.lora_init.clone(),
             });
         }
         match (&self.preset, self.width, self.layers, self.heads) {

@@ -172,6 +172,14 @@ print(json.dumps({"keys": sorted(a), "changed": sorted(k for k in m if (m[k] != 
         ],
         "only the adapted projections differ from the base"
     );
+    // Started from that adapter with a zero learning rate: the adapter is kept as it was.
+    let kept = tmp.path().join("kept");
+    let init = whole.join("adapter.safetensors");
+    lora(&kept, &["--lora-init", arg(&init), "--lr", "0"]);
+    assert_eq!(
+        std::fs::read(kept.join("adapter.safetensors")).unwrap(),
+        std::fs::read(&init).unwrap()
+    );
     // Stopped after 4 steps and resumed: the same adapter as the uninterrupted run.
     lora(&split, &["--stop-after", "4"]);
     lora(&split, &[]);

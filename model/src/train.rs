@@ -69,6 +69,10 @@ pub enum ModelShape {
         lora: LoraConfig,
         /// Expert name (the adapter's key prefix).
         expert: String,
+        /// Adapter file to start from (this expert's A and B, e.g. the previous scenario's
+        /// `adapter.safetensors` for sequential fine-tuning) instead of a new adapter.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        init: Option<PathBuf>,
     },
 }
 
@@ -418,11 +422,22 @@ impl Run {
         let (mut model, varmap) =
             init_model(&run.model, config.seed).map_err(ModelError::inference)?;
         let lora = match &config.model {
-            ModelShape::Lora { base, lora, expert } => Some(LoraRun {
-                adapter: LoraAdapter::new(&run.model, *lora, expert, config.seed)
-                    .map_err(ModelError::inference)?,
-                base: base_weights(&base.join(MODEL_FILE))?,
-            }),
+            ModelShape::Lora {
+                base,
+                lora,
+                expert,
+                init,
+            } => {
+                let adapter = LoraAdapter::new(&run.model, *lora, expert, config.seed)
+                    .map_err(ModelError::inference)?;
+                if let Some(file) = init {
+                    adapter.load(file)?;
+                }
+                Some(LoraRun {
+                    adapter,
+                    base: base_weights(&base.join(MODEL_FILE))?,
+                })
+            }
             _ => None,
         };
         let vars = match &lora {
