@@ -1,7 +1,7 @@
 //! `motionscale model info|presets`, `motionscale train` and `motionscale generate`: the
 //! text-prefix autoregressive motion transformer.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use model::accounting::{Accounting, SequenceShape};
 use model::generate::Sampling;
 use model::prefix_lm::{PrefixLmConfig, PRESETS};
@@ -9,7 +9,6 @@ use model::train::{ModelShape, RunConfig, TrainConfig, TrainEvent};
 use model::{BertEncoder, FallbackEncoder, TextEncoder};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use tokenizer::model::MotionTokenizer;
 
 /// A model shape on the command line: `--preset P` or `--width W --layers L --heads H`.
 #[derive(clap::Args, Debug, Clone)]
@@ -490,25 +489,10 @@ pub fn load_text_encoder(run: &RunConfig, dir: Option<&Path>) -> Result<Box<dyn 
     Ok(encoder)
 }
 
-/// The run's tokenizer (or `dir`, which must hold the same checkpoint), for decoding.
-pub fn run_tokenizer(run: &RunConfig, dir: Option<&Path>) -> Result<MotionTokenizer> {
-    let dir = dir.unwrap_or(&run.tokenizer.dir);
-    let id = MotionTokenizer::content_id(dir)
-        .with_context(|| format!("reading the tokenizer checkpoint in {}", dir.display()))?;
-    if id != run.tokenizer.id {
-        bail!(
-            "{}: tokenizer {id} is not the model's {} (pass --tokenizer DIR)",
-            dir.display(),
-            run.tokenizer.id
-        );
-    }
-    Ok(MotionTokenizer::load(dir, &candle_core::Device::Cpu)?)
-}
-
 /// Decode `tokens` with the run's tokenizer and write HumanML3D features (.npy) or a BVH
 /// of the recovered joints.
 fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path) -> Result<()> {
-    let features = run_tokenizer(run, dir)?.detokenize(tokens)?;
+    let features = model::train::run_tokenizer(run, dir)?.detokenize(tokens)?;
     crate::tokenizer_cmd::write_motion(out, &features, false)
 }
 

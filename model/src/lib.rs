@@ -16,6 +16,7 @@
 
 pub mod accounting;
 pub mod bert;
+pub mod caption_set;
 pub mod embed;
 pub mod error;
 pub mod evaluate;

@@ -306,6 +306,27 @@ pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), ModelError> {
     Ok((model, run))
 }
 
+/// The run's tokenizer (or the one in `dir`, which must be the same checkpoint), for
+/// decoding its tokens.
+pub fn run_tokenizer(
+    run: &RunConfig,
+    dir: Option<&Path>,
+) -> Result<tokenizer::model::MotionTokenizer, ModelError> {
+    use tokenizer::model::MotionTokenizer;
+    let dir = dir.unwrap_or(&run.tokenizer.dir);
+    let id = MotionTokenizer::content_id(dir).map_err(|e| ModelError::invalid(dir, e))?;
+    if id != run.tokenizer.id {
+        return Err(ModelError::invalid(
+            dir,
+            format!(
+                "tokenizer {id} is not the model's {} (pass --tokenizer DIR)",
+                run.tokenizer.id
+            ),
+        ));
+    }
+    MotionTokenizer::load(dir, &Device::Cpu).map_err(|e| ModelError::invalid(dir, e))
+}
+
 fn tensors(vars: &HashMap<String, candle_core::Var>) -> HashMap<String, Tensor> {
     vars.iter()
         .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
