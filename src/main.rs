@@ -4,6 +4,7 @@
 mod bench;
 mod bench_tokenizer;
 mod commands;
+mod continual_cmd;
 mod eval_cmd;
 mod fit;
 mod generate_batch;
@@ -82,6 +83,9 @@ enum Command {
     /// Generation metrics (FID, R-precision, matching score, diversity, multimodality,
     /// emotion F1, action accuracy) of a motion set, with 95% intervals over repeats.
     Eval(eval_cmd::EvalArgs),
+    /// Continual expert training over scenario datasets (seq-lora, replay, mtl) with the
+    /// f/r/d/mm/wf matrices and AF/AR/AD/AMM/AWF/FR; `continual compare RUNS…` tabulates runs.
+    Continual(Box<continual_cmd::ContinualArgs>),
     /// IsoFLOP sweeps: plan, run (local pool or Slurm array), status, collect.
     #[command(subcommand)]
     Sweep(SweepCommand),
@@ -233,6 +237,7 @@ fn main() -> ExitCode {
         Command::Evaluator(EvaluatorCommand::Train(args)) => eval_cmd::evaluator_train(args),
         Command::Evaluator(EvaluatorCommand::Embed(args)) => eval_cmd::embed(args),
         Command::Eval(args) => eval_cmd::eval(args),
+        Command::Continual(args) => continual_cmd::continual(*args),
         Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
         Command::Fit(args) => fit::fit(args),
         Command::Predict(args) => fit::predict(args),

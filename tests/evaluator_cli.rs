@@ -9,29 +9,6 @@ use common::*;
 use serde_json::Value;
 use std::path::Path;
 
-fn train_evaluator(corpus: &Path, out: &Path) -> String {
-    motionscale_ok(&[
-        "evaluator",
-        "train",
-        "--corpus",
-        arg(corpus),
-        "--out",
-        arg(out),
-        "--hidden",
-        "16",
-        "--embed-dim",
-        "16",
-        "--max-frames",
-        "64",
-        "--batch",
-        "16",
-        "--steps",
-        "30",
-        "--eval-every",
-        "15",
-    ])
-}
-
 fn eval(evaluator: &Path, motions: &Path, out: &Path, extra: &[&str]) -> Value {
     let mut args = vec![
         "eval",

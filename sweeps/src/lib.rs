@@ -13,6 +13,7 @@
 //! RUNS/slurm/                    sbatch scripts, job ids, logs (Slurm backend)
 //! ```
 
+pub mod continual;
 pub mod error;
 pub mod local;
 pub mod lock;
@@ -26,3 +27,21 @@ pub mod status;
 pub use error::SweepError;
 pub use plan::{IsoFlopPlan, PlanPoint, PlanRequest, TrainSettings, VocabSource, Vocabulary};
 pub use results::RunRow;
+
+/// Write `value` as pretty JSON to `path`, atomically.
+pub(crate) fn write_json(
+    path: &std::path::Path,
+    value: &impl serde::Serialize,
+) -> Result<(), error::SweepError> {
+    let text =
+        serde_json::to_string_pretty(value).map_err(|e| error::SweepError::invalid(path, e))?;
+    ingest::npy::write_atomic(path, text.as_bytes()).map_err(|e| error::SweepError::io(path, e))
+}
+
+/// Parse the JSON file at `path`.
+pub(crate) fn read_json<T: serde::de::DeserializeOwned>(
+    path: &std::path::Path,
+) -> Result<T, error::SweepError> {
+    let text = std::fs::read_to_string(path).map_err(|e| error::SweepError::io(path, e))?;
+    serde_json::from_str(&text).map_err(|e| error::SweepError::invalid(path, e))
+}

@@ -16,6 +16,7 @@ use crate::lock::FileLock;
 use crate::plan::{IsoFlopPlan, PlanPoint};
 use crate::prepare::prepare_vocabulary;
 use crate::results::{self, read_row, run_dir, RunRow};
+use crate::write_json;
 use crate::SweepError;
 use model::train::{train, TrainEvent, TrainReport};
 use model::ModelError;
@@ -59,11 +60,6 @@ struct Wall {
 
 /// How often the wall time of a running attempt is saved.
 const WALL_SAVE_EVERY: Duration = Duration::from_secs(5);
-
-fn write_json(path: &Path, value: &impl Serialize) -> Result<(), SweepError> {
-    let text = serde_json::to_string_pretty(value).map_err(|e| SweepError::invalid(path, e))?;
-    ingest::npy::write_atomic(path, text.as_bytes()).map_err(|e| SweepError::io(path, e))
-}
 
 /// Train `point` of `plan` in `RUNS/<run_id>/` unless it is done, write its row and rebuild
 /// the tables. A failure is recorded in `error.json` and returned.

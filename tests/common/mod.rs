@@ -206,3 +206,27 @@ pub fn tiny_lm_run(corpus: &Path, dir: &Path) -> (PathBuf, String) {
     ]);
     (run, report)
 }
+
+/// A tiny evaluator (width 16, 30 steps) on `corpus` in `out`; returns the command's output.
+pub fn train_evaluator(corpus: &Path, out: &Path) -> String {
+    motionscale_ok(&[
+        "evaluator",
+        "train",
+        "--corpus",
+        arg(corpus),
+        "--out",
+        arg(out),
+        "--hidden",
+        "16",
+        "--embed-dim",
+        "16",
+        "--max-frames",
+        "64",
+        "--batch",
+        "16",
+        "--steps",
+        "30",
+        "--eval-every",
+        "15",
+    ])
+}

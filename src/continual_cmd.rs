@@ -1,0 +1,138 @@
+//! `motionscale continual`: continual (lifelong) expert training over scenario datasets, and
+//! `motionscale continual compare` for the paper's Table-2-shaped comparison.
+
+use anyhow::{bail, Result};
+use model::lora::LoraConfig;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use sweeps::continual::{compare_table, run_continual, ContinualConfig, Method};
+
+/// Arguments of `motionscale continual`.
+#[derive(clap::Args, Debug)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
+pub struct ContinualArgs {
+    /// `compare RUNS…` instead of a run.
+    #[command(subcommand)]
+    pub compare: Option<CompareCommand>,
+    /// Scenario datasets folder (`motionscale scenarios --out`).
+    #[arg(long, required = true)]
+    pub scenarios: Option<PathBuf>,
+    /// Method: seq-lora, replay or mtl (es-moe, lwf-lora and o-lora are not built yet).
+    #[arg(long, required = true)]
+    pub method: Option<String>,
+    /// Trained backbone run (`motionscale train --out`), frozen.
+    #[arg(long, required = true)]
+    pub base: Option<PathBuf>,
+    /// Token set of the whole corpus (`motionscale tokenize`).
+    #[arg(long, required = true)]
+    pub tokens: Option<PathBuf>,
+    /// Evaluator folder (`motionscale evaluator train`).
+    #[arg(long, required = true)]
+    pub evaluator: Option<PathBuf>,
+    /// Dataset orders averaged over (order 0 as listed, the others seeded shuffles).
+    #[arg(long, default_value_t = 3)]
+    pub orders: usize,
+    /// Seed of orders, replay buffers, training, sampling and evaluation.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Motion tokens trained on per step.
+    #[arg(long, default_value_t = 100_000)]
+    pub tokens_budget: u64,
+    /// Clips per batch.
+    #[arg(long, default_value_t = 32)]
+    pub batch: usize,
+    /// Peak learning rate.
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    /// LoRA rank.
+    #[arg(long, default_value_t = 8)]
+    pub lora_rank: usize,
+    /// LoRA α.
+    #[arg(long, default_value_t = 16.0)]
+    pub lora_alpha: f64,
+    /// Share of each earlier dataset's train clips replayed (`replay`).
+    #[arg(long, default_value_t = 0.05)]
+    pub replay_fraction: f64,
+    /// Evaluation repeats.
+    #[arg(long, default_value_t = 10)]
+    pub repeats: usize,
+    /// R-precision pool size.
+    #[arg(long, default_value_t = 32)]
+    pub pool: usize,
+    /// Texts per dataset with 10 samples each (multimodality).
+    #[arg(long, default_value_t = 10)]
+    pub mm_texts: usize,
+    /// Split of each dataset that is evaluated.
+    #[arg(long, default_value = "test")]
+    pub eval_split: String,
+    /// Output folder; re-running resumes.
+    #[arg(long, required = true)]
+    pub out: Option<PathBuf>,
+}
+
+/// `motionscale continual compare`.
+#[derive(clap::Subcommand, Debug)]
+pub enum CompareCommand {
+    /// Print one row per run (summary metrics averaged over its orders) as a Markdown table.
+    Compare {
+        /// Continual run folders.
+        #[arg(required = true)]
+        runs: Vec<PathBuf>,
+    },
+}
+
+/// `motionscale continual`.
+pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
+    if let Some(CompareCommand::Compare { runs }) = &args.compare {
+        print!("{}", compare_table(runs)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let required = |v: Option<PathBuf>, flag: &str| match v {
+        Some(p) => Ok(p),
+        None => bail!("--{flag} is required"),
+    };
+    let name = args.method.clone().unwrap_or_default();
+    let Some(method) = Method::parse(&name) else {
+        bail!("--method {name:?}: one of seq-lora, replay, mtl (es-moe, lwf-lora and o-lora are not built yet)");
+    };
+    crate::memory::keep_freed_memory();
+    let config = ContinualConfig {
+        scenarios: required(args.scenarios, "scenarios")?,
+        tokens: required(args.tokens, "tokens")?,
+        base: required(args.base, "base")?,
+        evaluator: required(args.evaluator, "evaluator")?,
+        method,
+        orders: args.orders.max(1),
+        seed: args.seed,
+        tokens_budget: args.tokens_budget,
+        batch_size: args.batch,
+        lr: args.lr,
+        lora: LoraConfig {
+            rank: args.lora_rank,
+            alpha: args.lora_alpha,
+        },
+        replay_fraction: args.replay_fraction,
+        repeats: args.repeats.max(1),
+        pool: args.pool,
+        mm_texts: args.mm_texts,
+        eval_split: args.eval_split,
+        out: required(args.out, "out")?,
+    };
+    let started = std::time::Instant::now();
+    let report = run_continual(&config, |line| eprintln!("{line}"))?;
+    let s = report.mean;
+    let opt = |v: Option<f64>| v.map_or_else(|| "–".into(), |v| format!("{v:.3}"));
+    println!(
+        "{name}, {} orders, {:.0} s: AF {:.4}, AR {:.3}, AD {}, AMM {}, AWF {}, FR {} → {}",
+        report.orders.len(),
+        started.elapsed().as_secs_f64(),
+        s.af,
+        s.ar,
+        opt(s.ad),
+        opt(s.amm),
+        opt(s.awf),
+        opt(s.fr),
+        config.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}

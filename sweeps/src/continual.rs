@@ -1,0 +1,555 @@
+//! Continual (lifelong) training over scenario datasets (`../shared/docs/continual.md`):
+//! the datasets D_1..D_n of `motionscale scenarios` arrive in a seeded order; after each step
+//! the model animates the test captions of every dataset and the evaluator scores them, which
+//! fills the matrices f (FID), r (top-1 R-precision), d (diversity), mm (multimodality) and
+//! wf (emotion weighted F1), indexed [step][dataset position in the order]; AF/AR/AD/AMM/AWF
+//! average the last row and FR = mean over j < N of (max_{k ∈ [j, N−1]} r[k][j] − r[N][j]).
+//!
+//! Methods (LoRA experts on a frozen trained backbone, `model::lora`): `seq-lora` (one adapter
+//! fine-tuned through the sequence), `replay` (the same, with a seeded buffer of each earlier
+//! dataset's train clips added to every step) and `mtl` (one adapter on all datasets at
+//! once: the joint reference, one row).
+//!
+//! ```text
+//! OUT/config.json                        the run (a different one is refused)
+//! OUT/order-<o>/order.json               the datasets in this order
+//! OUT/order-<o>/step-<k>/lists/          {train,val,test}.txt the step trained on
+//! OUT/order-<o>/step-<k>/train/          the `motionscale train` folder (resumable)
+//! OUT/order-<o>/step-<k>/gen-<dataset>/  generated motions (HumanML3D layout)
+//! OUT/order-<o>/step-<k>/eval-<dataset>.json   `eval` report
+//! OUT/summary.json, OUT/summary.csv      matrices and summary metrics per order, and their mean
+//! ```
+//!
+//! Every file is written atomically and reused when present, so a killed run resumes.
+
+use crate::error::SweepError;
+use crate::{read_json, write_json};
+use ingest::corpus::split::{read_ids, SPLITS};
+use ingest::rng::SplitMix64;
+use ingest::scenarios::ScenarioDatasets;
+use model::caption_set::{generate_caption_set, CaptionSetOptions};
+use model::evaluator::TrainedEvaluator;
+use model::generate::Sampling;
+use model::lora::LoraConfig;
+use model::motion_eval::{corpus_split, evaluate_motions, hml3d_folder, EvalOptions, EvalReport};
+use model::train::{load_model, run_tokenizer, train, ModelShape, TrainConfig};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// A continual-learning method.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// One LoRA adapter fine-tuned on each dataset in turn.
+    SeqLora,
+    /// Sequential LoRA with a buffer of earlier datasets' clips.
+    Replay,
+    /// One LoRA adapter on every dataset at once (the joint reference).
+    Mtl,
+}
+
+impl Method {
+    /// Parse a CLI name (`seq-lora`, `replay`, `mtl`).
+    pub fn parse(name: &str) -> Option<Self> {
+        serde_json::from_value(serde_json::Value::String(name.into())).ok()
+    }
+}
+
+/// Everything a continual run depends on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ContinualConfig {
+    /// Scenario datasets folder (`motionscale scenarios --out`).
+    pub scenarios: PathBuf,
+    /// Token set of the whole corpus (`motionscale tokenize`).
+    pub tokens: PathBuf,
+    /// Trained backbone run (frozen).
+    pub base: PathBuf,
+    /// Evaluator folder.
+    pub evaluator: PathBuf,
+    /// The method.
+    pub method: Method,
+    /// Dataset orders (order 0 is the listed one, the others seeded shuffles).
+    pub orders: usize,
+    /// Seed of orders, replay buffers, training and evaluation.
+    pub seed: u64,
+    /// Motion tokens trained on per step.
+    pub tokens_budget: u64,
+    /// Clips per batch.
+    pub batch_size: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Adapter rank and scale.
+    pub lora: LoraConfig,
+    /// Share of each earlier dataset's train clips replayed (`replay`).
+    pub replay_fraction: f64,
+    /// Evaluation repeats.
+    pub repeats: usize,
+    /// R-precision pool size.
+    pub pool: usize,
+    /// Texts with 10 samples each for multimodality, per dataset.
+    pub mm_texts: usize,
+    /// Split of every dataset that is evaluated.
+    pub eval_split: String,
+    /// Output folder.
+    pub out: PathBuf,
+}
+
+/// Metric matrices and summary of one order.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OrderResult {
+    /// Dataset names in the order learned.
+    pub datasets: Vec<String>,
+    /// FID [step][position].
+    pub f: Vec<Vec<f64>>,
+    /// Top-1 R-precision [step][position].
+    pub r: Vec<Vec<f64>>,
+    /// Diversity (`None` with too few motions).
+    pub d: Vec<Vec<Option<f64>>>,
+    /// Multimodality (`None` without multi-sample texts).
+    pub mm: Vec<Vec<Option<f64>>>,
+    /// Emotion weighted F1 (`None` without emotion labels).
+    pub wf: Vec<Vec<Option<f64>>>,
+    /// AF, AR, AD, AMM, AWF and FR.
+    pub summary: Summary,
+}
+
+/// The paper's summary metrics after the last step.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+pub struct Summary {
+    /// Mean final FID.
+    pub af: f64,
+    /// Mean final top-1 R-precision.
+    pub ar: f64,
+    /// Mean final diversity.
+    pub ad: Option<f64>,
+    /// Mean final multimodality.
+    pub amm: Option<f64>,
+    /// Mean final emotion weighted F1.
+    pub awf: Option<f64>,
+    /// Forgetting rate of R-precision (`None` with one step).
+    pub fr: Option<f64>,
+}
+
+fn mean(values: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+    sum / n.max(1) as f64
+}
+
+fn mean_known(row: &[Option<f64>]) -> Option<f64> {
+    let known: Vec<f64> = row.iter().flatten().copied().collect();
+    (!known.is_empty()).then(|| mean(known.into_iter()))
+}
+
+impl Summary {
+    /// The summary of matrices whose last row is after the last step; FR over the rows
+    /// (row k is after learning position k, when there is one row per position).
+    pub fn of(
+        f: &[Vec<f64>],
+        r: &[Vec<f64>],
+        d: &[Vec<Option<f64>>],
+        mm: &[Vec<Option<f64>>],
+        wf: &[Vec<Option<f64>>],
+    ) -> Self {
+        let last = r.len() - 1;
+        let n = r[last].len();
+        let fr = (r.len() == n && n > 1).then(|| {
+            mean((0..n - 1).map(|j| {
+                let best = (j..n - 1).map(|k| r[k][j]).fold(f64::MIN, f64::max);
+                best - r[last][j]
+            }))
+        });
+        Self {
+            af: mean(f[last].iter().copied()),
+            ar: mean(r[last].iter().copied()),
+            ad: mean_known(&d[last]),
+            amm: mean_known(&mm[last]),
+            awf: mean_known(&wf[last]),
+            fr,
+        }
+    }
+
+    /// The mean of several summaries (orders); an optional metric is kept when all have it.
+    pub fn mean_of(all: &[Summary]) -> Self {
+        let opt = |f: fn(&Summary) -> Option<f64>| {
+            let v: Option<Vec<f64>> = all.iter().map(f).collect();
+            v.map(|v| mean(v.into_iter()))
+        };
+        Self {
+            af: mean(all.iter().map(|s| s.af)),
+            ar: mean(all.iter().map(|s| s.ar)),
+            ad: opt(|s| s.ad),
+            amm: opt(|s| s.amm),
+            awf: opt(|s| s.awf),
+            fr: opt(|s| s.fr),
+        }
+    }
+}
+
+/// `OUT/summary.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ContinualReport {
+    /// The run.
+    pub config: ContinualConfig,
+    /// Each order's matrices and summary.
+    pub orders: Vec<OrderResult>,
+    /// The summaries averaged over orders.
+    pub mean: Summary,
+}
+
+/// The dataset positions of order `o`: order 0 as listed, the others seeded shuffles.
+pub fn order(n: usize, seed: u64, o: usize) -> Vec<usize> {
+    let mut positions: Vec<usize> = (0..n).collect();
+    if o > 0 {
+        let mut rng = SplitMix64::stream(seed, o as u64);
+        for i in (1..n).rev() {
+            positions.swap(i, rng.index(i + 1));
+        }
+    }
+    positions
+}
+
+/// Write `{train,val,test}.txt` into `dir`.
+fn write_lists(dir: &Path, lists: &HashMap<&str, Vec<String>>) -> Result<(), SweepError> {
+    for split in SPLITS {
+        let path = dir.join(format!("{split}.txt"));
+        let text: String = lists
+            .get(split)
+            .map(|ids| ids.iter().map(|id| format!("{id}\n")).collect())
+            .unwrap_or_default();
+        ingest::npy::write_atomic(&path, text.as_bytes()).map_err(|e| SweepError::io(&path, e))?;
+    }
+    Ok(())
+}
+
+/// The clip lists of a dataset folder.
+fn dataset_lists(dir: &Path) -> Result<HashMap<&'static str, Vec<String>>, SweepError> {
+    SPLITS
+        .iter()
+        .map(|&s| {
+            let path = dir.join(format!("{s}.txt"));
+            Ok((
+                s,
+                read_ids(&path)
+                    .map_err(|e| SweepError::invalid(&path, e))?
+                    .unwrap_or_default(),
+            ))
+        })
+        .collect()
+}
+
+/// Run (or resume) `config`; `log` receives one line per finished piece of work.
+pub fn run_continual(
+    config: &ContinualConfig,
+    mut log: impl FnMut(&str),
+) -> Result<ContinualReport, SweepError> {
+    std::fs::create_dir_all(&config.out).map_err(|e| SweepError::io(&config.out, e))?;
+    let config_path = config.out.join("config.json");
+    if config_path.is_file() && read_json::<ContinualConfig>(&config_path)? != *config {
+        return Err(SweepError::invalid(
+            &config_path,
+            "this folder holds a continual run with another configuration; use another --out",
+        ));
+    }
+    write_json(&config_path, config)?;
+    let sets: ScenarioDatasets = read_json(&config.scenarios.join("datasets.json"))?;
+    let names: Vec<String> = sets.datasets.iter().map(|d| d.name.clone()).collect();
+    let evaluator = TrainedEvaluator::load(&config.evaluator)?;
+    let (_, base_run) = load_model(&config.base)?;
+    let corpus = base_run.corpus.clone();
+    let tokenizer = run_tokenizer(&base_run, None)?;
+    let eval_options = |dataset: &str| EvalOptions {
+        split: config.eval_split.clone(),
+        repeats: config.repeats,
+        seed: config.seed,
+        splits: Some(config.scenarios.join(dataset)),
+        pool: config.pool,
+        ..EvalOptions::default()
+    };
+    let mut references = HashMap::new();
+    for name in &names {
+        let reference = corpus_split(&corpus, &eval_options(name))?;
+        references.insert(name.clone(), reference);
+    }
+    let labels: HashMap<String, _> = model::evaluator_train::corpus_clips(&corpus, |_| true)?
+        .into_iter()
+        .map(|c| (c.motion_id.clone(), c))
+        .collect();
+    let mut results = Vec::new();
+    for o in 0..config.orders {
+        let positions = order(names.len(), config.seed, o);
+        let ordered: Vec<String> = positions.iter().map(|&p| names[p].clone()).collect();
+        let order_dir = config.out.join(format!("order-{o}"));
+        std::fs::create_dir_all(&order_dir).map_err(|e| SweepError::io(&order_dir, e))?;
+        write_json(&order_dir.join("order.json"), &ordered)?;
+        let steps = if config.method == Method::Mtl {
+            1
+        } else {
+            ordered.len()
+        };
+        let mut rows: Vec<Vec<EvalReport>> = Vec::new();
+        let mut previous: Option<PathBuf> = None;
+        for k in 0..steps {
+            let step_dir = order_dir.join(format!("step-{}", k + 1));
+            let lists_dir = step_dir.join("lists");
+            std::fs::create_dir_all(&lists_dir).map_err(|e| SweepError::io(&lists_dir, e))?;
+            let mut lists = HashMap::new();
+            let learned: Vec<&String> = match config.method {
+                Method::Mtl => ordered.iter().collect(),
+                _ => vec![&ordered[k]],
+            };
+            for name in &learned {
+                for (split, ids) in dataset_lists(&config.scenarios.join(name))? {
+                    lists.entry(split).or_insert_with(Vec::new).extend(ids);
+                }
+            }
+            if config.method == Method::Replay {
+                for (i, earlier) in ordered[..k].iter().enumerate() {
+                    let mut train = dataset_lists(&config.scenarios.join(earlier))?
+                        .remove("train")
+                        .unwrap_or_default();
+                    let mut rng =
+                        SplitMix64::stream(config.seed ^ 0xbeef, (o * 1000 + k * 10 + i) as u64);
+                    for a in (1..train.len()).rev() {
+                        train.swap(a, rng.index(a + 1));
+                    }
+                    let keep = ((train.len() as f64 * config.replay_fraction).ceil() as usize)
+                        .min(train.len());
+                    lists
+                        .entry("train")
+                        .or_default()
+                        .extend(train.into_iter().take(keep));
+                }
+            }
+            write_lists(&lists_dir, &lists)?;
+            let train_dir = step_dir.join("train");
+            let mut train_config = TrainConfig::new(
+                &config.tokens,
+                ModelShape::Lora {
+                    base: config.base.clone(),
+                    lora: config.lora,
+                    expert: config.method_expert(),
+                    init: previous.clone(),
+                },
+                config.tokens_budget,
+                &train_dir,
+            );
+            train_config.splits = Some(lists_dir.clone());
+            train_config.batch_size = config.batch_size;
+            train_config.lr = config.lr;
+            train_config.seed = config.seed;
+            let report = train(&train_config, &mut |_| {})?;
+            log(&format!(
+                "order {o} step {}: trained on {} (test CE {:.3})",
+                k + 1,
+                learned
+                    .iter()
+                    .map(|s| s.as_str())
+                    .collect::<Vec<_>>()
+                    .join("+"),
+                report.eval.test.cross_entropy
+            ));
+            previous = Some(train_dir.join("adapter.safetensors"));
+            let (model, run) = load_model(&train_dir)?;
+            let mut row = Vec::new();
+            for name in &ordered {
+                let eval_path = step_dir.join(format!("eval-{name}.json"));
+                if let Ok(report) = read_json::<EvalReport>(&eval_path) {
+                    row.push(report);
+                    continue;
+                }
+                let gen_dir = step_dir.join(format!("gen-{name}"));
+                let options = CaptionSetOptions {
+                    corpus: corpus.clone(),
+                    split: config.eval_split.clone(),
+                    splits: Some(config.scenarios.join(name)),
+                    mm_texts: config.mm_texts,
+                    mm_samples: 10,
+                    batch: 32,
+                    sampling: Sampling {
+                        seed: config.seed,
+                        min_tokens: 1,
+                        ..Sampling::default()
+                    },
+                };
+                generate_caption_set(
+                    &model,
+                    &run,
+                    &tokenizer,
+                    None,
+                    &options,
+                    &gen_dir,
+                    |_, _| {},
+                )?;
+                let set = hml3d_folder(&gen_dir, &eval_options(name), &labels)?;
+                let report = evaluate_motions(
+                    &evaluator,
+                    &config.evaluator,
+                    &references[name],
+                    &set,
+                    &eval_options(name),
+                    None,
+                )?;
+                write_json(&eval_path, &report)?;
+                log(&format!(
+                    "order {o} step {}: {name} FID {:.4}, R-precision@1 {:.3}",
+                    k + 1,
+                    report.fid.mean,
+                    report.r_precision[0].mean
+                ));
+                row.push(report);
+            }
+            rows.push(row);
+        }
+        results.push(order_result(ordered, &rows));
+    }
+    let report = ContinualReport {
+        config: config.clone(),
+        mean: Summary::mean_of(&results.iter().map(|r| r.summary).collect::<Vec<_>>()),
+        orders: results,
+    };
+    write_json(&config.out.join("summary.json"), &report)?;
+    let csv_path = config.out.join("summary.csv");
+    ingest::npy::write_atomic(&csv_path, summary_csv(&report).as_bytes())
+        .map_err(|e| SweepError::io(&csv_path, e))?;
+    Ok(report)
+}
+
+impl ContinualConfig {
+    /// The adapter's expert name: the method's.
+    fn method_expert(&self) -> String {
+        serde_json::to_value(self.method)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_string))
+            .unwrap_or_default()
+    }
+}
+
+fn order_result(datasets: Vec<String>, rows: &[Vec<EvalReport>]) -> OrderResult {
+    let take = |f: &dyn Fn(&EvalReport) -> f64| -> Vec<Vec<f64>> {
+        rows.iter().map(|row| row.iter().map(f).collect()).collect()
+    };
+    let take_opt = |f: &dyn Fn(&EvalReport) -> Option<f64>| -> Vec<Vec<Option<f64>>> {
+        rows.iter().map(|row| row.iter().map(f).collect()).collect()
+    };
+    let f = take(&|e| e.fid.mean);
+    let r = take(&|e| e.r_precision[0].mean);
+    let d = take_opt(&|e| e.diversity.as_ref().map(|i| i.mean));
+    let mm = take_opt(&|e| e.multimodality.as_ref().map(|i| i.mean));
+    let wf = take_opt(&|e| e.emotion_weighted_f1.as_ref().map(|i| i.mean));
+    let summary = Summary::of(&f, &r, &d, &mm, &wf);
+    OrderResult {
+        datasets,
+        f,
+        r,
+        d,
+        mm,
+        wf,
+        summary,
+    }
+}
+
+fn cell(v: Option<f64>) -> String {
+    v.map_or_else(String::new, |v| format!("{v}"))
+}
+
+/// `summary.csv`: one row per order and their mean.
+pub fn summary_csv(report: &ContinualReport) -> String {
+    let mut csv = String::from("order,AF,AR,AD,AMM,AWF,FR\n");
+    let rows = report
+        .orders
+        .iter()
+        .enumerate()
+        .map(|(o, r)| (o.to_string(), r.summary))
+        .chain([("mean".to_string(), report.mean)]);
+    for (name, s) in rows {
+        csv.push_str(&format!(
+            "{name},{},{},{},{},{},{}\n",
+            s.af,
+            s.ar,
+            cell(s.ad),
+            cell(s.amm),
+            cell(s.awf),
+            cell(s.fr)
+        ));
+    }
+    csv
+}
+
+/// A table shaped like the paper's Table 2: one row per run (method), the summary metrics
+/// averaged over its orders.
+pub fn compare_table(runs: &[PathBuf]) -> Result<String, SweepError> {
+    let mut out = String::from(
+        "| run | method | orders | AF ↓ | AR ↑ | AD | AMM | AWF ↑ | FR ↓ |\n|---|---|---|---|---|---|---|---|---|\n",
+    );
+    let fmt = |v: Option<f64>| v.map_or_else(|| "–".to_string(), |v| format!("{v:.3}"));
+    for dir in runs {
+        let report: ContinualReport = read_json(&dir.join("summary.json"))?;
+        let s = report.mean;
+        out.push_str(&format!(
+            "| {} | {} | {} | {:.4} | {:.3} | {} | {} | {} | {} |\n",
+            dir.display(),
+            report.config.method_expert(),
+            report.orders.len(),
+            s.af,
+            s.ar,
+            fmt(s.ad),
+            fmt(s.amm),
+            fmt(s.awf),
+            fmt(s.fr)
+        ));
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn forgetting_rate_and_averages_match_a_hand_case() {
+        // Three tasks. r[k][j]: after step k (0-based rows), task j.
+        let r = vec![
+            vec![0.5, 0.1, 0.1],
+            vec![0.4, 0.6, 0.1],
+            vec![0.3, 0.2, 0.7],
+        ];
+        let f = vec![vec![1.0; 3], vec![1.0; 3], vec![0.1, 0.2, 0.3]];
+        let none = vec![vec![None; 3]; 3];
+        let s = Summary::of(&f, &r, &none, &none, &none);
+        // Task 0: best of rows 0..=1 is 0.5, final 0.3 → 0.2; task 1: best of row 1 is 0.6,
+        // final 0.2 → 0.4. FR = 0.3.
+        assert!((s.fr.unwrap() - 0.3).abs() < 1e-12);
+        assert!((s.ar - 0.4).abs() < 1e-12);
+        assert!((s.af - 0.2).abs() < 1e-12);
+        assert_eq!(s.ad, None);
+        // One row (MTL): no forgetting rate.
+        let one = Summary::of(&f[2..], &r[2..], &none[2..], &none[2..], &none[2..]);
+        assert_eq!(one.fr, None);
+        let m = Summary::mean_of(&[s, one]);
+        assert!((m.ar - 0.4).abs() < 1e-12);
+        assert_eq!(m.fr, None, "kept only when every order has it");
+    }
+
+    #[test]
+    fn orders_are_permutations_and_order_zero_is_as_listed() {
+        assert_eq!(order(5, 3, 0), vec![0, 1, 2, 3, 4]);
+        let mut o = order(5, 3, 1);
+        assert_ne!(o, vec![0, 1, 2, 3, 4]);
+        o.sort();
+        assert_eq!(o, vec![0, 1, 2, 3, 4]);
+        assert_eq!(order(5, 3, 2), order(5, 3, 2));
+    }
+
+    #[test]
+    fn method_names_round_trip() {
+        for (name, m) in [
+            ("seq-lora", Method::SeqLora),
+            ("replay", Method::Replay),
+            ("mtl", Method::Mtl),
+        ] {
+            assert_eq!(Method::parse(name), Some(m));
+        }
+        assert_eq!(Method::parse("es-moe"), None);
+    }
+}
