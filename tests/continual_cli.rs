@@ -84,6 +84,13 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
         orders[0]["datasets"], orders[1]["datasets"],
         "order 1 is shuffled"
     );
+    for o in 0..2 {
+        for stem in ["fid", "r_precision"] {
+            let svg = std::fs::read_to_string(seq.join(format!("order-{o}/{stem}.svg"))).unwrap();
+            assert!(svg.contains("after "), "{stem}: rows labelled by step");
+            assert!(seq.join(format!("order-{o}/{stem}.png")).is_file());
+        }
+    }
     let csv = std::fs::read_to_string(seq.join("summary.csv")).unwrap();
     assert_eq!(csv.lines().count(), 4, "header, two orders, mean: {csv}");
     // Re-running finds every step done and writes the same summary.

@@ -1,9 +1,12 @@
-//! Line and scatter charts written as SVG and PNG: named series, linear or log10 axes, axis
+//! Line and scatter charts (and [`Heatmap`]s) written as SVG and PNG: named series, linear or log10 axes, axis
 //! labels, a title and a legend. Text is drawn with DejaVu Sans embedded in the binary, so a
 //! machine without system fonts or fontconfig renders the same PNG.
 
+pub mod heatmap;
 mod render;
 pub mod ticks;
+
+pub use heatmap::Heatmap;
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -145,14 +148,17 @@ impl Chart {
     /// Writes `STEM.svg` and `STEM.png` (each to a temporary file renamed into place) and
     /// returns their paths. The folder must exist.
     pub fn write(&self, stem: &Path) -> Result<[PathBuf; 2], PlotError> {
-        let svg_path = with_suffix(stem, "svg");
-        let png_path = with_suffix(stem, "png");
-        let svg = self.svg()?;
-        let png = self.png()?;
-        write_atomic(&svg_path, svg.as_bytes())?;
-        write_atomic(&png_path, &png)?;
-        Ok([svg_path, png_path])
+        write_pair(stem, &self.svg()?, &self.png()?)
     }
+}
+
+/// Writes `svg` to `STEM.svg` and `png` to `STEM.png`, atomically; returns the paths.
+fn write_pair(stem: &Path, svg: &str, png: &[u8]) -> Result<[PathBuf; 2], PlotError> {
+    let svg_path = with_suffix(stem, "svg");
+    let png_path = with_suffix(stem, "png");
+    write_atomic(&svg_path, svg.as_bytes())?;
+    write_atomic(&png_path, png)?;
+    Ok([svg_path, png_path])
 }
 
 /// `stem` with `.ext` appended (a dot inside the stem, as in `n_opt_vs_1e18`, is kept).

@@ -27,6 +27,11 @@ const PALETTE: [RGBColor; crate::PALETTE_LEN] = [
 /// Font family name the embedded DejaVu Sans is registered under.
 const FONT: &str = "sans-serif";
 
+/// The embedded font at `size` pixels.
+pub(crate) fn font(size: u32) -> FontDesc<'static> {
+    (FONT, f64::from(size)).into_font()
+}
+
 /// Registers the embedded font once per process.
 fn ensure_font() -> Result<(), PlotError> {
     static REGISTERED: OnceLock<Result<(), String>> = OnceLock::new();
@@ -39,27 +44,67 @@ fn ensure_font() -> Result<(), PlotError> {
         .map_err(PlotError::Font)
 }
 
-/// The chart as an SVG document.
-pub fn svg(chart: &Chart) -> Result<String, PlotError> {
-    let layout = Layout::new(chart)?;
+/// A figure the SVG and bitmap backends can draw.
+pub(crate) trait Figure {
+    /// Title (named in errors).
+    fn title(&self) -> &str;
+    /// Whether there is anything to draw.
+    fn check(&self) -> Result<(), PlotError> {
+        Ok(())
+    }
+    /// Draw onto `root` (already sized [`WIDTH`] × [`HEIGHT`]).
+    fn draw_on<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), String>;
+}
+
+impl Figure for Chart {
+    fn title(&self) -> &str {
+        &self.title
+    }
+
+    fn check(&self) -> Result<(), PlotError> {
+        Layout::new(self).map(|_| ())
+    }
+
+    fn draw_on<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), String> {
+        let layout = Layout::new(self).map_err(|e| e.to_string())?;
+        draw(self, &layout, root)
+    }
+}
+
+fn draw_error(title: &str, message: String) -> PlotError {
+    PlotError::Draw {
+        title: title.to_string(),
+        message,
+    }
+}
+
+/// The figure as an SVG document.
+pub(crate) fn svg(figure: &impl Figure) -> Result<String, PlotError> {
+    figure.check()?;
+    ensure_font()?;
     let mut out = String::new();
     {
         let root = SVGBackend::with_string(&mut out, (WIDTH, HEIGHT)).into_drawing_area();
-        draw(chart, &layout, &root).and_then(|()| root.present().map_err(|e| e.to_string()))
+        figure
+            .draw_on(&root)
+            .and_then(|()| root.present().map_err(|e| e.to_string()))
     }
-    .map_err(|message| draw_error(chart, message))?;
+    .map_err(|message| draw_error(figure.title(), message))?;
     Ok(out)
 }
 
-/// The chart as PNG bytes.
-pub fn png(chart: &Chart) -> Result<Vec<u8>, PlotError> {
-    let layout = Layout::new(chart)?;
+/// The figure as PNG bytes.
+pub(crate) fn png(figure: &impl Figure) -> Result<Vec<u8>, PlotError> {
+    figure.check()?;
+    ensure_font()?;
     let mut rgb = vec![0u8; (WIDTH * HEIGHT * 3) as usize];
     {
         let root = BitMapBackend::with_buffer(&mut rgb, (WIDTH, HEIGHT)).into_drawing_area();
-        draw(chart, &layout, &root).and_then(|()| root.present().map_err(|e| e.to_string()))
+        figure
+            .draw_on(&root)
+            .and_then(|()| root.present().map_err(|e| e.to_string()))
     }
-    .map_err(|message| draw_error(chart, message))?;
+    .map_err(|message| draw_error(figure.title(), message))?;
     let mut bytes = Vec::new();
     let mut encoder = png::Encoder::new(&mut bytes, WIDTH, HEIGHT);
     encoder.set_color(png::ColorType::Rgb);
@@ -67,15 +112,8 @@ pub fn png(chart: &Chart) -> Result<Vec<u8>, PlotError> {
     encoder
         .write_header()
         .and_then(|mut w| w.write_image_data(&rgb))
-        .map_err(|e| draw_error(chart, format!("PNG encoding: {e}")))?;
+        .map_err(|e| draw_error(figure.title(), format!("PNG encoding: {e}")))?;
     Ok(bytes)
-}
-
-fn draw_error(chart: &Chart, message: String) -> PlotError {
-    PlotError::Draw {
-        title: chart.title.clone(),
-        message,
-    }
 }
 
 /// One axis in plotting coordinates (log10 of the data on a log axis).

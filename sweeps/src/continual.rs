@@ -17,6 +17,7 @@
 //! OUT/order-<o>/step-<k>/train/          the `motionscale train` folder (resumable)
 //! OUT/order-<o>/step-<k>/gen-<dataset>/  generated motions (HumanML3D layout)
 //! OUT/order-<o>/step-<k>/eval-<dataset>.json   `eval` report
+//! OUT/order-<o>/{fid,r_precision}.{svg,png}     the matrices as heat maps (the paper's Fig. 5)
 //! OUT/summary.json, OUT/summary.csv      matrices and summary metrics per order, and their mean
 //! ```
 //!
@@ -401,7 +402,9 @@ pub fn run_continual(
             }
             rows.push(row);
         }
-        results.push(order_result(ordered, &rows));
+        let result = order_result(ordered, &rows);
+        write_heatmaps(&order_dir, o, &result)?;
+        results.push(result);
     }
     let report = ContinualReport {
         config: config.clone(),
@@ -413,6 +416,39 @@ pub fn run_continual(
     ingest::npy::write_atomic(&csv_path, summary_csv(&report).as_bytes())
         .map_err(|e| SweepError::io(&csv_path, e))?;
     Ok(report)
+}
+
+/// The FID and R-precision matrices of one order as heat maps (the paper's Figure 5):
+/// `order-<o>/fid.{svg,png}` and `order-<o>/r_precision.{svg,png}`.
+fn write_heatmaps(dir: &Path, o: usize, result: &OrderResult) -> Result<(), SweepError> {
+    let short = |name: &String| {
+        name.split_once('_')
+            .map_or(name.clone(), |(_, s)| s.to_string())
+    };
+    let rows: Vec<String> = if result.f.len() == 1 {
+        vec!["joint".into()]
+    } else {
+        result
+            .datasets
+            .iter()
+            .map(|d| format!("after {}", short(d)))
+            .collect()
+    };
+    for (stem, what, values) in [
+        ("fid", "FID", &result.f),
+        ("r_precision", "top-1 R-precision", &result.r),
+    ] {
+        let map = plot::Heatmap {
+            title: format!("{what}, order {o} (rows: after step; columns: dataset)"),
+            rows: rows.clone(),
+            columns: result.datasets.iter().map(short).collect(),
+            values: values.clone(),
+        };
+        let path = dir.join(stem);
+        map.write(&path)
+            .map_err(|e| SweepError::invalid(&path, e))?;
+    }
+    Ok(())
 }
 
 impl ContinualConfig {
