@@ -57,6 +57,9 @@ pub struct EvaluatorTrainArgs {
     /// Seed of initialisation, batches, captions and windows.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Stop (with a checkpoint) after this many steps; the same command without it continues.
+    #[arg(long)]
+    pub stop_after: Option<u64>,
 }
 
 /// `motionscale evaluator train`.
@@ -77,6 +80,7 @@ pub fn evaluator_train(args: EvaluatorTrainArgs) -> Result<ExitCode> {
         lr: args.lr,
         eval_every: args.eval_every,
         seed: args.seed,
+        stop_after: args.stop_after,
     };
     let started = std::time::Instant::now();
     let bar = progress_bar("evaluator", "steps");

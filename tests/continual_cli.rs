@@ -51,7 +51,7 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
     let corpus = setup.join("corpus");
     synth_corpus(&corpus, 300);
     tiny_lm_run(&corpus, setup);
-    train_evaluator(&corpus, &setup.join("evaluator"));
+    train_evaluator(&corpus, &setup.join("evaluator"), &[]);
     motionscale_ok(&[
         "scenarios",
         "--corpus",

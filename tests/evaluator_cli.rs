@@ -66,7 +66,7 @@ fn evaluator_trains_resumes_and_scores_corpus_export_and_generated_motions() {
     let (corpus_dir, evaluator) = (tmp.path().join("corpus"), tmp.path().join("evaluator"));
     // 251 train clips: enough texts for pools of 32 in two halves.
     synth_corpus(&corpus_dir, 300);
-    train_evaluator(&corpus_dir, &evaluator);
+    train_evaluator(&corpus_dir, &evaluator, &[]);
     for file in ["config.json", "model.safetensors", "mean.npy", "std.npy"] {
         assert!(evaluator.join(file).is_file(), "{file} missing");
     }
@@ -78,7 +78,7 @@ fn evaluator_trains_resumes_and_scores_corpus_export_and_generated_motions() {
     assert!(config["config"]["actions"].as_array().unwrap().len() > 1);
     // Re-running a finished training changes nothing.
     let weights = std::fs::read(evaluator.join("model.safetensors")).unwrap();
-    train_evaluator(&corpus_dir, &evaluator);
+    train_evaluator(&corpus_dir, &evaluator, &[]);
     assert_eq!(
         std::fs::read(evaluator.join("model.safetensors")).unwrap(),
         weights

@@ -61,6 +61,9 @@ pub struct EvaluatorTrainConfig {
     pub eval_every: u64,
     /// Seed of initialisation, batches, caption choice and windows.
     pub seed: u64,
+    /// Stop (with a checkpoint) after this many steps; a re-run continues.
+    #[serde(skip)]
+    pub stop_after: Option<u64>,
 }
 
 /// One clip as the evaluator sees it.
@@ -267,7 +270,10 @@ pub fn train_evaluator(
     };
     let mut last = None;
     let (mut loss_sum, mut loss_steps) = (0f64, 0u64);
-    while state.step < config.steps {
+    let end = config
+        .stop_after
+        .map_or(config.steps, |s| s.min(config.steps));
+    while state.step < end {
         let loss = train_step(&evaluator, &train, &captions, config, state.step)
             .map_err(ModelError::inference)?;
         let (value, grads) = (
@@ -279,7 +285,7 @@ pub fn train_evaluator(
         state.step += 1;
         (loss_sum, loss_steps) = (loss_sum + f64::from(value), loss_steps + 1);
         on_event(EvaluatorEvent::Step(state.step, config.steps, value));
-        if state.step % config.eval_every.max(1) == 0 || state.step == config.steps {
+        if state.step % config.eval_every.max(1) == 0 || state.step == end {
             let mut v = validate(&evaluator, &val, &captions)?;
             v.step = state.step;
             v.train_loss = loss_sum / loss_steps.max(1) as f64;

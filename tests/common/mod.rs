@@ -208,8 +208,8 @@ pub fn tiny_lm_run(corpus: &Path, dir: &Path) -> (PathBuf, String) {
 }
 
 /// A tiny evaluator (width 16, 30 steps) on `corpus` in `out`; returns the command's output.
-pub fn train_evaluator(corpus: &Path, out: &Path) -> String {
-    motionscale_ok(&[
+pub fn train_evaluator(corpus: &Path, out: &Path, extra: &[&str]) -> String {
+    let mut args = vec![
         "evaluator",
         "train",
         "--corpus",
@@ -228,5 +228,7 @@ pub fn train_evaluator(corpus: &Path, out: &Path) -> String {
         "30",
         "--eval-every",
         "15",
-    ])
+    ];
+    args.extend_from_slice(extra);
+    motionscale_ok(&args)
 }
