@@ -17,7 +17,7 @@ pub struct ContinualArgs {
     /// Scenario datasets folder (`motionscale scenarios --out`).
     #[arg(long, required = true)]
     pub scenarios: Option<PathBuf>,
-    /// Method: seq-lora, replay or mtl (es-moe, lwf-lora and o-lora are not built yet).
+    /// Method: seq-lora, replay, o-lora or mtl (es-moe and lwf-lora are not built yet).
     #[arg(long, required = true)]
     pub method: Option<String>,
     /// Trained backbone run (`motionscale train --out`), frozen.
@@ -53,6 +53,9 @@ pub struct ContinualArgs {
     /// Share of each earlier dataset's train clips replayed (`replay`).
     #[arg(long, default_value_t = 0.05)]
     pub replay_fraction: f64,
+    /// Weight λ of the orthogonality loss (`o-lora`).
+    #[arg(long, default_value_t = 0.5)]
+    pub orthogonality: f64,
     /// Evaluation repeats.
     #[arg(long, default_value_t = 10)]
     pub repeats: usize,
@@ -93,7 +96,7 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
     };
     let name = args.method.clone().unwrap_or_default();
     let Some(method) = Method::parse(&name) else {
-        bail!("--method {name:?}: one of seq-lora, replay, mtl (es-moe, lwf-lora and o-lora are not built yet)");
+        bail!("--method {name:?}: one of seq-lora, replay, o-lora, mtl (es-moe and lwf-lora are not built yet)");
     };
     crate::memory::keep_freed_memory();
     let config = ContinualConfig {
@@ -112,6 +115,11 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
             alpha: args.lora_alpha,
         },
         replay_fraction: args.replay_fraction,
+        orthogonality: if method == Method::OLora {
+            args.orthogonality
+        } else {
+            0.0
+        },
         repeats: args.repeats.max(1),
         pool: args.pool,
         mm_texts: args.mm_texts,

@@ -44,6 +44,12 @@ pub struct ShapeArgs {
     /// adapter.safetensors: sequential LoRA) instead of a new adapter.
     #[arg(long, requires = "base")]
     pub lora_init: Option<PathBuf>,
+    /// Keep the adapter's `lora_A` subspaces orthogonal to these adapter files' (O-LoRA).
+    #[arg(long, value_delimiter = ',', requires = "base")]
+    pub lora_orthogonal_to: Vec<PathBuf>,
+    /// Weight λ of the O-LoRA orthogonality loss.
+    #[arg(long, default_value_t = 0.5, requires = "lora_orthogonal_to")]
+    pub lora_orthogonality: f64,
 }
 
 impl ShapeArgs {
@@ -57,6 +63,12 @@ impl ShapeArgs {
                 },
                 expert: self.expert.clone(),
                 init: self.lora_init.clone(),
+                orthogonal_to: self.lora_orthogonal_to.clone(),
+                orthogonality: if self.lora_orthogonal_to.is_empty() {
+                    0.0
+                } else {
+                    self.lora_orthogonality
+                },
             });
         }
         match (&self.preset, self.width, self.layers, self.heads) {

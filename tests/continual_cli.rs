@@ -113,6 +113,21 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
         second_train + (first_train as f64 * 0.05).ceil() as usize
     );
 
+    // O-LoRA: step 2 trains a new expert on the model with step 1's merged in, kept
+    // orthogonal to step 1's adapter.
+    let olora = setup.join("o-lora");
+    let report = continual(setup, "o-lora", &olora);
+    assert!(report["mean"]["fr"].is_number());
+    let step2: Value = read_json(&olora.join("order-0/step-2/train/config.json"));
+    let shape = &step2["train"]["model"]["lora"];
+    assert_eq!(shape["expert"], "o-lora-2");
+    assert_eq!(shape["base"], arg(&olora.join("order-0/step-1/train")));
+    assert_eq!(
+        shape["orthogonal_to"][0],
+        arg(&olora.join("order-0/step-1/train/adapter.safetensors"))
+    );
+    assert_eq!(shape["orthogonality"], 0.5);
+
     // MTL: one step on every dataset, no forgetting rate.
     let mtl = setup.join("mtl");
     let report = continual(setup, "mtl", &mtl);

@@ -169,6 +169,60 @@ impl LoraAdapter {
     }
 }
 
+/// The `lora_A` matrices of every expert in an adapter file, by the weight they adapt
+/// (`blocks.<i>.<projection>.weight`): the subspaces an O-LoRA adapter keeps orthogonal to.
+pub fn adapter_a_matrices(
+    path: &Path,
+) -> std::result::Result<Vec<HashMap<String, Tensor>>, ModelError> {
+    let tensors = base_weights(path)?;
+    let mut by_expert: std::collections::BTreeMap<String, HashMap<String, Tensor>> =
+        std::collections::BTreeMap::new();
+    for (key, t) in tensors {
+        let Some(rest) = key.strip_prefix("experts.") else {
+            continue;
+        };
+        let Some(stem) = rest.strip_suffix(".lora_A.weight") else {
+            continue;
+        };
+        let Some((expert, projection)) = stem.split_once('.') else {
+            continue;
+        };
+        by_expert
+            .entry(expert.to_string())
+            .or_default()
+            .insert(format!("{projection}.weight"), t);
+    }
+    Ok(by_expert.into_values().collect())
+}
+
+impl LoraAdapter {
+    /// O-LoRA's orthogonality loss λ·Σ_p Σ_proj ‖A·A_pᵀ‖²_F against earlier adapters' A
+    /// matrices; its gradient 2λ·Σ_p (A·A_pᵀ)·A_p is added to `grads`. Returns the loss.
+    pub fn orthogonality(
+        &self,
+        previous: &[HashMap<String, Tensor>],
+        weight: f64,
+        grads: &mut GradStore,
+    ) -> Result<f32> {
+        let mut loss = 0f32;
+        for (name, a, _) in &self.pairs {
+            let a_t = a.as_tensor();
+            let mut grad = match grads.get(a_t) {
+                Some(g) => g.clone(),
+                None => a_t.zeros_like()?,
+            };
+            for p in previous {
+                let Some(ap) = p.get(name) else { continue };
+                let overlap = a_t.matmul(&ap.t()?)?;
+                loss += (overlap.sqr()?.sum_all()?.to_scalar::<f32>()?) * weight as f32;
+                grad = (grad + (overlap.matmul(ap)? * (2.0 * weight))?)?;
+            }
+            grads.insert(a_t, grad);
+        }
+        Ok(loss)
+    }
+}
+
 /// Every weight of a model file, by name.
 pub fn base_weights(path: &Path) -> std::result::Result<HashMap<String, Tensor>, ModelError> {
     candle_core::safetensors::load(path, &Device::Cpu).map_err(|e| ModelError::invalid(path, e))
@@ -238,6 +292,40 @@ mod tests {
             .unwrap();
         assert_eq!(diff, 0.0);
         assert_eq!(lora.vars().len(), 2 * 4 * config.n_layers);
+    }
+
+    #[test]
+    fn orthogonality_is_zero_for_orthogonal_subspaces_and_its_gradient_is_exact() {
+        let (_, _, _, lora) = fixture(1, 2);
+        let name = "blocks.0.attn.wo.weight".to_string();
+        let a = lora.vars()["experts.e0.blocks.0.attn.wo.lora_A.weight"].clone();
+        // A = rows e0, e1 of R^32; previous A = rows e2, e3: orthogonal, then overlapping.
+        let basis = |rows: [usize; 2]| {
+            let mut v = vec![0f32; 2 * 32];
+            v[rows[0]] = 1.0;
+            v[32 + rows[1]] = 1.0;
+            Tensor::from_vec(v, (2, 32), &Device::Cpu).unwrap()
+        };
+        a.set(&basis([0, 1])).unwrap();
+        let previous = vec![HashMap::from([(name.clone(), basis([2, 3]))])];
+        let mut grads = GradStore::default();
+        assert_eq!(lora.orthogonality(&previous, 0.5, &mut grads).unwrap(), 0.0);
+        let overlapping = vec![HashMap::from([(name, basis([0, 3]))])];
+        let mut grads = GradStore::default();
+        // A·A_pᵀ = [[1, 0], [0, 0]]: loss 0.5·1; gradient 2·0.5·(A·A_pᵀ)·A_p = e0 in row 0.
+        assert_eq!(
+            lora.orthogonality(&overlapping, 0.5, &mut grads).unwrap(),
+            0.5
+        );
+        let g: Vec<f32> = grads
+            .get(a.as_tensor())
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .to_vec1()
+            .unwrap();
+        assert_eq!(g[0], 1.0);
+        assert_eq!(g.iter().sum::<f32>(), 1.0);
     }
 
     #[test]

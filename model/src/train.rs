@@ -19,7 +19,7 @@
 use crate::accounting::{self, Accounting, SequenceShape};
 use crate::evaluate::{evaluate, SplitLoss};
 use crate::lm_data::{Limits, LmData};
-use crate::lora::{base_weights, LoraAdapter, LoraConfig};
+use crate::lora::{adapter_a_matrices, base_weights, LoraAdapter, LoraConfig};
 use crate::prefix_lm::{init_model, LmBatch, PrefixLm, PrefixLmConfig};
 use crate::{append_json_line, read_json, write_json, ModelError};
 use candle_core::{DType, Device, Tensor};
@@ -73,6 +73,12 @@ pub enum ModelShape {
         /// `adapter.safetensors` for sequential fine-tuning) instead of a new adapter.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         init: Option<PathBuf>,
+        /// Adapter files whose `lora_A` subspaces this adapter is kept orthogonal to (O-LoRA).
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        orthogonal_to: Vec<PathBuf>,
+        /// Weight λ of the orthogonality loss.
+        #[serde(default)]
+        orthogonality: f64,
     },
 }
 
@@ -448,15 +454,23 @@ impl Run {
                 lora,
                 expert,
                 init,
+                orthogonal_to,
+                orthogonality,
             } => {
                 let adapter = LoraAdapter::new(&run.model, *lora, expert, config.seed)
                     .map_err(ModelError::inference)?;
                 if let Some(file) = init {
                     adapter.load(file)?;
                 }
+                let mut previous = Vec::new();
+                for file in orthogonal_to {
+                    previous.extend(adapter_a_matrices(file)?);
+                }
                 Some(LoraRun {
                     adapter,
                     base: base_weights(&base.join(MODEL_FILE))?,
+                    previous,
+                    orthogonality: *orthogonality,
                 })
             }
             _ => None,
@@ -585,10 +599,13 @@ impl Run {
     }
 }
 
-/// A LoRA run: the adapter being trained and the frozen base weights.
+/// A LoRA run: the adapter being trained, the frozen base weights, and the earlier adapters'
+/// `lora_A` matrices it is kept orthogonal to (with weight `orthogonality`).
 struct LoraRun {
     adapter: LoraAdapter,
     base: HashMap<String, Tensor>,
+    previous: Vec<HashMap<String, Tensor>>,
+    orthogonality: f64,
 }
 
 impl LoraRun {
@@ -608,7 +625,14 @@ impl LoraRun {
     ) -> candle_core::Result<(f32, candle_core::backprop::GradStore)> {
         let (model, merged) = self.model(config)?;
         let (loss, grads) = model.loss_and_grads(batch)?;
-        Ok((loss, self.adapter.grads(&merged, &grads)?))
+        let mut grads = self.adapter.grads(&merged, &grads)?;
+        let penalty = if self.previous.is_empty() {
+            0.0
+        } else {
+            self.adapter
+                .orthogonality(&self.previous, self.orthogonality, &mut grads)?
+        };
+        Ok((loss + penalty, grads))
     }
 }
 

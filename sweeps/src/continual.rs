@@ -7,8 +7,9 @@
 //!
 //! Methods (LoRA experts on a frozen trained backbone, `model::lora`): `seq-lora` (one adapter
 //! fine-tuned through the sequence), `replay` (the same, with a seeded buffer of each earlier
-//! dataset's train clips added to every step) and `mtl` (one adapter on all datasets at
-//! once: the joint reference, one row).
+//! dataset's train clips added to every step), `o-lora` (a new adapter per dataset on the
+//! model with the earlier ones merged in, its `lora_A` subspaces kept orthogonal to theirs)
+//! and `mtl` (one adapter on all datasets at once: the joint reference, one row).
 //!
 //! ```text
 //! OUT/config.json                        the run (a different one is refused)
@@ -48,10 +49,13 @@ pub enum Method {
     Replay,
     /// One LoRA adapter on every dataset at once (the joint reference).
     Mtl,
+    /// A new adapter per dataset, its `lora_A` subspaces kept orthogonal to the earlier
+    /// adapters' (which stay merged in, frozen).
+    OLora,
 }
 
 impl Method {
-    /// Parse a CLI name (`seq-lora`, `replay`, `mtl`).
+    /// Parse a CLI name (`seq-lora`, `replay`, `mtl`, `o-lora`).
     pub fn parse(name: &str) -> Option<Self> {
         serde_json::from_value(serde_json::Value::String(name.into())).ok()
     }
@@ -84,6 +88,9 @@ pub struct ContinualConfig {
     pub lora: LoraConfig,
     /// Share of each earlier dataset's train clips replayed (`replay`).
     pub replay_fraction: f64,
+    /// Weight of the orthogonality loss (`o-lora`).
+    #[serde(default)]
+    pub orthogonality: f64,
     /// Evaluation repeats.
     pub repeats: usize,
     /// R-precision pool size.
@@ -290,6 +297,7 @@ pub fn run_continual(
         };
         let mut rows: Vec<Vec<EvalReport>> = Vec::new();
         let mut previous: Option<PathBuf> = None;
+        let mut adapters: Vec<PathBuf> = Vec::new();
         for k in 0..steps {
             let step_dir = order_dir.join(format!("step-{}", k + 1));
             let lists_dir = step_dir.join("lists");
@@ -324,17 +332,30 @@ pub fn run_continual(
             }
             write_lists(&lists_dir, &lists)?;
             let train_dir = step_dir.join("train");
-            let mut train_config = TrainConfig::new(
-                &config.tokens,
-                ModelShape::Lora {
+            // O-LoRA: a new adapter on the model with every earlier one merged in.
+            let shape = match config.method {
+                Method::OLora => ModelShape::Lora {
+                    base: previous
+                        .as_ref()
+                        .and_then(|p| p.parent())
+                        .map_or_else(|| config.base.clone(), Path::to_path_buf),
+                    lora: config.lora,
+                    expert: format!("{}-{}", config.method_expert(), k + 1),
+                    init: None,
+                    orthogonal_to: adapters.clone(),
+                    orthogonality: config.orthogonality,
+                },
+                _ => ModelShape::Lora {
                     base: config.base.clone(),
                     lora: config.lora,
                     expert: config.method_expert(),
                     init: previous.clone(),
+                    orthogonal_to: Vec::new(),
+                    orthogonality: 0.0,
                 },
-                config.tokens_budget,
-                &train_dir,
-            );
+            };
+            let mut train_config =
+                TrainConfig::new(&config.tokens, shape, config.tokens_budget, &train_dir);
             train_config.splits = Some(lists_dir.clone());
             train_config.batch_size = config.batch_size;
             train_config.lr = config.lr;
@@ -351,6 +372,7 @@ pub fn run_continual(
                 report.eval.test.cross_entropy
             ));
             previous = Some(train_dir.join("adapter.safetensors"));
+            adapters.extend(previous.clone());
             let (model, run) = load_model(&train_dir)?;
             let mut row = Vec::new();
             for name in &ordered {
@@ -583,6 +605,7 @@ mod tests {
             ("seq-lora", Method::SeqLora),
             ("replay", Method::Replay),
             ("mtl", Method::Mtl),
+            ("o-lora", Method::OLora),
         ] {
             assert_eq!(Method::parse(name), Some(m));
         }
