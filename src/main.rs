@@ -118,7 +118,7 @@ enum EvaluatorCommand {
 #[derive(Subcommand)]
 enum ModelCommand {
     /// N_nv, N_v, N and FLOPs per token (6N and exact) of one shape.
-    Info(lm::InfoArgs),
+    Info(Box<lm::InfoArgs>),
     /// The preset table at one codebook size.
     Presets(lm::PresetsArgs),
 }
@@ -230,7 +230,7 @@ fn main() -> ExitCode {
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
         Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
         Command::Bench(BenchCommand::Train(args)) => lm_bench::train(args),
-        Command::Model(ModelCommand::Info(args)) => lm::info(args),
+        Command::Model(ModelCommand::Info(args)) => lm::info(*args),
         Command::Model(ModelCommand::Presets(args)) => lm::presets(args),
         Command::Train(args) => lm::train(args),
         Command::Generate(args) => lm::generate(args),
