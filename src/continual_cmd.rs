@@ -17,7 +17,7 @@ pub struct ContinualArgs {
     /// Scenario datasets folder (`motionscale scenarios --out`).
     #[arg(long, required = true)]
     pub scenarios: Option<PathBuf>,
-    /// Method: seq-lora, replay, o-lora or mtl (es-moe and lwf-lora are not built yet).
+    /// Method: seq-lora, replay, o-lora, lwf-lora or mtl (es-moe is not built yet).
     #[arg(long, required = true)]
     pub method: Option<String>,
     /// Trained backbone run (`motionscale train --out`), frozen.
@@ -56,6 +56,9 @@ pub struct ContinualArgs {
     /// Weight λ of the orthogonality loss (`o-lora`).
     #[arg(long, default_value_t = 0.5)]
     pub orthogonality: f64,
+    /// Weight of the distillation loss (`lwf-lora`, temperature 2).
+    #[arg(long, default_value_t = 1.0)]
+    pub distillation: f64,
     /// Evaluation repeats.
     #[arg(long, default_value_t = 10)]
     pub repeats: usize,
@@ -96,7 +99,7 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
     };
     let name = args.method.clone().unwrap_or_default();
     let Some(method) = Method::parse(&name) else {
-        bail!("--method {name:?}: one of seq-lora, replay, o-lora, mtl (es-moe and lwf-lora are not built yet)");
+        bail!("--method {name:?}: one of seq-lora, replay, o-lora, lwf-lora, mtl (es-moe is not built yet)");
     };
     crate::memory::keep_freed_memory();
     let config = ContinualConfig {
@@ -117,6 +120,11 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         replay_fraction: args.replay_fraction,
         orthogonality: if method == Method::OLora {
             args.orthogonality
+        } else {
+            0.0
+        },
+        distillation: if method == Method::LwfLora {
+            args.distillation
         } else {
             0.0
         },

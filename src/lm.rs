@@ -50,6 +50,12 @@ pub struct ShapeArgs {
     /// Weight λ of the O-LoRA orthogonality loss.
     #[arg(long, default_value_t = 0.5, requires = "lora_orthogonal_to")]
     pub lora_orthogonality: f64,
+    /// Distil towards this trained run's outputs on the new data (LwF).
+    #[arg(long, requires = "base")]
+    pub distill_from: Option<PathBuf>,
+    /// Weight of the distillation loss (temperature 2).
+    #[arg(long, default_value_t = 1.0, requires = "distill_from")]
+    pub distillation: f64,
 }
 
 impl ShapeArgs {
@@ -68,6 +74,12 @@ impl ShapeArgs {
                     0.0
                 } else {
                     self.lora_orthogonality
+                },
+                distill_from: self.distill_from.clone(),
+                distillation: if self.distill_from.is_some() {
+                    self.distillation
+                } else {
+                    0.0
                 },
             });
         }

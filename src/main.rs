@@ -83,7 +83,7 @@ enum Command {
     /// Generation metrics (FID, R-precision, matching score, diversity, multimodality,
     /// emotion F1, action accuracy) of a motion set, with 95% intervals over repeats.
     Eval(eval_cmd::EvalArgs),
-    /// Continual expert training over scenario datasets (seq-lora, replay, o-lora, mtl) with the
+    /// Continual expert training over scenario datasets (seq-lora, replay, o-lora, lwf-lora, mtl) with the
     /// f/r/d/mm/wf matrices and AF/AR/AD/AMM/AWF/FR; `continual compare RUNS…` tabulates runs.
     Continual(Box<continual_cmd::ContinualArgs>),
     /// IsoFLOP sweeps: plan, run (local pool or Slurm array), status, collect.

@@ -1,6 +1,7 @@
 //! Continual expert training through the binary on a synthetic corpus: scenario datasets,
 //! a tiny backbone and evaluator, `continual` with seq-lora and mtl (matrix shapes, summary
-//! metrics, an identical summary when re-run), the replay buffer's lists, and `compare`.
+//! metrics, an identical summary when re-run), the replay buffer's lists, the O-LoRA and
+//! LwF-LoRA steps' settings, and `compare`.
 
 mod common;
 
@@ -127,6 +128,21 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
         arg(&olora.join("order-0/step-1/train/adapter.safetensors"))
     );
     assert_eq!(shape["orthogonality"], 0.5);
+
+    // LwF-LoRA: from step 2 on, distilled towards the previous step's model.
+    let lwf = setup.join("lwf-lora");
+    continual(setup, "lwf-lora", &lwf);
+    let lwf_shape = |k: usize| -> Value {
+        read_json::<Value>(&lwf.join(format!("order-0/step-{k}/train/config.json")))["train"]
+            ["model"]["lora"]
+            .clone()
+    };
+    assert!(lwf_shape(1)["distill_from"].is_null());
+    assert_eq!(
+        lwf_shape(2)["distill_from"],
+        arg(&lwf.join("order-0/step-1/train"))
+    );
+    assert_eq!(lwf_shape(2)["distillation"], 1.0);
 
     // MTL: one step on every dataset, no forgetting rate.
     let mtl = setup.join("mtl");

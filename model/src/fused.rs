@@ -530,6 +530,53 @@ pub fn target_log_probs(logits: &[f32], vocab: usize, targets: &[u32]) -> Vec<f3
         .collect()
 }
 
+/// Knowledge distillation (LwF): `weight · T² · KL(softmax(teacher/T) ‖ softmax(logits/T))`
+/// averaged over the rows whose target is not [`IGNORE`], and its gradient with respect to
+/// `logits`, `weight · T · (softmax(logits/T) − softmax(teacher/T)) / rows`.
+pub fn distillation(
+    logits: &[f32],
+    teacher: &[f32],
+    vocab: usize,
+    targets: &[u32],
+    weight: f32,
+    temperature: f32,
+) -> (f32, Vec<f32>) {
+    let valid = targets.iter().filter(|&&t| t != IGNORE).count().max(1);
+    let softmax = |row: &[f32]| -> Vec<f32> {
+        let max = row
+            .iter()
+            .fold(f32::NEG_INFINITY, |m, &v| m.max(v / temperature));
+        let e: Vec<f32> = row.iter().map(|&v| (v / temperature - max).exp()).collect();
+        let sum: f32 = e.iter().sum();
+        e.into_iter().map(|v| v / sum).collect()
+    };
+    let mut grad = vec![0f32; logits.len()];
+    let scale = weight / valid as f32;
+    let losses: Vec<f64> = grad
+        .par_chunks_mut(vocab)
+        .zip(logits.par_chunks(vocab).zip(teacher.par_chunks(vocab)))
+        .zip(targets.par_iter())
+        .map(|((g, (student, teacher)), &t)| {
+            if t == IGNORE {
+                return 0.0;
+            }
+            let (p, q) = (softmax(student), softmax(teacher));
+            let mut kl = 0f64;
+            for ((g, &p), &q) in g.iter_mut().zip(&p).zip(&q) {
+                *g = scale * temperature * (p - q);
+                if q > 0.0 {
+                    kl += f64::from(q)
+                        * (f64::from(q).ln() - f64::from(p.max(f32::MIN_POSITIVE)).ln());
+                }
+            }
+            kl
+        })
+        .collect();
+    let t2 = f64::from(temperature * temperature);
+    let loss = f64::from(weight) * t2 * losses.iter().sum::<f64>() / valid as f64;
+    (loss as f32, grad)
+}
+
 /// Mean cross-entropy over the rows whose target is not [`IGNORE`], and the gradient of that
 /// mean with respect to the logits (`(softmax − onehot) / rows with a target`).
 pub fn cross_entropy(logits: &[f32], vocab: usize, targets: &[u32]) -> (f32, Vec<f32>) {
@@ -567,6 +614,32 @@ mod tests {
     fn values(n: usize, seed: u64) -> Vec<f32> {
         let mut rng = ingest::rng::SplitMix64(seed);
         (0..n).map(|_| rng.range(-1.0, 1.0) as f32).collect()
+    }
+
+    #[test]
+    fn distillation_is_zero_against_itself_and_its_gradient_is_exact() {
+        let logits = [0.5f32, -1.0, 2.0, 0.1, 0.3, -0.2];
+        let targets = [1u32, IGNORE];
+        let (loss, grad) = distillation(&logits, &logits, 3, &targets, 1.0, 2.0);
+        assert!(loss.abs() < 1e-7 && grad.iter().all(|g| g.abs() < 1e-7));
+        let teacher = [0.0f32, 1.0, -1.0, 5.0, 5.0, 5.0];
+        let (loss, grad) = distillation(&logits, &teacher, 3, &targets, 0.5, 2.0);
+        assert!(loss > 0.0);
+        assert!(grad[3..].iter().all(|&g| g == 0.0), "ignored row");
+        for k in 0..3 {
+            let eps = 1e-3f32;
+            let at = |d: f32| {
+                let mut l = logits;
+                l[k] += d;
+                f64::from(distillation(&l, &teacher, 3, &targets, 0.5, 2.0).0)
+            };
+            let numeric = (at(eps) - at(-eps)) / (2.0 * f64::from(eps));
+            assert!(
+                (numeric - f64::from(grad[k])).abs() < 1e-3,
+                "{k}: {numeric} vs {}",
+                grad[k]
+            );
+        }
     }
 
     #[test]

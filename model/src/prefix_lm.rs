@@ -652,10 +652,24 @@ impl PrefixLm {
     /// Mean cross-entropy over the targets of `batch` and the gradient of every weight
     /// (keyed by the weight tensors, as `loss.backward()` would key them).
     pub fn loss_and_grads(&self, batch: &LmBatch) -> Result<(f32, GradStore)> {
+        self.loss_and_grads_with(batch, &|_| None)
+    }
+
+    /// As [`Self::loss_and_grads`], plus an extra loss term on the logits: `extra(logits)`
+    /// returns its value and its gradient with respect to the logits (e.g. distillation).
+    pub fn loss_and_grads_with(
+        &self,
+        batch: &LmBatch,
+        extra: &dyn Fn(&[f32]) -> Option<(f32, Vec<f32>)>,
+    ) -> Result<(f32, GradStore)> {
         let (loss, grads) = self.with_weights(|w| {
             let (logits, trace) = self.run(w, batch, true)?;
-            let (loss, g_logits) =
+            let (mut loss, mut g_logits) =
                 fused::cross_entropy(&logits, self.config.vocab_size(), &batch.targets);
+            if let Some((term, g_term)) = extra(&logits) {
+                loss += term;
+                g_logits.iter_mut().zip(g_term).for_each(|(g, e)| *g += e);
+            }
             Ok((loss, self.backward(w, batch, &trace, &g_logits)))
         })?;
         let mut store = GradStore::default();

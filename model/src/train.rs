@@ -79,8 +79,18 @@ pub enum ModelShape {
         /// Weight λ of the orthogonality loss.
         #[serde(default)]
         orthogonality: f64,
+        /// A trained run whose outputs the model is distilled towards on the new data
+        /// (LwF), with weight `distillation`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        distill_from: Option<PathBuf>,
+        /// Weight of the distillation loss (temperature [`DISTILLATION_TEMPERATURE`]).
+        #[serde(default)]
+        distillation: f64,
     },
 }
+
+/// Softmax temperature of the LwF distillation loss (Hinton et al.'s usual 2).
+pub const DISTILLATION_TEMPERATURE: f32 = 2.0;
 
 impl ModelShape {
     /// The model configuration for `codebook_size` codes and `text_dim`-wide text.
@@ -456,6 +466,8 @@ impl Run {
                 init,
                 orthogonal_to,
                 orthogonality,
+                distill_from,
+                distillation,
             } => {
                 let adapter = LoraAdapter::new(&run.model, *lora, expert, config.seed)
                     .map_err(ModelError::inference)?;
@@ -466,11 +478,17 @@ impl Run {
                 for file in orthogonal_to {
                     previous.extend(adapter_a_matrices(file)?);
                 }
+                let teacher = match distill_from {
+                    Some(dir) => Some(load_model(dir)?.0),
+                    None => None,
+                };
                 Some(LoraRun {
                     adapter,
                     base: base_weights(&base.join(MODEL_FILE))?,
                     previous,
                     orthogonality: *orthogonality,
+                    teacher,
+                    distillation: *distillation as f32,
                 })
             }
             _ => None,
@@ -599,13 +617,16 @@ impl Run {
     }
 }
 
-/// A LoRA run: the adapter being trained, the frozen base weights, and the earlier adapters'
-/// `lora_A` matrices it is kept orthogonal to (with weight `orthogonality`).
+/// A LoRA run: the adapter being trained, the frozen base weights, the earlier adapters'
+/// `lora_A` matrices it is kept orthogonal to (with weight `orthogonality`), and the model it
+/// is distilled towards (with weight `distillation`).
 struct LoraRun {
     adapter: LoraAdapter,
     base: HashMap<String, Tensor>,
     previous: Vec<HashMap<String, Tensor>>,
     orthogonality: f64,
+    teacher: Option<PrefixLm>,
+    distillation: f32,
 }
 
 impl LoraRun {
@@ -624,7 +645,23 @@ impl LoraRun {
         batch: &LmBatch,
     ) -> candle_core::Result<(f32, candle_core::backprop::GradStore)> {
         let (model, merged) = self.model(config)?;
-        let (loss, grads) = model.loss_and_grads(batch)?;
+        let (loss, grads) = match &self.teacher {
+            None => model.loss_and_grads(batch)?,
+            Some(teacher) => {
+                let soft: Vec<f32> = teacher.forward(batch)?.flatten_all()?.to_vec1()?;
+                let vocab = config.vocab_size();
+                model.loss_and_grads_with(batch, &|logits| {
+                    Some(crate::fused::distillation(
+                        logits,
+                        &soft,
+                        vocab,
+                        &batch.targets,
+                        self.distillation,
+                        DISTILLATION_TEMPERATURE,
+                    ))
+                })?
+            }
+        };
         let mut grads = self.adapter.grads(&merged, &grads)?;
         let penalty = if self.previous.is_empty() {
             0.0

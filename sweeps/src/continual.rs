@@ -9,6 +9,7 @@
 //! fine-tuned through the sequence), `replay` (the same, with a seeded buffer of each earlier
 //! dataset's train clips added to every step), `o-lora` (a new adapter per dataset on the
 //! model with the earlier ones merged in, its `lora_A` subspaces kept orthogonal to theirs)
+//! `lwf-lora` (sequential LoRA distilled towards the previous step's model on the new data)
 //! and `mtl` (one adapter on all datasets at once: the joint reference, one row).
 //!
 //! ```text
@@ -52,10 +53,12 @@ pub enum Method {
     /// A new adapter per dataset, its `lora_A` subspaces kept orthogonal to the earlier
     /// adapters' (which stay merged in, frozen).
     OLora,
+    /// Sequential LoRA distilled towards the previous step's model on the new data (LwF).
+    LwfLora,
 }
 
 impl Method {
-    /// Parse a CLI name (`seq-lora`, `replay`, `mtl`, `o-lora`).
+    /// Parse a CLI name (`seq-lora`, `replay`, `mtl`, `o-lora`, `lwf-lora`).
     pub fn parse(name: &str) -> Option<Self> {
         serde_json::from_value(serde_json::Value::String(name.into())).ok()
     }
@@ -91,6 +94,9 @@ pub struct ContinualConfig {
     /// Weight of the orthogonality loss (`o-lora`).
     #[serde(default)]
     pub orthogonality: f64,
+    /// Weight of the distillation loss (`lwf-lora`).
+    #[serde(default)]
+    pub distillation: f64,
     /// Evaluation repeats.
     pub repeats: usize,
     /// R-precision pool size.
@@ -344,6 +350,8 @@ pub fn run_continual(
                     init: None,
                     orthogonal_to: adapters.clone(),
                     orthogonality: config.orthogonality,
+                    distill_from: None,
+                    distillation: 0.0,
                 },
                 _ => ModelShape::Lora {
                     base: config.base.clone(),
@@ -352,6 +360,17 @@ pub fn run_continual(
                     init: previous.clone(),
                     orthogonal_to: Vec::new(),
                     orthogonality: 0.0,
+                    distill_from: match config.method {
+                        Method::LwfLora => previous
+                            .as_ref()
+                            .and_then(|p| p.parent())
+                            .map(Path::to_path_buf),
+                        _ => None,
+                    },
+                    distillation: match (config.method, &previous) {
+                        (Method::LwfLora, Some(_)) => config.distillation,
+                        _ => 0.0,
+                    },
                 },
             };
             let mut train_config =
@@ -606,6 +625,7 @@ mod tests {
             ("replay", Method::Replay),
             ("mtl", Method::Mtl),
             ("o-lora", Method::OLora),
+            ("lwf-lora", Method::LwfLora),
         ] {
             assert_eq!(Method::parse(name), Some(m));
         }
