@@ -492,6 +492,10 @@ struct Trace {
     h: Vec<f32>,
 }
 
+/// An extra loss on the logits (`rows × V`): its value and its gradient with respect to the
+/// logits, or `None` for no extra term.
+pub type ExtraLoss = dyn Fn(&[f32]) -> Option<(f32, Vec<f32>)>;
+
 /// The text-prefix autoregressive transformer.
 #[derive(Debug, Clone)]
 pub struct PrefixLm {
@@ -655,12 +659,12 @@ impl PrefixLm {
         self.loss_and_grads_with(batch, &|_| None)
     }
 
-    /// As [`Self::loss_and_grads`], plus an extra loss term on the logits: `extra(logits)`
+    /// As [`Self::loss_and_grads`], plus an [`ExtraLoss`] term on the logits: `extra(logits)`
     /// returns its value and its gradient with respect to the logits (e.g. distillation).
     pub fn loss_and_grads_with(
         &self,
         batch: &LmBatch,
-        extra: &dyn Fn(&[f32]) -> Option<(f32, Vec<f32>)>,
+        extra: &ExtraLoss,
     ) -> Result<(f32, GradStore)> {
         let (loss, grads) = self.with_weights(|w| {
             let (logits, trace) = self.run(w, batch, true)?;
