@@ -494,7 +494,7 @@ struct Trace {
 
 /// An extra loss on the logits (`rows × V`): its value and its gradient with respect to the
 /// logits, or `None` for no extra term.
-pub type ExtraLoss = dyn Fn(&[f32]) -> Option<(f32, Vec<f32>)>;
+pub type ExtraLoss<'a> = dyn Fn(&[f32]) -> Option<(f32, Vec<f32>)> + 'a;
 
 /// The text-prefix autoregressive transformer.
 #[derive(Debug, Clone)]
@@ -664,7 +664,7 @@ impl PrefixLm {
     pub fn loss_and_grads_with(
         &self,
         batch: &LmBatch,
-        extra: &ExtraLoss,
+        extra: &ExtraLoss<'_>,
     ) -> Result<(f32, GradStore)> {
         let (loss, grads) = self.with_weights(|w| {
             let (logits, trace) = self.run(w, batch, true)?;
