@@ -71,6 +71,9 @@ pub struct ContinualArgs {
     /// Split of each dataset that is evaluated.
     #[arg(long, default_value = "test")]
     pub eval_split: String,
+    /// Keep every step's generated motions (large) instead of only their eval JSON.
+    #[arg(long)]
+    pub keep_motions: bool,
     /// Output folder; re-running resumes.
     #[arg(long, required = true)]
     pub out: Option<PathBuf>,
@@ -132,6 +135,7 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         pool: args.pool,
         mm_texts: args.mm_texts,
         eval_split: args.eval_split,
+        keep_motions: args.keep_motions,
         out: required(args.out, "out")?,
     };
     let started = std::time::Instant::now();

@@ -94,6 +94,10 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
     }
     let csv = std::fs::read_to_string(seq.join("summary.csv")).unwrap();
     assert_eq!(csv.lines().count(), 4, "header, two orders, mean: {csv}");
+    assert!(
+        !seq.join("order-0/step-1/gen-D01_daily").exists(),
+        "generated motions are removed once scored"
+    );
     // Re-running finds every step done and writes the same summary.
     let first = std::fs::read(seq.join("summary.json")).unwrap();
     continual(setup, "seq-lora", &seq);

@@ -17,7 +17,8 @@
 //! OUT/order-<o>/order.json               the datasets in this order
 //! OUT/order-<o>/step-<k>/lists/          {train,val,test}.txt the step trained on
 //! OUT/order-<o>/step-<k>/train/          the `motionscale train` folder (resumable)
-//! OUT/order-<o>/step-<k>/gen-<dataset>/  generated motions (HumanML3D layout)
+//! OUT/order-<o>/step-<k>/gen-<dataset>/  generated motions (HumanML3D layout; removed once
+//!                                        scored unless `keep_motions`)
 //! OUT/order-<o>/step-<k>/eval-<dataset>.json   `eval` report
 //! OUT/order-<o>/{fid,r_precision}.{svg,png}     the matrices as heat maps (the paper's Fig. 5)
 //! OUT/summary.json, OUT/summary.csv      matrices and summary metrics per order, and their mean
@@ -105,6 +106,10 @@ pub struct ContinualConfig {
     pub mm_texts: usize,
     /// Split of every dataset that is evaluated.
     pub eval_split: String,
+    /// Keep the generated motions after scoring (about 200 MB per step and dataset at
+    /// Bandai + synth scale; by default only the eval JSON stays).
+    #[serde(default)]
+    pub keep_motions: bool,
     /// Output folder.
     pub out: PathBuf,
 }
@@ -433,6 +438,9 @@ pub fn run_continual(
                     None,
                 )?;
                 write_json(&eval_path, &report)?;
+                if !config.keep_motions {
+                    std::fs::remove_dir_all(&gen_dir).map_err(|e| SweepError::io(&gen_dir, e))?;
+                }
                 log(&format!(
                     "order {o} step {}: {name} FID {:.4}, R-precision@1 {:.3}",
                     k + 1,
