@@ -14,7 +14,7 @@ job_states() {
 }
 
 sinfo -h >/dev/null 2>&1 || die "no Slurm controller answers; run scripts/slurm-setup.sh first"
-dir=$(mktemp -d /tmp/slurm-smoke.XXXXXX)
+dir=$(mktemp -d -t slurm-smoke.XXXXXX)
 array='' dep=''
 # On failure, cancel what is still queued (so a rerun does not wait behind it) and keep the
 # logs for inspection; on success, remove them.
