@@ -83,19 +83,11 @@ pub fn generate_caption_set(
     let corpus = Corpus::open(corpus_dir).map_err(ModelError::Corpus)?;
     let captions = crate::embed::clip_captions(corpus_dir)?;
     let mut rng = SplitMix64::stream(options.sampling.seed, 0);
-    let lists = options
-        .splits
-        .as_deref()
-        .map(|d| ingest::corpus::split::read_split_lists(d).map_err(|e| ModelError::invalid(d, e)))
-        .transpose()?;
-    let in_split = |id: &str, own: &str| match &lists {
-        Some(l) => l.get(id).is_some_and(|s| *s == options.split),
-        None => own == options.split,
-    };
+    let splits = crate::motion_eval::split_assignment(options.splits.as_deref())?;
     let clips: Vec<(String, String)> = corpus
         .clips()
         .iter()
-        .filter(|c| in_split(&c.motion_id, &c.split))
+        .filter(|c| splits.split_of(&c.motion_id, &c.split) == Some(options.split.as_str()))
         .filter_map(|c| {
             let list = captions.get(&c.motion_id).filter(|l| !l.is_empty())?;
             Some((c.motion_id.clone(), list[rng.index(list.len())].clone()))

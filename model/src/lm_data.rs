@@ -11,6 +11,7 @@ use crate::embed::{clip_captions, CaptionEmbeddings};
 use crate::prefix_lm::{LmBatch, PrefixLmConfig};
 use crate::ModelError;
 use ingest::corpus::manifest::Manifest;
+use ingest::corpus::split::SplitAssignment;
 use ingest::rng::SplitMix64;
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -95,15 +96,14 @@ fn mix(a: u64, b: u64) -> u64 {
 
 impl LmData {
     /// Load the token set in `tokens_dir` and the embeddings of encoder `encoder` (or the
-    /// corpus's only one) for the captions of its clips in `corpus_dir`. With `splits`
-    /// (clip id → split, e.g. a scenario dataset's lists) only the listed clips are kept,
-    /// in the listed splits.
+    /// corpus's only one) for the captions of its clips in `corpus_dir`, each clip in the
+    /// split `splits` assigns it (clips in none are left out).
     pub fn load(
         tokens_dir: &Path,
         corpus_dir: &Path,
         encoder: Option<&str>,
         limits: Limits,
-        splits: Option<&HashMap<String, String>>,
+        splits: &SplitAssignment,
     ) -> Result<Self, ModelError> {
         let set = TokenSet::open(tokens_dir).map_err(|e| ModelError::invalid(tokens_dir, e))?;
         let encoder = resolve_encoder(corpus_dir, encoder)?;
@@ -113,12 +113,8 @@ impl LmData {
         let mut text = Vec::new();
         let mut by_split: BTreeMap<String, Vec<Example>> = BTreeMap::new();
         for clip in &set.clips {
-            let split = match splits {
-                Some(lists) => match lists.get(&clip.motion_id) {
-                    Some(s) => s,
-                    None => continue,
-                },
-                None => &clip.split,
+            let Some(split) = splits.split_of(&clip.motion_id, &clip.split) else {
+                continue;
             };
             let clip_captions = captions.get(&clip.motion_id).ok_or_else(|| {
                 ModelError::Corpus(format!(
@@ -145,11 +141,14 @@ impl LmData {
                 ids.push(text.len() - 1);
             }
             let keep = clip.tokens.len().min(limits.motion_tokens);
-            by_split.entry(split.clone()).or_default().push(Example {
-                captions: ids,
-                tokens: clip.tokens[..keep].to_vec(),
-                ends: keep == clip.tokens.len(),
-            });
+            by_split
+                .entry(split.to_string())
+                .or_default()
+                .push(Example {
+                    captions: ids,
+                    tokens: clip.tokens[..keep].to_vec(),
+                    ends: keep == clip.tokens.len(),
+                });
         }
         Ok(Self {
             tokens: set.manifest,

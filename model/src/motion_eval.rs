@@ -17,6 +17,7 @@ use crate::evaluator_train::{class_of, corpus_clips, LabelledClip};
 use crate::metrics::{self, Interval};
 use crate::{ModelError, TextEncoder};
 use ingest::corpus::schema::FEATURE_DIM;
+use ingest::corpus::split::SplitAssignment;
 use ingest::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -117,13 +118,10 @@ fn from_clip(clip: LabelledClip) -> EvalMotion {
 /// The ground-truth clips of `split` in the corpus at `dir` (those with a caption).
 pub fn corpus_split(dir: &Path, options: &EvalOptions) -> Result<MotionSet, ModelError> {
     let source = options.source.as_deref();
-    let lists = split_lists(options)?;
+    let splits = split_assignment(options.splits.as_deref())?;
     let clips = corpus_clips(dir, |m| {
-        let split = match &lists {
-            Some(l) => l.get(&m.motion_id).map(String::as_str),
-            None => Some(m.split.as_str()),
-        };
-        split == Some(options.split.as_str()) && source.is_none_or(|s| m.source == s)
+        splits.split_of(&m.motion_id, &m.split) == Some(options.split.as_str())
+            && source.is_none_or(|s| m.source == s)
     })?;
     Ok(MotionSet {
         kind: "corpus".into(),
@@ -136,15 +134,11 @@ pub fn corpus_split(dir: &Path, options: &EvalOptions) -> Result<MotionSet, Mode
     })
 }
 
-/// The clip lists of `options.splits`, when given.
-fn split_lists(options: &EvalOptions) -> Result<Option<HashMap<String, String>>, ModelError> {
-    options
-        .splits
-        .as_deref()
-        .map(|dir| {
-            ingest::corpus::split::read_split_lists(dir).map_err(|e| ModelError::invalid(dir, e))
-        })
-        .transpose()
+/// The split assignment of the `{train,val,test}.txt` lists in `dir` (the clips' own splits
+/// without one).
+pub fn split_assignment(dir: Option<&Path>) -> Result<SplitAssignment, ModelError> {
+    SplitAssignment::from_dir(dir)
+        .map_err(|e| ModelError::invalid(dir.unwrap_or(Path::new(".")), e))
 }
 
 /// A line of `generated.jsonl`.
@@ -173,7 +167,7 @@ pub fn hml3d_folder(
             what: "HumanML3D features folder (or pass a corpus folder)",
         });
     }
-    let lists = split_lists(options)?;
+    let splits = split_assignment(options.splits.as_deref())?;
     let split_file = dir.join(format!("{}.txt", options.split));
     let listed = ingest::corpus::split::read_ids(&split_file)
         .map_err(|e| ModelError::invalid(&split_file, e))?;
@@ -232,10 +226,8 @@ pub fn hml3d_folder(
                 (id.clone(), lines.into_iter().map(|l| l.caption).collect())
             }
         };
-        if lists
-            .as_ref()
-            .is_some_and(|l| l.get(&group) != Some(&options.split))
-        {
+        // Generated motions belong to the split of the clip they were generated from.
+        if splits.split_of(&group, &options.split) != Some(options.split.as_str()) {
             continue;
         }
         let label = labels.get(&group);

@@ -425,13 +425,9 @@ impl Run {
             motion_tokens: config.max_motion_tokens,
         };
         let encoder = config.text_encoder.as_deref();
-        let lists = match &config.splits {
-            Some(dir) => {
-                Some(ingest::corpus::split::read_split_lists(dir).map_err(ModelError::Argument)?)
-            }
-            None => None,
-        };
-        let data = LmData::load(&config.tokens, &corpus, encoder, limits, lists.as_ref())?;
+        let splits = ingest::corpus::split::SplitAssignment::from_dir(config.splits.as_deref())
+            .map_err(ModelError::Argument)?;
+        let data = LmData::load(&config.tokens, &corpus, encoder, limits, &splits)?;
         let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
         let total = data
             .steps_for_tokens(config.tokens_budget, config.batch_size, config.seed)

@@ -161,7 +161,7 @@ fn a_model_predicting_the_unigram_has_zero_normalized_loss() {
         text_tokens: 64,
         motion_tokens: 64,
     };
-    let data = LmData::load(&tokens, &corpus, None, limits, None).unwrap();
+    let data = LmData::load(&tokens, &corpus, None, limits, &Default::default()).unwrap();
     let config = PrefixLmConfig::new(8, 1, 2, CODES, data.text_dim);
     let (d, v) = (config.d_model, config.vocab_size());
     // Blocks whose output projections are zero leave h = the token embedding e0; the final

@@ -19,6 +19,31 @@ pub fn split_of(source_clip: &str) -> &'static str {
     }
 }
 
+/// Which split each clip belongs to: its own (the corpus's hash split), or the one a folder
+/// of `{train,val,test}.txt` lists gives (a scenario dataset), where unlisted clips are in
+/// no split.
+#[derive(Debug, Clone, Default)]
+pub struct SplitAssignment {
+    lists: Option<HashMap<String, String>>,
+}
+
+impl SplitAssignment {
+    /// The lists of `dir`, or the clips' own splits when there is none.
+    pub fn from_dir(dir: Option<&Path>) -> Result<Self, String> {
+        Ok(Self {
+            lists: dir.map(read_split_lists).transpose()?,
+        })
+    }
+
+    /// The split of clip `id` whose own split is `own`.
+    pub fn split_of<'a>(&'a self, id: &str, own: &'a str) -> Option<&'a str> {
+        match &self.lists {
+            Some(lists) => lists.get(id).map(String::as_str),
+            None => Some(own),
+        }
+    }
+}
+
 /// The lines of `path`, trimmed, blank ones dropped (ids of a split list, captions of a
 /// sidecar); `None` when it is absent.
 pub fn read_ids(path: &Path) -> Result<Option<Vec<String>>, String> {
