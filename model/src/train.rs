@@ -398,6 +398,7 @@ pub fn train(
 struct Run {
     config: RunConfig,
     data: LmData,
+    /// The model being trained (a LoRA run trains an adapter on the base in `lora` instead).
     model: PrefixLm,
     /// The trained variables: the model's, or the adapter's on a frozen base.
     vars: HashMap<String, candle_core::Var>,
@@ -452,8 +453,7 @@ impl Run {
             },
         };
         std::fs::create_dir_all(&config.out).map_err(|e| ModelError::io(&config.out, e))?;
-        let (mut model, varmap) =
-            init_model(&run.model, config.seed).map_err(ModelError::inference)?;
+        let (model, varmap) = init_model(&run.model, config.seed).map_err(ModelError::inference)?;
         let lora = match &config.model {
             ModelShape::Lora {
                 base,
@@ -503,9 +503,6 @@ impl Run {
         let mut opt = AdamW::new(&vars, adamw);
         let paths = Paths::new(&config.out);
         let state = resume(&paths, &run, &vars, &mut opt)?;
-        if let Some(l) = &lora {
-            model = l.model(&run.model).map_err(ModelError::inference)?.0;
-        }
         write_json(&paths.config, &run)?;
         Ok(Self {
             config: run,
@@ -533,12 +530,6 @@ impl Run {
         self.opt
             .step(&grads, lr, Some(c.grad_clip))
             .map_err(ModelError::inference)?;
-        if let Some(l) = &self.lora {
-            self.model = l
-                .model(&self.config.model)
-                .map_err(ModelError::inference)?
-                .0;
-        }
         let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
         let shape = SequenceShape {
             prefix: batch.layout.prefix_slots,
@@ -561,12 +552,19 @@ impl Run {
 
     /// Evaluate the test split and record it in `eval.json` and `evals.jsonl`.
     fn evaluate(&self, train_loss: f64) -> Result<EvalRecord, ModelError> {
-        let test = evaluate(
-            &self.model,
-            &self.data,
-            "test",
-            self.config.train.batch_size,
-        )?;
+        // A LoRA run evaluates the base with the adapter as it now stands merged in.
+        let merged;
+        let model = match &self.lora {
+            Some(l) => {
+                merged = l
+                    .model(&self.config.model)
+                    .map_err(ModelError::inference)?
+                    .0;
+                &merged
+            }
+            None => &self.model,
+        };
+        let test = evaluate(model, &self.data, "test", self.config.train.batch_size)?;
         let params = self.config.accounting.params;
         let record = EvalRecord {
             step: self.state.step,
