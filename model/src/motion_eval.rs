@@ -397,8 +397,9 @@ pub fn evaluate_motions(
     let mut multimodality_groups = 0;
     for repeat in 0..options.repeats {
         let mut rng = SplitMix64::stream(options.seed, repeat as u64);
+        let noisy_predictions;
         let predictions = match &clean {
-            Some(p) => p.clone(),
+            Some(p) => p,
             None => {
                 let noisy: Vec<Vec<f32>> = set
                     .motions
@@ -406,7 +407,8 @@ pub fn evaluate_motions(
                     .map(|m| add_noise(&m.clip.features, evaluator, options.noise, &mut rng))
                     .collect();
                 let motions: Vec<&[f32]> = noisy.iter().map(Vec::as_slice).collect();
-                evaluator.embed_motions(&motions, 128)?
+                noisy_predictions = evaluator.embed_motions(&motions, 128)?;
+                &noisy_predictions
             }
         };
         // One motion per group and one of its captions, in a random order.

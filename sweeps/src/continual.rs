@@ -59,9 +59,29 @@ pub enum Method {
 }
 
 impl Method {
+    /// Every method.
+    pub const ALL: [Method; 5] = [
+        Method::SeqLora,
+        Method::Replay,
+        Method::Mtl,
+        Method::OLora,
+        Method::LwfLora,
+    ];
+
+    /// Its CLI (and serialised) name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Method::SeqLora => "seq-lora",
+            Method::Replay => "replay",
+            Method::Mtl => "mtl",
+            Method::OLora => "o-lora",
+            Method::LwfLora => "lwf-lora",
+        }
+    }
+
     /// Parse a CLI name (`seq-lora`, `replay`, `mtl`, `o-lora`, `lwf-lora`).
     pub fn parse(name: &str) -> Option<Self> {
-        serde_json::from_value(serde_json::Value::String(name.into())).ok()
+        Self::ALL.into_iter().find(|m| m.name() == name)
     }
 }
 
@@ -351,7 +371,7 @@ pub fn run_continual(
                         .and_then(|p| p.parent())
                         .map_or_else(|| config.base.clone(), Path::to_path_buf),
                     lora: config.lora,
-                    expert: format!("{}-{}", config.method_expert(), k + 1),
+                    expert: format!("{}-{}", config.method.name(), k + 1),
                     init: None,
                     orthogonal_to: adapters.clone(),
                     orthogonality: config.orthogonality,
@@ -361,7 +381,7 @@ pub fn run_continual(
                 _ => ModelShape::Lora {
                     base: config.base.clone(),
                     lora: config.lora,
-                    expert: config.method_expert(),
+                    expert: config.method.name().to_string(),
                     init: previous.clone(),
                     orthogonal_to: Vec::new(),
                     orthogonality: 0.0,
@@ -500,16 +520,6 @@ fn write_heatmaps(dir: &Path, o: usize, result: &OrderResult) -> Result<(), Swee
     Ok(())
 }
 
-impl ContinualConfig {
-    /// The adapter's expert name: the method's.
-    fn method_expert(&self) -> String {
-        serde_json::to_value(self.method)
-            .ok()
-            .and_then(|v| v.as_str().map(str::to_string))
-            .unwrap_or_default()
-    }
-}
-
 fn order_result(datasets: Vec<String>, rows: &[Vec<EvalReport>]) -> OrderResult {
     let take = |f: &dyn Fn(&EvalReport) -> f64| -> Vec<Vec<f64>> {
         rows.iter().map(|row| row.iter().map(f).collect()).collect()
@@ -574,7 +584,7 @@ pub fn compare_table(runs: &[PathBuf]) -> Result<String, SweepError> {
         out.push_str(&format!(
             "| {} | {} | {} | {:.4} | {:.3} | {} | {} | {} | {} |\n",
             dir.display(),
-            report.config.method_expert(),
+            report.config.method.name(),
             report.orders.len(),
             s.af,
             s.ar,
@@ -636,6 +646,11 @@ mod tests {
             ("lwf-lora", Method::LwfLora),
         ] {
             assert_eq!(Method::parse(name), Some(m));
+            assert_eq!(
+                serde_json::to_value(m).unwrap(),
+                name,
+                "serialised as named"
+            );
         }
         assert_eq!(Method::parse("es-moe"), None);
     }
