@@ -43,6 +43,13 @@ impl SplitMix64 {
         lo + (hi - lo) * self.unit()
     }
 
+    /// Shuffle `items` in place (Fisher–Yates from the back).
+    pub fn shuffle<T>(&mut self, items: &mut [T]) {
+        for i in (1..items.len()).rev() {
+            items.swap(i, self.index(i + 1));
+        }
+    }
+
     /// A standard normal draw (Box–Muller on two uniforms in (0, 1]).
     pub fn normal(&mut self) -> f64 {
         let mut open_unit = || ((self.next_u64() >> 11) + 1) as f64 / (1u64 << 53) as f64;

@@ -101,9 +101,7 @@ pub fn generate_caption_set(
         )));
     }
     let mut multi: Vec<usize> = (0..clips.len()).collect();
-    for i in (1..multi.len()).rev() {
-        multi.swap(i, rng.index(i + 1));
-    }
+    rng.shuffle(&mut multi);
     multi.truncate(options.mm_texts);
     let mut jobs = Vec::new();
     for (i, (motion_id, caption)) in clips.iter().enumerate() {

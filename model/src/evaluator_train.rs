@@ -321,10 +321,7 @@ fn train_step(
     let per_epoch = (clips.len() / config.batch) as u64;
     let (epoch, position) = (step / per_epoch, (step % per_epoch) as usize);
     let mut order: Vec<usize> = (0..clips.len()).collect();
-    let mut shuffle = SplitMix64::stream(config.seed, epoch);
-    for i in (1..order.len()).rev() {
-        order.swap(i, shuffle.index(i + 1));
-    }
+    SplitMix64::stream(config.seed, epoch).shuffle(&mut order);
     let mut rng = SplitMix64::stream(config.seed ^ 0x5eed, step);
     let net = &evaluator.net;
     let c = &net.config;

@@ -413,7 +413,7 @@ pub fn evaluate_motions(
         };
         // One motion per group and one of its captions, in a random order.
         let mut picks: Vec<usize> = group_list.iter().map(|g| g[rng.index(g.len())]).collect();
-        shuffle(&mut picks, &mut rng);
+        rng.shuffle(&mut picks);
         let mut texts: Vec<&str> = picks
             .iter()
             .map(|&i| {
@@ -422,7 +422,7 @@ pub fn evaluate_motions(
             })
             .collect();
         if options.shuffle_captions {
-            shuffle(&mut texts, &mut rng);
+            rng.shuffle(&mut texts);
         }
         let embedding = |i: usize| predictions.embeddings[i].clone();
         let (matched, fid) = if options.halves {
@@ -549,12 +549,6 @@ pub fn embed_set(
 
 fn features(m: &EvalMotion) -> &[f32] {
     &m.clip.features
-}
-
-fn shuffle<T>(items: &mut [T], rng: &mut SplitMix64) {
-    for i in (1..items.len()).rev() {
-        items.swap(i, rng.index(i + 1));
-    }
 }
 
 /// `features` plus Gaussian noise of `sd` in normalised units (σ scaled by each feature's

@@ -240,10 +240,7 @@ pub struct ContinualReport {
 pub fn order(n: usize, seed: u64, o: usize) -> Vec<usize> {
     let mut positions: Vec<usize> = (0..n).collect();
     if o > 0 {
-        let mut rng = SplitMix64::stream(seed, o as u64);
-        for i in (1..n).rev() {
-            positions.swap(i, rng.index(i + 1));
-        }
+        SplitMix64::stream(seed, o as u64).shuffle(&mut positions);
     }
     positions
 }
@@ -350,9 +347,7 @@ pub fn run_continual(
                         .unwrap_or_default();
                     let mut rng =
                         SplitMix64::stream(config.seed ^ 0xbeef, (o * 1000 + k * 10 + i) as u64);
-                    for a in (1..train.len()).rev() {
-                        train.swap(a, rng.index(a + 1));
-                    }
+                    rng.shuffle(&mut train);
                     let keep = ((train.len() as f64 * config.replay_fraction).ceil() as usize)
                         .min(train.len());
                     lists
