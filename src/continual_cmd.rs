@@ -2,6 +2,7 @@
 //! `motionscale continual compare` for the paper's Table-2-shaped comparison.
 
 use anyhow::{bail, Result};
+use model::es_moe::EsMoeConfig;
 use model::lora::LoraConfig;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -17,7 +18,7 @@ pub struct ContinualArgs {
     /// Scenario datasets folder (`motionscale scenarios --out`).
     #[arg(long, required = true)]
     pub scenarios: Option<PathBuf>,
-    /// Method: seq-lora, replay, o-lora, lwf-lora or mtl (es-moe is not built yet).
+    /// Method: es-moe, seq-lora, replay, o-lora, lwf-lora or mtl.
     #[arg(long, required = true)]
     pub method: Option<String>,
     /// Trained backbone run (`motionscale train --out`), frozen.
@@ -59,6 +60,20 @@ pub struct ContinualArgs {
     /// Weight of the distillation loss (`lwf-lora`, temperature 2).
     #[arg(long, default_value_t = 1.0)]
     pub distillation: f64,
+    /// ES-MoE: experts kept per caption by the gate (renormalised).
+    #[arg(long, default_value_t = 2)]
+    pub top_k: usize,
+    /// ES-MoE: initial probability of masking each older expert in training (falls to 0
+    /// over each step).
+    #[arg(long, default_value_t = 0.5)]
+    pub mask_probability: f64,
+    /// ES-MoE: weight λ of the emotion loss.
+    #[arg(long, default_value_t = 0.1)]
+    pub emotion_weight: f64,
+    /// ES-MoE ablation: no-cged (h is a plain projection, no emotion loss), single-lora (one
+    /// shared expert, no gate) or no-emotion-loss (λ = 0).
+    #[arg(long, value_parser = ["no-cged", "single-lora", "no-emotion-loss"])]
+    pub ablation: Option<String>,
     /// Evaluation repeats.
     #[arg(long, default_value_t = 10)]
     pub repeats: usize,
@@ -102,8 +117,24 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
     };
     let name = args.method.clone().unwrap_or_default();
     let Some(method) = Method::parse(&name) else {
-        bail!("--method {name:?}: one of seq-lora, replay, o-lora, lwf-lora, mtl (es-moe is not built yet)");
+        bail!("--method {name:?}: one of es-moe, seq-lora, replay, o-lora, lwf-lora, mtl");
     };
+    if args.ablation.is_some() && method != Method::EsMoe {
+        bail!("--ablation applies to --method es-moe");
+    }
+    let ablation = args.ablation.as_deref();
+    let es_moe = (method == Method::EsMoe).then(|| EsMoeConfig {
+        top_k: args.top_k,
+        mask_probability: args.mask_probability,
+        emotion_weight: if ablation == Some("no-emotion-loss") {
+            0.0
+        } else {
+            args.emotion_weight
+        },
+        cged: ablation != Some("no-cged"),
+        mixture: ablation != Some("single-lora"),
+        ..EsMoeConfig::default()
+    });
     crate::memory::keep_freed_memory();
     let config = ContinualConfig {
         scenarios: required(args.scenarios, "scenarios")?,
@@ -131,6 +162,7 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         } else {
             0.0
         },
+        es_moe,
         repeats: args.repeats.max(1),
         pool: args.pool,
         mm_texts: args.mm_texts,
@@ -143,7 +175,8 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
     let s = report.mean;
     let opt = |v: Option<f64>| v.map_or_else(|| "–".into(), |v| format!("{v:.3}"));
     println!(
-        "{name}, {} orders, {:.0} s: AF {:.4}, AR {:.3}, AD {}, AMM {}, AWF {}, FR {} → {}",
+        "{}, {} orders, {:.0} s: AF {:.4}, AR {:.3}, AD {}, AMM {}, AWF {}, FR {} → {}",
+        config.label(),
         report.orders.len(),
         started.elapsed().as_secs_f64(),
         s.af,

@@ -6,13 +6,13 @@ use anyhow::Result;
 use model::caption_set::{generate_caption_set, CaptionSetOptions};
 use model::generate::Sampling;
 use model::train::RunConfig;
-use model::{PrefixLm, TextEncoder};
+use model::{MotionLm, TextEncoder};
 use std::process::ExitCode;
 
 /// `motionscale generate --captions-from`.
 pub fn generate_batch(
     args: &GenerateArgs,
-    model: &PrefixLm,
+    model: &dyn MotionLm,
     run: &RunConfig,
     encoder: &dyn TextEncoder,
     sampling: Sampling,

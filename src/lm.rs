@@ -523,7 +523,7 @@ fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path)
 /// `motionscale generate`.
 pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
-    let (model, run) = model::train::load_model(&args.model)?;
+    let (model, run) = model::train::load_lm(&args.model)?;
     let encoder = load_text_encoder(&run, args.encoder.as_deref())?;
     let sampling = Sampling {
         temperature: args.temperature,
@@ -538,7 +538,7 @@ pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
     let Some(caption) = args.text.as_deref() else {
         return crate::generate_batch::generate_batch(
             &args,
-            &model,
+            model.as_ref(),
             &run,
             encoder.as_ref(),
             sampling,
@@ -548,7 +548,8 @@ pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
     let rows = text.len().min(run.train.max_text_tokens);
     let prefix = &text.embeddings[..rows * text.dim];
     let started = std::time::Instant::now();
-    let tokens = model::generate::generate(&model, &[prefix], &sampling)?.remove(0);
+    let caption_model = model.for_caption(prefix)?;
+    let tokens = model::generate::generate(&caption_model, &[prefix], &sampling)?.remove(0);
     let seconds = started.elapsed().as_secs_f64();
     let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
     match ext {

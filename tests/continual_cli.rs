@@ -1,7 +1,8 @@
 //! Continual expert training through the binary on a synthetic corpus: scenario datasets,
 //! a tiny backbone and evaluator, `continual` with seq-lora and mtl (matrix shapes, summary
 //! metrics, an identical summary when re-run), the replay buffer's lists, the O-LoRA and
-//! LwF-LoRA steps' settings, and `compare`.
+//! LwF-LoRA steps' settings, ES-MoE's experts and gate across steps and its single-LoRA
+//! ablation, and `compare`.
 
 mod common;
 
@@ -9,39 +10,36 @@ use common::*;
 use serde_json::Value;
 use std::path::Path;
 
-fn continual(setup: &Path, method: &str, out: &Path) -> Value {
-    let p = |name: &str| setup.join(name);
-    let (scenarios, run, tokens, evaluator) =
-        (p("scenarios"), p("run"), p("tokens"), p("evaluator"));
-    motionscale_ok(&[
-        "continual",
-        "--scenarios",
-        arg(&scenarios),
-        "--method",
-        method,
-        "--base",
-        arg(&run),
-        "--tokens",
-        arg(&tokens),
-        "--evaluator",
-        arg(&evaluator),
-        "--orders",
-        "2",
-        "--tokens-budget",
-        "600",
-        "--batch",
-        "8",
-        "--repeats",
-        "2",
-        "--pool",
-        "8",
-        "--mm-texts",
-        "2",
-        "--eval-split",
-        "train",
-        "--out",
-        arg(out),
+/// The arguments of a small `continual` run of `method` on the test setup.
+fn continual_args(setup: &Path, method: &str, out: &Path) -> Vec<String> {
+    let p = |name: &str| arg(&setup.join(name)).to_string();
+    let mut args: Vec<String> = ["continual", "--scenarios"].map(String::from).to_vec();
+    args.push(p("scenarios"));
+    args.extend(["--method".into(), method.into(), "--base".into(), p("run")]);
+    args.extend([
+        "--tokens".into(),
+        p("tokens"),
+        "--evaluator".into(),
+        p("evaluator"),
     ]);
+    for (flag, value) in [
+        ("--orders", "2"),
+        ("--tokens-budget", "600"),
+        ("--batch", "8"),
+        ("--repeats", "2"),
+        ("--pool", "8"),
+        ("--mm-texts", "2"),
+        ("--eval-split", "train"),
+    ] {
+        args.extend([flag.to_string(), value.to_string()]);
+    }
+    args.extend(["--out".into(), arg(out).to_string()]);
+    args
+}
+
+fn continual(setup: &Path, method: &str, out: &Path) -> Value {
+    let args = continual_args(setup, method, out);
+    motionscale_ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
     read_json(&out.join("summary.json"))
 }
 
@@ -161,21 +159,70 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
         table.contains("| seq-lora | 2 |") && table.contains("| mtl | 2 |"),
         "{table}"
     );
-    let out = motionscale(&[
-        "continual",
-        "--scenarios",
-        arg(&scenarios),
-        "--method",
-        "es-moe",
-        "--base",
-        "x",
-        "--tokens",
-        "x",
-        "--evaluator",
-        "x",
+    // ES-MoE: one expert per dataset; step 2 loads step 1's experts and gate and adds its own.
+    let moe = setup.join("es-moe");
+    let report = continual(setup, "es-moe", &moe);
+    assert_eq!(report["orders"][0]["r"].as_array().unwrap().len(), 6);
+    assert!(report["mean"]["fr"].is_number());
+    let order: Vec<String> = read_json(&moe.join("order-0/order.json"));
+    let step2 = moe.join("order-0/step-2/train");
+    let shape: Value =
+        read_json::<Value>(&step2.join("config.json"))["train"]["model"]["es_moe"].clone();
+    assert_eq!(shape["previous"], arg(&moe.join("order-0/step-1/train")));
+    assert_eq!(shape["expert"], order[1].as_str());
+    let manifest: Value = read_json(&step2.join("moe.json"));
+    assert_eq!(manifest["experts"], serde_json::json!([order[0], order[1]]));
+    let weights: Vec<f64> = read_json::<Value>(&step2.join("eval.json"))["expert_weights"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert_eq!(weights.len(), 2);
+    assert!(
+        (weights.iter().sum::<f64>() - 1.0).abs() < 1e-5,
+        "{weights:?}"
+    );
+    assert!(
+        !step2.join("model.safetensors").exists(),
+        "no single model file"
+    );
+    // An ES-MoE run generates from a caption like any other run.
+    let json = setup.join("moe-gen.json");
+    motionscale_ok(&[
+        "generate",
+        "--model",
+        arg(&step2),
+        "--text",
+        "a person walks forward",
         "--out",
-        arg(&setup.join("no")),
+        arg(&json),
     ]);
+    assert!(!read_json::<Value>(&json)["tokens"]
+        .as_array()
+        .unwrap()
+        .is_empty());
+
+    // The single-LoRA ablation fine-tunes one shared expert through the steps.
+    let single = setup.join("es-moe-single");
+    let mut args = continual_args(setup, "es-moe", &single);
+    args.extend(["--ablation", "single-lora"].map(String::from));
+    motionscale_ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let manifest: Value = read_json(&single.join("order-0/step-3/train/moe.json"));
+    assert_eq!(manifest["experts"], serde_json::json!(["shared"]));
+    let table = motionscale_ok(&["continual", "compare", arg(&moe), arg(&single)]);
+    assert!(
+        table.contains("| es-moe | 2 |") && table.contains("| es-moe w/o MoE (single LoRA) | 2 |"),
+        "{table}"
+    );
+
+    let mut args = continual_args(setup, "seq-lora", &setup.join("no"));
+    args.extend(["--ablation", "no-cged"].map(String::from));
+    let out = motionscale(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert_eq!(code(&out), 1);
-    assert!(text(&out).contains("not built yet"), "{}", text(&out));
+    assert!(
+        text(&out).contains("--ablation applies to --method es-moe"),
+        "{}",
+        text(&out)
+    );
 }

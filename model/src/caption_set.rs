@@ -18,7 +18,7 @@
 use crate::generate::{generate, Sampling};
 use crate::motion_eval::GeneratedEntry;
 use crate::train::RunConfig;
-use crate::{CaptionEmbeddings, ModelError, PrefixLm, TextEncoder};
+use crate::{CaptionEmbeddings, ModelError, MotionLm, TextEncoder};
 use ingest::corpus::reader::Corpus;
 use ingest::export::hml3d::caption_line;
 use ingest::npy::{write_atomic, write_f32};
@@ -67,10 +67,11 @@ fn io(path: &Path) -> impl Fn(std::io::Error) -> ModelError + '_ {
     move |e| ModelError::io(path, e)
 }
 
-/// Animate the captions `options` selects with `model` (decoded by `tokenizer`) into `out`.
+/// Animate the captions `options` selects with `lm` (decoded by `tokenizer`) into `out`.
 /// Caption embeddings come from the corpus, else from `encoder`. `progress(done, total)`.
+/// An LM with a model per caption (ES-MoE) generates one sequence at a time.
 pub fn generate_caption_set(
-    model: &PrefixLm,
+    lm: &dyn MotionLm,
     run: &RunConfig,
     tokenizer: &MotionTokenizer,
     encoder: Option<&dyn TextEncoder>,
@@ -124,7 +125,12 @@ pub fn generate_caption_set(
         std::fs::create_dir_all(out.join(sub)).map_err(io(&out.join(sub)))?;
     }
     let (mut written, mut rejects, mut tokens_total) = (Vec::new(), String::new(), 0usize);
-    for (b, chunk) in jobs.chunks(options.batch.max(1)).enumerate() {
+    let batch = if lm.per_caption() {
+        1
+    } else {
+        options.batch.max(1)
+    };
+    for (b, chunk) in jobs.chunks(batch).enumerate() {
         let mut prefixes = Vec::with_capacity(chunk.len());
         for job in chunk {
             let caption = &job.caption;
@@ -150,7 +156,10 @@ pub fn generate_caption_set(
             seed: SplitMix64::stream(options.sampling.seed, 1 + b as u64).next_u64(),
             ..options.sampling.clone()
         };
-        let sequences = generate(model, &views, &chunk_sampling).map_err(ModelError::inference)?;
+        let sequences = lm
+            .for_caption(views[0])
+            .and_then(|model| generate(&model, &views, &chunk_sampling))
+            .map_err(ModelError::inference)?;
         for (e, tokens) in chunk.iter().zip(sequences) {
             if tokens.is_empty() {
                 let reject = serde_json::json!({"id": e.id, "caption": e.caption,
@@ -179,7 +188,7 @@ pub fn generate_caption_set(
                 .map_err(io(&text_path))?;
             written.push(e.clone());
         }
-        progress((b + 1) * options.batch.max(1), jobs.len());
+        progress(((b + 1) * batch).min(jobs.len()), jobs.len());
     }
     let ids: String = written.iter().map(|e| format!("{}\n", e.id)).collect();
     let split_file = out.join(format!("{}.txt", options.split));

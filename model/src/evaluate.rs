@@ -10,8 +10,7 @@
 
 use crate::fused::{target_log_probs, IGNORE};
 use crate::lm_data::LmData;
-use crate::prefix_lm::PrefixLm;
-use crate::ModelError;
+use crate::{ModelError, MotionLm};
 use serde::{Deserialize, Serialize};
 
 /// Losses of a model on one split.
@@ -54,9 +53,10 @@ pub fn entropy(p: &[f64]) -> f64 {
         .sum::<f64>()
 }
 
-/// Losses of `model` on every clip of `split` (first captions), `batch` clips per pass.
+/// Losses of `lm` on every clip of `split` (first captions), `batch` clips per pass (one
+/// when every caption has its own model).
 pub fn evaluate(
-    model: &PrefixLm,
+    lm: &dyn MotionLm,
     data: &LmData,
     split: &str,
     batch: usize,
@@ -70,13 +70,15 @@ pub fn evaluate(
     let codebook = data.codebook_size() as u32;
     let (mut code_lp, mut code_targets, mut all_nll, mut all) =
         (Vec::new(), Vec::new(), 0f64, 0u64);
-    for chunk in items.chunks(batch.max(1)) {
-        let b = data.batch(model.config(), chunk);
-        let logits = model
-            .forward(&b)
+    let batch = if lm.per_caption() { 1 } else { batch.max(1) };
+    for chunk in items.chunks(batch) {
+        let b = data.batch(lm.config(), chunk);
+        let logits = lm
+            .for_caption(data.text_of(&chunk[0]))
+            .and_then(|model| model.forward(&b))
             .and_then(|l| l.flatten_all()?.to_vec1::<f32>())
             .map_err(ModelError::inference)?;
-        let lp = target_log_probs(&logits, model.config().vocab_size(), &b.targets);
+        let lp = target_log_probs(&logits, lm.config().vocab_size(), &b.targets);
         for (&t, &l) in b.targets.iter().zip(&lp) {
             if t == IGNORE {
                 continue;

@@ -19,12 +19,14 @@ pub mod bert;
 pub mod caption_set;
 pub mod embed;
 pub mod error;
+pub mod es_moe;
 pub mod evaluate;
 pub mod evaluator;
 pub mod evaluator_train;
 pub mod fallback;
 pub mod fused;
 pub mod generate;
+pub mod kmeans;
 pub mod lm_data;
 pub mod lora;
 pub mod metrics;
@@ -90,6 +92,31 @@ pub trait TextEncoder: Send + Sync {
     fn dim(&self) -> usize;
     /// Word-level (per-token) embeddings of each text, real tokens only (no padding), in order.
     fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, ModelError>;
+}
+
+/// A trained motion LM as generation and evaluation use it: one [`PrefixLm`] for every
+/// caption, or a family whose weights depend on the caption (ES-MoE's gated experts).
+pub trait MotionLm: Send + Sync {
+    /// The model configuration (shared by every caption's model).
+    fn config(&self) -> &PrefixLmConfig;
+    /// Whether captions get different weights (callers then run one sequence at a time).
+    fn per_caption(&self) -> bool;
+    /// The model that animates the caption whose token embeddings are `text`.
+    fn for_caption(&self, text: &[f32]) -> candle_core::Result<std::borrow::Cow<'_, PrefixLm>>;
+}
+
+impl MotionLm for PrefixLm {
+    fn config(&self) -> &PrefixLmConfig {
+        PrefixLm::config(self)
+    }
+
+    fn per_caption(&self) -> bool {
+        false
+    }
+
+    fn for_caption(&self, _: &[f32]) -> candle_core::Result<std::borrow::Cow<'_, PrefixLm>> {
+        Ok(std::borrow::Cow::Borrowed(self))
+    }
 }
 
 /// Where `scripts/fetch-text-encoder.sh` puts the default encoder:

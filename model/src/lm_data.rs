@@ -21,6 +21,8 @@ use tokenizer::{TokenManifest, TokenSet, UnigramCounts};
 /// reach the clip's end (an EOS target) or were cut at the length limit.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Example {
+    /// The clip's id.
+    pub motion_id: String,
     /// Indices of the clip's captions (may be empty: no text prefix).
     pub captions: Vec<usize>,
     /// Motion tokens, at most the configured maximum.
@@ -145,6 +147,7 @@ impl LmData {
                 .entry(split.to_string())
                 .or_default()
                 .push(Example {
+                    motion_id: clip.motion_id.clone(),
                     captions: ids,
                     tokens: clip.tokens[..keep].to_vec(),
                     ends: keep == clip.tokens.len(),
@@ -238,12 +241,14 @@ impl LmData {
         unreachable!("the epochs never end")
     }
 
+    /// The caption embeddings of an item (empty without a caption).
+    pub fn text_of(&self, item: &(&Example, Option<usize>)) -> &[f32] {
+        item.1.map_or(&[][..], |c| self.text[c].as_slice())
+    }
+
     /// A model batch of `items`.
     pub fn batch(&self, config: &PrefixLmConfig, items: &[(&Example, Option<usize>)]) -> LmBatch {
-        let texts: Vec<&[f32]> = items
-            .iter()
-            .map(|(_, c)| c.map_or(&[][..], |c| self.text[c].as_slice()))
-            .collect();
+        let texts: Vec<&[f32]> = items.iter().map(|item| self.text_of(item)).collect();
         let motions: Vec<(&[u32], bool)> = items
             .iter()
             .map(|(e, _)| (e.tokens.as_slice(), e.ends))

@@ -20,6 +20,9 @@ use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::Path;
 
+/// The adapter file of a run folder (every expert of the run).
+pub const ADAPTER_FILE: &str = "adapter.safetensors";
+
 /// The adapted projections of every block (the attention's QKV and output, the FFN's
 /// gate/up and down projections).
 pub const TARGETS: [&str; 4] = ["attn.wqkv", "attn.wo", "ffn.w13", "ffn.w2"];
@@ -113,18 +116,23 @@ impl LoraAdapter {
         format!("experts.{}.{stem}", self.expert)
     }
 
+    /// The update s·B·A of every adapted weight, by weight name.
+    pub fn deltas(&self) -> Result<Vec<(String, Tensor)>> {
+        let scale = self.config.scale();
+        self.pairs
+            .iter()
+            .map(|(name, a, b)| {
+                Ok((
+                    name.clone(),
+                    (b.as_tensor().matmul(a.as_tensor())? * scale)?,
+                ))
+            })
+            .collect()
+    }
+
     /// The base weights with every adapted projection replaced by W + s·B·A.
     pub fn merge(&self, base: &HashMap<String, Tensor>) -> Result<HashMap<String, Tensor>> {
-        let mut merged = base.clone();
-        let scale = self.config.scale();
-        for (name, a, b) in &self.pairs {
-            let w = base
-                .get(name)
-                .ok_or_else(|| candle_core::Error::Msg(format!("base has no {name}")))?;
-            let delta = (b.as_tensor().matmul(a.as_tensor())? * scale)?;
-            merged.insert(name.clone(), (w + delta)?);
-        }
-        Ok(merged)
+        add_deltas(base, &[(1.0, self.deltas()?)])
     }
 
     /// The model with this adapter merged into `base` (its weight tensors are the entries
@@ -141,10 +149,21 @@ impl LoraAdapter {
 
     /// The adapter's gradients from the gradients of the merged weights (chain rule).
     pub fn grads(&self, merged: &HashMap<String, Tensor>, grads: &GradStore) -> Result<GradStore> {
+        let by_name: HashMap<String, Tensor> = self
+            .pairs
+            .iter()
+            .filter_map(|(name, _, _)| Some((name.clone(), grads.get(&merged[name])?.clone())))
+            .collect();
+        self.grads_by_name(&by_name)
+    }
+
+    /// The adapter's gradients from the gradients of the adapted weights, by weight name
+    /// (∂L/∂B = s·G·Aᵀ, ∂L/∂A = s·Bᵀ·G; weights without a gradient give none).
+    pub fn grads_by_name(&self, grads: &HashMap<String, Tensor>) -> Result<GradStore> {
         let scale = self.config.scale();
         let mut out = GradStore::default();
         for (name, a, b) in &self.pairs {
-            let Some(g) = grads.get(&merged[name]) else {
+            let Some(g) = grads.get(name) else {
                 continue;
             };
             let gb = (g.matmul(&a.as_tensor().t()?)? * scale)?;
@@ -167,6 +186,32 @@ impl LoraAdapter {
         }
         Ok(())
     }
+}
+
+/// `base` with weighted updates added: W + Σ_j w_j·ΔW_j for every weight the updates name
+/// (`(w_j, [(weight name, ΔW_j)])` per adapter; a zero weight adds nothing).
+pub fn add_deltas(
+    base: &HashMap<String, Tensor>,
+    updates: &[(f32, Vec<(String, Tensor)>)],
+) -> Result<HashMap<String, Tensor>> {
+    let mut merged = base.clone();
+    for (weight, deltas) in updates {
+        if *weight == 0.0 {
+            continue;
+        }
+        for (name, delta) in deltas {
+            let w = merged
+                .get(name)
+                .ok_or_else(|| candle_core::Error::Msg(format!("base has no {name}")))?;
+            let update = if *weight == 1.0 {
+                delta.clone()
+            } else {
+                (delta * f64::from(*weight))?
+            };
+            merged.insert(name.clone(), (w + update)?);
+        }
+    }
+    Ok(merged)
 }
 
 /// The `lora_A` matrices of every expert in an adapter file, by the weight they adapt

@@ -17,14 +17,16 @@
 //! weights as an uninterrupted run.
 
 use crate::accounting::{self, Accounting, SequenceShape};
+use crate::es_moe::{EsMoe, EsMoeConfig, EsMoeTrainer, MoeExample};
 use crate::evaluate::{evaluate, SplitLoss};
 use crate::lm_data::{Limits, LmData};
-use crate::lora::{adapter_a_matrices, base_weights, LoraAdapter, LoraConfig};
+use crate::lora::{adapter_a_matrices, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
 use crate::prefix_lm::{init_model, LmBatch, PrefixLm, PrefixLmConfig};
-use crate::{append_json_line, read_json, write_json, ModelError};
+use crate::{append_json_line, read_json, write_json, ModelError, MotionLm};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use ingest::npy::write_atomic;
+use ingest::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -32,12 +34,13 @@ use tokenizer::checkpoint::{save_safetensors, ResumeFiles};
 
 /// The weights file of a run folder and of each resume step.
 const MODEL_FILE: &str = "model.safetensors";
-/// The adapter of a LoRA run.
-const ADAPTER_FILE: &str = "adapter.safetensors";
 /// The optimiser state inside a resume step.
 const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 use std::time::Instant;
 use tokenizer::optim::{AdamW, AdamWConfig, LrSchedule};
+
+/// Stream of the generator that masks older ES-MoE experts (per step).
+const MASK_STREAM: u64 = 0x6d61_736b;
 
 /// Format tag of `config.json`.
 pub const FORMAT: &str = "motionscale-prefix-lm-v1";
@@ -87,6 +90,21 @@ pub enum ModelShape {
         #[serde(default)]
         distillation: f64,
     },
+    /// An ES-MoE step ([`crate::es_moe`]): a new LoRA expert (or, without the mixture, the
+    /// shared one continued) on a trained model's frozen weights, mixed with the earlier
+    /// experts of `previous` by the gate, which trains too. The run folder holds every expert
+    /// (`adapter.safetensors`) and the gate, not a single model.
+    EsMoe {
+        /// The trained run folder of the frozen base.
+        base: PathBuf,
+        /// The previous step's ES-MoE run (its experts, gate and dictionary), if any.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        previous: Option<PathBuf>,
+        /// Name of the expert this step trains.
+        expert: String,
+        /// Experts, gate and ablation switches.
+        moe: EsMoeConfig,
+    },
 }
 
 /// Softmax temperature of the LwF distillation loss (Hinton et al.'s usual 2).
@@ -100,7 +118,7 @@ impl ModelShape {
         text_dim: usize,
     ) -> Result<PrefixLmConfig, ModelError> {
         let config = match self {
-            Self::Lora { base, .. } => {
+            Self::Lora { base, .. } | Self::EsMoe { base, .. } => {
                 let run: RunConfig = read_json(&base.join("config.json"))?;
                 if (run.model.codebook_size, run.model.text_dim) != (codebook_size, text_dim) {
                     return Err(ModelError::Argument(format!(
@@ -267,6 +285,9 @@ pub struct EvalRecord {
     pub n_v: u64,
     /// Whether embedding and head are tied (false).
     pub tied: bool,
+    /// ES-MoE: the gate's mean weight of each expert (oldest first) over the test captions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expert_weights: Option<Vec<f64>>,
 }
 
 /// What a training run reports as it goes.
@@ -314,12 +335,41 @@ pub struct TrainReport {
 /// The trained model in `dir` (`model.safetensors`, memory-mapped) and its run config.
 pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), ModelError> {
     let run: RunConfig = read_json(&dir.join("config.json"))?;
+    if matches!(run.train.model, ModelShape::EsMoe { .. }) {
+        return Err(ModelError::invalid(
+            dir,
+            "an ES-MoE run has a model per caption, not one model file (load it with load_lm)",
+        ));
+    }
     let weights = dir.join(MODEL_FILE);
     // SAFETY: the checkpoint is only read; it must not change while the model lives.
     let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, &Device::Cpu) }
         .map_err(|e| ModelError::invalid(&weights, e))?;
     let model = PrefixLm::new(&run.model, vb).map_err(|e| ModelError::invalid(&weights, e))?;
     Ok((model, run))
+}
+
+/// The trained LM in `dir` as generation and evaluation use it (one model, or ES-MoE's
+/// experts and gate on their base) and its run config.
+pub fn load_lm(dir: &Path) -> Result<(Box<dyn MotionLm>, RunConfig), ModelError> {
+    let run: RunConfig = read_json(&dir.join("config.json"))?;
+    if let ModelShape::EsMoe { base, moe, .. } = &run.train.model {
+        let lm = EsMoe::load(dir, &base.join(MODEL_FILE), &run.model, *moe)?;
+        return Ok((Box::new(lm), run));
+    }
+    let (model, run) = load_model(dir)?;
+    Ok((Box::new(model), run))
+}
+
+/// The emotion label of every labelled clip of a corpus, by motion id.
+fn clip_emotions(corpus_dir: &Path) -> Result<HashMap<String, String>, ModelError> {
+    let corpus = ingest::corpus::reader::Corpus::open(corpus_dir).map_err(ModelError::Corpus)?;
+    Ok(corpus
+        .clip_metadata()
+        .map_err(ModelError::Corpus)?
+        .into_iter()
+        .filter_map(|m| Some((m.motion_id, m.labels.emotion?)))
+        .collect())
 }
 
 /// The run's tokenizer (or the one in `dir`, which must be the same checkpoint), for
@@ -394,15 +444,23 @@ pub fn train(
     })
 }
 
-/// A run in progress: data, model, optimiser and where it stands.
+/// What a run trains.
+enum Trainee {
+    /// A whole model.
+    Model(PrefixLm),
+    /// A LoRA adapter on a frozen base.
+    Lora(LoraRun),
+    /// An ES-MoE expert and the gate on a frozen base.
+    Moe(Box<EsMoeTrainer>),
+}
+
+/// A run in progress: data, what it trains, optimiser and where it stands.
 struct Run {
     config: RunConfig,
     data: LmData,
-    /// The model being trained (a LoRA run trains an adapter on the base in `lora` instead).
-    model: PrefixLm,
-    /// The trained variables: the model's, or the adapter's on a frozen base.
+    trainee: Trainee,
+    /// The trained variables: the model's, or the adapter's (and gate's) on a frozen base.
     vars: HashMap<String, candle_core::Var>,
-    lora: Option<LoraRun>,
     opt: AdamW,
     state: TrainState,
     paths: Paths,
@@ -453,8 +511,7 @@ impl Run {
             },
         };
         std::fs::create_dir_all(&config.out).map_err(|e| ModelError::io(&config.out, e))?;
-        let (model, varmap) = init_model(&run.model, config.seed).map_err(ModelError::inference)?;
-        let lora = match &config.model {
+        let (trainee, vars) = match &config.model {
             ModelShape::Lora {
                 base,
                 lora,
@@ -478,20 +535,48 @@ impl Run {
                     Some(dir) => Some(load_model(dir)?.0),
                     None => None,
                 };
-                Some(LoraRun {
+                let vars = adapter.vars();
+                let lora = LoraRun {
                     adapter,
                     base: base_weights(&base.join(MODEL_FILE))?,
                     previous,
                     orthogonality: *orthogonality,
                     teacher,
                     distillation: *distillation as f32,
-                })
+                };
+                (Trainee::Lora(lora), vars)
             }
-            _ => None,
-        };
-        let vars = match &lora {
-            Some(l) => l.adapter.vars(),
-            None => varmap.data().lock().expect("varmap lock").clone(),
+            ModelShape::EsMoe {
+                base,
+                previous,
+                expert,
+                moe,
+            } => {
+                let train_texts: Vec<&[f32]> = data
+                    .split("train")
+                    .iter()
+                    .flat_map(|e| &e.captions)
+                    .map(|&c| data.text[c].as_slice())
+                    .collect();
+                let trainer = EsMoeTrainer::new(
+                    &run.model,
+                    *moe,
+                    &base.join(MODEL_FILE),
+                    previous.as_deref(),
+                    expert,
+                    &clip_emotions(&run.corpus)?,
+                    &train_texts,
+                    config.seed,
+                )?;
+                let vars = trainer.vars();
+                (Trainee::Moe(Box::new(trainer)), vars)
+            }
+            ModelShape::Preset(_) | ModelShape::Custom { .. } => {
+                let (model, varmap) =
+                    init_model(&run.model, config.seed).map_err(ModelError::inference)?;
+                let vars = varmap.data().lock().expect("varmap lock").clone();
+                (Trainee::Model(model), vars)
+            }
         };
         let (beta1, beta2) = config.betas;
         let adamw = AdamWConfig {
@@ -507,9 +592,8 @@ impl Run {
         Ok(Self {
             config: run,
             data,
-            model,
+            trainee,
             vars,
-            lora,
             opt,
             state,
             paths,
@@ -521,9 +605,26 @@ impl Run {
         let (c, started) = (&self.config.train, Instant::now());
         let items = self.data.train_items(self.state.step, c.batch_size, c.seed);
         let batch = self.data.batch(&self.config.model, &items);
-        let (loss, grads) = match &self.lora {
-            Some(l) => l.loss_and_grads(&self.config.model, &batch),
-            None => self.model.loss_and_grads(&batch),
+        let (loss, grads) = match &self.trainee {
+            Trainee::Model(model) => model.loss_and_grads(&batch),
+            Trainee::Lora(l) => l.loss_and_grads(&self.config.model, &batch),
+            Trainee::Moe(t) => {
+                let examples: Vec<MoeExample> = items
+                    .iter()
+                    .map(|item| MoeExample {
+                        motion_id: &item.0.motion_id,
+                        text: self.data.text_of(item),
+                        tokens: &item.0.tokens,
+                        ends: item.0.ends,
+                    })
+                    .collect();
+                // Older experts are masked less and less as the step's schedule runs.
+                let progress = self.state.step as f64 / self.config.schedule.total as f64;
+                let p = t.moe.config.mask_probability * (1.0 - progress);
+                let mut rng = SplitMix64::stream(c.seed ^ MASK_STREAM, self.state.step);
+                t.loss_and_grads(&examples, Some((&mut rng, p)))
+                    .map(|(l, g)| (l.total(t.moe.config.emotion_weight), g))
+            }
         }
         .map_err(ModelError::inference)?;
         let lr = self.config.schedule.at(self.state.step);
@@ -554,17 +655,18 @@ impl Run {
     fn evaluate(&self, train_loss: f64) -> Result<EvalRecord, ModelError> {
         // A LoRA run evaluates the base with the adapter as it now stands merged in.
         let merged;
-        let model = match &self.lora {
-            Some(l) => {
+        let (lm, expert_weights): (&dyn MotionLm, _) = match &self.trainee {
+            Trainee::Model(model) => (model, None),
+            Trainee::Lora(l) => {
                 merged = l
                     .model(&self.config.model)
                     .map_err(ModelError::inference)?
                     .0;
-                &merged
+                (&merged, None)
             }
-            None => &self.model,
+            Trainee::Moe(t) => (&t.moe, Some(self.expert_weights(&t.moe)?)),
         };
-        let test = evaluate(model, &self.data, "test", self.config.train.batch_size)?;
+        let test = evaluate(lm, &self.data, "test", self.config.train.batch_size)?;
         let params = self.config.accounting.params;
         let record = EvalRecord {
             step: self.state.step,
@@ -576,28 +678,51 @@ impl Run {
             n_nv: params.n_nv,
             n_v: params.n_v,
             tied: params.tied,
+            expert_weights,
         };
         write_json(&self.paths.eval, &record)?;
         append_json_line(&self.paths.evals, &record)?;
         Ok(record)
     }
 
+    /// The gate's mean weight of each expert over the test clips' first captions.
+    fn expert_weights(&self, moe: &EsMoe) -> Result<Vec<f64>, ModelError> {
+        let items = self.data.eval_items("test");
+        let mut sum = vec![0f64; moe.experts()];
+        for item in &items {
+            let w = moe
+                .weights(self.data.text_of(item))
+                .map_err(ModelError::inference)?;
+            sum.iter_mut().zip(w).for_each(|(s, w)| *s += f64::from(w));
+        }
+        Ok(sum.iter().map(|s| s / items.len().max(1) as f64).collect())
+    }
+
     /// Write the weights others load, then the resume files, committed by `state.json`.
     fn checkpoint(&mut self) -> Result<(), ModelError> {
         let paths = &self.paths;
         let weights = tensors(&self.vars);
-        let model = match &self.lora {
-            Some(l) => {
+        let model = match &self.trainee {
+            Trainee::Model(_) => Some(weights.clone()),
+            Trainee::Lora(l) => {
                 let adapter = self.config.train.out.join(ADAPTER_FILE);
                 save_safetensors(&weights, &adapter)
                     .map_err(|e| ModelError::invalid(&adapter, e))?;
-                l.model(&self.config.model)
-                    .map_err(ModelError::inference)?
-                    .1
+                Some(
+                    l.model(&self.config.model)
+                        .map_err(ModelError::inference)?
+                        .1,
+                )
             }
-            None => weights.clone(),
+            Trainee::Moe(t) => {
+                t.moe.save(&self.config.train.out)?;
+                None
+            }
         };
-        save_safetensors(&model, &paths.model).map_err(|e| ModelError::invalid(&paths.model, e))?;
+        if let Some(model) = model {
+            save_safetensors(&model, &paths.model)
+                .map_err(|e| ModelError::invalid(&paths.model, e))?;
+        }
         let invalid = |e| ModelError::invalid(paths.resume.state_path(), e);
         let stage = paths.resume.stage().map_err(invalid)?;
         save_safetensors(&weights, &stage.join(MODEL_FILE)).map_err(invalid)?;

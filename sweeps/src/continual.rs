@@ -9,8 +9,10 @@
 //! fine-tuned through the sequence), `replay` (the same, with a seeded buffer of each earlier
 //! dataset's train clips added to every step), `o-lora` (a new adapter per dataset on the
 //! model with the earlier ones merged in, its `lora_A` subspaces kept orthogonal to theirs)
-//! `lwf-lora` (sequential LoRA distilled towards the previous step's model on the new data)
-//! and `mtl` (one adapter on all datasets at once: the joint reference, one row).
+//! `lwf-lora` (sequential LoRA distilled towards the previous step's model on the new data),
+//! `es-moe` (a new expert per dataset mixed per caption by a gate with emotion decoupling,
+//! `model::es_moe`; its ablations switch off CGED, the mixture or the emotion loss) and `mtl`
+//! (one adapter on all datasets at once: the joint reference, one row).
 //!
 //! ```text
 //! OUT/config.json                        the run (a different one is refused)
@@ -32,11 +34,12 @@ use ingest::corpus::split::{read_ids, SPLITS};
 use ingest::rng::SplitMix64;
 use ingest::scenarios::ScenarioDatasets;
 use model::caption_set::{generate_caption_set, CaptionSetOptions};
+use model::es_moe::EsMoeConfig;
 use model::evaluator::TrainedEvaluator;
 use model::generate::Sampling;
 use model::lora::LoraConfig;
 use model::motion_eval::{corpus_split, evaluate_motions, hml3d_folder, EvalOptions, EvalReport};
-use model::train::{load_model, run_tokenizer, train, ModelShape, TrainConfig};
+use model::train::{load_lm, load_model, run_tokenizer, train, ModelShape, TrainConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -56,16 +59,19 @@ pub enum Method {
     OLora,
     /// Sequential LoRA distilled towards the previous step's model on the new data (LwF).
     LwfLora,
+    /// ES-MoE: a new LoRA expert per dataset, mixed per caption by an emotion-aware gate.
+    EsMoe,
 }
 
 impl Method {
     /// Every method.
-    pub const ALL: [Method; 5] = [
+    pub const ALL: [Method; 6] = [
         Method::SeqLora,
         Method::Replay,
         Method::Mtl,
         Method::OLora,
         Method::LwfLora,
+        Method::EsMoe,
     ];
 
     /// Its CLI (and serialised) name.
@@ -76,10 +82,11 @@ impl Method {
             Method::Mtl => "mtl",
             Method::OLora => "o-lora",
             Method::LwfLora => "lwf-lora",
+            Method::EsMoe => "es-moe",
         }
     }
 
-    /// Parse a CLI name (`seq-lora`, `replay`, `mtl`, `o-lora`, `lwf-lora`).
+    /// Parse a CLI name (`seq-lora`, `replay`, `mtl`, `o-lora`, `lwf-lora`, `es-moe`).
     pub fn parse(name: &str) -> Option<Self> {
         Self::ALL.into_iter().find(|m| m.name() == name)
     }
@@ -118,6 +125,9 @@ pub struct ContinualConfig {
     /// Weight of the distillation loss (`lwf-lora`).
     #[serde(default)]
     pub distillation: f64,
+    /// Experts, gate and ablation switches (`es-moe`; its `lora` is the run's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub es_moe: Option<EsMoeConfig>,
     /// Evaluation repeats.
     pub repeats: usize,
     /// R-precision pool size.
@@ -132,6 +142,27 @@ pub struct ContinualConfig {
     pub keep_motions: bool,
     /// Output folder.
     pub out: PathBuf,
+}
+
+impl ContinualConfig {
+    /// The method with its ablation, as tables name it (`es-moe w/o CGED`…).
+    pub fn label(&self) -> String {
+        let Some(moe) = self.es_moe.filter(|_| self.method == Method::EsMoe) else {
+            return self.method.name().to_string();
+        };
+        let off: Vec<&str> = [
+            (!moe.mixture, "w/o MoE (single LoRA)"),
+            (!moe.cged, "w/o CGED"),
+            (moe.cged && moe.emotion_weight == 0.0, "w/o L_emo"),
+        ]
+        .into_iter()
+        .filter_map(|(on, name)| on.then_some(name))
+        .collect();
+        match off.as_slice() {
+            [] => "es-moe".to_string(),
+            _ => format!("es-moe {}", off.join(", ")),
+        }
+    }
 }
 
 /// Metric matrices and summary of one order.
@@ -360,6 +391,33 @@ pub fn run_continual(
             let train_dir = step_dir.join("train");
             // O-LoRA: a new adapter on the model with every earlier one merged in.
             let shape = match config.method {
+                Method::EsMoe => {
+                    let moe = EsMoeConfig {
+                        lora: config.lora,
+                        ..config.es_moe.unwrap_or_default()
+                    };
+                    if moe.mixture && ordered.len() > moe.max_experts {
+                        return Err(SweepError::Argument(format!(
+                            "{} datasets need {} ES-MoE experts; the gate has keys for {}",
+                            ordered.len(),
+                            ordered.len(),
+                            moe.max_experts
+                        )));
+                    }
+                    ModelShape::EsMoe {
+                        base: config.base.clone(),
+                        previous: previous
+                            .as_ref()
+                            .and_then(|p| p.parent())
+                            .map(Path::to_path_buf),
+                        expert: if moe.mixture {
+                            ordered[k].clone()
+                        } else {
+                            "shared".to_string()
+                        },
+                        moe,
+                    }
+                }
                 Method::OLora => ModelShape::Lora {
                     base: previous
                         .as_ref()
@@ -400,8 +458,16 @@ pub fn run_continual(
             train_config.lr = config.lr;
             train_config.seed = config.seed;
             let report = train(&train_config, &mut |_| {})?;
+            let gate = report
+                .eval
+                .expert_weights
+                .as_ref()
+                .map_or_else(String::new, |w| {
+                    let w: Vec<String> = w.iter().map(|v| format!("{v:.2}")).collect();
+                    format!(", gate weights on its test captions [{}]", w.join(", "))
+                });
             log(&format!(
-                "order {o} step {}: trained on {} (test CE {:.3})",
+                "order {o} step {}: trained on {} (test CE {:.3}{gate})",
                 k + 1,
                 learned
                     .iter()
@@ -410,9 +476,9 @@ pub fn run_continual(
                     .join("+"),
                 report.eval.test.cross_entropy
             ));
-            previous = Some(train_dir.join("adapter.safetensors"));
+            previous = Some(train_dir.join(model::lora::ADAPTER_FILE));
             adapters.extend(previous.clone());
-            let (model, run) = load_model(&train_dir)?;
+            let (model, run) = load_lm(&train_dir)?;
             let mut row = Vec::new();
             for name in &ordered {
                 let eval_path = step_dir.join(format!("eval-{name}.json"));
@@ -435,7 +501,7 @@ pub fn run_continual(
                     },
                 };
                 generate_caption_set(
-                    &model,
+                    model.as_ref(),
                     &run,
                     &tokenizer,
                     None,
@@ -579,7 +645,7 @@ pub fn compare_table(runs: &[PathBuf]) -> Result<String, SweepError> {
         out.push_str(&format!(
             "| {} | {} | {} | {:.4} | {:.3} | {} | {} | {} | {} |\n",
             dir.display(),
-            report.config.method.name(),
+            report.config.label(),
             report.orders.len(),
             s.af,
             s.ar,
@@ -639,6 +705,7 @@ mod tests {
             ("mtl", Method::Mtl),
             ("o-lora", Method::OLora),
             ("lwf-lora", Method::LwfLora),
+            ("es-moe", Method::EsMoe),
         ] {
             assert_eq!(Method::parse(name), Some(m));
             assert_eq!(
@@ -647,6 +714,6 @@ mod tests {
                 "serialised as named"
             );
         }
-        assert_eq!(Method::parse("es-moe"), None);
+        assert_eq!(Method::parse("es-moe-x"), None);
     }
 }
