@@ -881,6 +881,14 @@ mod tests {
         opt.step(&grads, 1e-2, Some(1.0)).unwrap();
     }
 
+    /// Step 2 (expert e1) after one training step of expert e0 saved in `dir`.
+    fn second_step(f: &Fixture, dir: &Path) -> EsMoeTrainer {
+        let first = f.trainer(None, "e0", small());
+        train_step(&first, f);
+        first.moe.save(dir).unwrap();
+        f.trainer(Some(dir), "e1", small())
+    }
+
     #[test]
     fn keys_are_orthonormal_at_initialisation() {
         let keys = orthogonal_keys(16, 16, 5);
@@ -956,10 +964,7 @@ mod tests {
     fn only_the_current_expert_its_key_and_the_gate_network_train() {
         let f = fixture();
         let dir = tempfile::tempdir().unwrap();
-        let first = f.trainer(None, "e0", small());
-        train_step(&first, &f);
-        first.moe.save(dir.path()).unwrap();
-        let second = f.trainer(Some(dir.path()), "e1", small());
+        let second = second_step(&f, dir.path());
         let all = |t: &EsMoeTrainer| -> HashMap<String, Vec<f32>> {
             let mut v = tensors(&t.moe.gate.vars());
             for e in &t.moe.experts {
@@ -998,10 +1003,7 @@ mod tests {
     fn gate_gradients_match_finite_differences() {
         let f = fixture();
         let dir = tempfile::tempdir().unwrap();
-        let first = f.trainer(None, "e0", small());
-        train_step(&first, &f);
-        first.moe.save(dir.path()).unwrap();
-        let t = f.trainer(Some(dir.path()), "e1", small());
+        let t = second_step(&f, dir.path());
         // Non-zero B for the new expert too, so both experts' weights matter.
         let mut rng = SplitMix64(9);
         for (name, var) in t.moe.experts[1].vars() {
@@ -1033,19 +1035,9 @@ mod tests {
                     .get(var.as_tensor())
                     .unwrap_or_else(|| panic!("no gradient for {name}")),
             );
-            let start = values(var.as_tensor());
-            for k in [0, start.len() / 2, start.len() - 1] {
-                let eps = 1e-2f32;
-                let at = |delta: f32| {
-                    let mut v = start.clone();
-                    v[k] += delta;
-                    var.set(&Tensor::from_vec(v, var.dims(), &Device::Cpu).unwrap())
-                        .unwrap();
-                    loss(&t)
-                };
-                let numeric = (at(eps) - at(-eps)) / (2.0 * f64::from(eps));
-                var.set(&Tensor::from_vec(start.clone(), var.dims(), &Device::Cpu).unwrap())
-                    .unwrap();
+            let n = var.elem_count();
+            for k in [0, n / 2, n - 1] {
+                let numeric = crate::lora::numeric_gradient(var, k, || loss(&t));
                 let a = f64::from(analytic[k]);
                 assert!(
                     (a - numeric).abs() <= 1e-3 + 2e-2 * numeric.abs(),

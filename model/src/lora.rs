@@ -273,6 +273,27 @@ pub fn base_weights(path: &Path) -> std::result::Result<HashMap<String, Tensor>,
     candle_core::safetensors::load(path, &Device::Cpu).map_err(|e| ModelError::invalid(path, e))
 }
 
+/// The central difference (L(x + ε) − L(x − ε)) / 2ε of `loss` in element `k` of `var`
+/// (ε = 0.01), which is left as it was: the reference of the gradient tests.
+#[cfg(test)]
+pub(crate) fn numeric_gradient(var: &Var, k: usize, loss: impl Fn() -> f64) -> f64 {
+    let eps = 1e-2f32;
+    let start: Vec<f32> = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
+    let set = |values: Vec<f32>| {
+        var.set(&Tensor::from_vec(values, var.dims(), &Device::Cpu).unwrap())
+            .unwrap();
+    };
+    let at = |delta: f32| {
+        let mut v = start.clone();
+        v[k] += delta;
+        set(v);
+        loss()
+    };
+    let numeric = (at(eps) - at(-eps)) / (2.0 * f64::from(eps));
+    set(start.clone());
+    numeric
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -399,17 +420,9 @@ mod tests {
                 .unwrap();
             let values: Vec<f32> = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
             for k in [0, values.len() / 2, values.len() - 1] {
-                let eps = 1e-2f32;
-                let at = |delta: f32| {
-                    let mut v = values.clone();
-                    v[k] += delta;
-                    var.set(&Tensor::from_vec(v, var.dims(), &Device::Cpu).unwrap())
-                        .unwrap();
+                let numeric = numeric_gradient(&var, k, || {
                     loss(&lora.merged_model(&config, &w).unwrap().0, &b)
-                };
-                let numeric = (at(eps) - at(-eps)) / (2.0 * f64::from(eps));
-                var.set(&Tensor::from_vec(values.clone(), var.dims(), &Device::Cpu).unwrap())
-                    .unwrap();
+                });
                 let a = f64::from(analytic[k]);
                 assert!(
                     (a - numeric).abs() <= 2e-3 + 2e-2 * numeric.abs(),
