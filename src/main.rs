@@ -3,6 +3,7 @@
 
 mod bench;
 mod bench_tokenizer;
+mod cl2gen_cmd;
 mod commands;
 mod continual_cmd;
 mod eval_cmd;
@@ -83,7 +84,10 @@ enum Command {
     /// Generation metrics (FID, R-precision, matching score, diversity, multimodality,
     /// emotion F1, action accuracy) of a motion set, with 95% intervals over repeats.
     Eval(eval_cmd::EvalArgs),
-    /// Continual expert training over scenario datasets (seq-lora, replay, o-lora, lwf-lora, mtl) with the
+    /// Continual learning to generate (BI-CTVAE): class-incremental tasks over the corpus's
+    /// action labels with mode-based generative (or real) replay.
+    Cl2gen(Box<cl2gen_cmd::Cl2GenArgs>),
+    /// Continual expert training over scenario datasets (es-moe, seq-lora, replay, o-lora, lwf-lora, mtl) with the
     /// f/r/d/mm/wf matrices and AF/AR/AD/AMM/AWF/FR; `continual compare RUNS…` tabulates runs.
     Continual(Box<continual_cmd::ContinualArgs>),
     /// IsoFLOP sweeps: plan, run (local pool or Slurm array), status, collect.
@@ -237,6 +241,7 @@ fn main() -> ExitCode {
         Command::Evaluator(EvaluatorCommand::Train(args)) => eval_cmd::evaluator_train(args),
         Command::Evaluator(EvaluatorCommand::Embed(args)) => eval_cmd::embed(args),
         Command::Eval(args) => eval_cmd::eval(args),
+        Command::Cl2gen(args) => cl2gen_cmd::cl2gen(*args),
         Command::Continual(args) => continual_cmd::continual(*args),
         Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
         Command::Fit(args) => fit::fit(args),

@@ -7,6 +7,7 @@
 //! `TextEncoderBiGRUCo`); parameter names are PyTorch's (`nn.Conv1d`, `nn.GRU` with
 //! `bidirectional=True`, `nn.Linear`), so `model.safetensors` loads into the same modules.
 
+use crate::gru::{reverse_within, GruLayer};
 use crate::ModelError;
 use candle_core::{DType, Device, Module, Result, Tensor, D};
 use candle_nn::{Conv1d, Conv1dConfig, Linear, VarBuilder};
@@ -66,98 +67,17 @@ impl Padded {
     }
 }
 
-/// One direction of a GRU layer with PyTorch's gate order (r, z, n).
-struct GruDirection {
-    w_ih: Linear,
-    w_hh: Linear,
-    hidden: usize,
-}
-
-impl GruDirection {
-    fn new(input: usize, hidden: usize, suffix: &str, vb: &VarBuilder) -> Result<Self> {
-        let bound = 1.0 / (hidden as f64).sqrt();
-        let init = candle_nn::Init::Uniform {
-            lo: -bound,
-            up: bound,
-        };
-        let get = |shape: (usize, usize), name: &str| vb.get_with_hints(shape, name, init);
-        let bias = |name: &str| vb.get_with_hints(3 * hidden, name, init);
-        Ok(Self {
-            w_ih: Linear::new(
-                get((3 * hidden, input), &format!("weight_ih_l0{suffix}"))?,
-                Some(bias(&format!("bias_ih_l0{suffix}"))?),
-            ),
-            w_hh: Linear::new(
-                get((3 * hidden, hidden), &format!("weight_hh_l0{suffix}"))?,
-                Some(bias(&format!("bias_hh_l0{suffix}"))?),
-            ),
-            hidden,
-        })
-    }
-
-    /// The hidden state after each sequence's last real step. `x` is `(batch, steps, in)`;
-    /// the input projection of every step is one matmul, only the recurrence loops.
-    fn last_state(&self, x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
-        let (batch, steps, _) = x.dims3()?;
-        let projected = self.w_ih.forward(x)?;
-        let mut h = Tensor::zeros((batch, self.hidden), x.dtype(), x.device())?;
-        let mut states = Vec::with_capacity(steps);
-        for t in 0..steps {
-            let gi = projected.narrow(1, t, 1)?.squeeze(1)?;
-            let gh = self.w_hh.forward(&h)?;
-            let (ir, iz, inn) = (
-                gi.narrow(1, 0, self.hidden)?,
-                gi.narrow(1, self.hidden, self.hidden)?,
-                gi.narrow(1, 2 * self.hidden, self.hidden)?,
-            );
-            let (hr, hz, hn) = (
-                gh.narrow(1, 0, self.hidden)?,
-                gh.narrow(1, self.hidden, self.hidden)?,
-                gh.narrow(1, 2 * self.hidden, self.hidden)?,
-            );
-            let r = candle_nn::ops::sigmoid(&(ir + hr)?)?;
-            let z = candle_nn::ops::sigmoid(&(iz + hz)?)?;
-            let n = (inn + (r * hn)?)?.tanh()?;
-            // h' = (1 − z)·n + z·h
-            h = ((&z * &h)? + ((1.0 - &z)? * n)?)?;
-            states.push(h.clone());
-        }
-        let all = Tensor::stack(&states, 1)?.reshape((batch * steps, self.hidden))?;
-        let last: Vec<u32> = lengths
-            .iter()
-            .enumerate()
-            .map(|(b, &len)| (b * steps + len - 1) as u32)
-            .collect();
-        all.index_select(&Tensor::new(last, x.device())?, 0)
-    }
-}
-
-/// Each sequence of `x` reversed within its own length (padding stays in place).
-fn reverse_within(x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
-    let (batch, steps, width) = x.dims3()?;
-    let order: Vec<u32> = lengths
-        .iter()
-        .enumerate()
-        .flat_map(|(b, &len)| {
-            (0..steps).map(move |t| (b * steps + if t < len { len - 1 - t } else { t }) as u32)
-        })
-        .collect();
-    x.reshape((batch * steps, width))?
-        .index_select(&Tensor::new(order, x.device())?, 0)?
-        .reshape((batch, steps, width))
-}
-
 /// A bidirectional single-layer GRU summarised by its two final states (`2 × hidden`).
 struct BiGru {
-    forward: GruDirection,
-    backward: GruDirection,
+    forward: GruLayer,
+    backward: GruLayer,
 }
 
 impl BiGru {
     fn new(input: usize, hidden: usize, vb: VarBuilder) -> Result<Self> {
         Ok(Self {
-            forward: GruDirection::new(input, hidden, "", &vb)?,
-            backward: GruDirection::new(input, hidden, "_reverse", &vb)?,
+            forward: GruLayer::new(input, hidden, "l0", &vb)?,
+            backward: GruLayer::new(input, hidden, "l0_reverse", &vb)?,
         })
     }
 
@@ -354,7 +274,7 @@ pub fn init_weights(varmap: &candle_nn::VarMap, seed: u64) -> Result<()> {
     };
     for (i, name) in names.into_iter().enumerate() {
         let var = &vars[name];
-        let bound = if name.contains("_l0") {
+        let bound = if name.contains("_ih_l") || name.contains("_hh_l") {
             1.0 / ((var.dims()[0] / 3) as f64).sqrt()
         } else if let Some(stem) = name.strip_suffix(".bias") {
             1.0 / (fan_in(&format!("{stem}.weight")) as f64).sqrt()
@@ -465,6 +385,11 @@ impl TrainedEvaluator {
             mean,
             std,
         }
+    }
+
+    /// Per-feature mean it normalises with.
+    pub fn mean(&self) -> &[f32] {
+        &self.mean
     }
 
     /// Per-feature standard deviation it normalises with.

@@ -17,6 +17,8 @@
 pub mod accounting;
 pub mod bert;
 pub mod caption_set;
+pub mod ctvae;
+pub mod ctvae_train;
 pub mod embed;
 pub mod error;
 pub mod es_moe;
@@ -26,6 +28,7 @@ pub mod evaluator_train;
 pub mod fallback;
 pub mod fused;
 pub mod generate;
+pub mod gru;
 pub mod kmeans;
 pub mod lm_data;
 pub mod lora;

@@ -1,0 +1,136 @@
+//! `motionscale cl2gen` on a synthetic corpus: class-incremental tasks of two classes, replay
+//! counts (generated and real), the offline reference, the per-class accuracy plot, and a
+//! re-run that resumes to the same summary.
+
+mod common;
+
+use common::*;
+use serde_json::Value;
+use std::path::Path;
+
+fn cl2gen(corpus: &Path, evaluator: &Path, out: &Path, extra: &[&str]) -> Value {
+    let mut args = vec![
+        "cl2gen",
+        "--corpus",
+        arg(corpus),
+        "--evaluator",
+        arg(evaluator),
+        "--min-clips",
+        "10",
+        "--layers",
+        "1",
+        "--hidden",
+        "8",
+        "--latent",
+        "4",
+        "--steps-per-task",
+        "3",
+        "--batch",
+        "4",
+        "--samples-per-class",
+        "4",
+        "--min-frames",
+        "12",
+        "--max-frames",
+        "20",
+        "--out",
+        arg(out),
+    ];
+    args.extend_from_slice(extra);
+    motionscale_ok(&args);
+    read_json(&out.join("summary.json"))
+}
+
+fn replayed(report: &Value) -> Vec<u64> {
+    report["evals"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["replayed"].as_u64().unwrap())
+        .collect()
+}
+
+#[test]
+fn cl2gen_learns_tasks_of_two_classes_with_replay_and_resumes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let corpus = tmp.path().join("corpus");
+    synth_corpus(&corpus, 300);
+    let evaluator = tmp.path().join("evaluator");
+    train_evaluator(&corpus, &evaluator, &[]);
+
+    let gen = tmp.path().join("gen");
+    let report = cl2gen(&corpus, &evaluator, &gen, &["--replay", "1/5", "--aux"]);
+    let tasks = report["tasks"].as_array().unwrap();
+    let classes = report["config"]["model"]["classes"]
+        .as_array()
+        .unwrap()
+        .len();
+    assert!(classes >= 4, "{classes} classes");
+    assert_eq!(tasks.len(), classes.div_ceil(2));
+    assert!(tasks.iter().all(|t| t.as_array().unwrap().len() <= 2));
+    let evals = report["evals"].as_array().unwrap();
+    for (k, e) in evals.iter().enumerate() {
+        assert_eq!(
+            e["seen"].as_array().unwrap().len(),
+            (2 * (k + 1)).min(classes)
+        );
+        assert_eq!(e["class_accuracy"].as_array().unwrap().len(), classes);
+        let accuracy = e["accuracy"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&accuracy));
+        assert!(e["fid"].as_f64().unwrap().is_finite());
+        assert!(
+            e["loss"]["aux"].as_f64().unwrap() > 0.0,
+            "the auxiliary loss is on"
+        );
+    }
+    // Task 1 replays nothing; task k replays 1/5 of its clips for each of the 2(k−1)
+    // earlier classes, so the count grows with k.
+    let counts = replayed(&report);
+    assert_eq!(counts[0], 0);
+    assert!(counts[1] > 0 && counts[1] % 2 == 0, "{counts:?}");
+    assert!(counts[2] > counts[1], "{counts:?}");
+    assert!(gen.join("accuracy.svg").is_file() && gen.join("accuracy.png").is_file());
+    assert!(gen.join("task-1/model.safetensors").is_file());
+    // A re-run finds every task done and writes the same summary.
+    let first = std::fs::read(gen.join("summary.json")).unwrap();
+    cl2gen(&corpus, &evaluator, &gen, &["--replay", "1/5", "--aux"]);
+    assert_eq!(std::fs::read(gen.join("summary.json")).unwrap(), first);
+
+    // Real replay draws the same counts from the corpus; no replay draws none.
+    let real = cl2gen(
+        &corpus,
+        &evaluator,
+        &tmp.path().join("real"),
+        &["--replay", "1/5", "--replay-source", "real"],
+    );
+    assert_eq!(replayed(&real), counts);
+    let none = cl2gen(&corpus, &evaluator, &tmp.path().join("none"), &[]);
+    assert!(replayed(&none).iter().all(|&c| c == 0));
+
+    // Offline: one task of every class.
+    let offline = cl2gen(
+        &corpus,
+        &evaluator,
+        &tmp.path().join("offline"),
+        &["--offline"],
+    );
+    assert_eq!(offline["tasks"].as_array().unwrap().len(), 1);
+    assert_eq!(
+        offline["evals"][0]["seen"].as_array().unwrap().len(),
+        classes
+    );
+
+    let out = motionscale(&[
+        "cl2gen",
+        "--corpus",
+        arg(&corpus),
+        "--evaluator",
+        arg(&evaluator),
+        "--replay",
+        "1/x",
+        "--out",
+        arg(&tmp.path().join("bad")),
+    ]);
+    assert_eq!(code(&out), 1);
+    assert!(text(&out).contains("--replay"), "{}", text(&out));
+}
