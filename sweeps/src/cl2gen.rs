@@ -86,7 +86,7 @@ pub struct TaskEval {
     pub accuracy: f64,
     /// FID against the seen classes' real test windows.
     pub fid: f64,
-    /// Diversity (200 pairs) of the generated motions.
+    /// Diversity (up to 200 pairs) of the motions generated for the seen classes.
     pub diversity: Option<f64>,
     /// Multimodality (20 pairs per class).
     pub multimodality: Option<f64>,
@@ -286,10 +286,11 @@ pub fn run_cl2gen(
                     .collect()
             })
             .collect();
+        let spread = diversity(&embeddings, 200.min(embeddings.len() / 2), rng);
         Ok::<_, SweepError>((
             accuracy(&pick(&predictions.action), &pick(&truth)),
             embeddings,
-            diversity(&predictions.embeddings, 200.min(motions.len() / 2), rng),
+            spread,
             multimodality(&groups, 20, rng),
             class_accuracy,
         ))
