@@ -10,8 +10,8 @@ use common::*;
 use serde_json::Value;
 use std::path::Path;
 
-/// The arguments of a small `continual` run of `method` on the test setup.
-fn continual_args(setup: &Path, method: &str, out: &Path) -> Vec<String> {
+/// The arguments of a small `continual` run of `method` over `orders` orders on the test setup.
+fn continual_args(setup: &Path, method: &str, orders: &str, out: &Path) -> Vec<String> {
     let p = |name: &str| arg(&setup.join(name)).to_string();
     let mut args: Vec<String> = ["continual", "--scenarios"].map(String::from).to_vec();
     args.push(p("scenarios"));
@@ -23,7 +23,7 @@ fn continual_args(setup: &Path, method: &str, out: &Path) -> Vec<String> {
         p("evaluator"),
     ]);
     for (flag, value) in [
-        ("--orders", "2"),
+        ("--orders", orders),
         ("--tokens-budget", "600"),
         ("--batch", "8"),
         ("--repeats", "2"),
@@ -38,7 +38,7 @@ fn continual_args(setup: &Path, method: &str, out: &Path) -> Vec<String> {
 }
 
 fn continual(setup: &Path, method: &str, out: &Path) -> Value {
-    let args = continual_args(setup, method, out);
+    let args = continual_args(setup, method, "2", out);
     motionscale_ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
     read_json(&out.join("summary.json"))
 }
@@ -161,7 +161,10 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
     );
     // ES-MoE: one expert per dataset; step 2 loads step 1's experts and gate and adds its own.
     let moe = setup.join("es-moe");
-    let report = continual(setup, "es-moe", &moe);
+    // One order each (per-caption generation runs one sequence at a time).
+    let mut args = continual_args(setup, "es-moe", "1", &moe);
+    motionscale_ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let report: Value = read_json(&moe.join("summary.json"));
     assert_eq!(report["orders"][0]["r"].as_array().unwrap().len(), 6);
     assert!(report["mean"]["fr"].is_number());
     let order: Vec<String> = read_json(&moe.join("order-0/order.json"));
@@ -205,18 +208,18 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
 
     // The single-LoRA ablation fine-tunes one shared expert through the steps.
     let single = setup.join("es-moe-single");
-    let mut args = continual_args(setup, "es-moe", &single);
+    args = continual_args(setup, "es-moe", "1", &single);
     args.extend(["--ablation", "single-lora"].map(String::from));
     motionscale_ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
     let manifest: Value = read_json(&single.join("order-0/step-3/train/moe.json"));
     assert_eq!(manifest["experts"], serde_json::json!(["shared"]));
     let table = motionscale_ok(&["continual", "compare", arg(&moe), arg(&single)]);
     assert!(
-        table.contains("| es-moe | 2 |") && table.contains("| es-moe w/o MoE (single LoRA) | 2 |"),
+        table.contains("| es-moe | 1 |") && table.contains("| es-moe w/o MoE (single LoRA) | 1 |"),
         "{table}"
     );
 
-    let mut args = continual_args(setup, "seq-lora", &setup.join("no"));
+    let mut args = continual_args(setup, "seq-lora", "1", &setup.join("no"));
     args.extend(["--ablation", "no-cged"].map(String::from));
     let out = motionscale(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert_eq!(code(&out), 1);
