@@ -150,18 +150,10 @@ impl CtvaeTrainer {
         })
     }
 
-    /// `n` normalised motions of class `class`, `frames` frames each, from its mode.
     /// Save the weights (safetensors, PyTorch names) and the optimiser moments into `dir`.
     pub fn save(&self, dir: &std::path::Path) -> std::result::Result<(), crate::ModelError> {
         let weights = dir.join("model.safetensors");
-        let tensors = self
-            .varmap
-            .data()
-            .lock()
-            .expect("varmap lock")
-            .iter()
-            .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
-            .collect();
+        let tensors = crate::var_tensors(&self.varmap.data().lock().expect("varmap lock"));
         tokenizer::checkpoint::save_safetensors(&tensors, &weights)
             .map_err(|e| crate::ModelError::invalid(&weights, e))?;
         let moments = dir.join("optimizer.safetensors");
@@ -182,6 +174,7 @@ impl CtvaeTrainer {
             .map_err(|e| crate::ModelError::invalid(&moments, e))
     }
 
+    /// `n` normalised motions of class `class`, `frames` frames each, from its mode.
     pub fn generate(
         &self,
         class: u32,

@@ -31,7 +31,7 @@
 use crate::kmeans::kmeans;
 use crate::lora::{add_deltas, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
 use crate::prefix_lm::{LmBatch, PrefixLm, PrefixLmConfig};
-use crate::{read_json, write_json, ModelError, MotionLm};
+use crate::{read_json, var_tensors, write_json, ModelError, MotionLm};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var, D};
 use candle_nn::{Init, Linear, Module, VarBuilder, VarMap};
@@ -420,14 +420,14 @@ impl EsMoe {
     pub fn save(&self, dir: &Path) -> std::result::Result<(), ModelError> {
         let mut adapters = HashMap::new();
         for expert in &self.experts {
-            adapters.extend(tensors(&expert.vars()));
+            adapters.extend(var_tensors(&expert.vars()));
         }
         let save = |t: &HashMap<String, Tensor>, path: &Path| {
             tokenizer::checkpoint::save_safetensors(t, path)
                 .map_err(|e| ModelError::invalid(path, e))
         };
         save(&adapters, &dir.join(ADAPTER_FILE))?;
-        save(&tensors(&self.gate.vars()), &dir.join(GATE_FILE))?;
+        save(&var_tensors(&self.gate.vars()), &dir.join(GATE_FILE))?;
         write_json(&dir.join(MANIFEST_FILE), &self.manifest)
     }
 
@@ -507,12 +507,6 @@ impl EsMoe {
         let vb = VarBuilder::from_tensors(merged.clone(), DType::F32, &Device::Cpu);
         Ok((PrefixLm::new(&self.model, vb)?, merged))
     }
-}
-
-fn tensors(vars: &HashMap<String, Var>) -> HashMap<String, Tensor> {
-    vars.iter()
-        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
-        .collect()
 }
 
 impl MotionLm for EsMoe {
@@ -966,9 +960,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let second = second_step(&f, dir.path());
         let all = |t: &EsMoeTrainer| -> HashMap<String, Vec<f32>> {
-            let mut v = tensors(&t.moe.gate.vars());
+            let mut v = var_tensors(&t.moe.gate.vars());
             for e in &t.moe.experts {
-                v.extend(tensors(&e.vars()));
+                v.extend(var_tensors(&e.vars()));
             }
             v.into_iter().map(|(k, t)| (k, values(&t))).collect()
         };

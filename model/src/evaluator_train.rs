@@ -398,13 +398,7 @@ fn checkpoint(
     out: &Path,
     state: TrainState,
 ) -> Result<(), ModelError> {
-    let weights: HashMap<String, Tensor> = varmap
-        .data()
-        .lock()
-        .expect("varmap lock")
-        .iter()
-        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
-        .collect();
+    let weights = crate::var_tensors(&varmap.data().lock().expect("varmap lock"));
     let model = out.join(MODEL_FILE);
     save_safetensors(&weights, &model).map_err(|e| ModelError::invalid(&model, e))?;
     let invalid = |e| ModelError::invalid(resume.state_path(), e);

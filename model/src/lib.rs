@@ -97,6 +97,15 @@ pub trait TextEncoder: Send + Sync {
     fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, ModelError>;
 }
 
+/// The current value of every variable, by name (what a checkpoint saves).
+pub fn var_tensors(
+    vars: &std::collections::HashMap<String, candle_core::Var>,
+) -> std::collections::HashMap<String, candle_core::Tensor> {
+    vars.iter()
+        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
+        .collect()
+}
+
 /// A trained motion LM as generation and evaluation use it: one [`PrefixLm`] for every
 /// caption, or a family whose weights depend on the caption (ES-MoE's gated experts).
 pub trait MotionLm: Send + Sync {

@@ -393,12 +393,6 @@ pub fn run_tokenizer(
     MotionTokenizer::load(dir, &Device::Cpu).map_err(|e| ModelError::invalid(dir, e))
 }
 
-fn tensors(vars: &HashMap<String, candle_core::Var>) -> HashMap<String, Tensor> {
-    vars.iter()
-        .map(|(k, v)| (k.clone(), v.as_tensor().clone()))
-        .collect()
-}
-
 /// Train (or resume) the run `config` describes, calling `on_event` as it goes.
 pub fn train(
     config: &TrainConfig,
@@ -701,7 +695,7 @@ impl Run {
     /// Write the weights others load, then the resume files, committed by `state.json`.
     fn checkpoint(&mut self) -> Result<(), ModelError> {
         let paths = &self.paths;
-        let weights = tensors(&self.vars);
+        let weights = crate::var_tensors(&self.vars);
         let model = match &self.trainee {
             Trainee::Model(_) => Some(weights.clone()),
             Trainee::Lora(l) => {
