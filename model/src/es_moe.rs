@@ -699,7 +699,8 @@ impl EsMoeTrainer {
             let (model, merged) = moe.merged(&deltas, &w[b])?;
             let (loss, grads) = model.loss_and_grads(&batch)?;
             lm += share * loss;
-            for (name, _) in &deltas[current] {
+            // Every expert's updates list the same weights in the same order.
+            for (k, (name, _)) in deltas[current].iter().enumerate() {
                 let Some(g) = grads.get(&merged[name]) else {
                     continue;
                 };
@@ -715,9 +716,8 @@ impl EsMoeTrainer {
                 if gated {
                     for (j, expert) in deltas.iter().enumerate() {
                         if w[b][j] > 0.0 {
-                            let delta = &expert.iter().find(|(n, _)| n == name).expect("same").1;
                             contributions[b * n + j] +=
-                                (&g * delta)?.sum_all()?.to_scalar::<f32>()?;
+                                (&g * &expert[k].1)?.sum_all()?.to_scalar::<f32>()?;
                         }
                     }
                 }
