@@ -3,9 +3,10 @@
 use anyhow::{bail, Context, Result};
 use model::ctvae::CtvaeConfig;
 use model::ctvae_train::LossWeights;
+use model::metrics::Interval;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use sweeps::cl2gen::{run_cl2gen, Cl2GenConfig, ReplaySource};
+use sweeps::cl2gen::{run_cl2gen, Cl2GenConfig, MetricIntervals, ReplaySource};
 
 /// Arguments of `motionscale cl2gen`.
 #[derive(clap::Args, Debug)]
@@ -77,6 +78,10 @@ pub struct Cl2GenArgs {
     /// Seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Evaluations of the final model, fresh samples each, behind the reported 95% intervals
+    /// (the paper's ±); a finished run re-run with another count only re-evaluates.
+    #[arg(long, default_value_t = 20)]
+    pub repeats: usize,
     /// Output folder; re-running resumes after the last finished task.
     #[arg(long)]
     pub out: PathBuf,
@@ -133,6 +138,7 @@ pub fn cl2gen(args: Cl2GenArgs) -> Result<ExitCode> {
         window: (args.min_frames, args.max_frames),
         samples_per_class: args.samples_per_class,
         seed: args.seed,
+        repeats: args.repeats,
         out: args.out,
     };
     let started = std::time::Instant::now();
@@ -150,5 +156,20 @@ pub fn cl2gen(args: Cl2GenArgs) -> Result<ExitCode> {
         opt(last.multimodality),
         config.out.display()
     );
+    let interval = |i: &Interval| format!("{:.3} ± {:.3}", i.mean, i.high - i.mean);
+    let intervals = |m: &MetricIntervals| {
+        let opt = |i: &Option<Interval>| i.as_ref().map_or_else(|| "–".into(), interval);
+        format!(
+            "accuracy {}, FID {}, diversity {}, multimodality {}",
+            interval(&m.accuracy),
+            interval(&m.fid),
+            opt(&m.diversity),
+            opt(&m.multimodality)
+        )
+    };
+    if let (Some(model), Some(real)) = (&report.final_intervals, &report.ground_truth_intervals) {
+        println!("over {} repeats: {}", report.repeats, intervals(model));
+        println!("real test windows: {}", intervals(real));
+    }
     Ok(ExitCode::SUCCESS)
 }

@@ -36,6 +36,9 @@ fn cl2gen(corpus: &Path, evaluator: &Path, out: &Path, extra: &[&str]) -> Value 
         "--out",
         arg(out),
     ];
+    if !extra.contains(&"--repeats") {
+        args.extend_from_slice(&["--repeats", "3"]);
+    }
     args.extend_from_slice(extra);
     motionscale_ok(&args);
     read_json(&out.join("summary.json"))
@@ -91,10 +94,39 @@ fn cl2gen_learns_tasks_of_two_classes_with_replay_and_resumes() {
     assert!(counts[2] > counts[1], "{counts:?}");
     assert!(gen.join("accuracy.svg").is_file() && gen.join("accuracy.png").is_file());
     assert!(gen.join("task-1/model.safetensors").is_file());
+    // The final model and the real windows over 3 evaluation repeats: mean inside its interval.
+    for key in ["final_intervals", "ground_truth_intervals"] {
+        let accuracy = &report[key]["accuracy"];
+        assert_eq!(accuracy["values"].as_array().unwrap().len(), 3, "{key}");
+        let (low, mean, high) = (
+            accuracy["low"].as_f64().unwrap(),
+            accuracy["mean"].as_f64().unwrap(),
+            accuracy["high"].as_f64().unwrap(),
+        );
+        assert!(
+            low <= mean && mean <= high && high <= 1.5,
+            "{key}: {accuracy}"
+        );
+    }
     // A re-run finds every task done and writes the same summary.
     let first = std::fs::read(gen.join("summary.json")).unwrap();
     cl2gen(&corpus, &evaluator, &gen, &["--replay", "1/5", "--aux"]);
     assert_eq!(std::fs::read(gen.join("summary.json")).unwrap(), first);
+    // Another repeat count only re-evaluates the finished run.
+    let again = cl2gen(
+        &corpus,
+        &evaluator,
+        &gen,
+        &["--replay", "1/5", "--aux", "--repeats", "2"],
+    );
+    assert_eq!(again["evals"], report["evals"]);
+    let values = |r: &Value| {
+        r["final_intervals"]["accuracy"]["values"]
+            .as_array()
+            .unwrap()
+            .clone()
+    };
+    assert_eq!(values(&again)[..], values(&report)[..2]);
 
     // Real replay draws the same counts from the corpus; no replay draws none.
     let real = cl2gen(

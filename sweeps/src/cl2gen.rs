@@ -10,7 +10,9 @@
 //! OUT/task-<k>/model.safetensors, optimizer.safetensors   after task k (resumable)
 //! OUT/task-<k>/eval.json      metrics over the classes seen so far, accuracy of every class
 //! OUT/accuracy.{svg,png}      per-class accuracy of generated motions after each task
-//! OUT/summary.json            classes, tasks, every task's metrics, ground truth
+//! OUT/summary.json            classes, tasks, every task's metrics, ground truth, and the
+//!                             final model's and the real windows' metrics as mean and 95%
+//!                             interval over `repeats` evaluations (the paper's ±)
 //! ```
 
 use crate::error::SweepError;
@@ -20,7 +22,7 @@ use model::ctvae::CtvaeConfig;
 use model::ctvae_train::{CtvaeTrainer, LossWeights, Sample};
 use model::evaluator::{TrainedEvaluator, UNIT};
 use model::evaluator_train::{corpus_clips, LabelledClip};
-use model::metrics::{accuracy, diversity, fid, multimodality};
+use model::metrics::{accuracy, diversity, fid, multimodality, Interval};
 use model::ModelError;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -71,8 +73,16 @@ pub struct Cl2GenConfig {
     pub samples_per_class: usize,
     /// Seed of everything random.
     pub seed: u64,
+    /// Evaluations of the final model (fresh samples each) behind the reported intervals.
+    #[serde(default = "default_repeats")]
+    pub repeats: usize,
     /// Output folder.
     pub out: PathBuf,
+}
+
+/// The paper's evaluation repeats (ACTOR's protocol).
+fn default_repeats() -> usize {
+    20
 }
 
 /// Metrics of generated motions after one task.
@@ -110,6 +120,207 @@ pub struct Cl2GenReport {
     /// The same metrics on real test windows (classifier accuracy, diversity, multimodality;
     /// FID of two halves).
     pub ground_truth: TaskEval,
+    /// Evaluation repeats behind the intervals.
+    pub repeats: usize,
+    /// The final model over every class, mean and 95% interval over the repeats.
+    pub final_intervals: Option<MetricIntervals>,
+    /// The real test windows, mean and 95% interval over the repeats.
+    pub ground_truth_intervals: Option<MetricIntervals>,
+}
+
+/// Metrics of one evaluation (generated motions, or real windows).
+#[derive(Debug, Clone, PartialEq)]
+struct Metrics {
+    accuracy: f64,
+    fid: f64,
+    diversity: Option<f64>,
+    multimodality: Option<f64>,
+    class_accuracy: Vec<f64>,
+}
+
+impl Metrics {
+    /// As the evaluation after task `task` (no losses yet).
+    fn task_eval(self, task: usize, seen: &[u32], classes: &[String]) -> TaskEval {
+        TaskEval {
+            task,
+            seen: seen.iter().map(|&k| classes[k as usize].clone()).collect(),
+            accuracy: self.accuracy,
+            fid: self.fid,
+            diversity: self.diversity,
+            multimodality: self.multimodality,
+            class_accuracy: self.class_accuracy,
+            loss: BTreeMap::new(),
+            replayed: 0,
+        }
+    }
+}
+
+/// Metrics over evaluation repeats: mean and 95% interval (mean ± 1.96·σ/√n).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MetricIntervals {
+    /// Action-classifier accuracy.
+    pub accuracy: Interval,
+    /// FID.
+    pub fid: Interval,
+    /// Diversity.
+    pub diversity: Option<Interval>,
+    /// Multimodality.
+    pub multimodality: Option<Interval>,
+}
+
+impl MetricIntervals {
+    /// The intervals of `repeats` (`None` without repeats).
+    fn of(repeats: &[Metrics]) -> Option<Self> {
+        if repeats.is_empty() {
+            return None;
+        }
+        let interval = |f: fn(&Metrics) -> Option<f64>| {
+            repeats
+                .iter()
+                .map(f)
+                .collect::<Option<Vec<f64>>>()
+                .map(Interval::of)
+        };
+        Some(Self {
+            accuracy: interval(|m| Some(m.accuracy))?,
+            fid: interval(|m| Some(m.fid))?,
+            diversity: interval(|m| m.diversity),
+            multimodality: interval(|m| m.multimodality),
+        })
+    }
+}
+
+/// Scores generated motions and real windows with the evaluator.
+struct Scorer<'a> {
+    evaluator: &'a TrainedEvaluator,
+    /// The evaluator's action index of every class.
+    actions: &'a [u32],
+    samples_per_class: usize,
+    /// Length of generated motions and real windows.
+    frames: usize,
+}
+
+impl Scorer<'_> {
+    /// One de-normalised window of every test clip, per class.
+    fn real_windows(
+        &self,
+        test: &[LabelledClip],
+        test_of: &[Vec<usize>],
+        rng: &mut SplitMix64,
+    ) -> Vec<Vec<Vec<f32>>> {
+        let length = (self.frames, self.frames);
+        test_of
+            .iter()
+            .map(|ids| {
+                ids.iter()
+                    .map(|&i| {
+                        let w = window(&test[i], self.evaluator, length, rng);
+                        denormalise(&w, self.evaluator)
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// Accuracy over the `seen` classes, per-class accuracy, diversity and multimodality of
+    /// `motions`, and the embeddings of the seen classes' motions.
+    fn score(
+        &self,
+        motions: &[(u32, Vec<f32>)],
+        seen: &[u32],
+        rng: &mut SplitMix64,
+    ) -> Result<(Metrics, Vec<Vec<f32>>), SweepError> {
+        let raw: Vec<&[f32]> = motions.iter().map(|(_, m)| m.as_slice()).collect();
+        let predictions = self.evaluator.embed_motions(&raw, 64)?;
+        let truth: Vec<usize> = motions
+            .iter()
+            .map(|(c, _)| self.actions[*c as usize] as usize)
+            .collect();
+        let rows_of = |keep: &dyn Fn(u32) -> bool| -> Vec<usize> {
+            (0..motions.len()).filter(|&i| keep(motions[i].0)).collect()
+        };
+        let accuracy_of = |rows: &[usize]| {
+            let pick = |v: &[usize]| -> Vec<usize> { rows.iter().map(|&i| v[i]).collect() };
+            accuracy(&pick(&predictions.action), &pick(&truth))
+        };
+        let class_accuracy = (0..self.actions.len() as u32)
+            .map(|k| accuracy_of(&rows_of(&|c| c == k)))
+            .collect();
+        let seen_rows = rows_of(&|c| seen.contains(&c));
+        let embeddings: Vec<Vec<f32>> = seen_rows
+            .iter()
+            .map(|&i| predictions.embeddings[i].clone())
+            .collect();
+        let groups: Vec<Vec<Vec<f32>>> = seen
+            .iter()
+            .map(|&k| {
+                rows_of(&|c| c == k)
+                    .into_iter()
+                    .map(|i| predictions.embeddings[i].clone())
+                    .collect()
+            })
+            .collect();
+        let metrics = Metrics {
+            accuracy: accuracy_of(&seen_rows),
+            fid: f64::NAN,
+            diversity: diversity(&embeddings, 200.min(embeddings.len() / 2), rng),
+            multimodality: multimodality(&groups, 20, rng),
+            class_accuracy,
+        };
+        Ok((metrics, embeddings))
+    }
+
+    /// Metrics of motions generated for every class, over the `seen` ones; FID against the
+    /// seen classes' `real` windows.
+    fn generated(
+        &self,
+        trainer: &CtvaeTrainer,
+        seen: &[u32],
+        real: &[Vec<Vec<f32>>],
+        rng: &mut SplitMix64,
+    ) -> Result<Metrics, SweepError> {
+        let mut motions = Vec::new();
+        for k in 0..self.actions.len() as u32 {
+            for poses in trainer
+                .generate(k, self.samples_per_class, self.frames, rng)
+                .map_err(ModelError::inference)?
+            {
+                motions.push((k, denormalise(&poses, self.evaluator)));
+            }
+        }
+        let (metrics, embeddings) = self.score(&motions, seen, rng)?;
+        let reference: Vec<&[f32]> = seen
+            .iter()
+            .flat_map(|&k| real[k as usize].iter().map(Vec::as_slice))
+            .collect();
+        let reference = self.evaluator.embed_motions(&reference, 64)?.embeddings;
+        Ok(Metrics {
+            fid: fid(&embeddings, &reference),
+            ..metrics
+        })
+    }
+
+    /// Metrics of the real windows over every class; FID of two random halves.
+    fn ground_truth(
+        &self,
+        real: &[Vec<Vec<f32>>],
+        rng: &mut SplitMix64,
+    ) -> Result<Metrics, SweepError> {
+        let motions: Vec<(u32, Vec<f32>)> = real
+            .iter()
+            .enumerate()
+            .flat_map(|(k, ws)| ws.iter().map(move |w| (k as u32, w.clone())))
+            .collect();
+        let all: Vec<u32> = (0..real.len() as u32).collect();
+        let (metrics, mut embeddings) = self.score(&motions, &all, rng)?;
+        // The windows are in class order.
+        rng.shuffle(&mut embeddings);
+        let half = embeddings.len() / 2;
+        Ok(Metrics {
+            fid: fid(&embeddings[..half], &embeddings[half..]),
+            ..metrics
+        })
+    }
 }
 
 /// Windows of `clip` usable for training: at least [`UNIT`] frames.
@@ -201,7 +412,14 @@ pub fn run_cl2gen(
     let mut resolved = config.clone();
     resolved.model.classes = classes.clone();
     let config_path = config.out.join("config.json");
-    if config_path.is_file() && read_json::<Cl2GenConfig>(&config_path)? != resolved {
+    // The repeats only change the final evaluation, so they may differ on a resume.
+    let same_run = |stored: Cl2GenConfig| {
+        Cl2GenConfig {
+            repeats: resolved.repeats,
+            ..stored
+        } == resolved
+    };
+    if config_path.is_file() && !same_run(read_json(&config_path)?) {
         return Err(SweepError::invalid(
             &config_path,
             "this folder holds a CL2Gen run with another configuration; use another --out",
@@ -236,87 +454,18 @@ pub fn run_cl2gen(
         .collect();
     let frames = config.window.0;
     let mut rng = SplitMix64::stream(config.seed, 0x7265_616c);
-    // Real test windows of every class, the reference of FID and the ground-truth row.
-    let real: Vec<Vec<(Vec<f32>, Vec<f32>)>> = test_of
-        .iter()
-        .map(|ids| {
-            ids.iter()
-                .map(|&i| {
-                    let w = window(&test[i], &evaluator, (frames, frames), &mut rng);
-                    (denormalise(&w, &evaluator), w)
-                })
-                .collect()
-        })
-        .collect();
-    let score = |motions: &[(u32, Vec<f32>)], seen: &[u32], rng: &mut SplitMix64| {
-        let raw: Vec<&[f32]> = motions.iter().map(|(_, m)| m.as_slice()).collect();
-        let predictions = evaluator.embed_motions(&raw, 64)?;
-        let truth: Vec<usize> = motions
-            .iter()
-            .map(|(c, _)| actions[*c as usize] as usize)
-            .collect();
-        let class_accuracy: Vec<f64> = (0..classes.len() as u32)
-            .map(|k| {
-                let (p, t): (Vec<usize>, Vec<usize>) = predictions
-                    .action
-                    .iter()
-                    .zip(&truth)
-                    .zip(motions)
-                    .filter(|(_, (c, _))| *c == k)
-                    .map(|((p, t), _)| (*p, *t))
-                    .unzip();
-                accuracy(&p, &t)
-            })
-            .collect();
-        let seen_rows: Vec<usize> = (0..motions.len())
-            .filter(|&i| seen.contains(&motions[i].0))
-            .collect();
-        let pick = |v: &[usize]| -> Vec<usize> { seen_rows.iter().map(|&i| v[i]).collect() };
-        let embeddings: Vec<Vec<f32>> = seen_rows
-            .iter()
-            .map(|&i| predictions.embeddings[i].clone())
-            .collect();
-        let groups: Vec<Vec<Vec<f32>>> = seen
-            .iter()
-            .map(|&k| {
-                seen_rows
-                    .iter()
-                    .filter(|&&i| motions[i].0 == k)
-                    .map(|&i| predictions.embeddings[i].clone())
-                    .collect()
-            })
-            .collect();
-        let spread = diversity(&embeddings, 200.min(embeddings.len() / 2), rng);
-        Ok::<_, SweepError>((
-            accuracy(&pick(&predictions.action), &pick(&truth)),
-            embeddings,
-            spread,
-            multimodality(&groups, 20, rng),
-            class_accuracy,
-        ))
+    let scorer = Scorer {
+        evaluator: &evaluator,
+        actions: &actions,
+        samples_per_class: config.samples_per_class,
+        frames,
     };
+    // Real test windows of every class: the reference of FID and the ground-truth row.
+    let real = scorer.real_windows(&test, &test_of, &mut rng);
     let all: Vec<u32> = (0..classes.len() as u32).collect();
-    let real_motions: Vec<(u32, Vec<f32>)> = real
-        .iter()
-        .enumerate()
-        .flat_map(|(k, ws)| ws.iter().map(move |(raw, _)| (k as u32, raw.clone())))
-        .collect();
-    let (gt_accuracy, mut gt_embeddings, gt_diversity, gt_mm, gt_class) =
-        score(&real_motions, &all, &mut rng)?;
-    // Two random halves (the windows are in class order).
-    rng.shuffle(&mut gt_embeddings);
-    let half = gt_embeddings.len() / 2;
-    let ground_truth = TaskEval {
-        task: 0,
-        seen: classes.clone(),
-        accuracy: gt_accuracy,
-        fid: fid(&gt_embeddings[..half], &gt_embeddings[half..]),
-        diversity: gt_diversity,
-        multimodality: gt_mm,
-        class_accuracy: gt_class,
-        loss: BTreeMap::new(),
-        replayed: 0,
-    };
+    let ground_truth = scorer
+        .ground_truth(&real, &mut rng)?
+        .task_eval(0, &all, &classes);
     let model_config = resolved.model.clone();
     let mut trainer = CtvaeTrainer::new(model_config, config.weights, evaluator.std(), config.seed)
         .map_err(ModelError::inference)?;
@@ -393,31 +542,12 @@ pub fn run_cl2gen(
         }
         let seen: Vec<u32> = tasks[..=t].iter().flatten().copied().collect();
         let mut eval_rng = SplitMix64::stream(config.seed ^ 0x6576_616c, t as u64);
-        let mut motions = Vec::new();
-        for k in 0..classes.len() as u32 {
-            for poses in trainer
-                .generate(k, config.samples_per_class, frames, &mut eval_rng)
-                .map_err(ModelError::inference)?
-            {
-                motions.push((k, denormalise(&poses, &evaluator)));
-            }
-        }
-        let (acc, embeddings, div, mm, class_accuracy) = score(&motions, &seen, &mut eval_rng)?;
-        let reference: Vec<&[f32]> = seen
-            .iter()
-            .flat_map(|&k| real[k as usize].iter().map(|(raw, _)| raw.as_slice()))
-            .collect();
-        let reference = evaluator.embed_motions(&reference, 64)?.embeddings;
         let eval = TaskEval {
-            task: t + 1,
-            seen: seen.iter().map(|&k| classes[k as usize].clone()).collect(),
-            accuracy: acc,
-            fid: fid(&embeddings, &reference),
-            diversity: div,
-            multimodality: mm,
-            class_accuracy,
             loss: sums,
             replayed: replay.len(),
+            ..scorer
+                .generated(&trainer, &seen, &real, &mut eval_rng)?
+                .task_eval(t + 1, &seen, &classes)
         };
         trainer.save(&dir)?;
         write_json(&eval_path, &eval)?;
@@ -436,6 +566,15 @@ pub fn run_cl2gen(
         evals.push(eval);
     }
     write_accuracy_plot(config, &classes, &evals)?;
+    // The paper's ± (ACTOR's protocol): the final model, and the real test clips, scored over
+    // fresh draws of generated motions and of windows.
+    let (mut model_repeats, mut real_repeats) = (Vec::new(), Vec::new());
+    for r in 0..config.repeats {
+        let mut rng = SplitMix64::stream(config.seed ^ 0x7265_7065_6174, r as u64);
+        model_repeats.push(scorer.generated(&trainer, &all, &real, &mut rng)?);
+        let windows = scorer.real_windows(&test, &test_of, &mut rng);
+        real_repeats.push(scorer.ground_truth(&windows, &mut rng)?);
+    }
     let report = Cl2GenReport {
         config: resolved,
         tasks: tasks
@@ -444,6 +583,9 @@ pub fn run_cl2gen(
             .collect(),
         evals,
         ground_truth,
+        repeats: config.repeats,
+        final_intervals: MetricIntervals::of(&model_repeats),
+        ground_truth_intervals: MetricIntervals::of(&real_repeats),
     };
     write_json(&config.out.join("summary.json"), &report)?;
     Ok(report)
