@@ -13,7 +13,7 @@
 //! `nn.GRU(num_layers=n, batch_first=True)` and `nn.Linear`).
 
 use crate::gru::{last_states, StackedGru};
-use candle_core::{DType, Device, Module, Result, Tensor, D};
+use candle_core::{DType, Device, Module, Result, Tensor};
 use candle_nn::{Init, Linear, VarBuilder};
 use ingest::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
@@ -162,9 +162,11 @@ impl Ctvae {
         (&self.mode_mu, &self.mode_logvar)
     }
 
-    /// Mean over the batch of KL(N(μ, σ²) ‖ N(μ_a, σ_a²)) summed over the latent dims:
-    /// ½ Σ_j [log σ_a² − log σ² − 1 + (σ² + (μ − μ_a)²) / σ_a²]. Only the modes of `classes`
-    /// enter, so only they receive gradients.
+    /// KL(N(μ, σ²) ‖ N(μ_a, σ_a²)) summed over the latent dims and over the batch:
+    /// Σ_b ½ Σ_j [log σ_a² − log σ² − 1 + (σ² + (μ − μ_a)²) / σ_a²]. Summed over the batch as
+    /// in ACTOR's code, which the paper's λ_latent = 1e-5 (ACTOR's λ_kl) is meant for, while the
+    /// reconstruction losses are means. Only the modes of `classes` enter, so only they
+    /// receive gradients.
     pub fn latent_loss(&self, posterior: &Posterior, classes: &[u32]) -> Result<Tensor> {
         let idx = Tensor::new(classes, posterior.mu.device())?;
         let mode_mu = self.mode_mu.index_select(&idx, 0)?;
@@ -173,7 +175,7 @@ impl Ctvae {
         let diff2 = (&posterior.mu - &mode_mu)?.sqr()?;
         let ratio = ((var + diff2)? / mode_logvar.exp()?)?;
         let terms = (((&mode_logvar - &posterior.logvar)? - 1.0)? + ratio)?;
-        (terms.sum(D::Minus1)? * 0.5)?.mean(0)
+        terms.sum_all()? * 0.5
     }
 
     /// `n` latents of class `class` drawn from its mode (z = μ_a + σ_a·ε, ε from `rng`).
@@ -275,6 +277,21 @@ mod tests {
             .to_scalar()
             .unwrap();
         assert!(zero.abs() < 1e-6);
+        // Summed over the batch (ACTOR's reduction): the posterior and the mode itself give
+        // the single posterior's KL once.
+        let batch = Posterior {
+            mu: Tensor::new(&[[0f32, 0.0], [1.0, -1.0]], &Device::Cpu).unwrap(),
+            logvar: Tensor::new(&[[0f32, -1.0], [1.0, 0.0]], &Device::Cpu).unwrap(),
+        };
+        let summed: f32 = model
+            .latent_loss(&batch, &[1, 1])
+            .unwrap()
+            .to_scalar()
+            .unwrap();
+        assert!(
+            (f64::from(summed) - want).abs() < 1e-6,
+            "{summed} vs {want}"
+        );
     }
 
     #[test]

@@ -42,7 +42,7 @@ pub struct StepLoss {
     pub pose: f32,
     /// Joint-position MSE (m²).
     pub joints: f32,
-    /// KL to the class modes.
+    /// KL to the class modes, summed over the batch.
     pub latent: f32,
     /// Auxiliary classifier cross-entropy (0 without it).
     pub aux: f32,
