@@ -7,8 +7,8 @@
 //! here every FLOP of forward and backward is a large gemm (M = batch·frames rows,
 //! K = kernel·channels, N = channels). Fusing the ReLU that precedes almost every conv of
 //! T2M-GPT and the nearest up-sampling into the im2col copy saves whole passes over the
-//! activations. On other devices [`conv1d`] composes candle ops to the same result (also the
-//! reference the tests compare against).
+//! activations. On other devices [`conv1d`] composes candle ops to the same result
+//! ([`conv1d_reference`], which avoids candle's `conv1d` backward).
 //!
 //! Layouts: input `(batch, frames, in)`, weight `(out, in, kernel)` (PyTorch's), bias `(out)`,
 //! output `(batch, out_frames, out)`. The im2col matrix has one row per output frame and
@@ -351,7 +351,7 @@ impl CustomOp3 for ConvOp {
 
 /// Convolve `x` (batch, frames, in) with `weight` (out, in, kernel) and `bias` (out) under
 /// geometry `g` → (batch, out_frames, out). f32 CPU tensors take the fused op; anything else
-/// the equivalent candle ops.
+/// [`conv1d_reference`].
 pub fn conv1d(x: &Tensor, weight: &Tensor, bias: &Tensor, g: ConvGeometry) -> Result<Tensor> {
     if x.device().is_cpu() && x.dtype() == DType::F32 {
         return x.contiguous()?.apply_op3(weight, bias, ConvOp(g));
@@ -359,25 +359,49 @@ pub fn conv1d(x: &Tensor, weight: &Tensor, bias: &Tensor, g: ConvGeometry) -> Re
     conv1d_reference(x, weight, bias, g)
 }
 
-/// The same convolution from candle's own ops (channels-first `conv1d`).
+/// The same convolution composed of candle ops with exact gradients on every device: pad,
+/// one strided slice of the frames per tap, the taps side by side, one matmul.
+///
+/// Why not candle's `conv1d`: its backward passes the output gradient, transposed, as the
+/// kernel of a convolution, and candle 0.11.1's CPU `conv1d` reads a non-contiguous kernel as
+/// if it were contiguous, so its weight gradient is wrong for batches larger than one.
 pub fn conv1d_reference(
     x: &Tensor,
     weight: &Tensor,
     bias: &Tensor,
     g: ConvGeometry,
 ) -> Result<Tensor> {
-    let mut h = x.transpose(1, 2)?;
+    let (batch, frames, channels) = x.dims3()?;
+    let (out_ch, _, kernel) = weight.dims3()?;
+    let mut h = x.clone();
     if g.relu_input {
         h = h.relu()?;
     }
     if g.upsample_input {
-        let frames = h.dim(2)?;
-        h = h.upsample_nearest1d(2 * frames)?;
+        h = h
+            .unsqueeze(2)?
+            .broadcast_as((batch, frames, 2, channels))?
+            .reshape((batch, 2 * frames, channels))?;
     }
-    let y = h
-        .contiguous()?
-        .conv1d(weight, g.padding, g.stride, g.dilation, 1)?;
-    y.broadcast_add(&bias.reshape((1, (), 1))?)?.transpose(1, 2)
+    let out = g.out_len(frames);
+    // Extra zeros on the right so that every tap's slice of stride·out frames fits.
+    let h = h.pad_with_zeros(1, g.padding, g.padding + g.stride - 1)?;
+    let taps = (0..kernel)
+        .map(|k| {
+            let slice = h.narrow(1, k * g.dilation, g.stride * out)?;
+            slice
+                .reshape((batch, out, g.stride, channels))?
+                .narrow(2, 0, 1)?
+                .reshape((batch * out, channels))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let cols = Tensor::cat(&taps, 1)?;
+    let taps_major = weight
+        .permute((0, 2, 1))?
+        .reshape((out_ch, kernel * channels))?;
+    cols.matmul(&taps_major.t()?)?
+        .broadcast_add(bias)?
+        .reshape((batch, out, out_ch))
 }
 
 #[cfg(test)]
@@ -412,10 +436,37 @@ mod tests {
             .collect()
     }
 
-    /// Forward values against candle's `conv1d`, and all three gradients against central
-    /// differences. (Not against candle's gradients: candle 0.11.1's CPU `conv1d` kernel
-    /// gradient is wrong for batches larger than one.)
+    /// candle's `conv1d` forward (correct for a contiguous kernel; its gradients are not
+    /// used, see [`conv1d_reference`]).
+    fn candle_conv1d(x: &Tensor, w: &Tensor, b: &Tensor, g: ConvGeometry) -> Tensor {
+        let mut h = x.transpose(1, 2).unwrap();
+        if g.relu_input {
+            h = h.relu().unwrap();
+        }
+        if g.upsample_input {
+            let frames = h.dim(2).unwrap();
+            h = h.upsample_nearest1d(2 * frames).unwrap();
+        }
+        h.contiguous()
+            .unwrap()
+            .conv1d(w, g.padding, g.stride, g.dilation, 1)
+            .unwrap()
+            .broadcast_add(&b.reshape((1, (), 1)).unwrap())
+            .unwrap()
+            .transpose(1, 2)
+            .unwrap()
+    }
+
+    /// The fused op's and the reference's forward values against candle's `conv1d`, and all
+    /// three gradients of both against central differences.
     fn check(g: ConvGeometry, frames: usize, (inp, out): (usize, usize)) {
+        check_op(conv1d, g, frames, (inp, out));
+        check_op(conv1d_reference, g, frames, (inp, out));
+    }
+
+    type Conv = fn(&Tensor, &Tensor, &Tensor, ConvGeometry) -> Result<Tensor>;
+
+    fn check_op(conv: Conv, g: ConvGeometry, frames: usize, (inp, out): (usize, usize)) {
         let dev = Device::Cpu;
         // Inputs kept 0.05 away from the ReLU kink, where differences would straddle it.
         let xv: Vec<f32> = Tensor::randn(0f32, 1.0, 3 * frames * inp, &dev)
@@ -434,14 +485,14 @@ mod tests {
         let x = Var::from_vec(xv.clone(), (3, frames, inp), &dev).unwrap();
         let w = Var::randn(0f32, 0.3, (out, inp, g.kernel), &dev).unwrap();
         let b = Var::randn(0f32, 1.0, out, &dev).unwrap();
-        let fused = conv1d(&x, &w, &b, g).unwrap();
-        let reference = conv1d_reference(&x, &w, &b, g).unwrap();
+        let fused = conv(&x, &w, &b, g).unwrap();
+        let reference = candle_conv1d(&x, &w, &b, g);
         assert_eq!(fused.dims(), reference.dims(), "{g:?}");
         assert!(max_diff(&fused, &reference) < 1e-4, "{g:?}");
         // A loss that weights every output differently, so every gradient entry matters.
         let probe = Tensor::randn(0f32, 1.0, fused.dims(), &dev).unwrap();
         let loss = |x: &Tensor, w: &Tensor, b: &Tensor| {
-            (conv1d(x, w, b, g).unwrap() * &probe)
+            (conv(x, w, b, g).unwrap() * &probe)
                 .unwrap()
                 .sum_all()
                 .unwrap()
