@@ -135,14 +135,12 @@ fn movement_conv(x: &Tensor, conv: &Conv1d) -> Result<Tensor> {
         .bias()
         .ok_or_else(|| candle_core::Error::Msg("movement conv without a bias".into()))?;
     let config = conv.config();
-    let geometry = ConvGeometry {
-        kernel: conv.weight().dim(2)?,
-        stride: config.stride,
-        dilation: config.dilation,
-        padding: config.padding,
-        relu_input: false,
-        upsample_input: false,
-    };
+    let geometry = ConvGeometry::plain(
+        conv.weight().dim(2)?,
+        config.stride,
+        config.dilation,
+        config.padding,
+    );
     tokenizer::conv_op::conv1d(x, conv.weight(), bias, geometry)
 }
 

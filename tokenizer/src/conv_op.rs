@@ -38,6 +38,18 @@ pub struct ConvGeometry {
 }
 
 impl ConvGeometry {
+    /// A convolution without pre-ops (PyTorch's `Conv1d(…, kernel, stride, padding, dilation)`).
+    pub fn plain(kernel: usize, stride: usize, dilation: usize, padding: usize) -> Self {
+        Self {
+            kernel,
+            stride,
+            dilation,
+            padding,
+            relu_input: false,
+            upsample_input: false,
+        }
+    }
+
     /// Frames of the input as the convolution sees it (doubled when up-sampling).
     fn virtual_len(&self, frames: usize) -> usize {
         if self.upsample_input {
@@ -485,12 +497,12 @@ mod tests {
         let x = Var::from_vec(xv.clone(), (3, frames, inp), &dev).unwrap();
         let w = Var::randn(0f32, 0.3, (out, inp, g.kernel), &dev).unwrap();
         let b = Var::randn(0f32, 1.0, out, &dev).unwrap();
-        let fused = conv(&x, &w, &b, g).unwrap();
+        let y = conv(&x, &w, &b, g).unwrap();
         let reference = candle_conv1d(&x, &w, &b, g);
-        assert_eq!(fused.dims(), reference.dims(), "{g:?}");
-        assert!(max_diff(&fused, &reference) < 1e-4, "{g:?}");
+        assert_eq!(y.dims(), reference.dims(), "{g:?}");
+        assert!(max_diff(&y, &reference) < 1e-4, "{g:?}");
         // A loss that weights every output differently, so every gradient entry matters.
-        let probe = Tensor::randn(0f32, 1.0, fused.dims(), &dev).unwrap();
+        let probe = Tensor::randn(0f32, 1.0, y.dims(), &dev).unwrap();
         let loss = |x: &Tensor, w: &Tensor, b: &Tensor| {
             (conv(x, w, b, g).unwrap() * &probe)
                 .unwrap()
@@ -520,56 +532,45 @@ mod tests {
         }
     }
 
-    fn geometry(kernel: usize, stride: usize, dilation: usize, padding: usize) -> ConvGeometry {
-        ConvGeometry {
-            kernel,
-            stride,
-            dilation,
-            padding,
-            relu_input: false,
-            upsample_input: false,
-        }
-    }
-
     #[test]
     fn matches_candle_conv1d_for_every_t2m_gpt_layer_shape() {
-        check(geometry(3, 1, 1, 1), 16, (7, 5)); // input / output / post convs
-        check(geometry(4, 2, 1, 1), 16, (6, 6)); // stride-2 down-sampling
-        check(geometry(3, 1, 9, 9), 8, (4, 4)); // dilation 9, wider than the sequence
-        check(geometry(3, 1, 3, 3), 8, (4, 4));
-        check(geometry(1, 1, 1, 0), 8, (5, 3)); // pointwise, no im2col
+        check(ConvGeometry::plain(3, 1, 1, 1), 16, (7, 5)); // input / output / post convs
+        check(ConvGeometry::plain(4, 2, 1, 1), 16, (6, 6)); // stride-2 down-sampling
+        check(ConvGeometry::plain(3, 1, 9, 9), 8, (4, 4)); // dilation 9, wider than the sequence
+        check(ConvGeometry::plain(3, 1, 3, 3), 8, (4, 4));
+        check(ConvGeometry::plain(1, 1, 1, 0), 8, (5, 3)); // pointwise, no im2col
     }
 
     #[test]
     fn fused_relu_and_upsampling_match_the_unfused_ops() {
         let relu = ConvGeometry {
             relu_input: true,
-            ..geometry(1, 1, 1, 0)
+            ..ConvGeometry::plain(1, 1, 1, 0)
         };
         check(relu, 8, (5, 5));
         check(
             ConvGeometry {
                 relu_input: true,
-                ..geometry(3, 1, 3, 3)
+                ..ConvGeometry::plain(3, 1, 3, 3)
             },
             8,
             (4, 6),
         );
         let up = ConvGeometry {
             upsample_input: true,
-            ..geometry(3, 1, 1, 1)
+            ..ConvGeometry::plain(3, 1, 1, 1)
         };
         check(up, 5, (4, 3));
     }
 
     #[test]
     fn output_length_follows_pytorch() {
-        assert_eq!(geometry(4, 2, 1, 1).out_len(64), 32);
-        assert_eq!(geometry(3, 1, 9, 9).out_len(16), 16);
-        assert_eq!(geometry(3, 1, 1, 0).out_len(2), 0);
+        assert_eq!(ConvGeometry::plain(4, 2, 1, 1).out_len(64), 32);
+        assert_eq!(ConvGeometry::plain(3, 1, 9, 9).out_len(16), 16);
+        assert_eq!(ConvGeometry::plain(3, 1, 1, 0).out_len(2), 0);
         let up = ConvGeometry {
             upsample_input: true,
-            ..geometry(3, 1, 1, 1)
+            ..ConvGeometry::plain(3, 1, 1, 1)
         };
         assert_eq!(up.out_len(16), 32);
     }
