@@ -191,3 +191,31 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
     );
     Ok(ExitCode::SUCCESS)
 }
+
+/// A number of a reference script's JSON output.
+pub fn number(json: &serde_json::Value, key: &str) -> Result<f64> {
+    json[key]
+        .as_f64()
+        .with_context(|| format!("the reference's output has no number {key:?}"))
+}
+
+/// Run the PyTorch reference `script` with `args` plus `--out FILE` and read the JSON it wrote.
+pub fn run_reference(script: &Path, args: &[&str]) -> Result<serde_json::Value> {
+    let out = tempfile::NamedTempFile::new()?;
+    let status = std::process::Command::new("python3")
+        .arg(script)
+        .args(args)
+        .arg("--out")
+        .arg(out.path())
+        .stdout(std::process::Stdio::null())
+        .status()
+        .with_context(|| format!("running python3 {}", script.display()))?;
+    if !status.success() {
+        bail!(
+            "{} failed ({status}); is torch installed?",
+            script.display()
+        );
+    }
+    serde_json::from_slice(&std::fs::read(out.path())?)
+        .with_context(|| format!("reading the output of {}", script.display()))
+}

@@ -5,10 +5,10 @@
 //! FLOPs follow the reference's rule: (conv + linear multiply-accumulates of one forward) × 2
 //! × 3; the VQ distance matmul (no gradient) is not counted, as there.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use candle_core::{Device, Tensor};
 use std::path::PathBuf;
-use std::process::{Command, ExitCode};
+use std::process::ExitCode;
 use std::time::Instant;
 use tokenizer::model::{MotionTokenizer, TokenizerConfig, FEATURES};
 use tokenizer::train::{optimizer_for, optimizer_step, TrainConfig};
@@ -92,44 +92,24 @@ fn time_ours(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> Result
 }
 
 fn time_reference(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> Result<Timing> {
-    let script = args.bench_dir.join("pytorch_vqvae.py");
-    let out = tempfile::NamedTempFile::new()?;
-    let status = Command::new("python3")
-        .arg(&script)
-        .args([
+    let json = crate::bench::run_reference(
+        &args.bench_dir.join("pytorch_vqvae.py"),
+        &[
             "--quant",
             quantizer,
             "--batch",
             &batch.to_string(),
             "--threads",
             "2",
-        ])
-        .args([
             "--warmup",
             &args.warmup.to_string(),
             "--reps",
             &args.reps.to_string(),
-        ])
-        .arg("--out")
-        .arg(out.path())
-        .stdout(std::process::Stdio::null())
-        .status()
-        .with_context(|| format!("running python3 {}", script.display()))?;
-    if !status.success() {
-        bail!(
-            "{} failed ({status}); is torch installed?",
-            script.display()
-        );
-    }
-    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.path())?)?;
-    let number = |key: &str| {
-        json[key]
-            .as_f64()
-            .with_context(|| format!("{}: no {key} in its output", script.display()))
-    };
+        ],
+    )?;
     Ok(Timing {
-        steps_per_s: number("steps_per_s")?,
-        flops_per_step: number("model_flops_per_step")?,
+        steps_per_s: crate::bench::number(&json, "steps_per_s")?,
+        flops_per_step: crate::bench::number(&json, "model_flops_per_step")?,
     })
 }
 

@@ -4,7 +4,7 @@
 //! 64 motion positions, 1024 codes + 3 specials); `--reference` runs that script in the same
 //! session and prints the ratios.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use model::accounting::{self, SequenceShape};
 use model::generate::Sampling;
 use model::prefix_lm::{init_model, LmBatch, PrefixLmConfig};
@@ -87,7 +87,7 @@ fn foreign_load(a: Option<(u64, u64, u64)>, b: Option<(u64, u64, u64)>) -> Optio
 
 /// Median, min and max of `f`'s wall time after `warmup` calls, over at least `reps` calls
 /// and `min_time` seconds, with the foreign CPU load meanwhile.
-fn time<F: FnMut() -> Result<()>>(
+pub fn time<F: FnMut() -> Result<()>>(
     warmup: usize,
     reps: usize,
     min_time: f64,
@@ -233,38 +233,25 @@ fn bench_generate(args: &BenchTrainArgs) -> Result<Value> {
 }
 
 fn run_reference(args: &BenchTrainArgs, mode: &str, d: usize, layers: usize) -> Result<Value> {
-    let out = tempfile::NamedTempFile::new()?;
-    let status = std::process::Command::new("python3")
-        .arg(&args.reference_script)
-        .args([
+    crate::bench::run_reference(
+        &args.reference_script,
+        &[
             "--mode",
             mode,
             "--d",
             &d.to_string(),
             "--layers",
             &layers.to_string(),
-        ])
-        .args([
             "--heads",
             &(d / 64).to_string(),
             "--batch",
             &args.batch.to_string(),
-        ])
-        .args([
             "--threads",
             &args.threads.to_string(),
             "--min-time",
             &args.min_time.to_string(),
-        ])
-        .arg("--out")
-        .arg(out.path())
-        .stdout(std::process::Stdio::null())
-        .status()
-        .with_context(|| format!("running {}", args.reference_script.display()))?;
-    if !status.success() {
-        bail!("{} failed ({status})", args.reference_script.display());
-    }
-    Ok(serde_json::from_str(&std::fs::read_to_string(out.path())?)?)
+        ],
+    )
 }
 
 /// candle's sgemm on 2048² now (context for the MFU figures on a shared machine).

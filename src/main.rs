@@ -2,6 +2,7 @@
 //! print results and choose exit codes (0 ok, 1 failure, 2 partial: some inputs rejected).
 
 mod bench;
+mod bench_gru;
 mod bench_tokenizer;
 mod cl2gen_cmd;
 mod commands;
@@ -191,6 +192,10 @@ enum BenchCommand {
     Tokenizer(bench_tokenizer::BenchTokenizerArgs),
     /// Time the whole `fit` command (4,500 starts + bootstrap) on a Chinchilla-like stand-in.
     Fit(fit::BenchFitArgs),
+    /// Time the evaluator's training step (batch 64, hidden 256); --reference runs PyTorch too.
+    Evaluator(bench_gru::BenchEvaluatorArgs),
+    /// Time BI-CTVAE training steps at cl2gen's shapes; --reference runs PyTorch too.
+    Ctvae(bench_gru::BenchCtvaeArgs),
 }
 
 fn main() -> ExitCode {
@@ -247,6 +252,8 @@ fn main() -> ExitCode {
         Command::Fit(args) => fit::fit(args),
         Command::Predict(args) => fit::predict(args),
         Command::Bench(BenchCommand::Fit(args)) => fit::bench(args),
+        Command::Bench(BenchCommand::Evaluator(args)) => bench_gru::evaluator(args),
+        Command::Bench(BenchCommand::Ctvae(args)) => bench_gru::ctvae(args),
         Command::Sweep(SweepCommand::Plan(args)) => sweep_cmd::plan_cmd(*args),
         Command::Sweep(SweepCommand::Run(args)) => sweep_cmd::run_cmd(args),
         Command::Sweep(SweepCommand::Status(args)) => sweep_cmd::status_cmd(args),

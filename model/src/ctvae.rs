@@ -136,7 +136,7 @@ impl Ctvae {
     pub fn encode(&self, x: &Tensor, classes: &[u32], lengths: &[usize]) -> Result<Posterior> {
         let steps = x.dim(1)?;
         let input = Tensor::cat(&[x, &self.conditions(classes, steps, x.device())?], 2)?;
-        let last = last_states(&self.encoder.states(&input)?, lengths)?;
+        let last = last_states(&self.encoder.states(&input, lengths)?, lengths)?;
         Ok(Posterior {
             mu: self.to_mu.forward(&last)?,
             logvar: self.to_logvar.forward(&last)?,
@@ -154,7 +154,8 @@ impl Ctvae {
             ],
             2,
         )?;
-        self.out.forward(&self.decoder.states(&input)?)
+        self.out
+            .forward(&self.decoder.states(&input, &vec![steps; batch])?)
     }
 
     /// The class modes' means and log variances, `(classes, latent)` each.

@@ -7,7 +7,7 @@
 //! `TextEncoderBiGRUCo`); parameter names are PyTorch's (`nn.Conv1d`, `nn.GRU` with
 //! `bidirectional=True`, `nn.Linear`), so `model.safetensors` loads into the same modules.
 
-use crate::gru::{reverse_within, GruLayer};
+use crate::gru::{per_step, BiGru};
 use crate::ModelError;
 use candle_core::{DType, Device, Module, Result, Tensor, D};
 use candle_nn::{Conv1d, Conv1dConfig, Linear, VarBuilder};
@@ -65,29 +65,6 @@ impl Padded {
             values: Tensor::from_vec(values, (rows.len(), steps, width), device)?,
             lengths,
         })
-    }
-}
-
-/// A bidirectional single-layer GRU summarised by its two final states (`2 × hidden`).
-struct BiGru {
-    forward: GruLayer,
-    backward: GruLayer,
-}
-
-impl BiGru {
-    fn new(input: usize, hidden: usize, vb: VarBuilder) -> Result<Self> {
-        Ok(Self {
-            forward: GruLayer::new(input, hidden, "l0", &vb)?,
-            backward: GruLayer::new(input, hidden, "l0_reverse", &vb)?,
-        })
-    }
-
-    fn summary(&self, x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
-        let fwd = self.forward.last_state(x, lengths)?;
-        let bwd = self
-            .backward
-            .last_state(&reverse_within(x, lengths)?, lengths)?;
-        Tensor::cat(&[fwd, bwd], 1)
     }
 }
 
@@ -189,12 +166,12 @@ impl Evaluator {
         Ok(Self {
             conv1: candle_nn::conv1d(config.feature_dim, h, 4, conv, motion.pp("conv.0"))?,
             conv2: candle_nn::conv1d(h, h, 4, conv, motion.pp("conv.2"))?,
-            motion_gru: BiGru::new(h, h, motion.pp("gru"))?,
+            motion_gru: BiGru::new(h, h, &motion.pp("gru"))?,
             motion_head: Head::new(2 * h, h, config.embed_dim, motion.pp("head"))?,
             emotion: candle_nn::linear(2 * h, config.emotions.len().max(1), vb.pp("emotion"))?,
             action: candle_nn::linear(2 * h, config.actions.len().max(1), vb.pp("action"))?,
             text_in: candle_nn::linear(config.text_dim, h, text.pp("input"))?,
-            text_gru: BiGru::new(h, h, text.pp("gru"))?,
+            text_gru: BiGru::new(h, h, &text.pp("gru"))?,
             text_head: Head::new(2 * h, h, config.embed_dim, text.pp("head"))?,
             config,
         })
@@ -228,7 +205,7 @@ impl Evaluator {
 
     /// Encode captions given as per-token embeddings; unit-length rows `(batch, embed_dim)`.
     pub fn encode_text(&self, text: &Padded) -> Result<Tensor> {
-        let x = self.text_in.forward(&text.values)?;
+        let x = per_step(&self.text_in, &text.values)?;
         let pooled = self.text_gru.summary(&x, &text.lengths)?;
         unit_rows(&self.text_head.forward(&pooled)?)
     }
@@ -305,6 +282,19 @@ pub fn init_weights(varmap: &candle_nn::VarMap, seed: u64) -> Result<()> {
         var.set(&Tensor::from_vec(values, var.dims(), var.device())?)?;
     }
     Ok(())
+}
+
+/// A fresh evaluator of `config` on `device` and its variables, initialised from `seed` as
+/// [`init_weights`] does.
+pub fn init_evaluator(
+    config: EvaluatorConfig,
+    seed: u64,
+    device: &Device,
+) -> Result<(Evaluator, candle_nn::VarMap)> {
+    let varmap = candle_nn::VarMap::new();
+    let net = Evaluator::new(config, VarBuilder::from_varmap(&varmap, DType::F32, device))?;
+    init_weights(&varmap, seed)?;
+    Ok((net, varmap))
 }
 
 /// `config.json` of an evaluator folder: the networks' shape, how they were trained and on
@@ -612,17 +602,6 @@ mod tests {
         );
         let norm: f32 = b[1].iter().map(|v| v * v).sum();
         assert!((norm - 1.0).abs() < 1e-5);
-    }
-
-    #[test]
-    fn reversal_stays_within_each_length() {
-        let x = Tensor::arange(0f32, 8.0, &Device::Cpu)
-            .unwrap()
-            .reshape((2, 4, 1))
-            .unwrap();
-        let r = reverse_within(&x, &[4, 2]).unwrap();
-        let v: Vec<f32> = r.flatten_all().unwrap().to_vec1().unwrap();
-        assert_eq!(v, vec![3.0, 2.0, 1.0, 0.0, 5.0, 4.0, 6.0, 7.0]);
     }
 
     #[test]

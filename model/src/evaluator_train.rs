@@ -13,14 +13,14 @@
 
 use crate::embed::{clip_captions, CaptionEmbeddings};
 use crate::evaluator::{
-    corpus_id, init_weights, labelled_cross_entropy, Evaluator, EvaluatorConfig, EvaluatorFile,
-    Padded, TrainedEvaluator, FORMAT, UNIT,
+    corpus_id, init_evaluator, labelled_cross_entropy, EvaluatorConfig, EvaluatorFile, Padded,
+    TrainedEvaluator, FORMAT, UNIT,
 };
 use crate::lm_data::resolve_encoder;
 use crate::metrics;
 use crate::{append_json_line, read_json, write_json, ModelError};
-use candle_core::{DType, Tensor};
-use candle_nn::{VarBuilder, VarMap};
+use candle_core::Tensor;
+use candle_nn::VarMap;
 use ingest::corpus::reader::{ClipMeta, Corpus};
 use ingest::corpus::schema::FEATURE_DIM;
 use ingest::rng::SplitMix64;
@@ -224,11 +224,8 @@ pub fn train_evaluator(
     };
     let (mean, std) = (stats("mean.npy")?, stats("std.npy")?);
 
-    let varmap = VarMap::new();
-    let device = crate::default_device();
-    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &device);
-    let net = Evaluator::new(net_config.clone(), vb).map_err(ModelError::inference)?;
-    init_weights(&varmap, config.seed).map_err(ModelError::inference)?;
+    let (net, varmap) = init_evaluator(net_config.clone(), config.seed, &crate::default_device())
+        .map_err(ModelError::inference)?;
     let vars = varmap.data().lock().expect("varmap lock").clone();
     let adamw = AdamWConfig {
         weight_decay: 0.0,

@@ -2,15 +2,21 @@
 //! `weight_ih_l<k>[_reverse]`, `weight_hh_l<k>…`, `bias_ih_l<k>…`, `bias_hh_l<k>…`), so
 //! weights load into `torch.nn.GRU` unchanged: the evaluator's bidirectional layers and
 //! BI-CTVAE's stacked encoder and decoder.
+//!
+//! Each layer projects every step's input in one matmul and runs the recurrence through the
+//! fused scan of [`crate::fused_gru`]; [`scan_reference`] is the same recurrence as plain
+//! candle ops (other devices, and the tests' yardstick).
 
-use candle_core::{Module, Result, Tensor};
+use crate::fused_gru::gru_scan;
+use candle_core::{Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
+use tokenizer::conv_op::{conv1d, ConvGeometry};
 
 /// One direction of one GRU layer.
 pub struct GruLayer {
     w_ih: Linear,
-    w_hh: Linear,
-    hidden: usize,
+    w_hh: Tensor,
+    b_hh: Tensor,
 }
 
 impl GruLayer {
@@ -28,49 +34,43 @@ impl GruLayer {
                 get((3 * hidden, input), &format!("weight_ih_{suffix}"))?,
                 Some(bias(&format!("bias_ih_{suffix}"))?),
             ),
-            w_hh: Linear::new(
-                get((3 * hidden, hidden), &format!("weight_hh_{suffix}"))?,
-                Some(bias(&format!("bias_hh_{suffix}"))?),
-            ),
-            hidden,
+            w_hh: get((3 * hidden, hidden), &format!("weight_hh_{suffix}"))?,
+            b_hh: bias(&format!("bias_hh_{suffix}"))?,
         })
     }
 
-    /// The hidden state after every step, `(batch, steps, hidden)`, from a zero state. `x` is
-    /// `(batch, steps, in)`; the input projection of every step is one matmul, only the
-    /// recurrence loops.
-    pub fn states(&self, x: &Tensor) -> Result<Tensor> {
-        let (batch, steps, _) = x.dims3()?;
-        let projected = self.w_ih.forward(x)?;
-        let mut h = Tensor::zeros((batch, self.hidden), x.dtype(), x.device())?;
-        let mut states = Vec::with_capacity(steps);
-        for t in 0..steps {
-            let gi = projected.narrow(1, t, 1)?.squeeze(1)?;
-            let gh = self.w_hh.forward(&h)?;
-            let (ir, iz, inn) = (
-                gi.narrow(1, 0, self.hidden)?,
-                gi.narrow(1, self.hidden, self.hidden)?,
-                gi.narrow(1, 2 * self.hidden, self.hidden)?,
-            );
-            let (hr, hz, hn) = (
-                gh.narrow(1, 0, self.hidden)?,
-                gh.narrow(1, self.hidden, self.hidden)?,
-                gh.narrow(1, 2 * self.hidden, self.hidden)?,
-            );
-            let r = candle_nn::ops::sigmoid(&(ir + hr)?)?;
-            let z = candle_nn::ops::sigmoid(&(iz + hz)?)?;
-            let n = (inn + (r * hn)?)?.tanh()?;
-            // h' = (1 − z)·n + z·h
-            h = ((&z * &h)? + ((1.0 - &z)? * n)?)?;
-            states.push(h.clone());
-        }
-        Tensor::stack(&states, 1)
+    /// The state after every step, `(batch, steps, hidden)`, from a zero state, as a packed
+    /// `nn.GRU` gives it: sequence b runs over its first `lengths[b]` steps of `x`
+    /// (`(batch, steps, in)`), last to first when `reverse`, and is zero past them.
+    pub fn states(&self, x: &Tensor, lengths: &[usize], reverse: bool) -> Result<Tensor> {
+        gru_scan(
+            &per_step(&self.w_ih, x)?,
+            &self.w_hh,
+            &self.b_hh,
+            lengths,
+            reverse,
+        )
     }
+}
 
-    /// The hidden state after each sequence's last real step, `(batch, hidden)`.
-    pub fn last_state(&self, x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
-        last_states(&self.states(x)?, lengths)
-    }
+/// `linear` applied to every step of `x` `(batch, steps, in)`: a pointwise convolution through
+/// the fused conv op (one gemm with the bias as its initial value, a hand-written backward
+/// that skips the input's gradient when nothing needs it).
+///
+/// Why not `Linear::forward` on the 3-D tensor: candle broadcasts the weight over the batch,
+/// and its backward then runs one small product per sequence and sums them.
+pub fn per_step(linear: &Linear, x: &Tensor) -> Result<Tensor> {
+    let w = linear.weight();
+    let (out, inp) = w.dims2()?;
+    let bias = linear
+        .bias()
+        .ok_or_else(|| candle_core::Error::Msg("per-step linear without a bias".into()))?;
+    conv1d(
+        x,
+        &w.reshape((out, inp, 1))?,
+        bias,
+        ConvGeometry::plain(1, 1, 1, 0),
+    )
 }
 
 /// Of `(batch, steps, width)` states, each sequence's at its last real step.
@@ -84,6 +84,35 @@ pub fn last_states(states: &Tensor, lengths: &[usize]) -> Result<Tensor> {
     states
         .reshape((batch * steps, width))?
         .index_select(&Tensor::new(last, states.device())?, 0)
+}
+
+/// A bidirectional single-layer GRU (`nn.GRU(bidirectional=True)`), summarised by its two
+/// final states (`h_n` of both directions side by side, `2 × hidden`).
+pub struct BiGru {
+    forward: GruLayer,
+    backward: GruLayer,
+}
+
+impl BiGru {
+    /// The layer under `vb` (`weight_ih_l0`, `weight_ih_l0_reverse`…).
+    pub fn new(input: usize, hidden: usize, vb: &VarBuilder) -> Result<Self> {
+        Ok(Self {
+            forward: GruLayer::new(input, hidden, "l0", vb)?,
+            backward: GruLayer::new(input, hidden, "l0_reverse", vb)?,
+        })
+    }
+
+    /// `(batch, 2·hidden)`: the forward direction's state after each sequence's last step,
+    /// then the backward direction's after its first.
+    pub fn summary(&self, x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
+        let fwd = last_states(&self.forward.states(x, lengths, false)?, lengths)?;
+        let bwd = self
+            .backward
+            .states(x, lengths, true)?
+            .narrow(1, 0, 1)?
+            .squeeze(1)?;
+        Tensor::cat(&[fwd, bwd], 1)
+    }
 }
 
 /// A stack of unidirectional GRU layers (`nn.GRU(num_layers=n)`), each reading the states of
@@ -108,11 +137,12 @@ impl StackedGru {
         Ok(Self { layers })
     }
 
-    /// The top layer's state after every step, `(batch, steps, hidden)`.
-    pub fn states(&self, x: &Tensor) -> Result<Tensor> {
+    /// The top layer's state after every step, `(batch, steps, hidden)`, each sequence over
+    /// its first `lengths[b]` steps.
+    pub fn states(&self, x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
         let mut x = x.clone();
         for layer in &self.layers {
-            x = layer.states(&x)?;
+            x = layer.states(&x, lengths, false)?;
         }
         Ok(x)
     }
@@ -131,4 +161,219 @@ pub fn reverse_within(x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
     x.reshape((batch * steps, width))?
         .index_select(&Tensor::new(order, x.device())?, 0)?
         .reshape((batch, steps, width))
+}
+
+/// The recurrence of [`crate::fused_gru::gru_scan`] as candle ops, one step at a time over
+/// the whole batch (a reversed direction runs on each sequence reversed within its length),
+/// states zeroed past each length.
+pub fn scan_reference(
+    gi: &Tensor,
+    w_hh: &Tensor,
+    b_hh: &Tensor,
+    lengths: &[usize],
+    reverse: bool,
+) -> Result<Tensor> {
+    let (batch, steps, h3) = gi.dims3()?;
+    let hidden = h3 / 3;
+    let gi = if reverse {
+        reverse_within(gi, lengths)?
+    } else {
+        gi.clone()
+    };
+    let mut h = Tensor::zeros((batch, hidden), gi.dtype(), gi.device())?;
+    let mut states = Vec::with_capacity(steps);
+    for t in 0..steps {
+        let gi = gi.narrow(1, t, 1)?.squeeze(1)?;
+        let gh = h.matmul(&w_hh.t()?)?.broadcast_add(b_hh)?;
+        let part = |g: &Tensor, k: usize| g.narrow(1, k * hidden, hidden);
+        let r = candle_nn::ops::sigmoid(&(part(&gi, 0)? + part(&gh, 0)?)?)?;
+        let z = candle_nn::ops::sigmoid(&(part(&gi, 1)? + part(&gh, 1)?)?)?;
+        let n = (part(&gi, 2)? + (r * part(&gh, 2)?)?)?.tanh()?;
+        // h' = (1 − z)·n + z·h
+        h = ((&z * &h)? + ((1.0 - &z)? * n)?)?;
+        states.push(h.clone());
+    }
+    let mask: Vec<f32> = lengths
+        .iter()
+        .flat_map(|&l| (0..steps).map(move |t| if t < l { 1.0 } else { 0.0 }))
+        .collect();
+    let mask = Tensor::from_vec(mask, (batch, steps, 1), gi.device())?;
+    let states = Tensor::stack(&states, 1)?.broadcast_mul(&mask)?;
+    if reverse {
+        reverse_within(&states, lengths)
+    } else {
+        Ok(states)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::lora::numeric_gradient;
+    use candle_core::{Device, Var};
+    use ingest::rng::SplitMix64;
+
+    fn random(shape: &[usize], scale: f64, rng: &mut SplitMix64) -> Var {
+        let n: usize = shape.iter().product();
+        let values: Vec<f32> = (0..n).map(|_| (rng.normal() * scale) as f32).collect();
+        Var::from_tensor(&Tensor::from_vec(values, shape, &Device::Cpu).unwrap()).unwrap()
+    }
+
+    /// Gate inputs, recurrent weight and bias of a random direction, and a random
+    /// projection of its states (so the loss reaches every state).
+    struct Case {
+        gi: Var,
+        w: Var,
+        b: Var,
+        probe: Tensor,
+        lengths: Vec<usize>,
+    }
+
+    impl Case {
+        fn new(lengths: &[usize], steps: usize, hidden: usize, seed: u64) -> Self {
+            let mut rng = SplitMix64::stream(seed, 0);
+            let batch = lengths.len();
+            Self {
+                gi: random(&[batch, steps, 3 * hidden], 1.0, &mut rng),
+                w: random(&[3 * hidden, hidden], 0.5, &mut rng),
+                b: random(&[3 * hidden], 0.5, &mut rng),
+                probe: random(&[batch, steps, hidden], 1.0, &mut rng)
+                    .as_tensor()
+                    .clone(),
+                lengths: lengths.to_vec(),
+            }
+        }
+
+        fn loss(&self, states: &Tensor) -> Tensor {
+            (states * &self.probe).unwrap().sum_all().unwrap()
+        }
+
+        fn run(&self, fused: bool, reverse: bool) -> (Tensor, Tensor) {
+            let scan = if fused { gru_scan } else { scan_reference };
+            let (gi, w, b) = (self.gi.as_tensor(), self.w.as_tensor(), self.b.as_tensor());
+            let states = scan(gi, w, b, &self.lengths, reverse).unwrap();
+            let loss = self.loss(&states);
+            (states, loss)
+        }
+
+        /// States and the three gradients, flattened.
+        fn outputs(&self, fused: bool, reverse: bool) -> Vec<Vec<f32>> {
+            let (states, loss) = self.run(fused, reverse);
+            let grads = loss.backward().unwrap();
+            let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
+            let mut out = vec![flat(&states)];
+            for v in [&self.gi, &self.w, &self.b] {
+                out.push(flat(grads.get(v.as_tensor()).unwrap()));
+            }
+            out
+        }
+    }
+
+    fn max_diff(a: &[f32], b: &[f32]) -> f32 {
+        assert_eq!(a.len(), b.len());
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f32::max)
+    }
+
+    /// Mixed lengths (with 1 and the full length), equal lengths, a batch of one.
+    const SHAPES: [(&[usize], usize, usize); 4] = [
+        (&[5, 1, 7, 3, 7, 2], 7, 6),
+        (&[4, 4, 4], 4, 5),
+        (&[1], 1, 3),
+        (&[9, 2, 6, 1, 8], 9, 16),
+    ];
+
+    #[test]
+    fn fused_scan_matches_the_op_by_op_gru_with_its_gradients() {
+        for (k, &(lengths, steps, hidden)) in SHAPES.iter().enumerate() {
+            let case = Case::new(lengths, steps, hidden, k as u64);
+            for reverse in [false, true] {
+                let fused = case.outputs(true, reverse);
+                let reference = case.outputs(false, reverse);
+                for (what, (a, b)) in ["states", "d gi", "d w_hh", "d b_hh"]
+                    .iter()
+                    .zip(fused.iter().zip(&reference))
+                {
+                    let diff = max_diff(a, b);
+                    assert!(
+                        diff < 2e-5,
+                        "{lengths:?} reverse {reverse}: {what} differ by {diff}"
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fused_scan_is_zero_past_each_length_and_reversed_runs_backwards() {
+        let case = Case::new(&[3, 1], 3, 2, 7);
+        let (fwd, _) = case.run(true, false);
+        let (bwd, _) = case.run(true, true);
+        let fwd: Vec<Vec<Vec<f32>>> = fwd.to_vec3().unwrap();
+        let bwd: Vec<Vec<Vec<f32>>> = bwd.to_vec3().unwrap();
+        for t in 1..3 {
+            assert_eq!(fwd[1][t], vec![0.0; 2]);
+            assert_eq!(bwd[1][t], vec![0.0; 2]);
+        }
+        // A sequence of one step is the same step either way.
+        assert_eq!(fwd[1][0], bwd[1][0]);
+        // The reversed direction's last state (position 0) depends on every step.
+        assert_ne!(bwd[0][0], fwd[0][0]);
+    }
+
+    #[test]
+    fn fused_scan_gradients_match_central_differences() {
+        let case = Case::new(&[4, 1, 3], 4, 3, 11);
+        for reverse in [false, true] {
+            let (_, loss) = case.run(true, reverse);
+            let grads = loss.backward().unwrap();
+            for var in [&case.gi, &case.w, &case.b] {
+                let analytic: Vec<f32> = grads
+                    .get(var.as_tensor())
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1()
+                    .unwrap();
+                for k in (0..analytic.len()).step_by(5) {
+                    let numeric = numeric_gradient(var, k, || {
+                        f64::from(case.run(true, reverse).1.to_scalar::<f32>().unwrap())
+                    });
+                    let err = (numeric - f64::from(analytic[k])).abs();
+                    assert!(
+                        err < 2e-3 * (1.0 + numeric.abs()),
+                        "reverse {reverse}, element {k}: analytic {} vs numeric {numeric}",
+                        analytic[k]
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fused_scan_does_not_depend_on_the_thread_count() {
+        let lengths: Vec<usize> = (0..40).map(|b| 1 + (b * 7) % 9).collect();
+        let case = Case::new(&lengths, 9, 16, 3);
+        let on = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| [false, true].map(|reverse| case.outputs(true, reverse)))
+        };
+        assert_eq!(on(1), on(3));
+    }
+
+    #[test]
+    fn reversal_stays_within_each_length() {
+        let x = Tensor::arange(0f32, 8.0, &Device::Cpu)
+            .unwrap()
+            .reshape((2, 4, 1))
+            .unwrap();
+        let r = reverse_within(&x, &[4, 2]).unwrap();
+        let v: Vec<f32> = r.flatten_all().unwrap().to_vec1().unwrap();
+        assert_eq!(v, vec![3.0, 2.0, 1.0, 0.0, 5.0, 4.0, 6.0, 7.0]);
+    }
 }

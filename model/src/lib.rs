@@ -27,6 +27,7 @@ pub mod evaluator;
 pub mod evaluator_train;
 pub mod fallback;
 pub mod fused;
+pub mod fused_gru;
 pub mod generate;
 pub mod gru;
 pub mod kmeans;

@@ -14,10 +14,9 @@
 //! output `(batch, out_frames, out)`. The im2col matrix has one row per output frame and
 //! columns `k·in + c` (tap-major, so each tap is one contiguous copy of a frame).
 
+use crate::cpu_f32::{contiguous_f32, tensor_f32, F32Values};
 use crate::matmul::gemm_with;
-use candle_core::{
-    CpuStorage, CustomOp3, DType, Layout, Result, Shape, Storage, StorageRef, Tensor,
-};
+use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 /// Geometry of a convolution and the pre-ops fused into its input read.
@@ -178,52 +177,6 @@ fn channels_major(t: &[f32], (out, inp, kernel): (usize, usize, usize)) -> Vec<f
     w
 }
 
-fn contiguous_f32<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [f32]> {
-    let (start, end) = l
-        .contiguous_offsets()
-        .ok_or_else(|| candle_core::Error::Msg(format!("conv op: {what} must be contiguous")))?;
-    Ok(&s.as_slice::<f32>()?[start..end])
-}
-
-fn tensor_f32(t: &Tensor) -> Result<Vec<f32>> {
-    t.contiguous()?.flatten_all()?.to_vec1::<f32>()
-}
-
-/// The values of an f32 tensor: borrowed from its storage when it is contiguous on the CPU
-/// (copying every activation and gradient in the backward pass cost ~4% of a step), else
-/// copied.
-enum F32Values<'a> {
-    Borrowed(StorageRef<'a>, (usize, usize)),
-    Owned(Vec<f32>),
-}
-
-impl<'a> F32Values<'a> {
-    fn of(t: &'a Tensor) -> Result<Self> {
-        let (storage, layout) = t.storage_and_layout();
-        if let (Storage::Cpu(CpuStorage::F32(_)), Some(range)) =
-            (&*storage, layout.contiguous_offsets())
-        {
-            return Ok(Self::Borrowed(storage, range));
-        }
-        drop(storage);
-        Ok(Self::Owned(tensor_f32(t)?))
-    }
-}
-
-impl std::ops::Deref for F32Values<'_> {
-    type Target = [f32];
-
-    fn deref(&self) -> &[f32] {
-        match self {
-            Self::Borrowed(storage, (start, end)) => match &**storage {
-                Storage::Cpu(CpuStorage::F32(values)) => &values[*start..*end],
-                _ => unreachable!("F32Values::of borrows f32 CPU storage only"),
-            },
-            Self::Owned(values) => values,
-        }
-    }
-}
-
 /// (batch, frames, channels) of an input, or (out, in, kernel) of a weight.
 type Dims3 = (usize, usize, usize);
 
@@ -338,23 +291,29 @@ impl CustomOp3 for ConvOp {
         for s in &partial {
             db.iter_mut().zip(s).for_each(|(a, v)| *a += v);
         }
-        // dcols (rows × kernel·in) = dY · Wt, then scattered back onto the input frames.
-        let mut dcols = vec![0f32; rows * width];
-        gemm_with(
-            &mut dcols,
-            (&dy, false),
-            (&wt, false),
-            (rows, width, out_ch),
-            (false, 1.0, true),
-        );
-        let dx = if g.is_pointwise() {
-            dcols
-        } else {
-            col2im(&dcols, &xv, (batch, frames, inp), g)
-        };
         let device = x.device();
+        // An input that no gradient reaches (the data under the first layer) gets none.
+        let dx = if x.track_op() {
+            // dcols (rows × kernel·in) = dY · Wt, then scattered back onto the input frames.
+            let mut dcols = vec![0f32; rows * width];
+            gemm_with(
+                &mut dcols,
+                (&dy, false),
+                (&wt, false),
+                (rows, width, out_ch),
+                (false, 1.0, true),
+            );
+            let dx = if g.is_pointwise() {
+                dcols
+            } else {
+                col2im(&dcols, &xv, (batch, frames, inp), g)
+            };
+            Some(Tensor::from_vec(dx, (batch, frames, inp), device)?)
+        } else {
+            None
+        };
         Ok((
-            Some(Tensor::from_vec(dx, (batch, frames, inp), device)?),
+            dx,
             Some(Tensor::from_vec(dw, (out_ch, inp, kernel), device)?),
             Some(Tensor::from_vec(db, out_ch, device)?),
         ))

@@ -8,8 +8,8 @@
 //! - [`model::MotionTokenizer`]: encoder + quantizer + decoder + normalisation statistics,
 //!   saved as a checkpoint PyTorch loads; [`train`], [`evaluate`], [`sweep`] and [`tokens`]
 //!   (token sets, the transformer stage's input). [`optim`] (AdamW with saveable state and a
-//!   warm-up + cosine schedule), [`checkpoint`] and [`matmul`] are shared with later training
-//!   stages.
+//!   warm-up + cosine schedule), [`checkpoint`], [`matmul`] and [`cpu_f32`] are shared with
+//!   later training stages.
 //!
 //! The `cuda` feature (off by default) builds candle with CUDA; the fused CPU ops then fall
 //! back to candle's own ops on GPU tensors.
@@ -17,6 +17,7 @@
 pub mod checkpoint;
 pub mod conv;
 pub mod conv_op;
+pub mod cpu_f32;
 pub mod error;
 pub mod evaluate;
 pub mod fsq;

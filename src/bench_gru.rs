@@ -1,0 +1,305 @@
+//! `motionscale bench evaluator` and `bench ctvae`: training steps/s of the two GRU models
+//! (the text–motion evaluator; BI-CTVAE at `cl2gen`'s shapes) and, with `--reference`, the
+//! same step of their PyTorch references run in this session, with the ratio.
+//!
+//! The evaluator's workload is `shared/bench/pytorch_evaluator.py`'s: B clips of 40–196
+//! frames (multiples of 4) and captions of 8–32 tokens of 384-d embeddings, N(0, 1) values,
+//! 6 emotion and 12 action labels; loss InfoNCE (τ 0.07) + both cross-entropies; AdamW at
+//! 1e-3. With `--reference` the lengths are the reference's own (drawn by torch's generator
+//! with its seed), so both time the same sequences. BI-CTVAE's is `scripts/pytorch_ctvae.py`'s.
+
+use anyhow::{Context, Result};
+use candle_core::Device;
+use ingest::rng::SplitMix64;
+use model::ctvae::CtvaeConfig;
+use model::ctvae_train::{CtvaeTrainer, LossWeights, Sample};
+use model::evaluator::{init_evaluator, labelled_cross_entropy, EvaluatorConfig, Padded};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use tokenizer::optim::{AdamW, AdamWConfig};
+
+/// Arguments of `motionscale bench evaluator`.
+#[derive(clap::Args, Debug)]
+pub struct BenchEvaluatorArgs {
+    /// Clips per step.
+    #[arg(long, default_value_t = 64)]
+    pub batch: usize,
+    /// GRU and convolution width.
+    #[arg(long, default_value_t = 256)]
+    pub hidden: usize,
+    /// Untimed steps first.
+    #[arg(long, default_value_t = 3)]
+    pub warmup: usize,
+    /// Timed steps (the median is reported).
+    #[arg(long, default_value_t = 15)]
+    pub reps: usize,
+    /// Also run shared/bench/pytorch_evaluator.py (needs torch) and print the ratio.
+    #[arg(long)]
+    pub reference: bool,
+    /// Folder of the shared PyTorch reference scripts.
+    #[arg(long, default_value = "../shared/bench")]
+    pub bench_dir: PathBuf,
+    /// Also write the figures as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// Arguments of `motionscale bench ctvae`.
+#[derive(clap::Args, Debug)]
+pub struct BenchCtvaeArgs {
+    /// Shapes to time (`cl2gen --shape`).
+    #[arg(long, value_delimiter = ',', default_value = "cpu,paper")]
+    pub shapes: Vec<String>,
+    /// Sequences per step.
+    #[arg(long, default_value_t = 64)]
+    pub batch: usize,
+    /// Action classes.
+    #[arg(long, default_value_t = 10)]
+    pub classes: usize,
+    /// Untimed steps first.
+    #[arg(long, default_value_t = 2)]
+    pub warmup: usize,
+    /// Timed steps (the median is reported).
+    #[arg(long, default_value_t = 10)]
+    pub reps: usize,
+    /// Also run scripts/pytorch_ctvae.py (needs torch) and print the ratio.
+    #[arg(long)]
+    pub reference: bool,
+    /// The BI-CTVAE PyTorch reference.
+    #[arg(long, default_value = "scripts/pytorch_ctvae.py")]
+    pub reference_script: PathBuf,
+    /// Also write the figures as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// Frames and caption tokens of each clip as `pytorch_evaluator.py` draws them.
+fn reference_lengths(batch: usize) -> Result<(Vec<usize>, Vec<usize>)> {
+    let code = format!(
+        "import json, torch\n\
+         g = torch.Generator().manual_seed(1)\n\
+         f = [int(v) // 4 * 4 for v in torch.randint(40, 197, ({batch},), generator=g)]\n\
+         t = [int(v) for v in torch.randint(8, 33, ({batch},), generator=g)]\n\
+         print(json.dumps([f, t]))"
+    );
+    let out = std::process::Command::new("python3")
+        .args(["-c", &code])
+        .output()
+        .context("running python3 for the reference's lengths")?;
+    anyhow::ensure!(
+        out.status.success(),
+        "python3 (torch) failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Ok(serde_json::from_slice(&out.stdout)?)
+}
+
+/// The same ranges drawn by our generator (no torch needed).
+fn own_lengths(batch: usize) -> (Vec<usize>, Vec<usize>) {
+    let mut rng = SplitMix64::stream(1, 0);
+    let frames = (0..batch).map(|_| (40 + rng.index(157)) / 4 * 4).collect();
+    let tokens = (0..batch).map(|_| 8 + rng.index(25)).collect();
+    (frames, tokens)
+}
+
+fn normal_rows(lengths: &[usize], width: usize, rng: &mut SplitMix64) -> Vec<Vec<f32>> {
+    lengths
+        .iter()
+        .map(|&l| (0..l * width).map(|_| rng.normal() as f32).collect())
+        .collect()
+}
+
+fn slices(rows: &[Vec<f32>]) -> Vec<&[f32]> {
+    rows.iter().map(Vec::as_slice).collect()
+}
+
+/// Median seconds of our evaluator training step on clips of `frames` and captions of `tokens`.
+fn time_evaluator(args: &BenchEvaluatorArgs, frames: &[usize], tokens: &[usize]) -> Result<f64> {
+    let config = EvaluatorConfig {
+        feature_dim: ingest::hml263::FEATURE_DIM,
+        text_dim: 384,
+        hidden: args.hidden,
+        embed_dim: 256,
+        max_frames: 196,
+        max_text_tokens: 32,
+        temperature: 0.07,
+        emotions: (0..6).map(|i| format!("e{i}")).collect(),
+        actions: (0..12).map(|i| format!("a{i}")).collect(),
+    };
+    let (net, varmap) = init_evaluator(config.clone(), 0, &Device::Cpu)?;
+    let mut opt = AdamW::new(
+        &varmap.data().lock().expect("varmap lock").clone(),
+        AdamWConfig::default(),
+    );
+    let mut rng = SplitMix64::stream(2, 0);
+    let motions = normal_rows(frames, config.feature_dim, &mut rng);
+    let texts = normal_rows(tokens, config.text_dim, &mut rng);
+    let emotion: Vec<Option<u32>> = (0..frames.len())
+        .map(|_| Some(rng.index(6) as u32))
+        .collect();
+    let action: Vec<Option<u32>> = (0..frames.len())
+        .map(|_| Some(rng.index(12) as u32))
+        .collect();
+    let distinct = vec![vec![false; frames.len()]; frames.len()];
+    let (motion_rows, text_rows) = (slices(&motions), slices(&texts));
+    let timing = crate::lm_bench::time(args.warmup, args.reps, 0.0, || {
+        let motion = net.encode_motion(&Padded::new(
+            &motion_rows,
+            config.feature_dim,
+            &Device::Cpu,
+        )?)?;
+        let text = net.encode_text(&Padded::new(&text_rows, config.text_dim, &Device::Cpu)?)?;
+        let loss = (net.contrastive_loss(&text, &motion.embedding, &distinct)?
+            + labelled_cross_entropy(&motion.emotion, &emotion)?
+            + labelled_cross_entropy(&motion.action, &action)?)?;
+        opt.step(&loss.backward()?, 1e-3, None)?;
+        Ok(())
+    })?;
+    crate::bench::number(&timing, "median_s")
+}
+
+/// `motionscale bench evaluator`.
+pub fn evaluator(args: BenchEvaluatorArgs) -> Result<ExitCode> {
+    crate::memory::keep_freed_memory();
+    let (frames, tokens) = if args.reference {
+        reference_lengths(args.batch)?
+    } else {
+        own_lengths(args.batch)
+    };
+    let mean = |v: &[usize]| v.iter().sum::<usize>() as f64 / v.len() as f64;
+    let ours = time_evaluator(&args, &frames, &tokens)?;
+    let mut line = format!(
+        "evaluator training step, batch {}, hidden {}, {:.1} frames and {:.1} tokens per clip, {} threads: {:.3} s ({:.2} steps/s)",
+        args.batch,
+        args.hidden,
+        mean(&frames),
+        mean(&tokens),
+        rayon::current_num_threads(),
+        ours,
+        1.0 / ours
+    );
+    let mut figures = serde_json::json!({"what": "evaluator training step", "batch": args.batch,
+        "hidden": args.hidden, "mean_frames": mean(&frames), "mean_tokens": mean(&tokens),
+        "threads": rayon::current_num_threads(), "median_step_s": ours});
+    if args.reference {
+        let reference = crate::bench::run_reference(
+            &args.bench_dir.join("pytorch_evaluator.py"),
+            &[
+                "--batch",
+                &args.batch.to_string(),
+                "--hidden",
+                &args.hidden.to_string(),
+                "--threads",
+                "2",
+                "--warmup",
+                &args.warmup.to_string(),
+                "--reps",
+                &args.reps.to_string(),
+            ],
+        )?;
+        let theirs = crate::bench::number(&reference, "median_step_s")?;
+        line.push_str(&format!(
+            "; PyTorch {theirs:.3} s ({:.2} steps/s) → ratio {:.2}×",
+            1.0 / theirs,
+            theirs / ours
+        ));
+        figures["reference"] = reference;
+        figures["ratio"] = (theirs / ours).into();
+    }
+    println!("{line}");
+    write_figures(args.json.as_ref(), &figures)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Lengths of the BI-CTVAE workload: 60 + (7·b mod 41) frames, as the reference script.
+fn ctvae_lengths(batch: usize) -> Vec<usize> {
+    (0..batch).map(|b| 60 + (7 * b) % 41).collect()
+}
+
+/// Median seconds of our BI-CTVAE training step at `shape`.
+fn time_ctvae(args: &BenchCtvaeArgs, shape: &str) -> Result<f64> {
+    let classes: Vec<String> = (0..args.classes).map(|i| format!("c{i}")).collect();
+    let config = match shape {
+        "paper" => CtvaeConfig::paper(classes),
+        "cpu" => CtvaeConfig::cpu(classes),
+        other => anyhow::bail!("unknown shape {other:?} (cpu or paper)"),
+    };
+    let dim = config.feature_dim;
+    let weights = LossWeights {
+        latent: 1e-5,
+        aux: 0.0,
+    };
+    let mut trainer = CtvaeTrainer::new(config, weights, &vec![1.0; dim], 0)?;
+    let mut rng = SplitMix64::stream(3, 0);
+    let samples: Vec<Sample> = ctvae_lengths(args.batch)
+        .iter()
+        .enumerate()
+        .map(|(b, &l)| Sample {
+            class: (b % args.classes) as u32,
+            poses: (0..l * dim).map(|_| rng.normal() as f32).collect(),
+        })
+        .collect();
+    let batch: Vec<&Sample> = samples.iter().collect();
+    let timing = crate::lm_bench::time(args.warmup, args.reps, 0.0, || {
+        trainer.step(&batch, 1e-3, None, &mut rng)?;
+        Ok(())
+    })?;
+    crate::bench::number(&timing, "median_s")
+}
+
+/// `motionscale bench ctvae`.
+pub fn ctvae(args: BenchCtvaeArgs) -> Result<ExitCode> {
+    crate::memory::keep_freed_memory();
+    let mut figures = Vec::new();
+    for shape in &args.shapes {
+        let ours = time_ctvae(&args, shape)?;
+        let mut line = format!(
+            "BI-CTVAE training step, shape {shape}, batch {}, 60–100 frames, {} threads: {ours:.3} s ({:.2} steps/s)",
+            args.batch,
+            rayon::current_num_threads(),
+            1.0 / ours
+        );
+        let mut figure = serde_json::json!({"what": "BI-CTVAE training step", "shape": shape,
+            "batch": args.batch, "threads": rayon::current_num_threads(), "median_step_s": ours});
+        if args.reference {
+            let reference = crate::bench::run_reference(
+                &args.reference_script,
+                &[
+                    "--shape",
+                    shape,
+                    "--batch",
+                    &args.batch.to_string(),
+                    "--classes",
+                    &args.classes.to_string(),
+                    "--threads",
+                    "2",
+                    "--warmup",
+                    &args.warmup.to_string(),
+                    "--reps",
+                    &args.reps.to_string(),
+                ],
+            )?;
+            let theirs = crate::bench::number(&reference, "median_step_s")?;
+            line.push_str(&format!(
+                "; PyTorch {theirs:.3} s ({:.2} steps/s) → ratio {:.2}×",
+                1.0 / theirs,
+                theirs / ours
+            ));
+            figure["reference"] = reference;
+            figure["ratio"] = (theirs / ours).into();
+        }
+        println!("{line}");
+        figures.push(figure);
+    }
+    write_figures(args.json.as_ref(), &serde_json::Value::Array(figures))?;
+    Ok(ExitCode::SUCCESS)
+}
+
+fn write_figures(path: Option<&PathBuf>, figures: &serde_json::Value) -> Result<()> {
+    if let Some(path) = path {
+        let text = serde_json::to_string_pretty(figures)?;
+        ingest::npy::write_atomic(path, text.as_bytes())
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
