@@ -4,6 +4,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 use ingest::corpus::verify::verify as verify_corpus;
 use ingest::corpus::Corpus;
+use ingest::export::text_process::PosTagger;
 use ingest::hml263::Hml263Options;
 use ingest::pipeline::{IngestOptions, SourceSpec, DEFAULT_STATIC_THRESHOLD};
 use ingest::scenarios::ScenarioSplit;
@@ -289,10 +290,10 @@ pub fn verify(dir: &Path, json: bool) -> Result<ExitCode> {
     })
 }
 
-/// `motionscale export hml3d`.
-pub fn export_hml3d(dir: &Path, out: &Path) -> Result<ExitCode> {
+/// `motionscale export hml3d`: the summary as JSON on stdout, its warnings also on stderr.
+pub fn export_hml3d(dir: &Path, out: &Path, tagger: PosTagger) -> Result<ExitCode> {
     let corpus = Corpus::open(dir).map_err(anyhow::Error::msg)?;
-    let mut writer = ingest::export::hml3d::Hml3dWriter::new(out)
+    let mut writer = ingest::export::hml3d::Hml3dWriter::new(out, tagger)
         .with_context(|| format!("creating {}", out.display()))?;
     for shard in 0..corpus.manifest().shards.len() {
         for clip in corpus.shard_records(shard).map_err(anyhow::Error::msg)? {
@@ -304,6 +305,9 @@ pub fn export_hml3d(dir: &Path, out: &Path) -> Result<ExitCode> {
     let summary = writer
         .finish(corpus.mean(), corpus.std())
         .with_context(|| format!("finishing {}", out.display()))?;
+    for warning in &summary.warnings {
+        eprintln!("warning: {warning}");
+    }
     println!("{}", serde_json::to_string(&summary)?);
     Ok(ExitCode::SUCCESS)
 }

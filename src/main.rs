@@ -156,6 +156,10 @@ enum ExportCommand {
         corpus: PathBuf,
         /// Output folder.
         out: PathBuf,
+        /// Tagger of the texts' word/POS tokens: builtin, or spacy (en_core_web_sm through
+        /// python3, byte-exact HumanML3D texts).
+        #[arg(long, default_value = "builtin")]
+        pos_tagger: ingest::export::text_process::PosTagger,
     },
     /// Write one clip's SMPL-22 joints as a BVH file (Blender, MotionBuilder).
     Bvh {
@@ -220,9 +224,11 @@ fn main() -> ExitCode {
         Command::EmbedText(args) => text::embed_text(args),
         Command::Corpus(CorpusCommand::Stats { corpus, json }) => commands::stats(&corpus, json),
         Command::Corpus(CorpusCommand::Verify { corpus, json }) => commands::verify(&corpus, json),
-        Command::Export(ExportCommand::Hml3d { corpus, out }) => {
-            commands::export_hml3d(&corpus, &out)
-        }
+        Command::Export(ExportCommand::Hml3d {
+            corpus,
+            out,
+            pos_tagger,
+        }) => commands::export_hml3d(&corpus, &out, pos_tagger),
         Command::Export(ExportCommand::Bvh {
             corpus,
             motion_id,

@@ -101,7 +101,7 @@ pub fn quickstart(args: QuickstartArgs) -> Result<ExitCode> {
 
     step(5, "HumanML3D layout export");
     let hml = args.out.join("humanml3d");
-    crate::commands::export_hml3d(&corpus_dir, &hml)?;
+    crate::commands::export_hml3d(&corpus_dir, &hml, Default::default())?;
 
     println!(
         "\nquickstart done in {:.1} s: corpus {}, scenarios {}, HumanML3D layout {}",

@@ -305,13 +305,7 @@ pub fn write_motion(out: &Path, features: &[f32], joints: bool) -> Result<()> {
             ingest::export::bvh::write_bvh_file(out, &poses, 20.0)
         }
         Some("npy") if joints => {
-            let poses = ingest::hml263::recover_joints(features);
-            let flat: Vec<f32> = poses
-                .iter()
-                .flatten()
-                .flatten()
-                .map(|&v| v as f32)
-                .collect();
+            let flat = ingest::hml263::recover_joints_f32(features);
             ingest::npy::write_f32(out, &[frames, 22, 3], &flat)
         }
         Some("npy") => ingest::npy::write_f32(out, &[frames, 263], features),

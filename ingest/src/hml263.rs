@@ -492,6 +492,16 @@ pub fn recover_joints(features: &[f32]) -> Vec<Pose> {
     out
 }
 
+/// [`recover_joints`] as n×22×3 f32 values, the layout of a HumanML3D `new_joints` file.
+pub fn recover_joints_f32(features: &[f32]) -> Vec<f32> {
+    recover_joints(features)
+        .iter()
+        .flatten()
+        .flatten()
+        .map(|&v| v as f32)
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

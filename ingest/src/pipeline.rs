@@ -7,7 +7,7 @@ use crate::corpus::manifest::{
 use crate::corpus::runs::RunSet;
 use crate::corpus::split::{split_of, SPLITS};
 use crate::corpus::stats::FeatureStats;
-use crate::corpus::ClipRecord;
+use crate::corpus::{CaptionSpan, ClipRecord};
 use crate::hml263::{Hml263, Hml263Extractor, Hml263Options, FEATURE_DIM};
 use crate::resample::resample;
 use crate::skeleton::{mirror_pose, Pose};
@@ -419,11 +419,8 @@ fn clip_records(
             &[false]
         };
         for &mirrored in variants {
-            let motion_id = if mirrored {
-                format!("M{id}")
-            } else {
-                id.clone()
-            };
+            let prefix = if mirrored { "M" } else { "" };
+            let motion_id = format!("{prefix}{id}");
             let input: Vec<Pose> = if mirrored {
                 segment.iter().map(mirror_pose).collect()
             } else {
@@ -452,6 +449,15 @@ fn clip_records(
             } else {
                 raw.captions.clone()
             };
+            // A span cut into segments no longer matches its captions' times: keep them as clips.
+            let span = raw
+                .span
+                .as_ref()
+                .filter(|_| parts.len() == 1)
+                .map(|s| CaptionSpan {
+                    of: format!("{prefix}{}", s.of),
+                    seconds: s.seconds.clone(),
+                });
             out.records.push(ClipRecord {
                 motion_id,
                 source: raw.source.clone(),
@@ -471,6 +477,7 @@ fn clip_records(
                 labels: raw.labels.clone(),
                 split: split.clone(),
                 mirrored,
+                span,
             });
         }
     }

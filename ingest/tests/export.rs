@@ -6,10 +6,12 @@ use common::data_dir;
 use ingest::corpus::ClipRecord;
 use ingest::export::bvh;
 use ingest::export::hml3d::{Hml3dWriter, FEATURE_DIM, GENERIC_CAPTION};
+use ingest::export::text_process::PosTagger;
 use ingest::npy;
 use ingest::quat::{self, Quat, Vec3};
 use ingest::skeleton::{Pose, JOINT_NAMES, NUM_JOINTS, PARENTS, TARGET_OFFSETS};
 use ingest::source::bvh::{Bvh, Channel};
+use std::path::Path;
 
 // ---------------------------------------------------------------- HumanML3D layout
 
@@ -31,6 +33,7 @@ fn record(id: &str, frames: usize, split: &str, captions: &[&str]) -> ClipRecord
         labels: Default::default(),
         split: split.into(),
         mirrored: false,
+        span: None,
     }
 }
 
@@ -38,7 +41,7 @@ fn record(id: &str, frames: usize, split: &str, captions: &[&str]) -> ClipRecord
 fn hml3d_layout_round_trips() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("export");
-    let mut writer = Hml3dWriter::new(&out).unwrap();
+    let mut writer = Hml3dWriter::new(&out, PosTagger::BuiltIn).unwrap();
     writer
         .add(&record(
             "walk_001",
@@ -66,10 +69,12 @@ fn hml3d_layout_round_trips() {
         .contains("525 feature values"));
     let mean: Vec<f32> = (0..FEATURE_DIM).map(|i| i as f32).collect();
     let std = vec![1.5f32; FEATURE_DIM];
-    assert!(Hml3dWriter::new(&dir.path().join("other"))
-        .unwrap()
-        .finish(&mean[..10], &std)
-        .is_err());
+    assert!(
+        Hml3dWriter::new(&dir.path().join("other"), PosTagger::BuiltIn)
+            .unwrap()
+            .finish(&mean[..10], &std)
+            .is_err()
+    );
     let summary = writer.finish(&mean, &std).unwrap();
     assert_eq!(summary.clips, 3);
     assert_eq!(summary.generic_captions, 1);
@@ -80,14 +85,21 @@ fn hml3d_layout_round_trips() {
     let vecs = npy::read(&out.join("new_joint_vecs/walk_001.npy")).unwrap();
     assert_eq!(vecs.shape, [4, FEATURE_DIM]);
     assert_eq!(vecs.data[FEATURE_DIM + 1], (FEATURE_DIM + 1) as f64 * 0.5);
+    // new_joints = recover_from_ric(new_joint_vecs): as many frames as the vectors.
     let joints = npy::read(&out.join("new_joints/walk_001.npy")).unwrap();
-    assert_eq!(joints.shape, [5, NUM_JOINTS, 3]);
-    assert_eq!(joints.data[70], -70.0);
+    assert_eq!(joints.shape, [4, NUM_JOINTS, 3]);
+    let features = record("walk_001", 4, "train", &[]).features;
+    let recovered = ingest::hml263::recover_joints_f32(&features);
+    assert!(joints
+        .data
+        .iter()
+        .zip(&recovered)
+        .all(|(a, &b)| *a == b as f64));
     assert_eq!(
         npy::read(&out.join("new_joints/Mwalk_001.npy"))
             .unwrap()
             .shape,
-        [4, 22, 3]
+        [3, 22, 3]
     );
     assert_eq!(npy::read(&out.join("Mean.npy")).unwrap().data[262], 262.0);
     assert_eq!(
@@ -98,8 +110,8 @@ fn hml3d_layout_round_trips() {
     let text = std::fs::read_to_string(out.join("texts/walk_001.txt")).unwrap();
     assert_eq!(
         text,
-        "A person walks forward.#a/DET person/NOUN walk/VERB forward/ADV#0.0#0.0\n\
-         Someone walks 1#someone/PRON walk/VERB 1/NUM#0.0#0.0\n"
+        "A person walks forward.#A/DET person/NOUN walk/VERB forward/ADV#0.0#0.0\n\
+         Someone walks 1#Someone/PRON walk/VERB#0.0#0.0\n"
     );
     for line in text.lines() {
         let fields: Vec<_> = line.split('#').collect();
@@ -120,13 +132,73 @@ fn hml3d_layout_round_trips() {
     assert_eq!(read("train.txt"), "Mwalk_001\nwalk_001\n");
     assert_eq!(read("val.txt"), "");
     assert_eq!(read("test.txt"), "bow_002\n");
+    assert_eq!(read("train_val.txt"), "Mwalk_001\nwalk_001\n");
     assert_eq!(read("all.txt"), "Mwalk_001\nbow_002\nwalk_001\n");
+    assert_eq!(
+        summary.loader_clips["train"], 0,
+        "every clip is under 40 frames"
+    );
+    assert_eq!(summary.warnings.len(), 3, "{:?}", summary.warnings);
     let leftovers: Vec<_> = std::fs::read_dir(&out)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
         .filter(|n| n.contains(".tmp"))
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
+}
+
+/// Rows of a fixture `.npy` as f32 values.
+fn fixture(data: &Path, name: &str) -> (Vec<usize>, Vec<f32>) {
+    let arr = npy::read(&data.join(format!("humanml3d-fixtures/{name}.npy"))).unwrap();
+    (arr.shape, arr.data.iter().map(|&v| v as f32).collect())
+}
+
+#[test]
+fn hml3d_new_joints_are_the_fixtures_recovered_joints() {
+    let Some(data) = data_dir() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let mut writer = Hml3dWriter::new(dir.path(), PosTagger::BuiltIn).unwrap();
+    let fixtures = ["a_asis", "e_crop10_50"];
+    for name in fixtures {
+        // The reference's own features, and ours computed from the fixture's joints.
+        let (shape, features) = fixture(&data, &format!("{name}_features"));
+        let (_, joints) = fixture(&data, &format!("{name}_joints"));
+        let poses: Vec<Pose> = joints
+            .chunks_exact(NUM_JOINTS * 3)
+            .map(|f| std::array::from_fn(|j| std::array::from_fn(|k| f[3 * j + k] as f64)))
+            .collect();
+        let ours = ingest::hml263::process(&poses, &Default::default()).unwrap();
+        for (id, features) in [
+            (name.to_string(), features),
+            (format!("{name}_ours"), ours.features),
+        ] {
+            let mut clip = record(&id, shape[0], "test", &["a person moves."]);
+            clip.features = features;
+            writer.add(&clip).unwrap();
+        }
+    }
+    let mean = vec![0f32; FEATURE_DIM];
+    writer.finish(&mean, &vec![1f32; FEATURE_DIM]).unwrap();
+    for name in fixtures {
+        let (expected_shape, expected) = fixture(&data, &format!("{name}_recovered"));
+        for id in [name.to_string(), format!("{name}_ours")] {
+            let vecs = npy::read(&dir.path().join(format!("new_joint_vecs/{id}.npy"))).unwrap();
+            let joints = npy::read(&dir.path().join(format!("new_joints/{id}.npy"))).unwrap();
+            assert_eq!(joints.shape, expected_shape);
+            assert_eq!(
+                joints.shape[0], vecs.shape[0],
+                "as many frames as new_joint_vecs"
+            );
+            let worst = joints
+                .data
+                .iter()
+                .zip(&expected)
+                .map(|(a, &b)| (a - f64::from(b)).abs())
+                .fold(0f64, f64::max);
+            eprintln!("{id}: new_joints vs {name}_recovered.npy, max difference {worst:.2e} m");
+            assert!(worst < 1e-4, "{id}: {worst}");
+        }
+    }
 }
 
 // ---------------------------------------------------------------- BVH

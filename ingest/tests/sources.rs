@@ -160,6 +160,10 @@ fn hml3d_folder_yields_whole_clips_and_captioned_segments() {
     let wave = clips[1].as_ref().unwrap();
     assert_eq!(wave.clip_id, "000001_10_40");
     assert_eq!(wave.captions, ["he waves.", "a wave."]);
+    let span = wave.span.as_ref().expect("a span clip remembers its span");
+    assert_eq!(span.of, "000001");
+    assert_eq!(span.seconds, [(0.5, 2.0), (0.5, 2.0)]);
+    assert_eq!(whole.span, None);
     assert_eq!(wave.poses.len(), 30);
     assert_eq!(wave.poses[0], whole.poses[10]);
     assert_eq!(wave.split.as_deref(), Some("train"));

@@ -172,12 +172,7 @@ pub fn generate_caption_set(
                 .detokenize(&tokens)
                 .map_err(ModelError::inference)?;
             let frames = features.len() / ingest::hml263::FEATURE_DIM;
-            let joints: Vec<f32> = ingest::hml263::recover_joints(&features)
-                .iter()
-                .flatten()
-                .flatten()
-                .map(|&v| v as f32)
-                .collect();
+            let joints = ingest::hml263::recover_joints_f32(&features);
             let path = |sub: &str, ext: &str| out.join(sub).join(format!("{}.{ext}", e.id));
             let vecs = path("new_joint_vecs", "npy");
             write_f32(&vecs, &[frames, 263], &features).map_err(io(&vecs))?;

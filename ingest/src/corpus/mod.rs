@@ -45,6 +45,18 @@ pub struct ClipRecord {
     pub split: String,
     /// Whether this is a left/right mirrored copy.
     pub mirrored: bool,
+    /// For a clip cut from a captioned time span of another clip (HumanML3D `#start#end`
+    /// captions): that clip and each caption's span.
+    pub span: Option<CaptionSpan>,
+}
+
+/// Where a clip cut from a captioned time span sits in the clip it was cut from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CaptionSpan {
+    /// Motion id (or, before ingest, source clip id) of the clip the span was cut from.
+    pub of: String,
+    /// Start and end in seconds of each caption's span, in caption order.
+    pub seconds: Vec<(f64, f64)>,
 }
 
 impl ClipRecord {

@@ -3,11 +3,11 @@
 
 use super::manifest::Manifest;
 use super::schema::{col, FEATURE_DIM};
-use super::ClipRecord;
+use super::{CaptionSpan, ClipRecord};
 use crate::rng::SplitMix64;
 use crate::source::Labels;
 use arrow_array::cast::AsArray;
-use arrow_array::types::{Float32Type, UInt32Type};
+use arrow_array::types::{Float32Type, Float64Type, UInt32Type};
 use arrow_array::{Array, RecordBatch};
 use bytes::Bytes;
 use parquet::arrow::arrow_reader::{
@@ -106,7 +106,36 @@ fn float_lists(batch: &RecordBatch, name: &str) -> Result<Vec<Vec<f32>>, String>
         .collect()
 }
 
-/// Decode a record batch of the shard schema into clips.
+/// The caption spans of every row: `None` where `span_of` is null or the shard predates it.
+fn caption_spans(batch: &RecordBatch) -> Result<Vec<Option<CaptionSpan>>, String> {
+    let rows = batch.num_rows();
+    if batch.column_by_name(col::SPAN_OF).is_none() {
+        return Ok(vec![None; rows]);
+    }
+    let of = strings(batch, col::SPAN_OF)?;
+    let seconds = column(batch, col::CAPTION_SPANS)?
+        .as_list_opt::<i32>()
+        .ok_or("column caption_spans is not a list")?;
+    (0..rows)
+        .map(|i| {
+            let Some(of) = of[i].clone() else {
+                return Ok(None);
+            };
+            let values = seconds.value(i);
+            let values = values
+                .as_primitive_opt::<Float64Type>()
+                .ok_or("column caption_spans does not hold f64")?;
+            let seconds = values
+                .values()
+                .chunks_exact(2)
+                .map(|p| (p[0], p[1]))
+                .collect();
+            Ok(Some(CaptionSpan { of, seconds }))
+        })
+        .collect()
+}
+
+/// Decode a record batch of the shard schema (with or without its optional columns) into clips.
 pub fn records_from_batch(batch: &RecordBatch) -> Result<Vec<ClipRecord>, String> {
     let ids = strings(batch, col::MOTION_ID)?;
     let sources = strings(batch, col::SOURCE)?;
@@ -143,6 +172,7 @@ pub fn records_from_batch(batch: &RecordBatch) -> Result<Vec<ClipRecord>, String
     let mirrored = column(batch, col::MIRRORED)?
         .as_boolean_opt()
         .ok_or("column mirrored is not boolean")?;
+    let mut spans = caption_spans(batch)?;
     let mut out = Vec::with_capacity(batch.num_rows());
     for (i, (features, joints)) in features.into_iter().zip(joints).enumerate() {
         let caps = captions_list.value(i);
@@ -167,6 +197,7 @@ pub fn records_from_batch(batch: &RecordBatch) -> Result<Vec<ClipRecord>, String
             },
             split: required(splits[i].clone(), col::SPLIT)?,
             mirrored: mirrored.value(i),
+            span: spans[i].take(),
         });
     }
     Ok(out)

@@ -43,7 +43,14 @@ pub mod col {
     pub const SPLIT: &str = "split";
     /// Mirrored copy flag.
     pub const MIRRORED: &str = "mirrored";
+    /// Motion id of the clip this one is a captioned time span of (nullable).
+    pub const SPAN_OF: &str = "span_of";
+    /// With `span_of`: start and end seconds of each caption's span in that clip (nullable).
+    pub const CAPTION_SPANS: &str = "caption_spans";
 }
+
+/// Columns added after the first corpora were written: shards without them still read.
+pub const OPTIONAL_COLUMNS: [&str; 2] = [col::SPAN_OF, col::CAPTION_SPANS];
 
 /// The non-null `item` field of a list column holding `item` values.
 pub fn list_item(item: DataType) -> FieldRef {
@@ -76,5 +83,19 @@ pub fn shard_schema() -> Arc<Schema> {
         utf8(SCENARIO, true),
         utf8(SPLIT, false),
         Field::new(MIRRORED, DataType::Boolean, false),
+        utf8(SPAN_OF, true),
+        Field::new(CAPTION_SPANS, list_of(DataType::Float64), true),
     ]))
+}
+
+/// The shard schema as written before [`OPTIONAL_COLUMNS`] existed.
+pub fn legacy_shard_schema() -> Arc<Schema> {
+    let full = shard_schema();
+    let fields = full
+        .fields()
+        .iter()
+        .filter(|f| !OPTIONAL_COLUMNS.contains(&f.name().as_str()))
+        .cloned()
+        .collect::<Vec<_>>();
+    Arc::new(Schema::new(fields))
 }

@@ -2,7 +2,7 @@
 
 use super::manifest::Manifest;
 use super::reader::{records_from_batch, Corpus};
-use super::schema::{shard_schema, FEATURE_DIM, JOINT_FRAME_DIM};
+use super::schema::{legacy_shard_schema, shard_schema, FEATURE_DIM, JOINT_FRAME_DIM};
 use super::split::SPLITS;
 use super::writer::hex;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
@@ -61,8 +61,8 @@ pub fn verify(dir: &Path) -> Verification {
                 continue;
             }
         };
-        let expected = shard_schema();
-        if builder.schema().fields() != expected.fields() {
+        let fields = builder.schema().fields();
+        if fields != shard_schema().fields() && fields != legacy_shard_schema().fields() {
             v.problems.push(format!(
                 "{}: schema differs from the corpus schema: {:?}",
                 path.display(),

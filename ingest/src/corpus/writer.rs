@@ -4,7 +4,7 @@ use super::schema::{col, list_item, shard_schema};
 use super::ClipRecord;
 use crate::corpus::manifest::ShardEntry;
 use arrow_array::builder::{
-    BooleanBuilder, Float32Builder, ListBuilder, StringBuilder, UInt32Builder,
+    BooleanBuilder, Float32Builder, Float64Builder, ListBuilder, StringBuilder, UInt32Builder,
 };
 use arrow_array::{ArrayRef, RecordBatch};
 use arrow_schema::DataType;
@@ -70,6 +70,19 @@ fn batch(clips: &[ClipRecord]) -> Result<RecordBatch, String> {
     }
     let mut mirrored = BooleanBuilder::with_capacity(n);
     clips.iter().for_each(|c| mirrored.append_value(c.mirrored));
+    let mut spans =
+        ListBuilder::new(Float64Builder::new()).with_field(list_item(DataType::Float64));
+    for c in clips {
+        match &c.span {
+            Some(span) => {
+                for &(start, end) in &span.seconds {
+                    spans.values().append_slice(&[start, end]);
+                }
+                spans.append(true);
+            }
+            None => spans.append_null(),
+        }
+    }
     let columns: Vec<ArrayRef> = vec![
         strings(&|c| Some(&c.motion_id)),
         strings(&|c| Some(&c.source)),
@@ -88,6 +101,8 @@ fn batch(clips: &[ClipRecord]) -> Result<RecordBatch, String> {
         strings(&|c| c.labels.scenario.as_deref()),
         strings(&|c| Some(&c.split)),
         Arc::new(mirrored.finish()),
+        strings(&|c| c.span.as_ref().map(|s| s.of.as_str())),
+        Arc::new(spans.finish()),
     ];
     RecordBatch::try_new(shard_schema(), columns).map_err(|e| e.to_string())
 }
@@ -136,4 +151,58 @@ pub fn write_shard(
 /// Lower-case hex of bytes.
 pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::corpus::reader::records_from_batch;
+    use crate::corpus::schema::legacy_shard_schema;
+    use crate::corpus::CaptionSpan;
+    use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+
+    fn clip(id: &str, span: Option<CaptionSpan>) -> ClipRecord {
+        ClipRecord {
+            motion_id: id.into(),
+            source: "hml3d".into(),
+            source_path: "a.npy".into(),
+            source_clip: id.into(),
+            segment: 0,
+            fps: 20.0,
+            source_fps: 20.0,
+            num_frames: 1,
+            features: vec![0.5; super::super::schema::FEATURE_DIM],
+            joints: vec![0.25; 2 * super::super::schema::JOINT_FRAME_DIM],
+            captions: vec!["he waves.".into(), "a wave.".into()],
+            labels: Default::default(),
+            split: "train".into(),
+            mirrored: false,
+            span,
+        }
+    }
+
+    #[test]
+    fn spans_round_trip_and_shards_without_them_still_read() {
+        let span = CaptionSpan {
+            of: "a".into(),
+            seconds: vec![(0.5, 2.0), (0.5, 2.25)],
+        };
+        let clips = vec![clip("a", None), clip("a_10_40", Some(span))];
+        let bytes = bytes::Bytes::from(encode_shard(&clips).unwrap());
+        let mut reader = ParquetRecordBatchReaderBuilder::try_new(bytes)
+            .unwrap()
+            .build()
+            .unwrap();
+        let batch = reader.next().unwrap().unwrap();
+        assert_eq!(records_from_batch(&batch).unwrap(), clips);
+        // A shard written before the span columns existed: the same clips, without spans.
+        let legacy_fields = legacy_shard_schema().fields().len();
+        let legacy = batch
+            .project(&(0..legacy_fields).collect::<Vec<_>>())
+            .unwrap();
+        assert_eq!(legacy.schema().fields(), legacy_shard_schema().fields());
+        let read = records_from_batch(&legacy).unwrap();
+        assert!(read.iter().all(|c| c.span.is_none()));
+        assert_eq!(read[1].captions, clips[1].captions);
+    }
 }

@@ -1,8 +1,12 @@
 //! Export of corpus clips to the HumanML3D folder layout that T2M / T2M-GPT style loaders read:
-//! `new_joint_vecs/<id>.npy`, `new_joints/<id>.npy`, `texts/<id>.txt`, `Mean.npy`, `Std.npy`
-//! and the split files. Clips are added one at a time, so the corpus need not fit in memory.
+//! `new_joint_vecs/<id>.npy`, `new_joints/<id>.npy` (= `recover_from_ric` of the vectors, as
+//! HumanML3D writes it), `texts/<id>.txt`, `Mean.npy`, `Std.npy` and the split files. Motion
+//! files are written as clips are added; the texts are written at the end, when every caption
+//! has been tagged in one batch (one spaCy process for the whole export).
 
+use super::text_process::{PosTagger, TaggedCaptions};
 use crate::corpus::ClipRecord;
+use crate::hml263::recover_joints_f32;
 use crate::npy;
 use crate::skeleton::NUM_JOINTS;
 use std::collections::BTreeMap;
@@ -15,12 +19,30 @@ pub const FEATURE_DIM: usize = 263;
 /// Caption given to clips that have none, so text-conditioned loaders do not drop them.
 pub const GENERIC_CAPTION: &str = "a person moves.";
 
+/// Shortest clip (feature rows) the T2M-GPT / MoMask HumanML3D loaders keep.
+pub const LOADER_MIN_FRAMES: usize = 40;
+/// The loaders drop clips of this many feature rows or more (longer ones never reach the crop
+/// to 196 rows).
+pub const LOADER_MAX_FRAMES: usize = 200;
+/// The evaluation batch of those loaders (`drop_last`: a smaller split yields no batch).
+pub const EVAL_BATCH: usize = 32;
+
+/// The captions of one exported clip.
+#[derive(Debug)]
+struct ClipTexts {
+    split: String,
+    frames: usize,
+    whole: Vec<String>,
+    /// (caption, start s, end s) of captions that time a span of the clip.
+    spans: Vec<(String, f64, f64)>,
+}
+
 /// Writes clips into a HumanML3D-layout folder.
 #[derive(Debug)]
 pub struct Hml3dWriter {
     out: PathBuf,
-    splits: BTreeMap<String, Vec<String>>,
-    uncaptioned: usize,
+    tagger: PosTagger,
+    clips: BTreeMap<String, ClipTexts>,
 }
 
 /// What an export wrote.
@@ -34,22 +56,33 @@ pub struct ExportSummary {
     pub per_split: BTreeMap<String, usize>,
     /// Clips without captions, which were given [`GENERIC_CAPTION`].
     pub generic_captions: usize,
+    /// Span clips written back as `#start#end` caption lines of the clip they were cut from.
+    pub span_captions: usize,
+    /// Motions per split that the loaders keep: whole clips with a whole-clip caption and
+    /// captioned spans, each of [`LOADER_MIN_FRAMES`]..[`LOADER_MAX_FRAMES`] feature rows.
+    pub loader_clips: BTreeMap<String, usize>,
+    /// The tagger that wrote the `word/POS` tokens.
+    pub pos_tagger: PosTagger,
+    /// Problems a user of the folder should know about (e.g. a split smaller than a batch).
+    pub warnings: Vec<String>,
 }
 
 impl Hml3dWriter {
-    /// Start an export into `out` (created with its sub-folders).
-    pub fn new(out: &Path) -> io::Result<Self> {
+    /// Start an export into `out` (created with its sub-folders), tagging captions with `tagger`.
+    pub fn new(out: &Path, tagger: PosTagger) -> io::Result<Self> {
         for sub in ["new_joint_vecs", "new_joints", "texts"] {
             std::fs::create_dir_all(out.join(sub))?;
         }
         Ok(Self {
             out: out.to_path_buf(),
-            splits: BTreeMap::new(),
-            uncaptioned: 0,
+            tagger,
+            clips: BTreeMap::new(),
         })
     }
 
-    /// Write one clip's features, joints and captions.
+    /// Write one clip's features and recovered joints and keep its captions for the texts.
+    /// A clip cut from a captioned span of a clip already added (corpus order puts it after:
+    /// its id extends that clip's) becomes `#start#end` caption lines of that clip instead.
     pub fn add(&mut self, clip: &ClipRecord) -> io::Result<()> {
         let id = &clip.motion_id;
         let invalid = |what: String| io::Error::new(io::ErrorKind::InvalidInput, what);
@@ -65,11 +98,21 @@ impl Hml3dWriter {
                 clip.features.len()
             )));
         }
-        if clip.joints.len() != (frames + 1) * NUM_JOINTS * 3 {
-            return Err(invalid(format!(
-                "{id}: {} joint values, expected ({frames}+1)×{NUM_JOINTS}×3",
-                clip.joints.len()
-            )));
+        if let Some(span) = &clip.span {
+            if span.seconds.len() != clip.captions.len() {
+                return Err(invalid(format!(
+                    "{id}: {} caption spans for {} captions",
+                    span.seconds.len(),
+                    clip.captions.len()
+                )));
+            }
+            if let Some(parent) = self.clips.get_mut(&span.of) {
+                let lines = clip.captions.iter().zip(&span.seconds);
+                parent
+                    .spans
+                    .extend(lines.map(|(c, &(start, end))| (one_line(c), start, end)));
+                return Ok(());
+            }
         }
         npy::write_f32(
             &self.out.join("new_joint_vecs").join(format!("{id}.npy")),
@@ -78,30 +121,23 @@ impl Hml3dWriter {
         )?;
         npy::write_f32(
             &self.out.join("new_joints").join(format!("{id}.npy")),
-            &[frames + 1, NUM_JOINTS, 3],
-            &clip.joints,
+            &[frames, NUM_JOINTS, 3],
+            &recover_joints_f32(&clip.features),
         )?;
-        let captions: Vec<&str> = if clip.captions.is_empty() {
-            self.uncaptioned += 1;
-            vec![GENERIC_CAPTION]
-        } else {
-            clip.captions.iter().map(String::as_str).collect()
+        let texts = ClipTexts {
+            split: clip.split.clone(),
+            frames,
+            whole: clip.captions.iter().map(|c| one_line(c)).collect(),
+            spans: Vec::new(),
         };
-        let text: String = captions.iter().map(|c| caption_line(c)).collect();
-        npy::write_atomic(
-            &self.out.join("texts").join(format!("{id}.txt")),
-            text.as_bytes(),
-        )?;
-        self.splits
-            .entry(clip.split.clone())
-            .or_default()
-            .push(id.clone());
+        self.clips.insert(id.clone(), texts);
         Ok(())
     }
 
-    /// Write `Mean.npy`, `Std.npy` (263 values each) and the split files (`train.txt`,
-    /// `val.txt`, `test.txt` always; `all.txt` = every id; ids sorted).
-    pub fn finish(mut self, mean: &[f32], std: &[f32]) -> io::Result<ExportSummary> {
+    /// Tag every caption, write the texts, `Mean.npy`, `Std.npy` (263 values each) and the
+    /// split files (`train.txt`, `val.txt`, `test.txt` always; `train_val.txt` = train then
+    /// val; `all.txt` = every id; ids sorted within a split).
+    pub fn finish(self, mean: &[f32], std: &[f32]) -> io::Result<ExportSummary> {
         for (name, stats) in [("Mean", mean), ("Std", std)] {
             if stats.len() != FEATURE_DIM {
                 return Err(io::Error::new(
@@ -111,44 +147,116 @@ impl Hml3dWriter {
             }
             npy::write_f32(&self.out.join(format!("{name}.npy")), &[FEATURE_DIM], stats)?;
         }
-        for split in ["train", "val", "test"] {
-            self.splits.entry(split.to_string()).or_default();
+        let generic_captions = self.write_texts()?;
+        let mut splits: BTreeMap<String, Vec<String>> = ["train", "val", "test"]
+            .into_iter()
+            .map(|s| (s.to_string(), Vec::new()))
+            .collect();
+        let mut loader_clips: BTreeMap<String, usize> = BTreeMap::new();
+        for (id, texts) in &self.clips {
+            splits
+                .entry(texts.split.clone())
+                .or_default()
+                .push(id.clone());
+            *loader_clips.entry(texts.split.clone()).or_default() += texts.loader_motions();
         }
-        let mut all = Vec::new();
-        for (split, ids) in self.splits.iter_mut() {
-            ids.sort();
-            all.extend(ids.iter().cloned());
-            npy::write_atomic(
-                &self.out.join(format!("{split}.txt")),
-                id_list(ids).as_bytes(),
-            )?;
+        for (split, ids) in &splits {
+            write_ids(&self.out.join(format!("{split}.txt")), ids.iter())?;
+            loader_clips.entry(split.clone()).or_default();
         }
-        all.sort();
-        npy::write_atomic(&self.out.join("all.txt"), id_list(&all).as_bytes())?;
+        write_ids(
+            &self.out.join("train_val.txt"),
+            splits["train"].iter().chain(&splits["val"]),
+        )?;
+        write_ids(&self.out.join("all.txt"), self.clips.keys())?;
+        let warnings = ["train", "val", "test"]
+            .into_iter()
+            .filter(|s| loader_clips[*s] < EVAL_BATCH)
+            .map(|s| {
+                format!(
+                    "{s}: {} motions of {LOADER_MIN_FRAMES}..{LOADER_MAX_FRAMES} frames, fewer than \
+                     the evaluation batch of {EVAL_BATCH}: T2M-GPT/MoMask evaluation loaders \
+                     (drop_last) yield no batch from this split",
+                    loader_clips[s]
+                )
+            })
+            .collect();
         Ok(ExportSummary {
             out: self.out,
-            clips: all.len(),
-            per_split: self
-                .splits
-                .into_iter()
-                .map(|(split, ids)| (split, ids.len()))
-                .collect(),
-            generic_captions: self.uncaptioned,
+            clips: self.clips.len(),
+            per_split: splits.into_iter().map(|(s, ids)| (s, ids.len())).collect(),
+            generic_captions,
+            span_captions: self.clips.values().map(|t| t.spans.len()).sum(),
+            loader_clips,
+            pos_tagger: self.tagger,
+            warnings,
         })
+    }
+
+    /// Write `texts/<id>.txt` for every clip; returns how many got [`GENERIC_CAPTION`].
+    fn write_texts(&self) -> io::Result<usize> {
+        let captions = self.clips.values().flat_map(|t| {
+            let spans = t.spans.iter().map(|(c, _, _)| c.as_str());
+            t.whole.iter().map(String::as_str).chain(spans)
+        });
+        let tagged = TaggedCaptions::new(self.tagger, captions.chain([GENERIC_CAPTION]))
+            .map_err(|e| io::Error::other(format!("tagging captions: {e}")))?;
+        let mut generic = 0;
+        for (id, texts) in &self.clips {
+            let mut text = String::new();
+            if texts.whole.is_empty() && texts.spans.is_empty() {
+                generic += 1;
+                text += &tagged.line(GENERIC_CAPTION, 0.0, 0.0);
+            }
+            for caption in &texts.whole {
+                text += &tagged.line(caption, 0.0, 0.0);
+            }
+            let mut spans: Vec<_> = texts.spans.iter().collect();
+            spans.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.2.total_cmp(&b.2)));
+            for (caption, start, end) in spans {
+                text += &tagged.line(caption, *start, *end);
+            }
+            npy::write_atomic(
+                &self.out.join("texts").join(format!("{id}.txt")),
+                text.as_bytes(),
+            )?;
+        }
+        Ok(generic)
     }
 }
 
-fn id_list(ids: &[String]) -> String {
-    ids.iter().map(|id| format!("{id}\n")).collect()
+impl ClipTexts {
+    /// How many motions the loaders make of this clip: the whole clip when it has a whole-clip
+    /// caption line, plus one per captioned span (`motion[int(start*20):int(end*20)]`), each
+    /// kept when its length is within the loaders' bounds.
+    fn loader_motions(&self) -> usize {
+        let fits = |n: usize| (LOADER_MIN_FRAMES..LOADER_MAX_FRAMES).contains(&n);
+        let has_whole_line = !self.whole.is_empty() || self.spans.is_empty();
+        let whole = usize::from(has_whole_line && fits(self.frames));
+        let frame = |seconds: f64| ((seconds * 20.0) as usize).min(self.frames);
+        let spans = self.spans.iter();
+        whole
+            + spans
+                .filter(|(_, s, e)| fits(frame(*e).saturating_sub(frame(*s))))
+                .count()
+    }
+}
+
+fn write_ids<'a>(path: &Path, ids: impl Iterator<Item = &'a String>) -> io::Result<()> {
+    let text: String = ids.map(|id| format!("{id}\n")).collect();
+    npy::write_atomic(path, text.as_bytes())
+}
+
+/// One `texts/<id>.txt` line for a caption covering the whole clip, tagged by the built-in
+/// tagger: `caption#word/POS …#0.0#0.0`.
+pub fn caption_line(caption: &str) -> String {
+    let caption = one_line(caption);
+    TaggedCaptions::new(PosTagger::BuiltIn, [caption.as_str()])
+        .expect("the built-in tagger does not fail")
+        .line(&caption, 0.0, 0.0)
 }
 
 /// A caption on one line without the `#` field separator.
-/// One `texts/<id>.txt` line for a caption covering the whole clip:
-/// `caption#word/POS …#0.0#0.0`.
-pub fn caption_line(caption: &str) -> String {
-    format!("{}#{}#0.0#0.0\n", one_line(caption), tag_caption(caption))
-}
-
 fn one_line(caption: &str) -> String {
     caption
         .split(['\n', '\r', '#'])
@@ -158,375 +266,31 @@ fn one_line(caption: &str) -> String {
         .join(" ")
 }
 
-/// `word/POS` tokens of a caption, space-separated: lower-case words, punctuation dropped,
-/// verbs and plural nouns reduced to the lemma HumanML3D's spaCy step stores.
-pub fn tag_caption(caption: &str) -> String {
-    caption
-        .to_lowercase()
-        .split(|c: char| !c.is_alphanumeric())
-        .filter(|w| !w.is_empty())
-        .map(|w| {
-            let (lemma, pos) = tag_word(w);
-            format!("{lemma}/{pos}")
-        })
-        .collect::<Vec<_>>()
-        .join(" ")
-}
-
-const VERBS: &[&str] = &[
-    "walk", "run", "jog", "jump", "hop", "skip", "step", "turn", "spin", "rotate", "wave", "raise",
-    "lift", "lower", "kick", "punch", "throw", "catch", "bow", "dance", "sit", "stand", "squat",
-    "crouch", "kneel", "lie", "crawl", "climb", "bend", "lean", "stretch", "swing", "shake",
-    "clap", "reach", "pick", "put", "place", "hold", "push", "pull", "move", "go", "come", "stop",
-    "start", "look", "point", "slash", "strike", "hit", "call", "guide", "respond", "greet",
-    "march", "stumble", "fall", "balance", "twist", "rise", "get", "sway", "tap", "stomp",
-    "shuffle", "sprint", "dash", "pace", "wander", "limp", "wobble", "rest", "bounce", "swim",
-    "fly", "drink", "eat", "wipe", "cross", "extend", "flap", "perform", "do", "make", "take",
-    "use", "seem", "appear", "begin", "continue", "repeat", "return", "cover", "touch", "grab",
-    "open", "close", "carry", "drop", "brush", "scratch", "salute",
-];
-const IRREGULAR_VERBS: &[(&str, &str)] = &[
-    ("ran", "run"),
-    ("running", "run"),
-    ("went", "go"),
-    ("goes", "go"),
-    ("came", "come"),
-    ("does", "do"),
-    ("did", "do"),
-    ("doing", "do"),
-    ("sat", "sit"),
-    ("sitting", "sit"),
-    ("stood", "stand"),
-    ("lying", "lie"),
-    ("lay", "lie"),
-    ("held", "hold"),
-    ("threw", "throw"),
-    ("thrown", "throw"),
-    ("caught", "catch"),
-    ("fell", "fall"),
-    ("fallen", "fall"),
-    ("rose", "rise"),
-    ("got", "get"),
-    ("getting", "get"),
-    ("took", "take"),
-    ("made", "make"),
-    ("spun", "spin"),
-    ("spinning", "spin"),
-    ("jogging", "jog"),
-    ("hopping", "hop"),
-    ("skipping", "skip"),
-    ("stepping", "step"),
-    ("stopping", "stop"),
-    ("swimming", "swim"),
-    ("flew", "fly"),
-    ("flies", "fly"),
-    ("began", "begin"),
-    ("hit", "hit"),
-    ("hitting", "hit"),
-    ("dancing", "dance"),
-    ("waving", "wave"),
-    ("raising", "raise"),
-    ("moving", "move"),
-    ("placing", "place"),
-    ("squatting", "squat"),
-    ("rising", "rise"),
-    ("making", "make"),
-    ("taking", "take"),
-    ("using", "use"),
-    ("continuing", "continue"),
-    ("closing", "close"),
-    ("balancing", "balance"),
-    ("bouncing", "bounce"),
-    ("shuffling", "shuffle"),
-    ("wobbling", "wobble"),
-    ("stumbling", "stumble"),
-    ("saluting", "salute"),
-    ("circling", "circle"),
-    ("pacing", "pace"),
-    ("limping", "limp"),
-];
-const NOUNS: &[&str] = &[
-    "person",
-    "man",
-    "woman",
-    "human",
-    "figure",
-    "body",
-    "hand",
-    "arm",
-    "leg",
-    "foot",
-    "feet",
-    "head",
-    "knee",
-    "elbow",
-    "shoulder",
-    "hip",
-    "waist",
-    "torso",
-    "chest",
-    "back",
-    "finger",
-    "wrist",
-    "ankle",
-    "toe",
-    "side",
-    "circle",
-    "ground",
-    "floor",
-    "air",
-    "direction",
-    "position",
-    "motion",
-    "movement",
-    "step",
-    "way",
-    "place",
-    "time",
-    "times",
-    "front",
-    "line",
-    "path",
-    "stair",
-    "stairs",
-    "ball",
-    "object",
-    "chair",
-    "door",
-    "wall",
-    "table",
-    "boxer",
-    "dancer",
-    "child",
-    "kid",
-    "style",
-    "pose",
-    "stance",
-    "jump",
-    "kick",
-    "punch",
-    "bow",
-    "dance",
-    "walk",
-    "run",
-    "wave",
-    "turn",
-    "spin",
-    "hands",
-    "arms",
-    "legs",
-    "fist",
-    "palm",
-];
-const ADJECTIVES: &[&str] = &[
-    "left",
-    "right",
-    "other",
-    "both",
-    "big",
-    "small",
-    "large",
-    "high",
-    "low",
-    "fast",
-    "slow",
-    "quick",
-    "happy",
-    "sad",
-    "angry",
-    "proud",
-    "tired",
-    "exhausted",
-    "energetic",
-    "active",
-    "old",
-    "elderly",
-    "young",
-    "youthful",
-    "childish",
-    "feminine",
-    "masculine",
-    "confident",
-    "nervous",
-    "anxious",
-    "calm",
-    "straight",
-    "full",
-    "half",
-    "whole",
-    "same",
-    "few",
-    "several",
-    "giant",
-    "heavy",
-    "light",
-    "casual",
-    "normal",
-    "musical",
-    "wide",
-    "long",
-    "short",
-    "upper",
-    "lower",
-    "neutral",
-    "excited",
-    "slight",
-    "gentle",
-    "powerful",
-    "strong",
-    "weak",
-];
-const ADVERBS: &[&str] = &[
-    "forward",
-    "forwards",
-    "backward",
-    "backwards",
-    "back",
-    "up",
-    "down",
-    "around",
-    "away",
-    "then",
-    "again",
-    "slowly",
-    "quickly",
-    "fast",
-    "together",
-    "sideways",
-    "twice",
-    "once",
-    "briefly",
-    "repeatedly",
-    "while",
-    "also",
-    "still",
-    "very",
-    "gently",
-    "slightly",
-    "here",
-    "there",
-    "counterclockwise",
-    "clockwise",
-    "diagonally",
-    "straight",
-    "now",
-    "finally",
-    "carefully",
-    "happily",
-    "sadly",
-    "angrily",
-    "proudly",
-    "energetically",
-    "confidently",
-];
-const ADPOSITIONS: &[&str] = &[
-    "to", "with", "on", "in", "at", "of", "from", "into", "onto", "over", "under", "by", "for",
-    "across", "along", "through", "towards", "toward", "behind", "above", "below", "between",
-    "about", "like", "off", "out", "before", "after", "near", "against", "upon", "as", "until",
-];
-const DETERMINERS: &[&str] = &[
-    "a", "an", "the", "this", "that", "these", "those", "each", "every", "some", "any", "another",
-    "all", "no",
-];
-const PRONOUNS: &[&str] = &[
-    "he",
-    "she",
-    "it",
-    "they",
-    "his",
-    "her",
-    "hers",
-    "its",
-    "their",
-    "them",
-    "him",
-    "himself",
-    "herself",
-    "themselves",
-    "itself",
-    "i",
-    "you",
-    "we",
-    "who",
-    "which",
-    "what",
-    "someone",
-    "something",
-    "everyone",
-    "anyone",
-];
-const AUXILIARIES: &[&str] = &[
-    "is", "are", "was", "were", "be", "been", "being", "has", "have", "had", "can", "will",
-    "would", "could", "should", "may", "might",
-];
-const NUMBERS: &[&str] = &[
-    "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten",
-];
-
-/// Lemma and POS tag (T2M's `POS_enumerator` names) of one lower-case word.
-fn tag_word(word: &str) -> (String, &'static str) {
-    let has = |list: &[&str], w: &str| list.contains(&w);
-    if word.chars().all(|c| c.is_ascii_digit()) || has(NUMBERS, word) {
-        return (word.to_string(), "NUM");
-    }
-    for (list, pos) in [
-        (DETERMINERS, "DET"),
-        (PRONOUNS, "PRON"),
-        (AUXILIARIES, "AUX"),
-        (ADPOSITIONS, "ADP"),
-    ] {
-        if has(list, word) {
-            return (word.to_string(), pos);
-        }
-    }
-    if let Some((_, lemma)) = IRREGULAR_VERBS.iter().find(|(form, _)| *form == word) {
-        return (lemma.to_string(), "VERB");
-    }
-    // "left" and "right" are directions here, never the verb "leave".
-    for (list, pos) in [(ADJECTIVES, "ADJ"), (ADVERBS, "ADV")] {
-        if has(list, word) {
-            return (word.to_string(), pos);
-        }
-    }
-    if has(NOUNS, word) && !has(VERBS, word) {
-        return (word.to_string(), "NOUN");
-    }
-    if has(VERBS, word) {
-        return (word.to_string(), "VERB");
-    }
-    for suffix in ["ing", "es", "ed", "s", "d"] {
-        if let Some(stem) = word.strip_suffix(suffix) {
-            if has(VERBS, stem) {
-                return (stem.to_string(), "VERB");
-            }
-            if suffix == "s" && has(NOUNS, stem) {
-                return (stem.to_string(), "NOUN");
-            }
-        }
-    }
-    (word.to_string(), "OTHER")
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
     #[test]
-    fn captions_are_tagged() {
-        assert_eq!(
-            tag_caption("A person walks forward, then waves his left hand!"),
-            "a/DET person/NOUN walk/VERB forward/ADV then/ADV wave/VERB his/PRON left/ADJ hand/NOUN"
-        );
-        assert_eq!(
-            tag_caption("The man ran in 2 circles."),
-            "the/DET man/NOUN run/VERB in/ADP 2/NUM circle/NOUN"
-        );
-        assert_eq!(tag_caption("zigzag"), "zigzag/OTHER");
-        assert_eq!(tag_caption("jumped"), "jump/VERB");
+    fn captions_stay_on_one_line() {
+        assert_eq!(one_line("a #1 move\nthen\r\nstop"), "a 1 move then stop");
     }
 
     #[test]
-    fn captions_stay_on_one_line() {
-        assert_eq!(one_line("a #1 move\nthen\r\nstop"), "a 1 move then stop");
+    fn loader_motions_follow_the_loaders_rule() {
+        let texts = |frames, whole: &[&str], spans: &[(f64, f64)]| ClipTexts {
+            split: "val".into(),
+            frames,
+            whole: whole.iter().map(|s| s.to_string()).collect(),
+            spans: spans.iter().map(|&(s, e)| ("x".into(), s, e)).collect(),
+        };
+        assert_eq!(texts(40, &[], &[]).loader_motions(), 1, "generic caption");
+        assert_eq!(texts(39, &["a"], &[]).loader_motions(), 0);
+        assert_eq!(texts(200, &["a"], &[]).loader_motions(), 0);
+        assert_eq!(texts(199, &["a"], &[]).loader_motions(), 1);
+        // Spans only: the whole clip has no line of its own; 0.5..2.5 s = 40 rows, 1..2 s = 20,
+        // and 8..30 s is clamped to the clip's 199 rows (160..199 = 39).
+        let spans = [(0.5, 2.5), (1.0, 2.0), (8.0, 30.0)];
+        assert_eq!(texts(199, &[], &spans).loader_motions(), 1);
+        assert_eq!(texts(199, &["a"], &spans).loader_motions(), 2);
     }
 }

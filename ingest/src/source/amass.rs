@@ -312,5 +312,6 @@ pub fn read_clip(path: &Path, rel_path: &Path, model: &BodyModel) -> Result<RawC
         captions: Vec::new(),
         conversion: CONVERSION.into(),
         split: None,
+        span: None,
     })
 }

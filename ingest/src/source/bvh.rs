@@ -743,6 +743,7 @@ pub fn read_clip(path: &Path, rel_path: &Path, map: Option<&RigMap>) -> Result<R
         captions: Vec::new(),
         conversion,
         split: None,
+        span: None,
     })
 }
 

@@ -3,10 +3,13 @@
 //! split files `train.txt`, `val.txt`, `test.txt`.
 //!
 //! Only the joints are read: the corpus recomputes the 263 features from them with the same
-//! pipeline as every other source, so `new_joint_vecs/` is not needed.
+//! pipeline as every other source, so `new_joint_vecs/` is not needed. A caption with a time
+//! span becomes a clip of its own that remembers the span, so `export hml3d` can write it back
+//! as a `#start#end` line of the whole clip.
 
 use super::joints::poses_of;
 use super::{RawClip, Reject};
+use crate::corpus::CaptionSpan;
 use crate::npy;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -14,8 +17,9 @@ use std::path::{Path, PathBuf};
 /// Frame rate of HumanML3D's processed joints.
 pub const FPS: f64 = 20.0;
 
-/// Captioned spans of a clip: frame range `[start, end)` at 20 fps → its distinct captions.
-type Spans = BTreeMap<(usize, usize), Vec<String>>;
+/// Captioned spans of a clip: frame range `[start, end)` at 20 fps → its distinct captions, each
+/// with its span in seconds as written.
+type Spans = BTreeMap<(usize, usize), Vec<(String, (f64, f64))>>;
 
 const CONVERSION: &str = "HumanML3D new_joints (metres, Y up)";
 
@@ -118,8 +122,8 @@ impl Hml3dFolder {
                     // HumanML3D's loaders slice `motion[int(start*20):int(end*20)]`.
                     let key = ((start * FPS) as usize, (end * FPS) as usize);
                     let entry = spans.entry(key).or_default();
-                    if !entry.contains(&line.caption) {
-                        entry.push(line.caption);
+                    if !entry.iter().any(|(c, _)| *c == line.caption) {
+                        entry.push((line.caption, (start, end)));
                     }
                 }
                 _ => {
@@ -139,6 +143,7 @@ impl Hml3dFolder {
             labels: Default::default(),
             captions,
             conversion: CONVERSION.into(),
+            span: None,
         };
         Ok((whole, spans))
     }
@@ -151,7 +156,7 @@ fn segment(
     joints_file: &Path,
     start: usize,
     end: usize,
-    captions: Vec<String>,
+    captions: Vec<(String, (f64, f64))>,
 ) -> Result<RawClip, Reject> {
     let stop = end.min(whole.poses.len());
     if stop < start.saturating_add(2) {
@@ -162,14 +167,19 @@ fn segment(
                 joints_file.display(),
                 stop.saturating_sub(start),
                 whole.poses.len(),
-                captions.first().map(String::as_str).unwrap_or("")
+                captions.first().map(|(c, _)| c.as_str()).unwrap_or("")
             ),
         ));
     }
+    let (captions, seconds) = captions.into_iter().unzip();
     Ok(RawClip {
         clip_id: format!("{}_{start}_{end}", whole.clip_id),
         poses: whole.poses[start..stop].to_vec(),
         captions,
+        span: Some(CaptionSpan {
+            of: whole.clip_id.clone(),
+            seconds,
+        }),
         source: whole.source.clone(),
         source_path: whole.source_path.clone(),
         fps: whole.fps,

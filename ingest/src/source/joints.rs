@@ -24,6 +24,7 @@ pub fn read_clip(path: &Path, rel_path: &Path, src_fps: f64) -> Result<RawClip, 
         captions: Vec::new(),
         conversion: "metres, Y up (as given)".into(),
         split: None,
+        span: None,
     })
 }
 

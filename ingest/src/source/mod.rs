@@ -47,6 +47,8 @@ pub struct RawClip {
     pub conversion: String,
     /// Split fixed by the source (HumanML3D split files); otherwise chosen by hash of `clip_id`.
     pub split: Option<String>,
+    /// For a clip cut from a captioned time span of another clip: that clip's id and the spans.
+    pub span: Option<crate::corpus::CaptionSpan>,
 }
 
 /// Why an input was not ingested: the stage that refused it and a human-readable reason.

@@ -136,6 +136,7 @@ pub fn generate(seed: u64, index: usize) -> RawClip {
         captions,
         conversion: CONVERSION.to_string(),
         split: None,
+        span: None,
     }
 }
 
