@@ -14,7 +14,7 @@ use ingest::rng::SplitMix64;
 use model::ctvae::CtvaeConfig;
 use model::ctvae_train::{CtvaeTrainer, LossWeights, Sample};
 use model::evaluator::{init_evaluator, labelled_cross_entropy, EvaluatorConfig, Padded};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tokenizer::optim::{AdamW, AdamWConfig};
 
@@ -182,29 +182,11 @@ pub fn evaluator(args: BenchEvaluatorArgs) -> Result<ExitCode> {
         "hidden": args.hidden, "mean_frames": mean(&frames), "mean_tokens": mean(&tokens),
         "threads": rayon::current_num_threads(), "median_step_s": ours});
     if args.reference {
-        let reference = crate::bench::run_reference(
-            &args.bench_dir.join("pytorch_evaluator.py"),
-            &[
-                "--batch",
-                &args.batch.to_string(),
-                "--hidden",
-                &args.hidden.to_string(),
-                "--threads",
-                "2",
-                "--warmup",
-                &args.warmup.to_string(),
-                "--reps",
-                &args.reps.to_string(),
-            ],
-        )?;
-        let theirs = crate::bench::number(&reference, "median_step_s")?;
-        line.push_str(&format!(
-            "; PyTorch {theirs:.3} s ({:.2} steps/s) → ratio {:.2}×",
-            1.0 / theirs,
-            theirs / ours
-        ));
-        figures["reference"] = reference;
-        figures["ratio"] = (theirs / ours).into();
+        let script = args.bench_dir.join("pytorch_evaluator.py");
+        let (batch, hidden) = (args.batch.to_string(), args.hidden.to_string());
+        let flags = ["--batch", &batch, "--hidden", &hidden];
+        let repeats = (args.warmup, args.reps);
+        add_reference(&script, &flags, repeats, ours, &mut line, &mut figures)?;
     }
     println!("{line}");
     write_figures(args.json.as_ref(), &figures)?;
@@ -262,37 +244,48 @@ pub fn ctvae(args: BenchCtvaeArgs) -> Result<ExitCode> {
         let mut figure = serde_json::json!({"what": "BI-CTVAE training step", "shape": shape,
             "batch": args.batch, "threads": rayon::current_num_threads(), "median_step_s": ours});
         if args.reference {
-            let reference = crate::bench::run_reference(
+            let (batch, classes) = (args.batch.to_string(), args.classes.to_string());
+            let flags = ["--shape", shape, "--batch", &batch, "--classes", &classes];
+            let repeats = (args.warmup, args.reps);
+            add_reference(
                 &args.reference_script,
-                &[
-                    "--shape",
-                    shape,
-                    "--batch",
-                    &args.batch.to_string(),
-                    "--classes",
-                    &args.classes.to_string(),
-                    "--threads",
-                    "2",
-                    "--warmup",
-                    &args.warmup.to_string(),
-                    "--reps",
-                    &args.reps.to_string(),
-                ],
+                &flags,
+                repeats,
+                ours,
+                &mut line,
+                &mut figure,
             )?;
-            let theirs = crate::bench::number(&reference, "median_step_s")?;
-            line.push_str(&format!(
-                "; PyTorch {theirs:.3} s ({:.2} steps/s) → ratio {:.2}×",
-                1.0 / theirs,
-                theirs / ours
-            ));
-            figure["reference"] = reference;
-            figure["ratio"] = (theirs / ours).into();
         }
         println!("{line}");
         figures.push(figure);
     }
     write_figures(args.json.as_ref(), &serde_json::Value::Array(figures))?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// Run the reference `script` with `flags` on 2 threads (`(warm-up, timed)` steps) and add its
+/// median step, and our ratio to it, to `line` and `figure`.
+fn add_reference(
+    script: &Path,
+    flags: &[&str],
+    (warmup, reps): (usize, usize),
+    ours: f64,
+    line: &mut String,
+    figure: &mut serde_json::Value,
+) -> Result<()> {
+    let (warmup, reps) = (warmup.to_string(), reps.to_string());
+    let mut all = flags.to_vec();
+    all.extend(["--threads", "2", "--warmup", &warmup, "--reps", &reps]);
+    let reference = crate::bench::run_reference(script, &all)?;
+    let theirs = crate::bench::number(&reference, "median_step_s")?;
+    line.push_str(&format!(
+        "; PyTorch {theirs:.3} s ({:.2} steps/s) → ratio {:.2}×",
+        1.0 / theirs,
+        theirs / ours
+    ));
+    figure["reference"] = reference;
+    figure["ratio"] = (theirs / ours).into();
+    Ok(())
 }
 
 fn write_figures(path: Option<&PathBuf>, figures: &serde_json::Value) -> Result<()> {

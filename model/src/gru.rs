@@ -260,13 +260,16 @@ mod tests {
         fn outputs(&self, fused: bool, reverse: bool) -> Vec<Vec<f32>> {
             let (states, loss) = self.run(fused, reverse);
             let grads = loss.backward().unwrap();
-            let flat = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
             let mut out = vec![flat(&states)];
             for v in [&self.gi, &self.w, &self.b] {
                 out.push(flat(grads.get(v.as_tensor()).unwrap()));
             }
             out
         }
+    }
+
+    fn flat(t: &Tensor) -> Vec<f32> {
+        t.flatten_all().unwrap().to_vec1().unwrap()
     }
 
     fn max_diff(a: &[f32], b: &[f32]) -> f32 {
@@ -330,13 +333,7 @@ mod tests {
             let (_, loss) = case.run(true, reverse);
             let grads = loss.backward().unwrap();
             for var in [&case.gi, &case.w, &case.b] {
-                let analytic: Vec<f32> = grads
-                    .get(var.as_tensor())
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1()
-                    .unwrap();
+                let analytic = flat(grads.get(var.as_tensor()).unwrap());
                 for k in (0..analytic.len()).step_by(5) {
                     let numeric = numeric_gradient(var, k, || {
                         f64::from(case.run(true, reverse).1.to_scalar::<f32>().unwrap())
