@@ -50,6 +50,15 @@ impl SharedMut {
     pub(crate) fn at(self, offset: usize) -> *mut f32 {
         self.0.wrapping_add(offset)
     }
+
+    /// The `len` values from `offset` on, as a slice.
+    ///
+    /// # Safety
+    /// They lie inside the buffer, and nothing else reads or writes them while it lives.
+    pub(crate) unsafe fn slice<'a>(self, offset: usize, len: usize) -> &'a mut [f32] {
+        // SAFETY: the caller's contract.
+        unsafe { std::slice::from_raw_parts_mut(self.at(offset), len) }
+    }
 }
 
 /// One large product over all rows, spread over the rayon threads (`dst (+)= lhs · rhs`).

@@ -224,8 +224,8 @@ impl GruScan {
                     // SAFETY: each (sequence, step) cell belongs to one group and one step.
                     let (state, saved) = unsafe {
                         (
-                            std::slice::from_raw_parts_mut(out_ptr.at(at * hd), hd),
-                            std::slice::from_raw_parts_mut(gates_ptr.at(at * 4 * hd), 4 * hd),
+                            out_ptr.slice(at * hd, hd),
+                            gates_ptr.slice(at * 4 * hd, 4 * hd),
                         )
                     };
                     let hi = &mut h[i * hd..][..hd];
@@ -291,9 +291,9 @@ impl GruScan {
                     // and one step.
                     let (dgi_cell, dgh_cell, prev_cell) = unsafe {
                         (
-                            std::slice::from_raw_parts_mut(ptrs.0.at(at * h3), h3),
-                            std::slice::from_raw_parts_mut(ptrs.1.at(packed * h3), h3),
-                            std::slice::from_raw_parts_mut(ptrs.2.at(packed * hd), hd),
+                            ptrs.0.slice(at * h3, h3),
+                            ptrs.1.slice(packed * h3, h3),
+                            ptrs.2.slice(packed * hd, hd),
                         )
                     };
                     gate_step_backward(&gates[at * 4 * hd..][..4 * hd], hp, dhi, dgi_cell, dghi);
