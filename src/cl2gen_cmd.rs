@@ -6,18 +6,22 @@ use model::ctvae_train::LossWeights;
 use model::metrics::Interval;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use sweeps::cl2gen::{run_cl2gen, Cl2GenConfig, MetricIntervals, ReplaySource};
+use sweeps::cl2gen::{compare_table, run_cl2gen, Cl2GenConfig, MetricIntervals, ReplaySource};
 
 /// Arguments of `motionscale cl2gen`.
 #[derive(clap::Args, Debug)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct Cl2GenArgs {
+    /// `compare RUNS…` instead of a run.
+    #[command(subcommand)]
+    pub compare: Option<Cl2GenCompare>,
     /// Corpus folder (clips with action labels).
-    #[arg(long)]
-    pub corpus: PathBuf,
+    #[arg(long, required = true)]
+    pub corpus: Option<PathBuf>,
     /// Evaluator folder (`motionscale evaluator train`): normalisation, the frozen action
     /// classifier of `--aux`, and the metrics.
-    #[arg(long)]
-    pub evaluator: PathBuf,
+    #[arg(long, required = true)]
+    pub evaluator: Option<PathBuf>,
     /// Only clips of this source kind (bvh, synth…).
     #[arg(long)]
     pub source: Option<String>,
@@ -75,7 +79,8 @@ pub struct Cl2GenArgs {
     /// Generated motions per class at each evaluation.
     #[arg(long, default_value_t = 50)]
     pub samples_per_class: usize,
-    /// Seed.
+    /// Seed of everything random (repeat a run with --seed 1, 2… and `compare` gives the
+    /// interval over seeds).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Evaluations of the final model, fresh samples each, behind the reported 95% intervals
@@ -83,8 +88,23 @@ pub struct Cl2GenArgs {
     #[arg(long, default_value_t = 20)]
     pub repeats: usize,
     /// Output folder; re-running resumes after the last finished task.
-    #[arg(long)]
-    pub out: PathBuf,
+    #[arg(long, required = true)]
+    pub out: Option<PathBuf>,
+}
+
+/// `motionscale cl2gen compare`.
+#[derive(clap::Subcommand, Debug)]
+pub enum Cl2GenCompare {
+    /// Print one row per experiment (the final model's metrics) as a Markdown table; runs
+    /// that differ only in --seed share a row: mean ± 95% interval over seeds.
+    Compare {
+        /// CL2Gen run folders.
+        #[arg(required = true)]
+        runs: Vec<PathBuf>,
+        /// Put runs scored by different evaluators in one table (refused by default).
+        #[arg(long)]
+        mixed_evaluators: bool,
+    },
 }
 
 /// A replay ratio written as a fraction (`1/16`) or a number (`0.2`).
@@ -101,6 +121,17 @@ fn ratio(text: &str) -> Result<f64> {
 
 /// `motionscale cl2gen`.
 pub fn cl2gen(args: Cl2GenArgs) -> Result<ExitCode> {
+    if let Some(Cl2GenCompare::Compare {
+        runs,
+        mixed_evaluators,
+    }) = &args.compare
+    {
+        print!("{}", compare_table(runs, *mixed_evaluators)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let (Some(corpus), Some(evaluator), Some(out)) = (args.corpus, args.evaluator, args.out) else {
+        bail!("--corpus, --evaluator and --out are required");
+    };
     crate::memory::keep_freed_memory();
     let replay = ratio(&args.replay).with_context(|| format!("--replay {:?}", args.replay))?;
     if args.min_frames < 4 || args.max_frames < args.min_frames {
@@ -115,8 +146,8 @@ pub fn cl2gen(args: Cl2GenArgs) -> Result<ExitCode> {
     model.hidden = args.hidden.unwrap_or(model.hidden);
     model.latent = args.latent.unwrap_or(model.latent);
     let config = Cl2GenConfig {
-        corpus: args.corpus,
-        evaluator: args.evaluator,
+        corpus,
+        evaluator,
         source: args.source,
         min_clips: args.min_clips,
         classes_per_task: args.classes_per_task,
@@ -139,7 +170,7 @@ pub fn cl2gen(args: Cl2GenArgs) -> Result<ExitCode> {
         samples_per_class: args.samples_per_class,
         seed: args.seed,
         repeats: args.repeats,
-        out: args.out,
+        out,
     };
     let started = std::time::Instant::now();
     let report = run_cl2gen(&config, |line| eprintln!("{line}"))?;

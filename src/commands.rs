@@ -349,6 +349,9 @@ pub struct ScenariosArgs {
     /// Share of a mixed chunk taken from its primary scenario.
     #[arg(long, default_value_t = 0.6)]
     pub primary_fraction: f64,
+    /// Only clips of this source kind (synth, bvh…).
+    #[arg(long)]
+    pub source: Option<String>,
 }
 
 /// `motionscale scenarios`.
@@ -360,8 +363,24 @@ pub fn scenarios(args: ScenariosArgs) -> Result<ExitCode> {
         );
     }
     let corpus = Corpus::open(&args.corpus).map_err(anyhow::Error::msg)?;
-    let sets = ingest::scenarios::build(&corpus, args.split, args.seed, args.primary_fraction)
-        .map_err(anyhow::Error::msg)?;
+    let sets = ingest::scenarios::build(
+        &corpus,
+        args.split,
+        args.seed,
+        args.primary_fraction,
+        args.source.as_deref(),
+    )
+    .map_err(anyhow::Error::msg)?;
+    for d in &sets.datasets {
+        for split in ["train", "test"] {
+            if d.clips.get(split).is_none_or(Vec::is_empty) {
+                eprintln!(
+                    "warning: {} has no {split} clip (each clip keeps its corpus split)",
+                    d.name
+                );
+            }
+        }
+    }
     ingest::scenarios::write(&args.out, &sets).map_err(anyhow::Error::msg)?;
     print!("{}", ingest::scenarios::table(&sets));
     println!(

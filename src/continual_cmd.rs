@@ -33,7 +33,8 @@ pub struct ContinualArgs {
     /// Dataset orders averaged over (order 0 as listed, the others seeded shuffles).
     #[arg(long, default_value_t = 3)]
     pub orders: usize,
-    /// Seed of orders, replay buffers, training, sampling and evaluation.
+    /// Seed of replay buffers, training, sampling and evaluation (the orders are the same for
+    /// every seed: repeat a run with --seed 1, 2… and `compare` gives the interval over seeds).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Motion tokens trained on per step.
@@ -97,18 +98,26 @@ pub struct ContinualArgs {
 /// `motionscale continual compare`.
 #[derive(clap::Subcommand, Debug)]
 pub enum CompareCommand {
-    /// Print one row per run (summary metrics averaged over its orders) as a Markdown table.
+    /// Print one row per method (summary metrics averaged over its orders) as a Markdown
+    /// table; runs that differ only in --seed share a row: mean ± 95% interval over seeds.
     Compare {
         /// Continual run folders.
         #[arg(required = true)]
         runs: Vec<PathBuf>,
+        /// Put runs scored by different evaluators in one table (refused by default).
+        #[arg(long)]
+        mixed_evaluators: bool,
     },
 }
 
 /// `motionscale continual`.
 pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
-    if let Some(CompareCommand::Compare { runs }) = &args.compare {
-        print!("{}", compare_table(runs)?);
+    if let Some(CompareCommand::Compare {
+        runs,
+        mixed_evaluators,
+    }) = &args.compare
+    {
+        print!("{}", compare_table(runs, *mixed_evaluators)?);
         return Ok(ExitCode::SUCCESS);
     }
     let required = |v: Option<PathBuf>, flag: &str| match v {

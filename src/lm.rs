@@ -1,9 +1,12 @@
 //! `motionscale model info|presets`, `motionscale train` and `motionscale generate`: the
 //! text-prefix autoregressive motion transformer.
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
+use ingest::corpus::split::SplitAssignment;
+use ingest::npy;
 use model::accounting::{Accounting, SequenceShape};
 use model::generate::Sampling;
+use model::lm_data::{Limits, LmData};
 use model::prefix_lm::{PrefixLmConfig, PRESETS};
 use model::train::{ModelShape, RunConfig, TrainConfig, TrainEvent};
 use model::{BertEncoder, FallbackEncoder, TextEncoder};
@@ -117,6 +120,82 @@ pub struct InfoArgs {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+}
+
+/// Arguments of `motionscale model logits`.
+#[derive(clap::Args, Debug)]
+pub struct LogitsArgs {
+    /// Trained run folder (`motionscale train --out`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Split of the run's token set whose first clips are scored (first caption each).
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Clips to score.
+    #[arg(long, default_value_t = 4)]
+    pub clips: usize,
+    /// Output folder: clips.jsonl (motion id, prefix length, motion inputs) and
+    /// clip-<k>-text.npy / clip-<k>-logits.npy, for checking the model in another framework.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// `motionscale model logits`: the logits of a trained model on a few clips of its token set,
+/// with the exact inputs that produced them (`scripts/torch-check-lm.py` reads them).
+pub fn logits(args: LogitsArgs) -> Result<ExitCode> {
+    let (model, run) = model::train::load_model(&args.model)?;
+    let limits = Limits {
+        text_tokens: run.train.max_text_tokens,
+        motion_tokens: run.train.max_motion_tokens,
+    };
+    let data = LmData::load(
+        &run.train.tokens,
+        &run.corpus,
+        Some(&run.text_encoder),
+        limits,
+        &SplitAssignment::default(),
+    )?;
+    let items = data.eval_items(&args.split);
+    if items.is_empty() {
+        bail!(
+            "{}: no clip in split {:?}",
+            run.train.tokens.display(),
+            args.split
+        );
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let (e, v) = (model.config().text_dim, model.config().vocab_size());
+    let mut lines = String::new();
+    for (k, item) in items.iter().take(args.clips).enumerate() {
+        let batch = data.batch(model.config(), std::slice::from_ref(item));
+        let logits = model.forward(&batch)?.flatten_all()?.to_vec1::<f32>()?;
+        let text = data.text_of(item);
+        for (name, shape, values) in [
+            ("text", [text.len() / e, e], text),
+            ("logits", [batch.inputs.len(), v], logits.as_slice()),
+        ] {
+            let path = args.out.join(format!("clip-{k}-{name}.npy"));
+            npy::write_f32(&path, &shape, values)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+        let line = serde_json::json!({
+            "motion_id": item.0.motion_id,
+            "prefix_len": text.len() / e,
+            "inputs": batch.inputs,
+        });
+        lines.push_str(&format!("{line}\n"));
+    }
+    let path = args.out.join("clips.jsonl");
+    npy::write_atomic(&path, lines.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))?;
+    println!(
+        "logits of {} clip(s) of split {} → {}",
+        items.len().min(args.clips),
+        args.split,
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
 }
 
 /// Arguments of `motionscale model presets`.

@@ -126,6 +126,8 @@ enum ModelCommand {
     Info(Box<lm::InfoArgs>),
     /// The preset table at one codebook size.
     Presets(lm::PresetsArgs),
+    /// A trained model's logits on a few clips, with their inputs (for cross-framework checks).
+    Logits(lm::LogitsArgs),
 }
 
 #[derive(Subcommand)]
@@ -247,6 +249,7 @@ fn main() -> ExitCode {
         Command::Bench(BenchCommand::Train(args)) => lm_bench::train(args),
         Command::Model(ModelCommand::Info(args)) => lm::info(*args),
         Command::Model(ModelCommand::Presets(args)) => lm::presets(args),
+        Command::Model(ModelCommand::Logits(args)) => lm::logits(args),
         Command::Train(args) => lm::train(args),
         Command::Generate(args) => lm::generate(args),
         Command::Evaluator(EvaluatorCommand::Train(args)) => eval_cmd::evaluator_train(args),

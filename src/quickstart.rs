@@ -89,7 +89,8 @@ pub fn quickstart(args: QuickstartArgs) -> Result<ExitCode> {
     step(4, "L²-EMG scenario datasets (unseen, mixed)");
     let corpus = Corpus::open(&corpus_dir).map_err(anyhow::Error::msg)?;
     for split in [ScenarioSplit::Unseen, ScenarioSplit::Mixed] {
-        let sets = scenarios::build(&corpus, split, args.seed, 0.6).map_err(anyhow::Error::msg)?;
+        let sets =
+            scenarios::build(&corpus, split, args.seed, 0.6, None).map_err(anyhow::Error::msg)?;
         let dir = args
             .out
             .join("scenarios")

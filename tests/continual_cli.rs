@@ -2,12 +2,14 @@
 //! a tiny backbone and evaluator, `continual` with seq-lora and mtl (matrix shapes, summary
 //! metrics, an identical summary when re-run), the replay buffer's lists, the O-LoRA and
 //! LwF-LoRA steps' settings, ES-MoE's experts and gate across steps and its single-LoRA
-//! ablation, and `compare`.
+//! ablation, `compare` (seeds in one row, one evaluator per table), the refusal of a
+//! backbone that trained on held-out clips, and scenario lists that keep the corpus split.
 
 mod common;
 
 use common::*;
 use serde_json::Value;
+use std::collections::HashMap;
 use std::path::Path;
 
 /// The arguments of a small `continual` run of `method` over `orders` orders on the test setup.
@@ -156,9 +158,17 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
     let table = motionscale_ok(&["continual", "compare", arg(&seq), arg(&mtl)]);
     assert_eq!(table.lines().count(), 4, "{table}");
     assert!(
-        table.contains("| seq-lora | 2 |") && table.contains("| mtl | 2 |"),
+        table.contains("| seq-lora | 2 | 1 |") && table.contains("| mtl | 2 | 1 |"),
         "{table}"
     );
+    let evaluator_id = report["evaluator_id"].as_str().unwrap();
+    assert_eq!(
+        evaluator_id.len(),
+        12,
+        "the evaluator's content id: {report}"
+    );
+    assert!(table.contains(&format!("| {evaluator_id} |")), "{table}");
+    compare_groups_seeds_and_refuses_mixed_evaluators(setup, &mtl);
     // ES-MoE: one expert per dataset; step 2 loads step 1's experts and gate and adds its own.
     let moe = setup.join("es-moe");
     // One order each (per-caption generation runs one sequence at a time).
@@ -219,6 +229,8 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
         "{table}"
     );
 
+    refuses_a_backbone_that_trained_on_held_out_clips(setup);
+
     let mut args = continual_args(setup, "seq-lora", "1", &setup.join("no"));
     args.extend(["--ablation", "no-cged"].map(String::from));
     let out = motionscale(&args.iter().map(String::as_str).collect::<Vec<_>>());
@@ -228,4 +240,124 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
         "{}",
         text(&out)
     );
+}
+
+/// A second MTL seed shares the first one's row (mean ± interval over 2 seeds); a run whose
+/// summary names another evaluator is refused unless `--mixed-evaluators`.
+fn compare_groups_seeds_and_refuses_mixed_evaluators(setup: &Path, mtl: &Path) {
+    let seed1 = setup.join("mtl-seed1");
+    let mut args = continual_args(setup, "mtl", "2", &seed1);
+    args.extend(["--seed", "1"].map(String::from));
+    motionscale_ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    let table = motionscale_ok(&["continual", "compare", arg(mtl), arg(&seed1)]);
+    assert_eq!(table.lines().count(), 3, "one row for both seeds: {table}");
+    assert!(table.contains("(+1 seeds) | mtl | 2 | 2 |"), "{table}");
+    assert!(table.contains(" ± "), "an interval over the seeds: {table}");
+
+    let other = setup.join("mtl-other-evaluator");
+    std::fs::create_dir_all(&other).unwrap();
+    let mut summary: Value = read_json(&seed1.join("summary.json"));
+    summary["evaluator_id"] = Value::from("000000000000");
+    std::fs::write(other.join("summary.json"), summary.to_string()).unwrap();
+    let out = motionscale(&["continual", "compare", arg(mtl), arg(&other)]);
+    assert_eq!(code(&out), 1);
+    assert!(
+        text(&out).contains("scored by different evaluators")
+            && text(&out).contains("000000000000"),
+        "{}",
+        text(&out)
+    );
+    motionscale_ok(&[
+        "continual",
+        "compare",
+        "--mixed-evaluators",
+        arg(mtl),
+        arg(&other),
+    ]);
+}
+
+/// A dataset whose test list holds a clip the backbone trained on is refused, naming the list.
+fn refuses_a_backbone_that_trained_on_held_out_clips(setup: &Path) {
+    let leaky = setup.join("scenarios-leaky");
+    std::fs::create_dir_all(&leaky).unwrap();
+    let scenarios = setup.join("scenarios");
+    for entry in std::fs::read_dir(&scenarios).unwrap() {
+        let path = entry.unwrap().path();
+        let target = leaky.join(path.file_name().unwrap());
+        if path.is_dir() {
+            std::fs::create_dir_all(&target).unwrap();
+            for file in std::fs::read_dir(&path).unwrap() {
+                let file = file.unwrap().path();
+                std::fs::copy(&file, target.join(file.file_name().unwrap())).unwrap();
+            }
+        } else {
+            std::fs::copy(&path, &target).unwrap();
+        }
+    }
+    let sets: Value = read_json(&scenarios.join("datasets.json"));
+    let first = sets["datasets"][0]["name"].as_str().unwrap();
+    let train = std::fs::read_to_string(leaky.join(first).join("train.txt")).unwrap();
+    let test = leaky.join(first).join("test.txt");
+    let mut held_out = std::fs::read_to_string(&test).unwrap();
+    held_out.push_str(train.lines().next().unwrap());
+    held_out.push('\n');
+    std::fs::write(&test, held_out).unwrap();
+    let mut args = continual_args(setup, "seq-lora", "1", &setup.join("leaky"));
+    args[2] = arg(&leaky).to_string();
+    let out = motionscale(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(code(&out), 1, "{}", text(&out));
+    assert!(
+        text(&out).contains("test.txt") && text(&out).contains("train clips of the backbone"),
+        "{}",
+        text(&out)
+    );
+}
+
+/// Scenario datasets keep the corpus split, for Unseen and Mixed: no val/test list holds a
+/// clip the corpus puts in train (the per-dataset re-split did: 9 of the 15 D01_daily test
+/// clips of this corpus were corpus train clips), and every labelled clip is listed once.
+#[test]
+fn scenario_lists_keep_the_corpus_split() {
+    let tmp = tempfile::tempdir().unwrap();
+    let corpus = tmp.path().join("corpus");
+    motionscale_ok(&[
+        "ingest",
+        "--source",
+        "synth:600:11",
+        "--out",
+        arg(&corpus),
+        "--mirror",
+    ]);
+    let meta = ingest::corpus::Corpus::open(&corpus)
+        .unwrap()
+        .clip_metadata()
+        .unwrap();
+    let split_of: HashMap<&str, &str> = meta
+        .iter()
+        .map(|m| (m.motion_id.as_str(), m.split.as_str()))
+        .collect();
+    let labelled = meta.iter().filter(|m| m.labels.scenario.is_some()).count();
+    for kind in ["unseen", "mixed"] {
+        let out = tmp.path().join(kind);
+        motionscale_ok(&[
+            "scenarios",
+            "--corpus",
+            arg(&corpus),
+            "--split",
+            kind,
+            "--out",
+            arg(&out),
+        ]);
+        let sets: Value = read_json(&out.join("datasets.json"));
+        let mut listed = 0;
+        for d in sets["datasets"].as_array().unwrap() {
+            for (list, ids) in d["clips"].as_object().unwrap() {
+                for id in ids.as_array().unwrap().iter().map(|v| v.as_str().unwrap()) {
+                    assert_eq!(split_of[id], list, "{kind} {}: {id}", d["name"]);
+                    listed += 1;
+                }
+            }
+        }
+        assert_eq!(listed, labelled, "{kind}: every labelled clip listed once");
+    }
 }

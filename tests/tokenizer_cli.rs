@@ -106,7 +106,14 @@ fn train_eval_tokenize_decode_round_trip() {
     let entropy = report["entropy"].as_f64().unwrap();
     assert!((report["perplexity"].as_f64().unwrap() - entropy.exp()).abs() < 1e-9);
     let mpjpe = report["mpjpe_mm"].as_f64().unwrap();
+    let mpjpe_root = report["mpjpe_root_mm"].as_f64().unwrap();
     assert!(mpjpe.is_finite() && mpjpe > 0.0);
+    assert!(mpjpe_root.is_finite() && mpjpe_root > 0.0);
+    // The coverage a uniform tokenizer reaches with as many tokens: 1 − e^(−N/K).
+    let per_code = tokens as f64 / 240.0;
+    assert!((report["tokens_per_code"].as_f64().unwrap() - per_code).abs() < 1e-12);
+    let uniform = report["uniform_coverage"].as_f64().unwrap();
+    assert!((uniform - (1.0 - (-per_code).exp())).abs() < 1e-12);
 
     let set = tmp.path().join("tokens");
     let out = motionscale(&[
@@ -154,8 +161,10 @@ print(sum(len(x) for x, s in rows if s == 'test'))
     ]);
     assert_eq!(code(&out), 0, "{}", text(&out));
     assert!(
-        text(&out).contains(&format!("round-trip MPJPE {mpjpe:.3} mm")),
-        "eval said {mpjpe:.3} mm; decode said:\n{}",
+        text(&out).contains(&format!(
+            "{mpjpe_root:.3} mm root-aligned, {mpjpe:.3} mm global"
+        )),
+        "eval said {mpjpe_root:.3} / {mpjpe:.3} mm; decode said:\n{}",
         text(&out)
     );
     let id = std::fs::read_dir(&decoded)

@@ -74,6 +74,18 @@ pub fn t95(dof: usize) -> f64 {
         .inverse_cdf(0.975)
 }
 
+/// Mean of `values` and the half-width of its two-sided 95% Student-t interval (n − 1
+/// degrees of freedom; 0 for a single value): the interval over a handful of training seeds.
+pub fn mean_interval(values: &[f64]) -> (f64, f64) {
+    let n = values.len();
+    let mean = values.iter().sum::<f64>() / n as f64;
+    if n < 2 {
+        return (mean, 0.0);
+    }
+    let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    (mean, t95(n - 1) * (var / n as f64).sqrt())
+}
+
 /// y = intercept + slope·x by OLS.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Line {
@@ -232,5 +244,14 @@ mod tests {
         assert!((t95(1) - 12.706).abs() < 1e-3);
         assert!((t95(5) - 2.571).abs() < 1e-3);
         assert!((t95(1000) - 1.962).abs() < 1e-3);
+    }
+
+    #[test]
+    fn seed_interval_matches_a_hand_case() {
+        // 1, 2, 3: mean 2, sample sd 1, half-width t(2) · 1/√3 = 4.303 / 1.732 = 2.484.
+        let (mean, half) = mean_interval(&[1.0, 2.0, 3.0]);
+        assert!((mean - 2.0).abs() < 1e-12);
+        assert!((half - 2.484).abs() < 1e-3, "{half}");
+        assert_eq!(mean_interval(&[0.5]), (0.5, 0.0));
     }
 }

@@ -2,10 +2,10 @@
 //! **Unseen** (one dataset per scenario label) and **Mixed** (equal-size chunks, each with a
 //! primary scenario plus fewer clips of the others).
 //!
-//! A source clip's segments and mirrored copies always land in the same dataset. Each
-//! dataset is then split train/val/test = 0.8/0.05/0.15 over clip+mirror pairs (seeded), so a
-//! clip and its mirror never sit in two splits. (The corpus's own hash split is not reused:
-//! scenarios with a handful of long source clips would get no training clip at all.)
+//! A source clip's segments and mirrored copies always land in the same dataset. Each clip
+//! keeps its corpus split (train/val/test by a hash of the source clip, so a clip and its
+//! mirror never sit in two splits): the backbone LM and the evaluator train on the corpus
+//! train split, and a scenario's val/test clips must be clips neither of them has seen.
 
 use crate::corpus::reader::ClipMeta;
 use crate::corpus::split::SPLITS;
@@ -77,6 +77,9 @@ pub struct ScenarioDatasets {
     pub primary_fraction: f64,
     /// Corpus folder and the sha256 of its first shard, to tie the datasets to the corpus.
     pub corpus: String,
+    /// Only clips of this source kind (`synth`, `bvh`…) were used, when set.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source: Option<String>,
     /// Clips without a scenario label, left out.
     pub unlabelled_clips: u64,
     /// The datasets D_1..D_n (in scenario-name order; continual runs shuffle the order).
@@ -118,45 +121,24 @@ fn pools<'a>(groups: &'a [Group<'a>]) -> BTreeMap<&'a str, Vec<&'a Group<'a>>> {
     by_scenario
 }
 
-/// Split shares of each dataset (train, val, test).
-pub const SPLIT_SHARES: [f64; 3] = [0.8, 0.05, 0.15];
-
-fn dataset(index: usize, primary: &str, members: &[&Group], seed: u64) -> ScenarioDataset {
+fn dataset(index: usize, primary: &str, members: &[&Group]) -> ScenarioDataset {
     let mut emotions = BTreeMap::new();
     let mut scenarios = BTreeMap::new();
-    // A clip and its mirrored copy form one unit of the split.
-    let mut pairs: BTreeMap<&str, Vec<&str>> = BTreeMap::new();
+    let mut clips: BTreeMap<String, Vec<String>> =
+        SPLITS.iter().map(|s| (s.to_string(), Vec::new())).collect();
     for g in members {
         for m in &g.clips {
-            let key = if m.mirrored {
-                m.motion_id.strip_prefix('M').unwrap_or(&m.motion_id)
-            } else {
-                &m.motion_id
-            };
-            pairs.entry(key).or_default().push(&m.motion_id);
+            // The corpus split, never a fresh one: the backbone LM and the evaluator trained
+            // on the corpus train split, so a scenario test clip must be a corpus test clip.
+            // Mirrored copies share their source clip's split in the corpus already.
+            clips
+                .entry(m.split.clone())
+                .or_default()
+                .push(m.motion_id.clone());
             let emotion = m.labels.emotion.clone().unwrap_or_else(|| "(none)".into());
             *emotions.entry(emotion).or_default() += 1;
             *scenarios.entry(g.scenario.to_string()).or_default() += 1;
         }
-    }
-    let mut units: Vec<Vec<&str>> = pairs.into_values().collect();
-    let mut rng = SplitMix64(seed ^ (index as u64 + 1).wrapping_mul(0x9E37_79B9));
-    shuffle(&mut units, &mut rng);
-    let n = units.len();
-    let n_test = ((SPLIT_SHARES[2] * n as f64).round() as usize).max(usize::from(n >= 3));
-    let n_val = (SPLIT_SHARES[1] * n as f64).round() as usize;
-    let mut clips: BTreeMap<String, Vec<String>> =
-        SPLITS.iter().map(|s| (s.to_string(), Vec::new())).collect();
-    for (k, unit) in units.into_iter().enumerate() {
-        let split = if k + n_test + n_val < n {
-            "train"
-        } else if k + n_test < n {
-            "val"
-        } else {
-            "test"
-        };
-        let ids = clips.get_mut(split).expect("all splits present");
-        ids.extend(unit.into_iter().map(str::to_string));
     }
     clips.values_mut().for_each(|v| v.sort());
     ScenarioDataset {
@@ -175,14 +157,18 @@ fn shuffle<T>(items: &mut [T], rng: &mut SplitMix64) {
     }
 }
 
-/// Build the scenario datasets of a corpus.
+/// Build the scenario datasets of a corpus (of its clips of kind `source` only, when given).
 pub fn build(
     corpus: &Corpus,
     split: ScenarioSplit,
     seed: u64,
     primary_fraction: f64,
+    source: Option<&str>,
 ) -> Result<ScenarioDatasets, String> {
-    let meta = corpus.clip_metadata()?;
+    let mut meta = corpus.clip_metadata()?;
+    if let Some(kind) = source {
+        meta.retain(|m| m.source == kind);
+    }
     let (groups, unlabelled) = groups(&meta);
     let by_scenario = pools(&groups);
     if by_scenario.len() < 2 {
@@ -196,7 +182,7 @@ pub fn build(
         ScenarioSplit::Unseen => by_scenario
             .iter()
             .enumerate()
-            .map(|(i, (name, members))| dataset(i, name, members, seed))
+            .map(|(i, (name, members))| dataset(i, name, members))
             .collect(),
         ScenarioSplit::Mixed => mixed(&by_scenario, seed, primary_fraction),
     };
@@ -214,6 +200,7 @@ pub fn build(
             "{} (shard-00000 sha256 {first_shard})",
             corpus.dir().display()
         ),
+        source: source.map(str::to_string),
         unlabelled_clips: unlabelled,
         datasets,
     })
@@ -261,7 +248,7 @@ fn mixed<'a>(
         .keys()
         .zip(&chunks)
         .enumerate()
-        .map(|(i, (name, members))| dataset(i, name, members, seed))
+        .map(|(i, (name, members))| dataset(i, name, members))
         .collect()
 }
 
@@ -389,14 +376,18 @@ mod tests {
         assert!(sets[0].scenarios["a"] >= 40, "{:?}", sets[0].scenarios);
         assert_eq!(sets[2].scenarios["c"], 20);
         assert!(sets.iter().all(|d| d.scenarios.len() > 1));
-        // 80/5/15 over clip+mirror pairs: 33 or 34 pairs → 5 test, 2 val.
+        // Every clip sits in its corpus split, so a clip and its mirror stay together.
+        let split_of: BTreeMap<&str, &str> = meta
+            .iter()
+            .map(|m| (m.motion_id.as_str(), m.split.as_str()))
+            .collect();
         for d in &sets {
-            let (val, test) = (d.clips["val"].len(), d.clips["test"].len());
-            assert_eq!((val, test), (4, 10), "{}: {val} val, {test} test", d.name);
-        }
-        // A clip and its mirror stay together, in the same split.
-        for d in &sets {
-            for ids in d.clips.values() {
+            for (split, ids) in &d.clips {
+                assert!(
+                    ids.iter().all(|id| split_of[id.as_str()] == split),
+                    "{}",
+                    d.name
+                );
                 for id in ids.iter().filter(|id| !id.starts_with('M')) {
                     assert!(ids.contains(&format!("M{id}")), "{id}");
                 }
@@ -419,11 +410,12 @@ mod tests {
             seed: 0,
             primary_fraction: 0.6,
             corpus: "test".into(),
+            source: None,
             unlabelled_clips: 0,
             datasets: pools(&groups)
                 .iter()
                 .enumerate()
-                .map(|(i, (k, members))| dataset(i, k, members, 0))
+                .map(|(i, (k, members))| dataset(i, k, members))
                 .collect(),
         };
         let t = table(&sets);

@@ -16,6 +16,7 @@
 //! ```
 
 use crate::error::SweepError;
+use crate::seeds::{self, ScoredRun};
 use crate::{read_json, write_json};
 use ingest::rng::SplitMix64;
 use model::ctvae::CtvaeConfig;
@@ -113,6 +114,9 @@ pub struct TaskEval {
 pub struct Cl2GenReport {
     /// The run.
     pub config: Cl2GenConfig,
+    /// Content id of the evaluator that scored it (`evaluator train` prints it).
+    #[serde(default)]
+    pub evaluator_id: String,
     /// Classes in task order.
     pub tasks: Vec<Vec<String>>,
     /// Every task's evaluation.
@@ -577,6 +581,7 @@ pub fn run_cl2gen(
     }
     let report = Cl2GenReport {
         config: resolved,
+        evaluator_id: evaluator.id.clone(),
         tasks: tasks
             .iter()
             .map(|t| t.iter().map(|&k| classes[k as usize].clone()).collect())
@@ -620,4 +625,81 @@ fn write_accuracy_plot(
         .write(&stem)
         .map_err(|e| SweepError::invalid(&stem, e))?;
     Ok(())
+}
+
+impl Cl2GenConfig {
+    /// How the run learns, as tables name it: `offline`, `no replay`, `gen 1/5`,
+    /// `real 1/16`, with `+ aux` when the auxiliary classifier loss is on.
+    pub fn label(&self) -> String {
+        let replay = match (self.offline, self.replay) {
+            (true, _) => "offline".to_string(),
+            (false, r) if r <= 0.0 => "no replay".to_string(),
+            (false, r) => {
+                let source = match self.replay_source {
+                    ReplaySource::Gen => "gen",
+                    ReplaySource::Real => "real",
+                };
+                let inverse = 1.0 / r;
+                if (inverse - inverse.round()).abs() < 1e-9 {
+                    format!("{source} 1/{}", inverse.round())
+                } else {
+                    format!("{source} {r}")
+                }
+            }
+        };
+        if self.weights.aux > 0.0 {
+            format!("{replay} + aux")
+        } else {
+            replay
+        }
+    }
+}
+
+/// One row per CL2Gen experiment: the final model's accuracy, FID, diversity and
+/// multimodality (each the mean over its evaluation repeats); runs that differ only in their
+/// seed share a row with the mean ± 95% Student-t interval over seeds. Runs scored by
+/// different evaluators are refused unless `mixed_evaluators`.
+pub fn compare_table(runs: &[PathBuf], mixed_evaluators: bool) -> Result<String, SweepError> {
+    let scored = runs
+        .iter()
+        .map(|dir| {
+            let report: Cl2GenReport = read_json(&dir.join("summary.json"))?;
+            Ok(ScoredRun {
+                dir: dir.clone(),
+                evaluator_id: report.evaluator_id.clone(),
+                report,
+            })
+        })
+        .collect::<Result<Vec<_>, SweepError>>()?;
+    let seedless = |r: &Cl2GenReport| Cl2GenConfig {
+        seed: 0,
+        out: PathBuf::new(),
+        ..r.config.clone()
+    };
+    let mut out = String::from(
+        "| run | model | seeds | accuracy % ↑ | FID ↓ | diversity → | multimodality → | evaluator |\n\
+         |---|---|---|---|---|---|---|---|\n",
+    );
+    for members in seeds::group(scored, seedless, mixed_evaluators)? {
+        let metric = |f: fn(&MetricIntervals) -> Option<f64>, digits| {
+            let values = members
+                .iter()
+                .map(|r| r.report.final_intervals.as_ref().and_then(f))
+                .collect();
+            seeds::cell(values, digits)
+        };
+        let first = &members[0];
+        out.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            seeds::run_label(&members),
+            first.report.config.label(),
+            members.len(),
+            metric(|m| Some(100.0 * m.accuracy.mean), 1),
+            metric(|m| Some(m.fid.mean), 3),
+            metric(|m| m.diversity.as_ref().map(|i| i.mean), 3),
+            metric(|m| m.multimodality.as_ref().map(|i| i.mean), 3),
+            seeds::evaluator_label(&first.evaluator_id)
+        ));
+    }
+    Ok(out)
 }

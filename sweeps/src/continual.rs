@@ -1,5 +1,5 @@
 //! Continual (lifelong) training over scenario datasets (`../shared/docs/continual.md`):
-//! the datasets D_1..D_n of `motionscale scenarios` arrive in a seeded order; after each step
+//! the datasets D_1..D_n of `motionscale scenarios` arrive in a fixed order; after each step
 //! the model animates the test captions of every dataset and the evaluator scores them, which
 //! fills the matrices f (FID), r (top-1 R-precision), d (diversity), mm (multimodality) and
 //! wf (emotion weighted F1), indexed [step][dataset position in the order]; AF/AR/AD/AMM/AWF
@@ -29,8 +29,9 @@
 //! Every file is written atomically and reused when present, so a killed run resumes.
 
 use crate::error::SweepError;
+use crate::seeds::{self, ScoredRun};
 use crate::{read_json, write_json};
-use ingest::corpus::split::{read_ids, SPLITS};
+use ingest::corpus::split::{read_ids, SplitAssignment, SPLITS};
 use ingest::rng::SplitMix64;
 use ingest::scenarios::ScenarioDatasets;
 use model::caption_set::{generate_caption_set, CaptionSetOptions};
@@ -39,9 +40,9 @@ use model::evaluator::TrainedEvaluator;
 use model::generate::Sampling;
 use model::lora::LoraConfig;
 use model::motion_eval::{corpus_split, evaluate_motions, hml3d_folder, EvalOptions, EvalReport};
-use model::train::{load_lm, load_model, run_tokenizer, train, ModelShape, TrainConfig};
+use model::train::{load_lm, load_model, run_tokenizer, train, ModelShape, RunConfig, TrainConfig};
 use serde::{Deserialize, Serialize};
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
 
 /// A continual-learning method.
@@ -107,7 +108,7 @@ pub struct ContinualConfig {
     pub method: Method,
     /// Dataset orders (order 0 is the listed one, the others seeded shuffles).
     pub orders: usize,
-    /// Seed of orders, replay buffers, training and evaluation.
+    /// Seed of replay buffers, training and evaluation (the orders do not depend on it).
     pub seed: u64,
     /// Motion tokens trained on per step.
     pub tokens_budget: u64,
@@ -261,17 +262,22 @@ impl Summary {
 pub struct ContinualReport {
     /// The run.
     pub config: ContinualConfig,
+    /// Content id of the evaluator that scored every cell (`evaluator train` prints it).
+    #[serde(default)]
+    pub evaluator_id: String,
     /// Each order's matrices and summary.
     pub orders: Vec<OrderResult>,
     /// The summaries averaged over orders.
     pub mean: Summary,
 }
 
-/// The dataset positions of order `o`: order 0 as listed, the others seeded shuffles.
-pub fn order(n: usize, seed: u64, o: usize) -> Vec<usize> {
+/// The dataset positions of order `o`: order 0 as listed, the others shuffles by a fixed
+/// seed. The orders are the same whatever the run's seed, so runs that differ only in
+/// `seed` measure training and sampling noise, not a change of orders.
+pub fn order(n: usize, o: usize) -> Vec<usize> {
     let mut positions: Vec<usize> = (0..n).collect();
     if o > 0 {
-        SplitMix64::stream(seed, o as u64).shuffle(&mut positions);
+        SplitMix64::stream(0, o as u64).shuffle(&mut positions);
     }
     positions
 }
@@ -305,6 +311,47 @@ fn dataset_lists(dir: &Path) -> Result<HashMap<&'static str, Vec<String>>, Sweep
         .collect()
 }
 
+/// Refuse a backbone that trained on a clip some dataset holds out for validation or test:
+/// its scores there would measure memory, not continual learning.
+fn check_backbone_held_out(
+    base: &RunConfig,
+    scenarios: &Path,
+    names: &[String],
+) -> Result<(), SweepError> {
+    let assignment =
+        SplitAssignment::from_dir(base.train.splits.as_deref()).map_err(SweepError::Argument)?;
+    let tokens = &base.train.tokens;
+    let set = tokenizer::TokenSet::open(tokens).map_err(|e| SweepError::invalid(tokens, e))?;
+    let trained: HashSet<&str> = set
+        .clips
+        .iter()
+        .filter(|c| assignment.split_of(&c.motion_id, &c.split) == Some("train"))
+        .map(|c| c.motion_id.as_str())
+        .collect();
+    for name in names {
+        for (split, ids) in dataset_lists(&scenarios.join(name))? {
+            let seen: Vec<&String> = ids
+                .iter()
+                .filter(|id| split != "train" && trained.contains(id.as_str()))
+                .collect();
+            if let Some(first) = seen.first() {
+                return Err(SweepError::invalid(
+                    &scenarios.join(name).join(format!("{split}.txt")),
+                    format!(
+                        "{} of its {} clips (e.g. {first}) are train clips of the backbone's \
+                         token set {}; a held-out clip must be one the backbone never trained \
+                         on (`motionscale scenarios` keeps each clip's corpus split)",
+                        seen.len(),
+                        ids.len(),
+                        tokens.display()
+                    ),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Run (or resume) `config`; `log` receives one line per finished piece of work.
 pub fn run_continual(
     config: &ContinualConfig,
@@ -323,6 +370,7 @@ pub fn run_continual(
     let names: Vec<String> = sets.datasets.iter().map(|d| d.name.clone()).collect();
     let evaluator = TrainedEvaluator::load(&config.evaluator)?;
     let (_, base_run) = load_model(&config.base)?;
+    check_backbone_held_out(&base_run, &config.scenarios, &names)?;
     let corpus = base_run.corpus.clone();
     let tokenizer = run_tokenizer(&base_run, None)?;
     let eval_options = |dataset: &str| EvalOptions {
@@ -344,7 +392,7 @@ pub fn run_continual(
         .collect();
     let mut results = Vec::new();
     for o in 0..config.orders {
-        let positions = order(names.len(), config.seed, o);
+        let positions = order(names.len(), o);
         let ordered: Vec<String> = positions.iter().map(|&p| names[p].clone()).collect();
         let order_dir = config.out.join(format!("order-{o}"));
         std::fs::create_dir_all(&order_dir).map_err(|e| SweepError::io(&order_dir, e))?;
@@ -538,6 +586,7 @@ pub fn run_continual(
     }
     let report = ContinualReport {
         config: config.clone(),
+        evaluator_id: evaluator.id.clone(),
         mean: Summary::mean_of(&results.iter().map(|r| r.summary).collect::<Vec<_>>()),
         orders: results,
     };
@@ -632,27 +681,49 @@ pub fn summary_csv(report: &ContinualReport) -> String {
     csv
 }
 
-/// A table shaped like the paper's Table 2: one row per run (method), the summary metrics
-/// averaged over its orders.
-pub fn compare_table(runs: &[PathBuf]) -> Result<String, SweepError> {
+/// A table shaped like the paper's Table 2: one row per method, the summary metrics averaged
+/// over its orders. Runs that differ only in their seed share a row: the mean over seeds and,
+/// with two or more, the 95% Student-t interval over them. Runs scored by different
+/// evaluators are refused unless `mixed_evaluators` (their numbers are not comparable).
+pub fn compare_table(runs: &[PathBuf], mixed_evaluators: bool) -> Result<String, SweepError> {
+    let scored = runs
+        .iter()
+        .map(|dir| {
+            let report: ContinualReport = read_json(&dir.join("summary.json"))?;
+            Ok(ScoredRun {
+                dir: dir.clone(),
+                evaluator_id: report.evaluator_id.clone(),
+                report,
+            })
+        })
+        .collect::<Result<Vec<_>, SweepError>>()?;
+    let seedless = |r: &ContinualReport| ContinualConfig {
+        seed: 0,
+        out: PathBuf::new(),
+        ..r.config.clone()
+    };
     let mut out = String::from(
-        "| run | method | orders | AF ↓ | AR ↑ | AD | AMM | AWF ↑ | FR ↓ |\n|---|---|---|---|---|---|---|---|---|\n",
+        "| run | method | orders | seeds | AF ↓ | AR ↑ | AD | AMM | AWF ↑ | FR ↓ | evaluator |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|\n",
     );
-    let fmt = |v: Option<f64>| v.map_or_else(|| "–".to_string(), |v| format!("{v:.3}"));
-    for dir in runs {
-        let report: ContinualReport = read_json(&dir.join("summary.json"))?;
-        let s = report.mean;
+    for members in seeds::group(scored, seedless, mixed_evaluators)? {
+        let metric = |f: fn(&Summary) -> Option<f64>, digits| {
+            seeds::cell(members.iter().map(|r| f(&r.report.mean)).collect(), digits)
+        };
+        let first = &members[0];
         out.push_str(&format!(
-            "| {} | {} | {} | {:.4} | {:.3} | {} | {} | {} | {} |\n",
-            dir.display(),
-            report.config.label(),
-            report.orders.len(),
-            s.af,
-            s.ar,
-            fmt(s.ad),
-            fmt(s.amm),
-            fmt(s.awf),
-            fmt(s.fr)
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            seeds::run_label(&members),
+            first.report.config.label(),
+            first.report.orders.len(),
+            members.len(),
+            metric(|s| Some(s.af), 4),
+            metric(|s| Some(s.ar), 3),
+            metric(|s| s.ad, 3),
+            metric(|s| s.amm, 3),
+            metric(|s| s.awf, 3),
+            metric(|s| s.fr, 3),
+            seeds::evaluator_label(&first.evaluator_id)
         ));
     }
     Ok(out)
@@ -689,12 +760,12 @@ mod tests {
 
     #[test]
     fn orders_are_permutations_and_order_zero_is_as_listed() {
-        assert_eq!(order(5, 3, 0), vec![0, 1, 2, 3, 4]);
-        let mut o = order(5, 3, 1);
+        assert_eq!(order(5, 0), vec![0, 1, 2, 3, 4]);
+        let mut o = order(5, 1);
         assert_ne!(o, vec![0, 1, 2, 3, 4]);
         o.sort();
         assert_eq!(o, vec![0, 1, 2, 3, 4]);
-        assert_eq!(order(5, 3, 2), order(5, 3, 2));
+        assert_ne!(order(5, 1), order(5, 2));
     }
 
     #[test]

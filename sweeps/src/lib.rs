@@ -22,6 +22,7 @@ pub mod plan;
 pub mod prepare;
 pub mod results;
 pub mod run;
+pub mod seeds;
 pub mod slurm;
 pub mod status;
 

@@ -1,6 +1,8 @@
 //! Tokenizer metrics on whole clips of a corpus split (ScaMo Fig. 6): reconstruction L1 on
-//! normalised features, MPJPE on joints recovered from de-normalised features, codebook
-//! utilisation, entropy and perplexity of code usage.
+//! normalised features, MPJPE on joints recovered from de-normalised features (root-aligned
+//! as MoMask's `calculate_mpjpe` does it, and global), codebook utilisation beside the
+//! coverage a uniform tokenizer would reach with as many tokens, entropy and perplexity of
+//! code usage.
 //!
 //! Every clip goes through the same path as `tokenize` → `tokenizer decode`: features cropped
 //! to a whole number of tokens → token ids → decoded features, so the MPJPE reported here is
@@ -43,10 +45,19 @@ pub struct EvalReport {
     pub tokens: u64,
     /// Mean |reconstruction − input| over normalised features.
     pub recon_l1: f64,
-    /// Mean per-joint position error in millimetres (22 joints, every frame).
+    /// Mean per-joint position error in millimetres on global joints (22 joints, every frame;
+    /// the root trajectory integrated over the clip, so drift dominates on long clips).
     pub mpjpe_mm: f64,
+    /// Mean per-joint position error in millimetres on root-aligned joints (the pelvis
+    /// subtracted per frame from both), comparable with T2M-GPT / MoMask's reconstruction MPJPE.
+    pub mpjpe_root_mm: f64,
     /// Fraction of codes used at least once.
     pub utilization: f64,
+    /// Tokens per code, N/K.
+    pub tokens_per_code: f64,
+    /// Fraction of codes a perfectly uniform tokenizer would use with N tokens, 1 − e^(−N/K):
+    /// the ceiling `utilization` is read against on a small split.
+    pub uniform_coverage: f64,
     /// Codes used at least once.
     pub used_codes: usize,
     /// Entropy of code usage in nats.
@@ -109,24 +120,46 @@ fn corpus_error(corpus: &Corpus, message: String) -> TokenizerError {
     }
 }
 
-/// Mean per-joint position error (metres) between the joints recovered from two feature
-/// sequences of equal length, and the number of frames compared.
-pub fn mpjpe(reference: &[f32], reconstruction: &[f32]) -> (f64, usize) {
+/// Per-joint position errors between two motions, in metres.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JointError {
+    /// Mean error on global joints.
+    pub global: f64,
+    /// Mean error after subtracting each motion's root (pelvis, joint 0) per frame.
+    pub root_aligned: f64,
+    /// Frames compared.
+    pub frames: usize,
+}
+
+/// Mean per-joint position error between the joints recovered from two feature sequences of
+/// equal length: on global joints, and root-aligned as MoMask's `calculate_mpjpe` computes
+/// it (pelvis subtracted per frame from each motion, Euclidean norm per joint, mean over
+/// joints and frames).
+pub fn mpjpe(reference: &[f32], reconstruction: &[f32]) -> JointError {
     let (a, b) = (recover_joints(reference), recover_joints(reconstruction));
     let frames = a.len().min(b.len());
-    let mut total = 0f64;
+    let (mut global, mut aligned) = (0f64, 0f64);
     for (pa, pb) in a.iter().zip(&b) {
+        let (ra, rb) = (pa[0], pb[0]);
         for (ja, jb) in pa.iter().zip(pb) {
-            total += ja
-                .iter()
-                .zip(jb)
-                .map(|(x, y)| (x - y).powi(2))
-                .sum::<f64>()
-                .sqrt();
+            global += distance(ja, jb, [0.0; 3], [0.0; 3]);
+            aligned += distance(ja, jb, ra, rb);
         }
     }
-    let joints = a.first().map_or(0, |p| p.len());
-    (total / (frames * joints).max(1) as f64, frames)
+    let points = (frames * a.first().map_or(0, |p| p.len())).max(1) as f64;
+    JointError {
+        global: global / points,
+        root_aligned: aligned / points,
+        frames,
+    }
+}
+
+/// |(a − ra) − (b − rb)|.
+fn distance(a: &[f64; 3], b: &[f64; 3], ra: [f64; 3], rb: [f64; 3]) -> f64 {
+    (0..3)
+        .map(|k| ((a[k] - ra[k]) - (b[k] - rb[k])).powi(2))
+        .sum::<f64>()
+        .sqrt()
 }
 
 /// Evaluate `tokenizer` (loaded from `dir`) on every clip of `split`.
@@ -146,7 +179,8 @@ pub fn evaluate(
         .features_where(keep)
         .map_err(|message| corpus_error(corpus, message))?;
     let mut usage = CodeUsage::new(config.codebook_size());
-    let (mut l1_sum, mut values, mut mpjpe_sum, mut frames) = (0f64, 0u64, 0f64, 0u64);
+    let (mut l1_sum, mut values, mut frames) = (0f64, 0u64, 0u64);
+    let (mut global_sum, mut aligned_sum) = (0f64, 0f64);
     let mut skipped = 0;
     let std = tokenizer.std();
     for (done, (_, original)) in features.into_iter().enumerate() {
@@ -163,9 +197,10 @@ pub fn evaluate(
             l1_sum += ((a - b) / std[i % FEATURES]).abs() as f64;
         }
         values += decoded.len() as u64;
-        let (error, n) = mpjpe(original, &decoded);
-        mpjpe_sum += error * n as f64;
-        frames += n as u64;
+        let error = mpjpe(original, &decoded);
+        global_sum += error.global * error.frames as f64;
+        aligned_sum += error.root_aligned * error.frames as f64;
+        frames += error.frames as u64;
     }
     if frames == 0 {
         return Err(corpus_error(
@@ -186,8 +221,11 @@ pub fn evaluate(
         frames,
         tokens: usage.total(),
         recon_l1: l1_sum / values as f64,
-        mpjpe_mm: mpjpe_sum / frames as f64 * 1000.0,
+        mpjpe_mm: global_sum / frames as f64 * 1000.0,
+        mpjpe_root_mm: aligned_sum / frames as f64 * 1000.0,
         utilization: usage.utilisation(),
+        tokens_per_code: usage.total() as f64 / config.codebook_size() as f64,
+        uniform_coverage: 1.0 - (-(usage.total() as f64) / config.codebook_size() as f64).exp(),
         used_codes: usage.counts().iter().filter(|&&c| c > 0).count(),
         entropy: usage.entropy(),
         perplexity: usage.perplexity(),

@@ -1,12 +1,15 @@
 //! The codebook-size sweep (our ScaMo Fig. 6): every (quantizer, codebook) pair trained with
-//! the same steps and evaluated on one split, as a table.
+//! the same steps, its codebook use read on the train split (tokens ≫ codes) and its
+//! reconstruction on the chosen split (with that split's N, utilisation and the uniform
+//! tokenizer's coverage 1 − e^(−N/K) beside it), as a table.
 //!
 //! ```text
-//! OUT/<quantizer>-<codebook>/     each run's tokenizer checkpoint (resumable) and eval-<split>.json
+//! OUT/<quantizer>-<codebook>/     each run's tokenizer checkpoint (resumable),
+//!                                 eval-train.json and eval-<split>.json
 //! OUT/sweep.csv, sweep.parquet    one row per run (columns: SweepRow's fields)
-//! OUT/utilization.{svg,png}       utilisation, entropy and MPJPE against codebook size,
-//! OUT/entropy.{svg,png}           one line per quantizer
-//! OUT/mpjpe.{svg,png}
+//! OUT/utilization.{svg,png}       utilisation, entropy and MPJPE (global and root-aligned)
+//! OUT/entropy.{svg,png}           against codebook size, one line per quantizer
+//! OUT/mpjpe.{svg,png}, OUT/mpjpe_root.{svg,png}
 //! ```
 //!
 //! Re-running the same command resumes unfinished runs and reuses finished evaluations.
@@ -34,38 +37,54 @@ pub struct SweepRow {
     pub codebook: u64,
     /// Real number of codes.
     pub codebook_size: u64,
-    /// Fraction of codes used on the split.
+    /// Fraction of codes used on the train split (the headline: tokens ≫ codes there).
     pub utilization: f64,
-    /// exp(entropy) of code usage.
+    /// exp(entropy) of code usage on the train split.
     pub perplexity: f64,
-    /// Entropy of code usage in nats.
+    /// Entropy of code usage on the train split, nats.
     pub entropy: f64,
-    /// Mean |reconstruction − input| of normalised features.
+    /// Mean |reconstruction − input| of normalised features on the evaluated split.
     pub recon_l1: f64,
-    /// Mean per-joint position error, millimetres.
+    /// Mean per-joint position error on global joints, millimetres, evaluated split.
     pub mpjpe_mm: f64,
+    /// Mean per-joint position error on root-aligned joints (MoMask's convention),
+    /// millimetres, evaluated split.
+    pub mpjpe_root_mm: f64,
     /// Training steps.
     pub steps: u64,
     /// Training wall time, seconds.
     pub train_s: f64,
-    /// Tokens evaluated.
+    /// Tokens of the train split.
     pub tokens: u64,
+    /// The split reconstruction is measured on (`--split`).
+    pub split: String,
+    /// Tokens of that split, N.
+    pub split_tokens: u64,
+    /// Fraction of codes used on that split.
+    pub split_utilization: f64,
+    /// What a uniform tokenizer would use with that split's tokens, 1 − e^(−N/K).
+    pub split_uniform_coverage: f64,
 }
 
 impl SweepRow {
-    fn new(report: &EvalReport, steps: u64, train_s: f64) -> Self {
+    fn new(train: &EvalReport, split: &EvalReport, steps: u64, train_s: f64) -> Self {
         Self {
-            quantizer: report.quantizer.clone(),
-            codebook: report.nominal_codebook as u64,
-            codebook_size: report.codebook_size as u64,
-            utilization: report.utilization,
-            perplexity: report.perplexity,
-            entropy: report.entropy,
-            recon_l1: report.recon_l1,
-            mpjpe_mm: report.mpjpe_mm,
+            quantizer: train.quantizer.clone(),
+            codebook: train.nominal_codebook as u64,
+            codebook_size: train.codebook_size as u64,
+            utilization: train.utilization,
+            perplexity: train.perplexity,
+            entropy: train.entropy,
+            recon_l1: split.recon_l1,
+            mpjpe_mm: split.mpjpe_mm,
+            mpjpe_root_mm: split.mpjpe_root_mm,
             steps,
             train_s,
-            tokens: report.tokens,
+            tokens: train.tokens,
+            split: split.split.clone(),
+            split_tokens: split.tokens,
+            split_utilization: split.utilization,
+            split_uniform_coverage: split.uniform_coverage,
         }
     }
 }
@@ -119,24 +138,27 @@ pub fn sweep(
             let state = train(corpus_dir, &dir, config, plan.train.clone(), device, |r| {
                 on_event(SweepEvent::Step(&name, r))
             })?;
-            let eval_path = dir.join(format!("eval-{}.json", plan.split));
             let id = MotionTokenizer::content_id(&dir)?;
-            let cached = read_json::<EvalReport>(&eval_path)
-                .ok()
-                .filter(|r| r.tokenizer_id == id);
-            let report = match cached {
-                Some(report) => report,
-                None => {
-                    let tokenizer = MotionTokenizer::load(&dir, device)?;
-                    let report =
-                        evaluate(&tokenizer, dir.clone(), &corpus, &plan.split, |d, t| {
+            let mut reports = Vec::new();
+            for split in ["train", plan.split.as_str()] {
+                let eval_path = dir.join(format!("eval-{split}.json"));
+                let cached = read_json::<EvalReport>(&eval_path)
+                    .ok()
+                    .filter(|r| r.tokenizer_id == id);
+                let report = match cached {
+                    Some(report) => report,
+                    None => {
+                        let tokenizer = MotionTokenizer::load(&dir, device)?;
+                        let report = evaluate(&tokenizer, dir.clone(), &corpus, split, |d, t| {
                             on_event(SweepEvent::Eval(&name, d, t))
                         })?;
-                    write_json(&eval_path, &report)?;
-                    report
-                }
-            };
-            let row = SweepRow::new(&report, state.step, state.wall_s);
+                        write_json(&eval_path, &report)?;
+                        report
+                    }
+                };
+                reports.push(report);
+            }
+            let row = SweepRow::new(&reports[0], &reports[1], state.step, state.wall_s);
             on_event(SweepEvent::Done(&name, &row));
             rows.push(row);
         }
@@ -156,11 +178,13 @@ fn file_error(path: &Path, e: impl std::fmt::Display) -> TokenizerError {
 /// Write `OUT/sweep.csv` and `OUT/sweep.parquet` (atomically).
 pub fn write_tables(out: &Path, rows: &[SweepRow]) -> Result<(), TokenizerError> {
     let mut csv = String::from(
-        "quantizer,codebook,codebook_size,utilization,perplexity,entropy,recon_l1,mpjpe_mm,steps,train_s,tokens\n",
+        "quantizer,codebook,codebook_size,utilization,perplexity,entropy,recon_l1,mpjpe_mm,\
+         mpjpe_root_mm,steps,train_s,tokens,split,split_tokens,split_utilization,\
+         split_uniform_coverage\n",
     );
     for r in rows {
         csv.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             r.quantizer,
             r.codebook,
             r.codebook_size,
@@ -169,9 +193,14 @@ pub fn write_tables(out: &Path, rows: &[SweepRow]) -> Result<(), TokenizerError>
             r.entropy,
             r.recon_l1,
             r.mpjpe_mm,
+            r.mpjpe_root_mm,
             r.steps,
             r.train_s,
-            r.tokens
+            r.tokens,
+            r.split,
+            r.split_tokens,
+            r.split_utilization,
+            r.split_uniform_coverage
         ));
     }
     let csv_path = out.join("sweep.csv");
@@ -196,9 +225,20 @@ pub fn write_tables(out: &Path, rows: &[SweepRow]) -> Result<(), TokenizerError>
         ("entropy", f64s(&|r| r.entropy)),
         ("recon_l1", f64s(&|r| r.recon_l1)),
         ("mpjpe_mm", f64s(&|r| r.mpjpe_mm)),
+        ("mpjpe_root_mm", f64s(&|r| r.mpjpe_root_mm)),
         ("steps", u64s(&|r| r.steps)),
         ("train_s", f64s(&|r| r.train_s)),
         ("tokens", u64s(&|r| r.tokens)),
+        (
+            "split",
+            Arc::new(StringArray::from_iter_values(rows.iter().map(|r| &r.split))) as ArrayRef,
+        ),
+        ("split_tokens", u64s(&|r| r.split_tokens)),
+        ("split_utilization", f64s(&|r| r.split_utilization)),
+        (
+            "split_uniform_coverage",
+            f64s(&|r| r.split_uniform_coverage),
+        ),
     ])
     .map_err(|e| TokenizerError::Argument(format!("sweep table: {e}")))?;
     let parquet_path = out.join("sweep.parquet");
@@ -222,12 +262,15 @@ pub fn write_plots(out: &Path, rows: &[SweepRow]) -> Result<(), TokenizerError> 
     sizes.sort_by(f64::total_cmp);
     sizes.dedup();
     type Metric<'a> = (&'a str, &'a str, &'a dyn Fn(&SweepRow) -> f64);
-    let metrics: [Metric; 3] = [
+    let metrics: [Metric; 4] = [
         ("utilization", "codebook utilisation (%)", &|r| {
             100.0 * r.utilization
         }),
         ("entropy", "entropy of code usage (nats)", &|r| r.entropy),
-        ("mpjpe", "MPJPE (mm)", &|r| r.mpjpe_mm),
+        ("mpjpe", "MPJPE, global joints (mm)", &|r| r.mpjpe_mm),
+        ("mpjpe_root", "MPJPE, root-aligned joints (mm)", &|r| {
+            r.mpjpe_root_mm
+        }),
     ];
     for (name, label, value) in metrics {
         let mut chart = plot::Chart::new(
