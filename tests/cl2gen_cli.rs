@@ -152,6 +152,39 @@ fn cl2gen_learns_tasks_of_two_classes_with_replay_and_resumes() {
         classes
     );
 
+    // compare: one row per experiment, labelled by its replay, with the evaluator's id; a run
+    // of another evaluator is refused.
+    let (real_dir, none_dir) = (tmp.path().join("real"), tmp.path().join("none"));
+    let table = motionscale_ok(&[
+        "cl2gen",
+        "compare",
+        arg(&gen),
+        arg(&real_dir),
+        arg(&none_dir),
+    ]);
+    let id = report["evaluator_id"].as_str().unwrap();
+    assert_eq!(id.len(), 12, "{report}");
+    for row in [
+        "| gen 1/5 + aux | 1 |",
+        "| real 1/5 | 1 |",
+        "| no replay | 1 |",
+    ] {
+        assert!(table.contains(row), "{row}: {table}");
+    }
+    assert!(table.contains(&format!("| {id} |")), "{table}");
+    let other = tmp.path().join("other-evaluator");
+    std::fs::create_dir_all(&other).unwrap();
+    let mut summary = none.clone();
+    summary["evaluator_id"] = Value::from("000000000000");
+    std::fs::write(other.join("summary.json"), summary.to_string()).unwrap();
+    let out = motionscale(&["cl2gen", "compare", arg(&none_dir), arg(&other)]);
+    assert_eq!(code(&out), 1);
+    assert!(
+        text(&out).contains("different evaluators"),
+        "{}",
+        text(&out)
+    );
+
     let out = motionscale(&[
         "cl2gen",
         "--corpus",
