@@ -5,6 +5,10 @@
 # Outputs land in runs/quickstart/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/fetch-text-encoder.sh >/dev/null || echo "note: text encoder fetch failed; the quickstart will use the fallback encoder" >&2
+encoder=()
+if ! bash scripts/fetch-text-encoder.sh >/dev/null; then
+  echo "WARNING: the MiniLM fetch failed (scripts/fetch-text-encoder.sh): the quickstart embeds captions with the UNTRAINED fallback table" >&2
+  encoder=(--fallback)
+fi
 cargo build --release --quiet
-target/release/motionscale quickstart --out runs/quickstart "$@"
+target/release/motionscale quickstart --out runs/quickstart "${encoder[@]}" "$@"
