@@ -135,21 +135,11 @@ fn add_json(study: &mut Study, path: &Path) -> Result<()> {
     let value: serde_json::Value =
         serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
     if value.get("power_laws").is_some() {
-        let fits: Fits = serde_json::from_value(value).with_context(|| {
-            format!(
-                "{}: not a fits.json written by `motionscale fit`",
-                path.display()
-            )
-        })?;
+        let fits: Fits = parse(value, path, "a fits.json written by `motionscale fit`")?;
         return set_once(&mut study.fits, (path.to_path_buf(), fits), path);
     }
     if value.get("tokenizer_id").is_some() {
-        let eval: EvalReport = serde_json::from_value(value).with_context(|| {
-            format!(
-                "{}: not a `tokenizer eval` report written by motionscale",
-                path.display()
-            )
-        })?;
+        let eval: EvalReport = parse(value, path, "a `tokenizer eval` report")?;
         study.tokenizers.push((path.to_path_buf(), eval));
         return Ok(());
     }
@@ -157,6 +147,15 @@ fn add_json(study: &mut Study, path: &Path) -> Result<()> {
         "{}: neither a fits.json (`motionscale fit`) nor a tokenizer evaluation (`tokenizer eval --out`)",
         path.display()
     )
+}
+
+/// `value` (read from `path`) as a `T`, or an error naming the file and what it should be.
+fn parse<T: serde::de::DeserializeOwned>(
+    value: serde_json::Value,
+    path: &Path,
+    what: &str,
+) -> Result<T> {
+    serde_json::from_value(value).with_context(|| format!("{}: not {what}", path.display()))
 }
 
 /// A sweep folder: its plan, point states and results table, its fit and its tokenizer

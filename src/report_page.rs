@@ -447,44 +447,9 @@ fn predictions(study: &Study) -> String {
 }
 
 fn prediction(p: &Prediction) -> String {
-    let mut rows: Vec<(Option<&'static str>, Vec<String>)> = Vec::new();
-    let mut row = |name: &str, value: String| rows.push((None, vec![name.to_string(), value]));
-    let estimates = [
-        ("N_nv", &p.n_nv),
-        ("N_v", &p.n_v),
-        ("N_v (from the N_nv law)", &p.n_v_from_n_nv_law),
-        ("D", &p.d),
-        ("loss (log law)", &p.loss),
-    ];
-    for (name, e) in estimates {
-        if let Some(e) = e {
-            row(name, estimate_text(e));
-        }
-    }
-    if let Some(d) = p.d_from_budget {
-        row("D spending C exactly", sig(d));
-    }
-    if let Some(w) = &p.width {
-        row("width d", format!("{} ({})", w.value, w.source));
-    }
-    if let Some(v) = &p.vocab {
-        row(
-            "vocabulary V",
-            format!(
-                "N_v/d = {} → FSQ 2^{} (nominal {}, real {}, levels {:?})",
-                estimate_text(&v.exact),
-                v.nominal_log2,
-                v.nominal,
-                v.real,
-                v.levels
-            ),
-        );
-    }
-    if let Some(pp) = &p.parametric {
-        row("parametric N_opt", estimate_text(&pp.n_opt));
-        row("parametric D_opt", estimate_text(&pp.d_opt));
-        row("parametric loss", estimate_text(&pp.loss));
-    }
+    let rows = crate::fit::prediction_rows(p)
+        .into_iter()
+        .map(|(name, value)| (None, vec![name.to_string(), value]));
     let checks = p.consistency.iter().map(|c| {
         let cells = vec![
             c.name.clone(),
