@@ -40,7 +40,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// The whole pipeline on built-in synthetic data: corpus, embeddings, scenarios, export.
+    /// The whole study on built-in data: corpus, caption embeddings, tokenizer, micro IsoFLOP
+    /// sweep, fit, predict, a BVH from a caption, eval and the HTML report.
     Quickstart(quickstart::QuickstartArgs),
     /// Embed every distinct caption of a corpus with a frozen text encoder.
     EmbedText(text::EmbedTextArgs),
