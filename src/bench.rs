@@ -33,7 +33,8 @@ fn peak_rss_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
-fn extract(archive: &Path, into: &Path) -> Result<()> {
+/// Extract the `.tar.zst` archive `archive` into the folder `into` (with tar).
+pub fn extract(archive: &Path, into: &Path) -> Result<()> {
     let status = std::process::Command::new("tar")
         .arg("--zstd")
         .arg("-xf")

@@ -206,16 +206,33 @@ pub fn ingest(args: IngestArgs) -> Result<ExitCode> {
     })
 }
 
-/// `motionscale corpus stats`.
-pub fn stats(dir: &Path, json: bool) -> Result<ExitCode> {
+/// Clips and hours of motion in one group of a corpus.
+#[derive(Default, serde::Serialize)]
+pub struct Bucket {
+    /// Clips.
+    pub clips: u64,
+    /// Hours of motion.
+    pub hours: f64,
+}
+
+/// What `corpus stats` reports: totals and the clips by source, split, label and mirroring.
+#[derive(serde::Serialize)]
+pub struct CorpusStats {
+    /// Clips.
+    pub clips: usize,
+    /// Hours of motion.
+    pub hours: f64,
+    /// Inputs rejected at ingest.
+    pub rejects: u64,
+    /// Grouping (`source`, `split`, `action`, …) → group value → its clips and hours.
+    pub by: BTreeMap<&'static str, BTreeMap<String, Bucket>>,
+}
+
+/// Count the clips and hours of the corpus in `dir` by source, split, label and mirroring.
+pub fn corpus_stats(dir: &Path) -> Result<CorpusStats> {
     let corpus = Corpus::open(dir).map_err(anyhow::Error::msg)?;
     let meta = corpus.clip_metadata().map_err(anyhow::Error::msg)?;
-    #[derive(Default, serde::Serialize)]
-    struct Bucket {
-        clips: u64,
-        hours: f64,
-    }
-    let mut tables: BTreeMap<&str, BTreeMap<String, Bucket>> = BTreeMap::new();
+    let mut by: BTreeMap<&str, BTreeMap<String, Bucket>> = BTreeMap::new();
     let mut total_hours = 0.0;
     for m in &meta {
         let hours = m.num_frames as f64 / m.fps as f64 / 3600.0;
@@ -230,7 +247,7 @@ pub fn stats(dir: &Path, json: bool) -> Result<ExitCode> {
             ("mirrored", Some(m.mirrored.to_string())),
         ];
         for (table, key) in keys {
-            let e = tables
+            let e = by
                 .entry(table)
                 .or_default()
                 .entry(key.unwrap_or_else(|| "(none)".into()))
@@ -239,23 +256,28 @@ pub fn stats(dir: &Path, json: bool) -> Result<ExitCode> {
             e.hours += hours;
         }
     }
+    Ok(CorpusStats {
+        clips: meta.len(),
+        hours: total_hours,
+        rejects: corpus.manifest().rejects,
+        by,
+    })
+}
+
+/// `motionscale corpus stats`.
+pub fn stats(dir: &Path, json: bool) -> Result<ExitCode> {
+    let stats = corpus_stats(dir)?;
     if json {
-        let value = serde_json::json!({
-            "clips": meta.len(),
-            "hours": total_hours,
-            "rejects": corpus.manifest().rejects,
-            "by": tables,
-        });
-        println!("{}", serde_json::to_string_pretty(&value)?);
+        println!("{}", serde_json::to_string_pretty(&stats)?);
     } else {
         println!(
             "{}: {} clips, {:.2} hours, {} rejected inputs",
             dir.display(),
-            meta.len(),
-            total_hours,
-            corpus.manifest().rejects
+            stats.clips,
+            stats.hours,
+            stats.rejects
         );
-        for (table, rows) in &tables {
+        for (table, rows) in &stats.by {
             println!("\nby {table}:");
             for (k, b) in rows {
                 println!("  {k:<28} {:>8} clips {:>9.3} h", b.clips, b.hours);

@@ -215,6 +215,47 @@ pub fn predict(args: PredictArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// The predicted quantities of `p` as (name, value with its 95% interval) rows, for the
+/// text of `predict` and the report's table.
+pub fn prediction_rows(p: &Prediction) -> Vec<(&'static str, String)> {
+    let mut rows = Vec::new();
+    let estimates = [
+        ("N_nv", &p.n_nv),
+        ("N_v", &p.n_v),
+        ("N_v (from N_nv law)", &p.n_v_from_n_nv_law),
+        ("D", &p.d),
+        ("loss", &p.loss),
+    ];
+    for (name, e) in estimates {
+        if let Some(e) = e {
+            rows.push((name, estimate_text(e)));
+        }
+    }
+    if let Some(d) = p.d_from_budget {
+        rows.push(("D spending C exactly", sig(d)));
+    }
+    if let Some(w) = &p.width {
+        rows.push(("width d", format!("{} ({})", w.value, w.source)));
+    }
+    if let Some(v) = &p.vocab {
+        let text = format!(
+            "N_v/d = {} -> FSQ 2^{} (nominal {}, real {} = {:?})",
+            estimate_text(&v.exact),
+            v.nominal_log2,
+            v.nominal,
+            v.real,
+            v.levels
+        );
+        rows.push(("vocabulary V", text));
+    }
+    if let Some(pp) = &p.parametric {
+        rows.push(("parametric N_opt", estimate_text(&pp.n_opt)));
+        rows.push(("parametric D_opt", estimate_text(&pp.d_opt)));
+        rows.push(("parametric loss", estimate_text(&pp.loss)));
+    }
+    rows
+}
+
 fn prediction_text(p: &Prediction) -> String {
     let mut lines = vec![
         format!("laws: {}", p.source),
@@ -223,40 +264,8 @@ fn prediction_text(p: &Prediction) -> String {
     for e in &p.equations {
         lines.push(format!("  {e}"));
     }
-    let mut row = |name: &str, e: &Option<fits::laws::Estimate>| {
-        if let Some(e) = e {
-            lines.push(format!("{name:<22} {}", estimate_text(e)));
-        }
-    };
-    row("N_nv", &p.n_nv);
-    row("N_v", &p.n_v);
-    row("N_v (from N_nv law)", &p.n_v_from_n_nv_law);
-    row("D", &p.d);
-    row("loss", &p.loss);
-    if let Some(d) = p.d_from_budget {
-        lines.push(format!("{:<22} {}", "D spending C exactly", sig(d)));
-    }
-    if let Some(w) = &p.width {
-        lines.push(format!("{:<22} {} ({})", "width d", w.value, w.source));
-    }
-    if let Some(v) = &p.vocab {
-        lines.push(format!(
-            "{:<22} N_v/d = {} -> FSQ 2^{} (nominal {}, real {} = {:?})",
-            "vocabulary V",
-            estimate_text(&v.exact),
-            v.nominal_log2,
-            v.nominal,
-            v.real,
-            v.levels
-        ));
-    }
-    if let Some(pp) = &p.parametric {
-        lines.push(format!(
-            "parametric: N_opt {}, D_opt {}, loss {}",
-            estimate_text(&pp.n_opt),
-            estimate_text(&pp.d_opt),
-            estimate_text(&pp.loss)
-        ));
+    for (name, value) in prediction_rows(p) {
+        lines.push(format!("{name:<22} {value}"));
     }
     lines.push("consistency:".into());
     for c in &p.consistency {

@@ -14,6 +14,8 @@ mod lm;
 mod lm_bench;
 mod memory;
 mod quickstart;
+mod report;
+mod report_page;
 mod sweep_cmd;
 mod text;
 mod tokenizer_cmd;
@@ -38,7 +40,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// The whole pipeline on built-in synthetic data: corpus, embeddings, scenarios, export.
+    /// The whole study on built-in data: corpus, caption embeddings, tokenizer, micro IsoFLOP
+    /// sweep, fit, predict, a BVH from a caption, eval and the HTML report.
     Quickstart(quickstart::QuickstartArgs),
     /// Embed every distinct caption of a corpus with a frozen text encoder.
     EmbedText(text::EmbedTextArgs),
@@ -94,6 +97,9 @@ enum Command {
     /// IsoFLOP sweeps: plan, run (local pool or Slurm array), status, collect.
     #[command(subcommand)]
     Sweep(SweepCommand),
+    /// One self-contained HTML page of a study: corpus, tokenizers, sweep status, IsoFLOP
+    /// curves, laws with intervals, predictions and their consistency checks.
+    Report(report::ReportArgs),
 }
 
 #[derive(Subcommand)]
@@ -268,6 +274,7 @@ fn main() -> ExitCode {
         Command::Sweep(SweepCommand::Status(args)) => sweep_cmd::status_cmd(args),
         Command::Sweep(SweepCommand::Submit(args)) => sweep_cmd::submit_cmd(args),
         Command::Sweep(SweepCommand::Collect(args)) => sweep_cmd::collect_cmd(args),
+        Command::Report(args) => report::report(args),
     };
     match result {
         Ok(code) => code,

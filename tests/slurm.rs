@@ -5,7 +5,7 @@
 //! collect-and-fit job, checked through the results table and fits.json.
 //!
 //! Needs root (apt, /etc/slurm, daemons). With `CI` set, anything missing fails the test;
-//! without it, the test prints why it did not run.
+//! without it, the test records why it did not run (listed at the end of `scripts/test.sh`).
 
 mod common;
 
@@ -41,7 +41,8 @@ fn main() -> ExitCode {
             eprintln!("slurm integration test FAILED: {reason}; CI must run it");
             return ExitCode::FAILURE;
         }
-        println!("slurm integration test NOT RUN: {reason}");
+        // Not a data prerequisite: only CI makes it fail; elsewhere it is a listed skip.
+        record_not_run(&format!("Slurm integration test: {reason}"));
         return ExitCode::SUCCESS;
     }
     let started = Instant::now();

@@ -177,7 +177,7 @@ pub struct Settings {
 pub struct Bootstrap {
     /// Resamples drawn.
     pub resamples: usize,
-    /// Resamples whose refit gave a finite objective.
+    /// Resamples whose refit gave a finite objective and finite parameters.
     pub succeeded: usize,
     /// Seed (resample i uses stream i).
     pub seed: u64,
@@ -591,7 +591,7 @@ pub fn fit_parametric(
         opts.seed,
         &opts.lbfgs,
     );
-    let samples: Vec<[f64; 5]> = draws.iter().flatten().map(parametric::natural).collect();
+    let samples = parametric::finite_draws(&draws);
     let nat = parametric::natural(&best.x);
     let exps = |s: &[f64; 5]| [s[4] / (s[3] + s[4]), s[3] / (s[3] + s[4])];
     let interval = |value: f64, f: &dyn Fn(&[f64; 5]) -> f64| {

@@ -406,6 +406,18 @@ pub fn natural(theta: &[f64; 5]) -> [f64; 5] {
     ]
 }
 
+/// The natural parameters of the bootstrap draws that converged to finite values; a refit
+/// whose log-parameter overflows (A or B = e^710…) is a failed refit, and JSON has no
+/// infinity to record it with.
+pub fn finite_draws(draws: &[Option<[f64; 5]>]) -> Vec<[f64; 5]> {
+    draws
+        .iter()
+        .flatten()
+        .map(natural)
+        .filter(|p| p.iter().all(|v| v.is_finite()))
+        .collect()
+}
+
 /// Percentile `q` ∈ [0, 1] of `values` (linear interpolation between order statistics).
 pub fn percentile(values: &[f64], q: f64) -> Option<f64> {
     let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
@@ -421,6 +433,15 @@ pub fn percentile(values: &[f64], q: f64) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn draws_that_overflow_or_failed_are_dropped() {
+        let fine = [0.5, 1.0, 2.0, 0.3, 0.4];
+        let overflow = [710.0, 1.0, 2.0, 0.3, 0.4];
+        let kept = finite_draws(&[Some(fine), None, Some(overflow)]);
+        assert_eq!(kept, vec![natural(&fine)]);
+        assert!(natural(&overflow)[1].is_infinite());
+    }
 
     #[test]
     fn huber_by_hand() {

@@ -156,6 +156,18 @@ pub fn to_csv(rows: &[RunRow]) -> Result<Vec<u8>, SweepError> {
         .map_err(|e| SweepError::Argument(format!("results CSV: {e}")))
 }
 
+/// Read a `results.csv` written by [`to_csv`] (its header names every [`RunRow`] field).
+pub fn read_csv(path: &Path) -> Result<Vec<RunRow>, SweepError> {
+    let mut reader = csv::Reader::from_path(path).map_err(|e| SweepError::invalid(path, e))?;
+    reader
+        .deserialize()
+        .enumerate()
+        .map(|(i, row)| {
+            row.map_err(|e| SweepError::invalid(path, format!("data row {}: {e}", i + 1)))
+        })
+        .collect()
+}
+
 /// `rows` as a Parquet file (one record batch, [`schema`]).
 pub fn to_parquet(rows: &[RunRow]) -> Result<Vec<u8>, SweepError> {
     let columns: Vec<ArrayRef> = COLUMNS
@@ -288,6 +300,21 @@ mod tests {
             epochs: 0.5,
             flags: "exceeds-data".into(),
         }
+    }
+
+    #[test]
+    fn csv_reads_back_the_rows_written() {
+        let rows = vec![row(0), row(1)];
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("results.csv");
+        std::fs::write(&path, to_csv(&rows).unwrap()).unwrap();
+        assert_eq!(read_csv(&path).unwrap(), rows);
+        std::fs::write(&path, "run_id,budget\nx,not-a-number\n").unwrap();
+        let err = read_csv(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("results.csv") && err.contains("data row 1"),
+            "{err}"
+        );
     }
 
     #[test]

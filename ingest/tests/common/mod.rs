@@ -1,19 +1,18 @@
 //! Helpers shared by the ingest crate's integration tests.
 
+#[path = "../../../tests/common/skip.rs"]
+mod skip;
+
+pub use skip::not_run;
 use std::path::PathBuf;
 
-/// `../shared/data` beside the repository, or `None` (with a note) when it is missing outside
-/// CI. With `CI` set a missing folder fails the test instead of skipping it.
+/// `../shared/data` beside the repository, or `None` (a recorded skip) when it is missing;
+/// fails the test instead when `CI` or `MOTIONSCALE_STRICT_TESTS` is set.
 pub fn data_dir() -> Option<PathBuf> {
     let dir = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../../shared/data"));
     if dir.is_dir() {
         return Some(dir);
     }
-    assert!(
-        std::env::var_os("CI").is_none(),
-        "shared data missing at {} (CI is set)",
-        dir.display()
-    );
-    eprintln!("note: {} missing, test not run", dir.display());
+    not_run(&format!("the shared data {} is missing", dir.display()));
     None
 }

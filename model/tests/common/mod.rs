@@ -1,9 +1,12 @@
 //! Helpers shared by the integration tests.
 
+#[path = "../../../tests/common/skip.rs"]
+mod skip;
+
 use std::path::PathBuf;
 
 /// The fetched MiniLM encoder: `MOTIONSCALE_TEXT_ENCODER` or the default folder. Missing
-/// fails under CI and skips (with a note) otherwise.
+/// fails when `CI` or `MOTIONSCALE_STRICT_TESTS` is set and is a recorded skip otherwise.
 pub fn minilm_dir() -> Option<PathBuf> {
     let dir = std::env::var_os("MOTIONSCALE_TEXT_ENCODER")
         .map(PathBuf::from)
@@ -15,7 +18,6 @@ pub fn minilm_dir() -> Option<PathBuf> {
         "{}: no MiniLM encoder; run scripts/fetch-text-encoder.sh",
         dir.display()
     );
-    assert!(std::env::var_os("CI").is_none(), "{note}");
-    eprintln!("skipping: {note}");
+    skip::not_run(&note);
     None
 }

@@ -1,0 +1,474 @@
+//! The HTML page of `motionscale report`: one file with its style and charts inline (the
+//! fit's own charts from `fits::report::charts`, as SVG), no scripts and no external
+//! resources, laid out to read at 1280 px.
+
+use crate::report::{Study, Sweep};
+use anyhow::Result;
+use fits::laws::Estimate;
+use fits::report::{estimate_text, sig};
+use fits::{Fits, Prediction};
+use std::fmt::Write as _;
+use sweeps::status::PointState;
+
+const STYLE: &str = "body{font-family:'DejaVu Sans',system-ui,sans-serif;font-size:16px;\
+line-height:1.45;color:#1b1b1b;max-width:1200px;margin:0 auto;padding:8px 24px 48px}\
+h1{font-size:28px}h2{font-size:22px;border-bottom:2px solid #ccc;margin-top:40px}\
+h3{font-size:18px}nav a{margin-right:16px}table{border-collapse:collapse;font-size:14px;\
+margin:8px 0}th,td{padding:3px 9px;border-bottom:1px solid #ddd;text-align:right}\
+th:first-child,td:first-child{text-align:left}th{background:#f2f2f2}\
+.scroll{overflow-x:auto;max-width:100%}.grid{display:flex;flex-wrap:wrap;gap:8px 32px}\
+table.kv td{text-align:left}tr.fail td{background:#fde2e2}.absent{color:#666;font-style:italic}.warn{color:#8a3b00}\
+figure{margin:16px 0}figcaption{font-size:14px;color:#444}\
+svg{max-width:100%;height:auto;display:block}code{font-size:14px}";
+
+/// The section ids and titles, in page order.
+const SECTIONS: [(&str, &str); 6] = [
+    ("corpus", "Corpus"),
+    ("tokenizers", "Tokenizers"),
+    ("sweep", "Sweep status"),
+    ("isoflop", "IsoFLOP curves"),
+    ("laws", "Scaling laws"),
+    ("predictions", "Predictions"),
+];
+
+/// The whole page.
+pub fn page(study: &Study) -> Result<String> {
+    let mut body = String::new();
+    for (id, title) in SECTIONS {
+        let inner = match id {
+            "corpus" => corpus(study),
+            "tokenizers" => tokenizers(study),
+            "sweep" => study
+                .sweep
+                .as_ref()
+                .map_or_else(|| absent("sweep folder"), sweep),
+            "isoflop" => match &study.fits {
+                Some((_, f)) => isoflop(f)?,
+                None => absent("fit"),
+            },
+            "laws" => match &study.fits {
+                Some((path, f)) => laws(&path.display().to_string(), f)?,
+                None => absent("fit"),
+            },
+            _ => predictions(study),
+        };
+        let _ = writeln!(
+            body,
+            "<section id=\"{id}\"><h2>{title}</h2>{inner}</section>"
+        );
+    }
+    let inputs: Vec<String> = study
+        .inputs
+        .iter()
+        .map(|p| format!("<code>{}</code>", esc(&p.display().to_string())))
+        .collect();
+    let nav: String = SECTIONS
+        .iter()
+        .map(|(id, title)| format!("<a href=\"#{id}\">{title}</a>"))
+        .collect();
+    Ok(format!(
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">\
+         <meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\
+         <title>motionscale report</title><style>{STYLE}</style></head><body>\n\
+         <h1>motionscale report</h1><p>From {} (motionscale {}).</p><nav>{nav}</nav>\n{body}\
+         </body></html>\n",
+        inputs.join(", "),
+        env!("CARGO_PKG_VERSION")
+    ))
+}
+
+/// The titles of the sections that have content.
+pub fn contents(study: &Study) -> Vec<&'static str> {
+    let present = [
+        study.corpus.is_some(),
+        !study.tokenizers.is_empty(),
+        study.sweep.is_some(),
+        study.fits.is_some(),
+        study.fits.is_some(),
+        !study.predictions.is_empty(),
+    ];
+    SECTIONS
+        .iter()
+        .zip(present)
+        .filter(|(_, p)| *p)
+        .map(|((_, title), _)| *title)
+        .collect()
+}
+
+/// `s` with the HTML special characters escaped.
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+fn absent(what: &str) -> String {
+    format!("<p class=\"absent\">No {what} among the inputs.</p>")
+}
+
+/// A table of escaped text cells with a class (`kv`: left-aligned values); a row with a class
+/// gets it (`fail` highlights it).
+fn table(
+    class: &str,
+    head: &[&str],
+    rows: impl IntoIterator<Item = (Option<&'static str>, Vec<String>)>,
+) -> String {
+    let mut s = format!("<div class=\"scroll\"><table class=\"{class}\"><tr>");
+    for h in head {
+        let _ = write!(s, "<th>{}</th>", esc(h));
+    }
+    s.push_str("</tr>");
+    for (class, cells) in rows {
+        match class {
+            Some(c) => {
+                let _ = write!(s, "<tr class=\"{c}\">");
+            }
+            None => s.push_str("<tr>"),
+        }
+        for c in cells {
+            let _ = write!(s, "<td>{}</td>", esc(&c));
+        }
+        s.push_str("</tr>");
+    }
+    s.push_str("</table></div>");
+    s
+}
+
+/// A list of escaped items with a class (e.g. warnings), or nothing when empty.
+fn list(title: &str, class: &str, items: &[String]) -> String {
+    if items.is_empty() {
+        return String::new();
+    }
+    let items: String = items
+        .iter()
+        .map(|i| format!("<li>{}</li>", esc(i)))
+        .collect();
+    format!("<p>{}</p><ul class=\"{class}\">{items}</ul>", esc(title))
+}
+
+fn corpus(study: &Study) -> String {
+    let Some((dir, stats)) = &study.corpus else {
+        return absent("corpus");
+    };
+    let mut s = format!(
+        "<p><code>{}</code>: {} clips, {:.2} hours of motion, {} rejected inputs.</p><div class=\"grid\">",
+        esc(&dir.display().to_string()),
+        stats.clips,
+        stats.hours,
+        stats.rejects
+    );
+    for (key, groups) in &stats.by {
+        let rows = groups.iter().map(|(k, b)| {
+            (
+                None,
+                vec![k.clone(), b.clips.to_string(), format!("{:.3}", b.hours)],
+            )
+        });
+        s.push_str(&table("", &[key, "clips", "hours"], rows));
+    }
+    s.push_str("</div>");
+    s
+}
+
+fn tokenizers(study: &Study) -> String {
+    if study.tokenizers.is_empty() {
+        return absent("tokenizer evaluation");
+    }
+    let rows = study.tokenizers.iter().map(|(path, e)| {
+        let per_code = e.tokens as f64 / e.codebook_size as f64;
+        let name = path
+            .file_name()
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+        let cells = vec![
+            name,
+            e.quantizer.clone(),
+            format!("{} → {}", e.nominal_codebook, e.codebook_size),
+            e.split.clone(),
+            e.clips.to_string(),
+            e.tokens.to_string(),
+            format!("{per_code:.2}"),
+            format!("{:.4}", e.recon_l1),
+            format!("{:.1}", e.mpjpe_mm),
+            format!("{} ({:.1}%)", e.used_codes, 100.0 * e.utilization),
+            format!("{:.1}%", 100.0 * (1.0 - (-per_code).exp())),
+            format!("{:.1}", e.perplexity),
+        ];
+        (None, cells)
+    });
+    let head = [
+        "evaluation",
+        "quantizer",
+        "codebook K",
+        "split",
+        "clips",
+        "tokens N",
+        "N/K",
+        "recon L1",
+        "MPJPE mm",
+        "codes used",
+        "uniform coverage",
+        "perplexity",
+    ];
+    format!(
+        "{}<p>Codebook use is only meaningful where N ≫ K: the uniform coverage \
+         1 − e<sup>−N/K</sup> is what a perfectly uniform tokenizer would reach on the same tokens.</p>",
+        table("", &head, rows)
+    )
+}
+
+/// A point's state, counting a row of the results table as done when its run folder is absent
+/// (a sweep whose results were kept without its run folders).
+fn state(sweep: &Sweep, i: usize) -> (&'static str, Option<&sweeps::results::RunRow>) {
+    let point = &sweep.points[i];
+    let row = sweep.rows.iter().find(|r| r.run_id == point.run_id);
+    match (point.state, row) {
+        (PointState::Pending, Some(row)) => ("done (results table)", Some(row)),
+        (state, row) => (state.as_str(), row),
+    }
+}
+
+fn sweep(sweep: &Sweep) -> String {
+    let states: Vec<_> = (0..sweep.points.len()).map(|i| state(sweep, i)).collect();
+    let mut counts: Vec<(&str, usize)> = Vec::new();
+    for (s, _) in &states {
+        match counts.iter_mut().find(|(k, _)| k == s) {
+            Some((_, n)) => *n += 1,
+            None => counts.push((s, 1)),
+        }
+    }
+    let counts: Vec<String> = counts.iter().map(|(s, n)| format!("{n} {s}")).collect();
+    let plan = &sweep.plan;
+    let mut s = format!(
+        "<p><code>{}</code>: {} points ({}); corpus <code>{}</code>, text encoder <code>{}</code>; \
+         vocabularies {}; results table: {} rows.</p>",
+        esc(&sweep.dir.display().to_string()),
+        sweep.points.len(),
+        counts.join(", "),
+        esc(&plan.corpus.display().to_string()),
+        esc(&plan.text_encoder),
+        plan.vocabularies
+            .iter()
+            .map(|v| format!("{} ({} codes)", v.codebook, v.codebook_size))
+            .collect::<Vec<_>>()
+            .join(", "),
+        sweep.rows.len()
+    );
+    let rows = plan.points.iter().zip(&states).map(|(p, (state, row))| {
+        let loss = |f: fn(&sweeps::results::RunRow) -> f64| {
+            row.map_or(String::new(), |r| format!("{:.4}", f(r)))
+        };
+        let cells = vec![
+            p.run_id.clone(),
+            sig(p.budget),
+            p.model.clone(),
+            p.codebook.to_string(),
+            count(p.n_nv),
+            count(p.n_v),
+            count(p.tokens),
+            format!("{:.2}", p.epochs),
+            state.to_string(),
+            loss(|r| r.test_loss),
+            loss(|r| r.norm_test_loss),
+        ];
+        (matches!(*state, "failed").then_some("fail"), cells)
+    });
+    let head = [
+        "run",
+        "C (FLOPs)",
+        "model",
+        "V",
+        "N_nv",
+        "N_v",
+        "D",
+        "epochs",
+        "state",
+        "test CE",
+        "L_u",
+    ];
+    s.push_str(&table("", &head, rows));
+    s
+}
+
+/// Inline SVG of the fit's charts whose file stem passes `keep`.
+fn charts(f: &Fits, keep: impl Fn(&str) -> bool) -> Result<String> {
+    let mut s = String::new();
+    for (_, chart) in fits::report::charts(f).into_iter().filter(|(k, _)| keep(k)) {
+        let _ = write!(
+            s,
+            "<figure>{}<figcaption>{}</figcaption></figure>",
+            chart.svg()?,
+            esc(&chart.title)
+        );
+    }
+    Ok(s)
+}
+
+fn isoflop(f: &Fits) -> Result<String> {
+    let rows = f.budgets.iter().map(|b| {
+        let opt = |v: Option<f64>| v.map_or("–".to_string(), sig);
+        let verdict = if b.min.interior {
+            "interior".to_string()
+        } else {
+            format!(
+                "not used: {}",
+                b.min.reason.as_deref().unwrap_or("not interior")
+            )
+        };
+        let cells = vec![
+            sig(b.min.budget),
+            b.runs.to_string(),
+            opt(b.min.opt),
+            opt(b.min.loss_opt),
+            opt(b.d_opt),
+            opt(b.nv_opt),
+            verdict,
+        ];
+        ((!b.min.interior).then_some("fail"), cells)
+    });
+    let head = [
+        "C (FLOPs)",
+        "runs",
+        "N_opt",
+        "loss at N_opt",
+        "D_opt",
+        "N_v,opt",
+        "minimum",
+    ];
+    Ok(format!(
+        "<p>{} rows of <code>{}</code> in {} budget groups ({}).</p>{}{}",
+        f.input.rows,
+        esc(&f.input.file),
+        f.input.groups,
+        esc(&f.input.grouping),
+        table("", &head, rows),
+        charts(f, |k| k.starts_with("isoflop"))?
+    ))
+}
+
+fn laws(path: &str, f: &Fits) -> Result<String> {
+    let mut rows: Vec<(Option<&'static str>, Vec<String>)> = f
+        .power_laws
+        .iter()
+        .map(|(key, law)| {
+            let cells = vec![
+                key.clone(),
+                law.equation(),
+                estimate_text(&law.fit.slope),
+                r2(law.fit.r2),
+                law.fit.n_points.to_string(),
+            ];
+            (None, cells)
+        })
+        .collect();
+    if let Some(law) = &f.log_law {
+        let cells = vec![
+            "log law".into(),
+            law.equation(),
+            estimate_text(&law.fit.slope),
+            r2(law.fit.r2),
+            law.fit.n_points.to_string(),
+        ];
+        rows.push((None, cells));
+    }
+    let mut s = format!(
+        "<p>From <code>{}</code>; 95% intervals in brackets (t intervals of the OLS fits, \
+         bootstrap percentiles of the parametric fit).</p>{}",
+        esc(path),
+        table(
+            "",
+            &["law", "equation", "exponent / slope", "R²", "points"],
+            rows
+        )
+    );
+    if let Some(p) = &f.parametric {
+        let _ = write!(
+            s,
+            "<h3>Parametric L(N, D) = E + A/N<sup>α</sup> + B/D<sup>β</sup></h3><p>On {} ({} runs; \
+             {} starts, {} at the optimum; {} of {} bootstrap refits).</p>",
+            esc(&p.loss_column),
+            p.n_runs,
+            p.starts,
+            p.starts_at_optimum,
+            p.bootstrap.succeeded,
+            p.bootstrap.resamples
+        );
+        let rows: [(&str, &Estimate); 7] = [
+            ("E", &p.e),
+            ("A", &p.a),
+            ("B", &p.b),
+            ("α", &p.alpha),
+            ("β", &p.beta),
+            ("N_opt ∝ C^", &p.n_opt_exponent),
+            ("D_opt ∝ C^", &p.d_opt_exponent),
+        ];
+        let rows = rows.map(|(k, e)| (None, vec![k.to_string(), estimate_text(e)]));
+        s.push_str(&table(
+            "kv",
+            &["parameter", "estimate [95% interval]"],
+            rows,
+        ));
+    }
+    s.push_str(&list("Input notes:", "", &f.input.notes));
+    s.push_str(&list("Fits not done:", "warn", &f.skipped));
+    s.push_str(&list("Warnings:", "warn", &f.warnings));
+    s.push_str(&charts(f, |k| !k.starts_with("isoflop"))?);
+    Ok(s)
+}
+
+/// An integer in full below 10^5, else in scientific notation like [`sig`].
+fn count(n: u64) -> String {
+    if n < 100_000 {
+        n.to_string()
+    } else {
+        sig(n as f64)
+    }
+}
+
+fn r2(r2: Option<f64>) -> String {
+    r2.map_or("n/a".into(), |v| format!("{v:.4}"))
+}
+
+fn predictions(study: &Study) -> String {
+    if study.predictions.is_empty() {
+        return absent("fit to predict from");
+    }
+    let mut s = String::new();
+    for (budget, p) in &study.predictions {
+        let _ = write!(s, "<h3>C = {} FLOPs</h3>", sig(*budget));
+        match p {
+            Ok(p) => s.push_str(&prediction(p)),
+            Err(e) => {
+                let _ = write!(s, "<p class=\"warn\">No prediction: {}</p>", esc(e));
+            }
+        }
+    }
+    s
+}
+
+fn prediction(p: &Prediction) -> String {
+    let rows = crate::fit::prediction_rows(p)
+        .into_iter()
+        .map(|(name, value)| (None, vec![name.to_string(), value]));
+    let checks = p.consistency.iter().map(|c| {
+        let cells = vec![
+            c.name.clone(),
+            sig(c.value),
+            sig(c.reference),
+            format!("{:.3}", c.ratio),
+            c.rule.clone(),
+            if c.ok { "ok" } else { "FAILED" }.to_string(),
+        ];
+        ((!c.ok).then_some("fail"), cells)
+    });
+    format!(
+        "{}<p>Consistency checks between the laws:</p>{}{}",
+        table("kv", &["quantity", "prediction [95% interval]"], rows),
+        table(
+            "",
+            &["check", "value", "reference", "ratio", "rule", "result"],
+            checks
+        ),
+        list("Warnings:", "warn", &p.warnings)
+    )
+}
