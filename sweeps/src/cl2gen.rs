@@ -16,7 +16,7 @@
 //! ```
 
 use crate::error::SweepError;
-use crate::seeds::{self, ScoredRun};
+use crate::seeds;
 use crate::{read_json, write_json};
 use ingest::rng::SplitMix64;
 use model::ctvae::CtvaeConfig;
@@ -660,17 +660,7 @@ impl Cl2GenConfig {
 /// seed share a row with the mean ± 95% Student-t interval over seeds. Runs scored by
 /// different evaluators are refused unless `mixed_evaluators`.
 pub fn compare_table(runs: &[PathBuf], mixed_evaluators: bool) -> Result<String, SweepError> {
-    let scored = runs
-        .iter()
-        .map(|dir| {
-            let report: Cl2GenReport = read_json(&dir.join("summary.json"))?;
-            Ok(ScoredRun {
-                dir: dir.clone(),
-                evaluator_id: report.evaluator_id.clone(),
-                report,
-            })
-        })
-        .collect::<Result<Vec<_>, SweepError>>()?;
+    let scored = seeds::read_runs(runs, |r: &Cl2GenReport| &r.evaluator_id)?;
     let seedless = |r: &Cl2GenReport| Cl2GenConfig {
         seed: 0,
         out: PathBuf::new(),

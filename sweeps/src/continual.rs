@@ -29,7 +29,7 @@
 //! Every file is written atomically and reused when present, so a killed run resumes.
 
 use crate::error::SweepError;
-use crate::seeds::{self, ScoredRun};
+use crate::seeds;
 use crate::{read_json, write_json};
 use ingest::corpus::split::{read_ids, SplitAssignment, SPLITS};
 use ingest::rng::SplitMix64;
@@ -686,17 +686,7 @@ pub fn summary_csv(report: &ContinualReport) -> String {
 /// with two or more, the 95% Student-t interval over them. Runs scored by different
 /// evaluators are refused unless `mixed_evaluators` (their numbers are not comparable).
 pub fn compare_table(runs: &[PathBuf], mixed_evaluators: bool) -> Result<String, SweepError> {
-    let scored = runs
-        .iter()
-        .map(|dir| {
-            let report: ContinualReport = read_json(&dir.join("summary.json"))?;
-            Ok(ScoredRun {
-                dir: dir.clone(),
-                evaluator_id: report.evaluator_id.clone(),
-                report,
-            })
-        })
-        .collect::<Result<Vec<_>, SweepError>>()?;
+    let scored = seeds::read_runs(runs, |r: &ContinualReport| &r.evaluator_id)?;
     let seedless = |r: &ContinualReport| ContinualConfig {
         seed: 0,
         out: PathBuf::new(),

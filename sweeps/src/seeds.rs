@@ -4,6 +4,8 @@
 //! different evaluators are never silently put in one table.
 
 use crate::error::SweepError;
+use crate::read_json;
+use serde::de::DeserializeOwned;
 use serde::Serialize;
 use std::path::PathBuf;
 
@@ -15,6 +17,23 @@ pub struct ScoredRun<R> {
     pub report: R,
     /// Content id of its evaluator (empty for runs from before ids were recorded).
     pub evaluator_id: String,
+}
+
+/// Read `DIR/summary.json` of every run folder, with the evaluator id `evaluator_id` finds in it.
+pub fn read_runs<R: DeserializeOwned>(
+    runs: &[PathBuf],
+    evaluator_id: fn(&R) -> &str,
+) -> Result<Vec<ScoredRun<R>>, SweepError> {
+    runs.iter()
+        .map(|dir| {
+            let report: R = read_json(&dir.join("summary.json"))?;
+            Ok(ScoredRun {
+                dir: dir.clone(),
+                evaluator_id: evaluator_id(&report).to_string(),
+                report,
+            })
+        })
+        .collect()
 }
 
 /// Group `runs` by `seedless` (the configuration with seed and output folder blanked), in the
