@@ -120,7 +120,7 @@ pub fn check(dir: &Path, manifest: &Manifest) -> Result<(), String> {
         [] => Ok(()),
         [only] => Err(format!("corpus refused: {only}")),
         [first, rest @ ..] => Err(format!(
-            "corpus refused: {first} (and {} more problems; `corpus verify` lists them)",
+            "corpus refused: {first} (and {} more; `corpus verify` lists them)",
             rest.len()
         )),
     }

@@ -261,11 +261,19 @@ impl Corpus {
             }
             shards.push(shard);
         }
-        let by_id = clips
-            .iter()
-            .enumerate()
-            .map(|(i, c)| (c.motion_id.clone(), i))
-            .collect();
+        let mut by_id = HashMap::with_capacity(clips.len());
+        for (i, c) in clips.iter().enumerate() {
+            if let Some(first) = by_id.insert(c.motion_id.clone(), i) {
+                let file = |k: usize| dir.join(&manifest.shards[clips[k].shard].file);
+                return Err(format!(
+                    "corpus refused: {}: motion id {} is already in {} (two writers or a \
+                     duplicated shard)",
+                    file(i).display(),
+                    c.motion_id,
+                    file(first).display()
+                ));
+            }
+        }
         let read_stat = |name: &str| -> Result<Vec<f32>, String> {
             let path = dir.join("stats").join(name);
             let arr = crate::npy::read(&path)?;
