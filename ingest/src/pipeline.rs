@@ -493,6 +493,14 @@ fn clip_records(
     }
 }
 
+/// The per-input path after reading, for one clip: budgets and plausibility → resample →
+/// segment → mirror → HumanML3D-263 features; returns the clips kept and the rejects.
+pub fn process_clip(raw: &RawClip, opts: &IngestOptions) -> (Vec<ClipRecord>, Vec<RejectRecord>) {
+    let mut out = UnitOutcome::default();
+    clip_records(raw, opts, &mut Hml263Extractor::default(), &mut out);
+    (out.records, out.rejects)
+}
+
 enum Reader<'a> {
     Bvh(Option<&'a RigMap>),
     Joints(f64),

@@ -166,3 +166,90 @@ impl Drop for Staging {
         let _ = std::fs::remove_file(&self.lock_path);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn names(dir: &Path) -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    }
+
+    #[test]
+    fn a_second_writer_is_refused_naming_the_first() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("corpus");
+        let first = Staging::begin(&out).unwrap();
+        let e = Staging::begin(&out).err().unwrap();
+        let pid = format!("pid {}", std::process::id());
+        assert!(
+            e.contains("another ingest is writing this corpus") && e.contains(&pid),
+            "{e}"
+        );
+        drop(first);
+        // Released (and its staging folder and lock file removed) when the first one ends.
+        assert!(names(tmp.path()).is_empty(), "{:?}", names(tmp.path()));
+        assert!(Staging::begin(&out).is_ok());
+    }
+
+    #[test]
+    fn commit_swaps_carries_extra_files_over_and_leaves_nothing_beside() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("corpus");
+        std::fs::create_dir_all(out.join("text")).unwrap();
+        std::fs::write(out.join("manifest.json"), "old").unwrap();
+        std::fs::write(out.join("text/index.json"), "kept").unwrap();
+        let staging = Staging::begin(&out).unwrap();
+        std::fs::write(staging.dir().join("manifest.json"), "new").unwrap();
+        // Until the commit, the old corpus is what the folder holds.
+        assert_eq!(
+            std::fs::read_to_string(out.join("manifest.json")).unwrap(),
+            "old"
+        );
+        staging.commit().unwrap();
+        assert_eq!(
+            std::fs::read_to_string(out.join("manifest.json")).unwrap(),
+            "new"
+        );
+        assert_eq!(
+            std::fs::read_to_string(out.join("text/index.json")).unwrap(),
+            "kept"
+        );
+        assert_eq!(names(tmp.path()), ["corpus"]);
+    }
+
+    #[test]
+    fn leftovers_of_a_killed_run_are_recovered_or_removed() {
+        let tmp = tempfile::tempdir().unwrap();
+        let out = tmp.path().join("corpus");
+        // Killed between the two renames: the old corpus waits beside, the output is gone.
+        let old = tmp.path().join(".corpus.ingest-old");
+        std::fs::create_dir_all(&old).unwrap();
+        std::fs::write(old.join("manifest.json"), "old").unwrap();
+        let new = tmp.path().join(".corpus.ingest-new");
+        std::fs::create_dir_all(new.join("shards")).unwrap();
+        std::fs::write(new.join("shards/.shard-00000.parquet.tmp9"), "partial").unwrap();
+        let staging = Staging::begin(&out).unwrap();
+        assert_eq!(
+            std::fs::read_to_string(out.join("manifest.json")).unwrap(),
+            "old"
+        );
+        assert!(names(staging.dir()).is_empty());
+        drop(staging);
+        assert_eq!(names(tmp.path()), ["corpus"]);
+    }
+
+    #[test]
+    fn a_folder_that_is_not_a_corpus_is_not_replaced() {
+        let tmp = tempfile::tempdir().unwrap();
+        std::fs::write(tmp.path().join("notes.txt"), "mine").unwrap();
+        let e = Staging::begin(tmp.path()).err().unwrap();
+        assert!(e.contains("is not a corpus"), "{e}");
+        assert_eq!(names(tmp.path()), ["notes.txt"]);
+    }
+}
