@@ -423,10 +423,15 @@ pub fn train(
         }
         on_event(&event);
         let (step, done) = (run.state.step, run.state.step == end);
-        if step % every(config.eval_every) == 0 || done {
+        let scheduled = step % every(config.eval_every) == 0 || step == total;
+        if scheduled || done {
             let mean = run.state.loss_sum / run.state.loss_steps.max(1) as f64;
             let record = run.evaluate(mean)?;
-            (run.state.loss_sum, run.state.loss_steps) = (0.0, 0);
+            // An evaluation only because `stop_after` ends the run early keeps the window:
+            // the resumed run's next evaluation then averages the same steps as it would have.
+            if scheduled {
+                (run.state.loss_sum, run.state.loss_steps) = (0.0, 0);
+            }
             on_event(&TrainEvent::Eval(Box::new(record.clone())));
             last_eval = Some(record);
         }
