@@ -211,6 +211,7 @@ enum BenchCommand {
 }
 
 fn main() -> ExitCode {
+    memory::end_quietly_on_closed_pipe();
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()),

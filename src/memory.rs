@@ -1,4 +1,4 @@
-//! Allocator settings for the training loops.
+//! Process settings: allocator tuning for the training loops, and what a closed pipe does.
 
 /// Keep freed memory for reuse. glibc hands blocks of 128 KiB and more back to the OS
 /// (munmap, heap trimming), so a training loop, which frees and reallocates the same
@@ -12,5 +12,16 @@ pub fn keep_freed_memory() {
     unsafe {
         libc::mallopt(libc::M_MMAP_MAX, 0);
         libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+    }
+}
+
+/// Let writing to a closed pipe end the process quietly, as it does for other command-line
+/// tools (`motionscale corpus stats … | head -1`). Rust ignores SIGPIPE, so a write to a
+/// closed pipe fails and `println!` panics on it instead.
+pub fn end_quietly_on_closed_pipe() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: restores the default disposition of one signal before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }

@@ -4,7 +4,10 @@
 mod common;
 
 use common::*;
+use ingest::corpus::Corpus;
+use ingest::source::bvh::fuzzing::Fuzzer;
 use std::collections::HashSet;
+use std::path::PathBuf;
 
 #[test]
 fn both_bandai_archives_ingest_with_every_input_accounted_for() {
@@ -157,4 +160,93 @@ fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
         }
     }
     out
+}
+
+/// Damaged inputs per folder in [`damaged_files_beside_good_ones_are_all_accounted_for`]
+/// (the batches: 50 damaged files beside 2 good ones).
+const DAMAGED_PER_FOLDER: usize = 50;
+
+/// Folders of damaged Bandai files (mutated by the structured fuzzer: flipped bits, nasty
+/// tokens, huge values, absurd frame times and counts, cut and spliced lines) beside two good
+/// files each, one ingest per folder: every input lands in a shard or in the rejects, every
+/// good file is ingested, no ingest crashes, and every corpus verifies.
+/// `MOTIONSCALE_DAMAGED_FOLDERS` (default 4) sets the number of folders.
+#[test]
+fn damaged_files_beside_good_ones_are_all_accounted_for() {
+    let Some(data) = shared_data() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let status = std::process::Command::new("tar")
+        .args(["--zstd", "-xf"])
+        .arg(data.join("bandai-namco/bandai-namco-1.tar.zst"))
+        .arg("-C")
+        .arg(tmp.path())
+        .args([
+            "--wildcards",
+            "*_bow_*.bvh",
+            "*_walk_*.bvh",
+            "*_punch_*.bvh",
+        ])
+        .status()
+        .unwrap();
+    assert!(status.success(), "extracting Bandai set 1");
+    let mut originals = walk(tmp.path());
+    originals.sort();
+    let good: Vec<PathBuf> = [
+        "dataset-1_bow_active_001.bvh",
+        "dataset-1_punch_normal_002.bvh",
+    ]
+    .iter()
+    .map(|n| originals.iter().find(|p| p.ends_with(n)).expect(n).clone())
+    .collect();
+    let seeds: Vec<Vec<u8>> = originals
+        .iter()
+        .map(|p| std::fs::read(p).unwrap())
+        .collect();
+    let mut fuzzer = Fuzzer::new(23, 0, seeds);
+    let folders: usize = std::env::var("MOTIONSCALE_DAMAGED_FOLDERS")
+        .map_or(4, |v| v.parse().expect("a number of folders"));
+    let (mut damaged, mut rejected) = (0, 0);
+    for f in 0..folders {
+        let dir = tmp.path().join(format!("batch-{f:03}"));
+        std::fs::create_dir(&dir).unwrap();
+        for g in &good {
+            std::fs::copy(g, dir.join(g.file_name().unwrap())).unwrap();
+        }
+        for k in 0..DAMAGED_PER_FOLDER {
+            std::fs::write(dir.join(format!("damaged_{k:02}.bvh")), fuzzer.next_input()).unwrap();
+        }
+        let corpus = tmp.path().join(format!("corpus-{f:03}"));
+        let src = format!("bvh:{}", dir.display());
+        let out = motionscale(&["ingest", "--source", &src, "--out", arg(&corpus), "--json"]);
+        let exit = code(&out);
+        assert!(exit == 0 || exit == 2, "folder {f}: {}", text(&out));
+        let clips = Corpus::open(&corpus).unwrap();
+        let ingested: HashSet<String> = (0..clips.manifest().shards.len())
+            .flat_map(|s| clips.shard_records(s).unwrap())
+            .map(|r| r.source_path)
+            .collect();
+        let rejects: HashSet<String> = rejects(&corpus)
+            .iter()
+            .map(|r| r["path"].as_str().unwrap().to_string())
+            .collect();
+        for input in walk(&dir) {
+            let input = input.display().to_string();
+            assert!(
+                ingested.contains(&input) || rejects.contains(&input),
+                "folder {f}: {input} is neither ingested nor rejected"
+            );
+        }
+        for g in &good {
+            let copy = dir.join(g.file_name().unwrap()).display().to_string();
+            assert!(
+                ingested.contains(&copy),
+                "folder {f}: good file {copy} not ingested"
+            );
+        }
+        let verify = motionscale(&["corpus", "verify", arg(&corpus)]);
+        assert_eq!(code(&verify), 0, "folder {f}: {}", text(&verify));
+        damaged += DAMAGED_PER_FOLDER;
+        rejected += rejects.len();
+    }
+    eprintln!("{damaged} damaged inputs in {folders} folders: 0 lost, {rejected} rejected");
 }

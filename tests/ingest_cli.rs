@@ -524,3 +524,99 @@ fn spacy_tagger_names_what_to_install_when_python_is_missing() {
         "{message}"
     );
 }
+
+/// Copy a corpus folder (files and sub-folders).
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let p = e.unwrap().path();
+        let target = to.join(p.file_name().unwrap());
+        if p.is_dir() {
+            copy_dir(&p, &target);
+        } else {
+            std::fs::copy(&p, &target).unwrap();
+        }
+    }
+}
+
+/// Change one JSON value of a corpus manifest.
+fn edit_manifest(corpus: &Path, edit: fn(&mut serde_json::Value)) {
+    let path = corpus.join("manifest.json");
+    let mut m: serde_json::Value = read_json(&path);
+    edit(&mut m);
+    std::fs::write(&path, serde_json::to_string_pretty(&m).unwrap()).unwrap();
+}
+
+#[test]
+fn every_reader_refuses_a_damaged_corpus_naming_the_file() {
+    let tmp = tempfile::tempdir().unwrap();
+    let good = tmp.path().join("good");
+    let out = motionscale(&[
+        "ingest",
+        "--source",
+        "synth:300:1",
+        "--out",
+        arg(&good),
+        "--mirror",
+    ]);
+    assert_eq!(code(&out), 0, "{}", text(&out));
+    let shard = |c: &Path, k: usize| c.join(format!("shards/shard-{k:05}.parquet"));
+    // (what, what the message names, how to do it)
+    type Damage<'a> = (&'a str, &'a str, &'a dyn Fn(&Path));
+    let damages: [Damage; 7] = [
+        ("flipped byte", "shard-00001.parquet", &|c| {
+            let mut b = std::fs::read(shard(c, 1)).unwrap();
+            let mid = b.len() / 2;
+            b[mid] ^= 1;
+            std::fs::write(shard(c, 1), b).unwrap();
+        }),
+        ("NaN in std.npy", "stats/std.npy", &|c| {
+            let path = c.join("stats/std.npy");
+            let mut b = std::fs::read(&path).unwrap();
+            let n = b.len();
+            b[n - 4..].copy_from_slice(&f32::NAN.to_le_bytes());
+            std::fs::write(&path, b).unwrap();
+        }),
+        ("duplicated shard", "shard-00001.parquet", &|c| {
+            std::fs::copy(shard(c, 0), shard(c, 1)).unwrap();
+        }),
+        ("unlisted shard", "shard-00002.parquet", &|c| {
+            std::fs::copy(shard(c, 0), shard(c, 2)).unwrap();
+        }),
+        ("shard frames off", "frames_by_split adds up to", &|c| {
+            edit_manifest(c, |m| m["shards"][0]["frames"] = 7.into())
+        }),
+        ("clips_by_split off", "clips_by_split adds up to", &|c| {
+            edit_manifest(c, |m| m["clips_by_split"]["test"] = 0.into())
+        }),
+        ("no manifest", "manifest.json", &|c| {
+            std::fs::remove_file(c.join("manifest.json")).unwrap()
+        }),
+    ];
+    for (what, named, damage) in damages {
+        let corpus = tmp.path().join(what.replace(' ', "-"));
+        copy_dir(&good, &corpus);
+        damage(&corpus);
+        let export = tmp
+            .path()
+            .join(format!("export-{}", what.replace(' ', "-")));
+        for args in [
+            vec!["corpus", "verify", arg(&corpus)],
+            vec!["corpus", "stats", arg(&corpus)],
+            vec!["export", "hml3d", arg(&corpus), arg(&export)],
+        ] {
+            let out = motionscale(&args);
+            assert_eq!(
+                code(&out),
+                1,
+                "{what}: {args:?} accepted it: {}",
+                text(&out)
+            );
+            assert!(
+                text(&out).contains(named),
+                "{what}: {args:?}: {}",
+                text(&out)
+            );
+        }
+    }
+}

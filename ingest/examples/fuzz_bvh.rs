@@ -1,12 +1,13 @@
-//! Structured mutation fuzzer for the BVH parser.
+//! Structured mutation fuzzer for the whole per-input BVH path.
 //!
 //! `cargo run --release -p ingest --example fuzz_bvh -- --seconds N --seed S [--seeds-dir DIR]`
 //!
-//! Each input is parsed (plus forward kinematics on success) under `catch_unwind`; a
-//! watchdog aborts when one input runs over 5 s. A panicking or hanging input is written
-//! to `fuzz-crash-<seed>-<n>.bvh` and the process exits non-zero.
+//! Each input goes through parse → retarget → budgets → resample → segment → features
+//! under `catch_unwind`; a watchdog aborts when one input runs over 5 s. A panicking or
+//! hanging input is written to `fuzz-crash-<seed>-<n>.bvh` and the process exits non-zero;
+//! an input that aborts the process (allocation failure) ends it with the abort's status.
 
-use ingest::source::bvh::fuzzing::{check, Fuzzer};
+use ingest::source::bvh::fuzzing::{check, Fuzzer, Outcome};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -120,7 +121,9 @@ fn main() {
         });
     }
 
-    let (mut total, mut ok, mut rejected) = (0u64, 0u64, 0u64);
+    // Inputs refused by the parser, by retargeting, and processed (with clips ingested).
+    let (mut total, mut unparsed, mut unmapped, mut processed, mut ingested) =
+        (0u64, 0u64, 0u64, 0u64, 0u64);
     let deadline = Duration::from_secs(args.seconds);
     while start.elapsed() < deadline {
         let input = fuzzer.next_input();
@@ -131,8 +134,12 @@ fn main() {
         let outcome = check(&input);
         started_ms.store(0, Ordering::Release);
         match outcome {
-            Ok(true) => ok += 1,
-            Ok(false) => rejected += 1,
+            Ok(Outcome::Unparsed) => unparsed += 1,
+            Ok(Outcome::NotRetargeted) => unmapped += 1,
+            Ok(Outcome::Processed { clips, .. }) => {
+                processed += 1;
+                ingested += u64::from(clips > 0);
+            }
             Err(msg) => {
                 eprintln!(
                     "fuzz_bvh: PANIC on input {total}: {msg}; saved to {}",
@@ -145,7 +152,9 @@ fn main() {
     }
     let secs = start.elapsed().as_secs_f64();
     println!(
-        "fuzz_bvh: {total} inputs in {secs:.1} s ({:.0} inputs/s): {ok} parsed, {rejected} rejected, 0 panics, 0 hangs",
+        "fuzz_bvh: {total} inputs in {secs:.1} s ({:.0} inputs/s): {unparsed} refused by the parser, \
+         {unmapped} by retargeting, {processed} processed to the end ({ingested} with clips \
+         ingested); 0 panics, 0 hangs, 0 aborts",
         total as f64 / secs
     );
 }

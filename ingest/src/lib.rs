@@ -1,6 +1,7 @@
 //! Ingest: heterogeneous motion capture → SMPL-22 joints → HumanML3D-263 features →
 //! a Parquet corpus with manifest, statistics, splits and a rejects list.
 
+pub mod budget;
 pub mod corpus;
 pub mod demo;
 pub mod export;

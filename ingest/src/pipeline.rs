@@ -15,6 +15,7 @@ use crate::source::retarget::RigMap;
 use crate::source::{amass, bandai, bvh, hml3d, joints, synth, RawClip, Reject};
 use rayon::prelude::*;
 use serde::Serialize;
+use sha2::Digest;
 use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -371,6 +372,15 @@ fn clip_records(
         out.rejects.push(reject(&raw.clip_id, r));
         return;
     }
+    let checked = crate::budget::check_resampled(raw.poses.len(), raw.fps, opts.fps)
+        .map_err(|e| Reject::new("budget", e))
+        .and_then(|()| {
+            crate::budget::check_plausible(&raw.poses).map_err(|e| Reject::new("validate", e))
+        });
+    if let Err(r) = checked {
+        out.rejects.push(reject(&raw.clip_id, r));
+        return;
+    }
     let poses = resample(&raw.poses, raw.fps, opts.fps);
     let rows = poses.len().saturating_sub(1);
     if rows < opts.min_frames.max(1) {
@@ -483,6 +493,14 @@ fn clip_records(
     }
 }
 
+/// The per-input path after reading, for one clip: budgets and plausibility → resample →
+/// segment → mirror → HumanML3D-263 features; returns the clips kept and the rejects.
+pub fn process_clip(raw: &RawClip, opts: &IngestOptions) -> (Vec<ClipRecord>, Vec<RejectRecord>) {
+    let mut out = UnitOutcome::default();
+    clip_records(raw, opts, &mut Hml263Extractor::default(), &mut out);
+    (out.records, out.rejects)
+}
+
 enum Reader<'a> {
     Bvh(Option<&'a RigMap>),
     Joints(f64),
@@ -524,7 +542,17 @@ fn process_unit(
         ),
         (Item::File(path), _) => {
             out.bytes = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
-            let results = read_file(kind, spec, path)
+            let results = if out.bytes > crate::budget::MAX_FILE_BYTES {
+                let reason = format!(
+                    "{} bytes, over the {}-byte budget for one input",
+                    out.bytes,
+                    crate::budget::MAX_FILE_BYTES
+                );
+                vec![Err(Reject::new("budget", reason))]
+            } else {
+                read_file(kind, spec, path)
+            };
+            let results = results
                 .into_iter()
                 .map(|result| {
                     result.and_then(|mut clip| {
@@ -559,7 +587,24 @@ fn process_unit(
 
 /// Build (or rebuild) a corpus in `out` from `sources`. Calls `progress(done, total)` as
 /// input files finish. Returns the report; the caller turns rejects into an exit code.
+///
+/// The output folder is locked for the whole run and the corpus is built beside it, then
+/// swapped in when complete ([`crate::corpus::staging`]): an old corpus there stays
+/// readable until the new one replaces it.
 pub fn ingest(
+    sources: &[SourceSpec],
+    out_dir: &Path,
+    opts: &IngestOptions,
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<IngestReport, String> {
+    let staging = crate::corpus::staging::Staging::begin(out_dir)?;
+    let report = build(sources, staging.dir(), opts, progress)?;
+    staging.commit()?;
+    Ok(report)
+}
+
+/// Build a corpus in the empty folder `out_dir`.
+fn build(
     sources: &[SourceSpec],
     out_dir: &Path,
     opts: &IngestOptions,
@@ -601,9 +646,6 @@ pub fn ingest(
     let done = std::sync::atomic::AtomicU64::new(0);
     let chunk = opts.chunk_units.max(1);
     let tmp = out_dir.join(".ingest-runs");
-    if tmp.is_dir() {
-        std::fs::remove_dir_all(&tmp).map_err(|e| format!("{}: {e}", tmp.display()))?;
-    }
     let mut runs = RunSet::new(&tmp, units.len() > chunk);
     let mut totals = Totals::default();
     let mut rejects = Vec::new();
@@ -684,33 +726,10 @@ fn write_corpus(
     opts: &IngestOptions,
     sources: Vec<SourceEntry>,
 ) -> Result<(), String> {
-    fn io(p: &Path) -> impl Fn(std::io::Error) -> String + '_ {
-        move |e| format!("{}: {e}", p.display())
-    }
     let shard_dir = out_dir.join("shards");
-    std::fs::create_dir_all(&shard_dir).map_err(io(&shard_dir))?;
-    // Shards of an earlier, larger build would otherwise linger beside the new manifest.
-    let keep: HashSet<String> = shards.iter().map(|s| s.file.clone()).collect();
-    for entry in std::fs::read_dir(&shard_dir).map_err(io(&shard_dir))? {
-        let path = entry.map_err(io(&shard_dir))?.path();
-        let rel = format!(
-            "shards/{}",
-            path.file_name()
-                .and_then(|n| n.to_str())
-                .unwrap_or_default()
-        );
-        if path.extension().is_some_and(|e| e == "parquet") && !keep.contains(&rel) {
-            std::fs::remove_file(&path).map_err(io(&path))?;
-        }
-    }
-
+    std::fs::create_dir_all(&shard_dir).map_err(|e| format!("{}: {e}", shard_dir.display()))?;
     let stats = &totals.stats;
     let (mean, std, degenerate) = stats.finish();
-    let stats_dir = out_dir.join("stats");
-    crate::npy::write_f32(&stats_dir.join("mean.npy"), &[FEATURE_DIM], &mean)
-        .map_err(io(&stats_dir))?;
-    crate::npy::write_f32(&stats_dir.join("std.npy"), &[FEATURE_DIM], &std)
-        .map_err(io(&stats_dir))?;
     let stats_json = serde_json::json!({
         "split": "train",
         "rows": stats.rows(),
@@ -719,21 +738,35 @@ fn write_corpus(
         "convention": "mean per dimension over all frames of the train split; std per dimension (population), then replaced by its block average over [0:1],[1:3],[3:4],[4:67],[67:193],[193:259],[259:263] (HumanML3D). The HumanML3D release computed them over every clip, mirrored and test ones included.",
         "degenerate_blocks_set_to_one": degenerate,
     });
-    crate::npy::write_atomic(
-        &stats_dir.join("stats.json"),
-        serde_json::to_string_pretty(&stats_json)
-            .expect("json")
-            .as_bytes(),
-    )
-    .map_err(io(&stats_dir))?;
-
     let mut lines = String::new();
     for r in rejects {
         lines.push_str(&serde_json::to_string(r).expect("reject serialises"));
         lines.push('\n');
     }
-    let rejects_path = out_dir.join("rejects.jsonl");
-    crate::npy::write_atomic(&rejects_path, lines.as_bytes()).map_err(io(&rejects_path))?;
+    let files = [
+        (
+            "stats/mean.npy",
+            crate::npy::encode_f32(&[FEATURE_DIM], &mean),
+        ),
+        (
+            "stats/std.npy",
+            crate::npy::encode_f32(&[FEATURE_DIM], &std),
+        ),
+        (
+            "stats/stats.json",
+            serde_json::to_string_pretty(&stats_json)
+                .expect("json")
+                .into_bytes(),
+        ),
+        ("rejects.jsonl", lines.into_bytes()),
+    ];
+    let mut file_sha256 = BTreeMap::new();
+    for (rel, bytes) in files {
+        let path = out_dir.join(rel);
+        crate::npy::write_atomic(&path, &bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+        let sha = crate::corpus::writer::hex(&sha2::Sha256::digest(&bytes));
+        file_sha256.insert(rel.to_string(), sha);
+    }
 
     let compatible = !opts.features.fix_facing;
     let manifest = Manifest {
@@ -772,6 +805,7 @@ fn write_corpus(
         .into_iter()
         .map(|(k, v)| (k.to_string(), v.to_string()))
         .collect(),
+        file_sha256,
         text_embeddings: Vec::new(),
     };
     manifest.write(out_dir)?;

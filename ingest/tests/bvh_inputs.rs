@@ -195,18 +195,23 @@ fn bad_inputs_are_rejected_with_reasons() {
         "Frames: 2\nFrame Time: 0.05\n1 2 3 90 0 0 0 90 0\n1 2 3 0 90 90 0 0 0 7\n",
     ));
     assert!(e.starts_with("line 20: extra data '7'"), "{e}");
-    // Absurd Frames: rejected as truncated without allocating for the declared count.
-    let e = parse_err(&with_motion(
-        "Frames: 99999999999999\nFrame Time: 0.05\n1 2 3\n",
-    ));
+    // Absurd Frames: rejected by the size budget before anything is allocated for them.
+    let e = parse_err(&with_motion("Frames: 2000000\nFrame Time: 0.0001\n1 2 3\n"));
     assert!(
-        e.contains("expected 899999999999991 values") && e.contains("found 3"),
+        e.starts_with("line 17: Frames: 2000000 × 9 channels")
+            && e.contains("over the 16777216-value budget"),
         "{e}"
     );
     let e = parse_err(&with_motion(
         "Frames: 4000000000000000000\nFrame Time: 0.05\n1\n",
     ));
-    assert!(e.contains("absurd size"), "{e}");
+    assert!(e.contains("years") || e.contains("days"), "{e}");
+    // Truncated motion names what is missing.
+    let e = parse_err(&with_motion("Frames: 3\nFrame Time: 0.05\n1 2 3\n"));
+    assert!(
+        e.contains("expected 27 values") && e.contains("found 3"),
+        "{e}"
+    );
     let e = parse_err(&TWO_JOINTS.replace(
         "CHANNELS 3 Zrotation Xrotation Yrotation",
         "CHANNELS 3 Zrotation Xrotation",
@@ -614,8 +619,8 @@ fn bandai_parse_matches_its_own_world_positions_frame_count() {
 }
 
 #[test]
-fn huge_hierarchies_parse_in_linear_time() {
-    // 50,000 nested joints: no recursion to overflow the stack, no quadratic name checks.
+fn huge_hierarchies_are_refused_by_the_budgets() {
+    // 50,000 nested joints: refused at the depth budget, before any motion is read.
     let n = 50_000;
     let mut text = String::from("HIERARCHY\nROOT j0 { OFFSET 0 0 0 CHANNELS 1 Xrotation\n");
     for k in 1..n {
@@ -626,9 +631,44 @@ fn huge_hierarchies_parse_in_linear_time() {
     text.push_str(&"}".repeat(n));
     text.push_str("\nMOTION\nFrames: 1\nFrame Time: 0.01\n");
     text.push_str(&"0 ".repeat(n));
-    let start = std::time::Instant::now();
-    let b = bvh::parse(&text).unwrap();
-    let w = b.world_positions();
-    assert!(start.elapsed().as_secs_f64() < 5.0, "{:?}", start.elapsed());
-    close(w[n - 1], [0.0, (n - 1) as f64, 0.0], 1e-9);
+    let e = parse_err(&text);
+    assert_eq!(e, "line 66: joints nested deeper than the 64-level budget");
+    // 50,000 sibling joints: refused at the channel budget.
+    let mut text = String::from("HIERARCHY\nROOT j0 { OFFSET 0 0 0 CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation\n");
+    for k in 1..n {
+        text.push_str(&format!(
+            "JOINT j{k} {{ OFFSET 0 1 0 CHANNELS 3 Zrotation Xrotation Yrotation }}\n"
+        ));
+    }
+    text.push_str("}\nMOTION\nFrames: 1\nFrame Time: 0.01\n");
+    let e = parse_err(&text);
+    assert_eq!(
+        e,
+        "line 342: 1026 channels per frame, over the 1024-channel budget"
+    );
+}
+
+#[test]
+fn frame_times_and_rotations_beyond_the_budgets_are_named() {
+    let e = parse_err(&with_motion(
+        "Frames: 2\nFrame Time:\n-11.609772 2 3 90 0 0 0 90 0\n1 2 3 0 90 90 0 0 0\n",
+    ));
+    assert_eq!(
+        e,
+        "line 18: empty Frame Time: no value after 'Frame Time:' on its line"
+    );
+    let e = parse_err(&with_motion(
+        "Frames: 187\nFrame Time: 100000\n1 2 3 90 0 0 0 90 0\n",
+    ));
+    assert!(
+        e.starts_with("line 18: frame time 100000 s is outside") && e.contains("215 days"),
+        "{e}"
+    );
+    let e = parse_err(&with_motion(
+        "Frames: 2\nFrame Time: 0.05\n1 2 3 90 0 0 0 90 0\n1 2 3 0 1e26 90 0 0 0\n",
+    ));
+    assert_eq!(
+        e,
+        "line 20: implausible rotation 1e26° at frame 2 channel 5 (A Yrotation), beyond ±1e6°"
+    );
 }

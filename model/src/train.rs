@@ -262,6 +262,13 @@ pub struct TrainState {
     pub flops_exact: f64,
     /// Train-stream items consumed (batch k holds items k·B..(k+1)·B).
     pub data_position: u64,
+    /// Sum of the training losses since the last evaluation (checkpointed, so a resumed run
+    /// logs the same `train_loss` as an uninterrupted one).
+    #[serde(default)]
+    pub loss_sum: f64,
+    /// Steps summed in `loss_sum`.
+    #[serde(default)]
+    pub loss_steps: u64,
 }
 
 /// `OUT/eval.json`: one evaluation with the accounting of the run so far.
@@ -407,18 +414,24 @@ pub fn train(
     });
     let end = config.stop_after.map_or(total, |s| total.min(s));
     let every = |n: Option<u64>| n.unwrap_or(total.div_ceil(10)).max(1);
-    let (mut loss_sum, mut loss_steps) = (0f64, 0u64);
     let mut last_eval = None;
     while run.state.step < end {
         let event = run.step()?;
         if let TrainEvent::Step { loss, .. } = event {
-            (loss_sum, loss_steps) = (loss_sum + f64::from(loss), loss_steps + 1);
+            run.state.loss_sum += f64::from(loss);
+            run.state.loss_steps += 1;
         }
         on_event(&event);
         let (step, done) = (run.state.step, run.state.step == end);
-        if step % every(config.eval_every) == 0 || done {
-            let record = run.evaluate(loss_sum / loss_steps.max(1) as f64)?;
-            (loss_sum, loss_steps) = (0.0, 0);
+        let scheduled = step % every(config.eval_every) == 0 || step == total;
+        if scheduled || done {
+            let mean = run.state.loss_sum / run.state.loss_steps.max(1) as f64;
+            let record = run.evaluate(mean)?;
+            // An evaluation only because `stop_after` ends the run early keeps the window:
+            // the resumed run's next evaluation then averages the same steps as it would have.
+            if scheduled {
+                (run.state.loss_sum, run.state.loss_steps) = (0.0, 0);
+            }
             on_event(&TrainEvent::Eval(Box::new(record.clone())));
             last_eval = Some(record);
         }
@@ -820,6 +833,8 @@ fn resume(
         tokens_seen: 0,
         flops_exact: 0.0,
         data_position: 0,
+        loss_sum: 0.0,
+        loss_steps: 0,
     };
     if !paths.resume.state_path().is_file() {
         let _ = std::fs::remove_file(&paths.evals);

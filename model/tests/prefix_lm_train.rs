@@ -147,6 +147,22 @@ fn an_interrupted_run_resumes_to_the_same_weights() {
         assert!(a == b, "{name} differs after resuming");
     }
     assert_eq!(second.eval.test, full.eval.test);
+    // The training-loss window is checkpointed: every evaluation of the uninterrupted run is
+    // logged with the same train_loss by the interrupted one (which also logged its stop).
+    let evals = |dir: &str| -> Vec<serde_json::Value> {
+        std::fs::read_to_string(root.path().join(dir).join("evals.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect()
+    };
+    let resumed = evals("parts");
+    let whole = evals("whole");
+    assert!(whole.len() >= 2, "{whole:?}");
+    for e in &whole {
+        let same = resumed.iter().find(|r| r["step"] == e["step"]).unwrap();
+        assert_eq!(same["train_loss"], e["train_loss"], "step {}", e["step"]);
+    }
     // A different configuration in the same folder is refused.
     let mut other = parts.clone();
     other.seed = 1;

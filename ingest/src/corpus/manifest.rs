@@ -106,6 +106,10 @@ pub struct Manifest {
     pub rejects: u64,
     /// Statistics files, relative to the corpus folder.
     pub stats: BTreeMap<String, String>,
+    /// sha256 (hex) of the corpus files besides the shards (statistics, rejects), by path
+    /// relative to the corpus folder; empty in corpora written before it existed.
+    #[serde(default)]
+    pub file_sha256: BTreeMap<String, String>,
     /// Caption embeddings, one entry per encoder (empty until `embed-text` runs).
     #[serde(default)]
     pub text_embeddings: Vec<TextEmbeddingEntry>,
@@ -127,6 +131,14 @@ impl Manifest {
                 manifest.format_version
             ));
         }
+        Ok(manifest)
+    }
+
+    /// Read `manifest.json` and refuse the corpus unless its files match it
+    /// ([`super::integrity::check`]): what every reader of a corpus opens it with.
+    pub fn read_checked(dir: &Path) -> Result<Self, String> {
+        let manifest = Self::read(dir)?;
+        super::integrity::check(dir, &manifest)?;
         Ok(manifest)
     }
 

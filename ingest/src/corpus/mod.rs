@@ -1,10 +1,12 @@
 //! The corpus on disk: Parquet shards, manifest, statistics, splits and rejects.
 
+pub mod integrity;
 pub mod manifest;
 pub mod reader;
 pub mod runs;
 pub mod schema;
 pub mod split;
+pub mod staging;
 pub mod stats;
 pub mod verify;
 pub mod writer;

@@ -204,9 +204,10 @@ pub fn records_from_batch(batch: &RecordBatch) -> Result<Vec<ClipRecord>, String
 }
 
 impl Corpus {
-    /// Open a corpus folder: read the manifest, map every shard, index clips from the small columns.
+    /// Open a corpus folder: read the manifest, refuse the corpus unless its files match it
+    /// ([`super::integrity::check`]), map every shard, index clips from the small columns.
     pub fn open(dir: &Path) -> Result<Self, String> {
-        let manifest = Manifest::read(dir)?;
+        let manifest = Manifest::read_checked(dir)?;
         let mut shards = Vec::with_capacity(manifest.shards.len());
         let mut clips = Vec::new();
         for (shard_idx, entry) in manifest.shards.iter().enumerate() {
@@ -260,14 +261,26 @@ impl Corpus {
             }
             shards.push(shard);
         }
-        let by_id = clips
-            .iter()
-            .enumerate()
-            .map(|(i, c)| (c.motion_id.clone(), i))
-            .collect();
+        let mut by_id = HashMap::with_capacity(clips.len());
+        for (i, c) in clips.iter().enumerate() {
+            if let Some(first) = by_id.insert(c.motion_id.clone(), i) {
+                let file = |k: usize| dir.join(&manifest.shards[clips[k].shard].file);
+                return Err(format!(
+                    "corpus refused: {}: motion id {} is already in {} (two writers or a \
+                     duplicated shard)",
+                    file(i).display(),
+                    c.motion_id,
+                    file(first).display()
+                ));
+            }
+        }
         let read_stat = |name: &str| -> Result<Vec<f32>, String> {
-            let arr = crate::npy::read(&dir.join("stats").join(name))?;
-            Ok(arr.data.iter().map(|&v| v as f32).collect())
+            let path = dir.join("stats").join(name);
+            let arr = crate::npy::read(&path)?;
+            match stats_problem(name, &arr) {
+                Some(problem) => Err(format!("corpus refused: {}: {problem}", path.display())),
+                None => Ok(arr.data.iter().map(|&v| v as f32).collect()),
+            }
         };
         Ok(Self {
             dir: dir.to_path_buf(),
@@ -481,6 +494,23 @@ impl Corpus {
             rng: SplitMix64(seed),
             cache: None,
         }
+    }
+}
+
+/// What is wrong with the statistics file `name` (`mean.npy` or `std.npy`), if anything:
+/// 263 finite values, and a positive std (features are divided by it).
+pub fn stats_problem(name: &str, arr: &crate::npy::NpyArray) -> Option<String> {
+    if arr.shape != [FEATURE_DIM] {
+        return Some(format!("shape {:?}, expected [{FEATURE_DIM}]", arr.shape));
+    }
+    if let Some(i) = arr.data.iter().position(|x| !x.is_finite()) {
+        return Some(format!("non-finite value {} at dimension {i}", arr.data[i]));
+    }
+    match arr.data.iter().position(|&x| x <= 0.0) {
+        Some(i) if name == "std.npy" => {
+            Some(format!("non-positive std {} at dimension {i}", arr.data[i]))
+        }
+        _ => None,
     }
 }
 

@@ -1,12 +1,11 @@
 //! `corpus verify`: checksums, schema, row counts, shapes, NaN scan and statistics files.
 
+use super::integrity;
 use super::manifest::Manifest;
-use super::reader::{records_from_batch, Corpus};
+use super::reader::{records_from_batch, stats_problem, Corpus};
 use super::schema::{legacy_shard_schema, shard_schema, FEATURE_DIM, JOINT_FRAME_DIM};
 use super::split::SPLITS;
-use super::writer::hex;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
-use sha2::{Digest, Sha256};
 use std::path::Path;
 
 /// What `verify` checked and every problem it found (empty = the corpus is sound).
@@ -32,6 +31,7 @@ pub fn verify(dir: &Path) -> Verification {
             return v;
         }
     };
+    v.problems = integrity::problems(dir, &manifest);
     let mut last_id: Option<String> = None;
     for entry in &manifest.shards {
         v.shards += 1;
@@ -43,14 +43,6 @@ pub fn verify(dir: &Path) -> Verification {
                 continue;
             }
         };
-        let sha = hex(&Sha256::digest(&bytes));
-        if sha != entry.sha256 {
-            v.problems.push(format!(
-                "{}: sha256 {sha} differs from the manifest's {}",
-                path.display(),
-                entry.sha256
-            ));
-        }
         let builder = match ParquetRecordBatchReaderBuilder::try_new(bytes::Bytes::from(bytes)) {
             Ok(b) => b,
             Err(e) => {
@@ -77,7 +69,7 @@ pub fn verify(dir: &Path) -> Verification {
                 continue;
             }
         };
-        let mut rows = 0u64;
+        let (mut rows, mut frames) = (0u64, 0u64);
         for batch in reader {
             let records = match batch
                 .map_err(|e| e.to_string())
@@ -91,7 +83,7 @@ pub fn verify(dir: &Path) -> Verification {
             };
             for r in records {
                 rows += 1;
-                v.frames += r.num_frames as u64;
+                frames += r.num_frames as u64;
                 let at = |what: String| format!("{}: clip {}: {what}", path.display(), r.motion_id);
                 let n = r.num_frames as usize;
                 if r.features.len() != n * FEATURE_DIM {
@@ -131,28 +123,22 @@ pub fn verify(dir: &Path) -> Verification {
             }
         }
         v.clips += rows;
-        if rows != entry.rows {
+        v.frames += frames;
+        if (rows, frames) != (entry.rows, entry.frames) {
             v.problems.push(format!(
-                "{}: {rows} rows, the manifest says {}",
+                "{}: {rows} rows and {frames} frames, the manifest says {} and {}",
                 path.display(),
-                entry.rows
+                entry.rows,
+                entry.frames
             ));
         }
     }
     for name in ["mean.npy", "std.npy"] {
         let path = dir.join("stats").join(name);
         match crate::npy::read(&path) {
-            Ok(a) if a.shape == [FEATURE_DIM] && a.data.iter().all(|x| x.is_finite()) => {
-                if name == "std.npy" && a.data.iter().any(|&x| x <= 0.0) {
-                    v.problems
-                        .push(format!("{}: non-positive std", path.display()));
-                }
-            }
-            Ok(a) => v.problems.push(format!(
-                "{}: shape {:?} or values invalid (expected {FEATURE_DIM} finite floats)",
-                path.display(),
-                a.shape
-            )),
+            Ok(a) => v
+                .problems
+                .extend(stats_problem(name, &a).map(|p| format!("{}: {p}", path.display()))),
             Err(e) => v.problems.push(e),
         }
     }

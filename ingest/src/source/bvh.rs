@@ -4,6 +4,7 @@
 
 use super::retarget::{self, RigMap};
 use super::{Labels, RawClip, Reject};
+use crate::budget;
 use crate::quat::{self, Quat, Vec3};
 use std::collections::HashSet;
 use std::fmt;
@@ -415,14 +416,10 @@ pub fn parse_bytes(bytes: &[u8]) -> Result<Bvh, BvhError> {
         return err(frames_line, "zero frames: the file has no motion");
     }
     lx.expect("Frame")?;
-    lx.label("Time")?;
-    let frame_time = lx.number("frame time")?;
-    if frame_time <= 0.0 {
-        return err(
-            lx.line,
-            format!("frame time must be positive, found {frame_time}"),
-        );
-    }
+    let time_line = lx.label("Time")?;
+    let frame_time = frame_time(&mut lx, time_line)?;
+    budget::check_timing(frames, frame_time).or_else(|e| err(time_line, e))?;
+    check_size(frames, num_channels, joints.len()).or_else(|e| err(frames_line, e))?;
     let motion = parse_motion(&mut lx, &joints, frames, num_channels)?;
     Ok(Bvh {
         joints,
@@ -430,6 +427,49 @@ pub fn parse_bytes(bytes: &[u8]) -> Result<Bvh, BvhError> {
         num_channels,
         motion,
     })
+}
+
+/// The value of `Frame Time:`, which must stand on the label's own line: a value taken
+/// from the next line would be the first motion value, and every later error would mislead.
+fn frame_time(lx: &mut Lexer, label_line: usize) -> Result<f64, BvhError> {
+    let before = (lx.pos, lx.line);
+    let (tok, line) = lx.expect_any("the frame time")?;
+    if line != label_line {
+        (lx.pos, lx.line) = before;
+        return err(
+            label_line,
+            "empty Frame Time: no value after 'Frame Time:' on its line",
+        );
+    }
+    match parse_f64(tok) {
+        Some(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => err(
+            line,
+            format!(
+                "frame time must be a positive number, found '{}'",
+                show(tok)
+            ),
+        ),
+    }
+}
+
+/// The motion-size budgets, checked before the motion values are allocated.
+fn check_size(frames: usize, channels: usize, joints: usize) -> Result<(), String> {
+    let values = frames.saturating_mul(channels);
+    if values > budget::MAX_VALUES {
+        return Err(format!(
+            "Frames: {frames} × {channels} channels = {values} values, over the {}-value budget",
+            budget::MAX_VALUES
+        ));
+    }
+    let positions = frames.saturating_mul(joints);
+    if positions > budget::MAX_JOINT_FRAMES {
+        return Err(format!(
+            "Frames: {frames} × {joints} joints = {positions} joint positions, over the {} budget",
+            budget::MAX_JOINT_FRAMES
+        ));
+    }
+    Ok(())
 }
 
 fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
@@ -465,6 +505,15 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
                 let (name, nline) = lx.expect_any("a joint name")?;
                 if name == b"{" || name == b"}" {
                     return err(nline, "missing joint name");
+                }
+                if stack.len() >= budget::MAX_DEPTH {
+                    return err(
+                        nline,
+                        format!(
+                            "joints nested deeper than the {}-level budget",
+                            budget::MAX_DEPTH
+                        ),
+                    );
                 }
                 let name = String::from_utf8_lossy(name).into_owned();
                 if !names.insert(name.clone()) {
@@ -585,6 +634,15 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
                 }
                 joint.first_channel = channels;
                 channels += n;
+                if channels > budget::MAX_CHANNELS {
+                    return err(
+                        nline,
+                        format!(
+                            "{channels} channels per frame, over the {}-channel budget",
+                            budget::MAX_CHANNELS
+                        ),
+                    );
+                }
             }
             b"}" => {
                 let Some(open) = stack.pop() else {
@@ -627,12 +685,18 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
     }
 }
 
-/// Name of the joint and channel at index `c` of a frame, for error messages.
-fn channel_label(joints: &[BvhJoint], c: usize) -> String {
+/// The joint owning channel `c` of a frame, and that channel.
+fn channel_kind(joints: &[BvhJoint], c: usize) -> Option<(&BvhJoint, Channel)> {
     joints
         .iter()
         .find(|j| c >= j.first_channel && c < j.first_channel + j.channels.len())
-        .map(|j| format!("{} {:?}", j.name, j.channels[c - j.first_channel]))
+        .map(|j| (j, j.channels[c - j.first_channel]))
+}
+
+/// Name of the joint and channel at index `c` of a frame, for error messages.
+fn channel_label(joints: &[BvhJoint], c: usize) -> String {
+    channel_kind(joints, c)
+        .map(|(j, ch)| format!("{} {ch:?}", j.name))
         .unwrap_or_default()
 }
 
@@ -642,16 +706,20 @@ fn parse_motion(
     frames: usize,
     num_channels: usize,
 ) -> Result<Vec<f64>, BvhError> {
-    let Some(expected) = frames.checked_mul(num_channels) else {
-        return err(
-            lx.line,
-            format!("absurd size: Frames: {frames} × {num_channels} channels overflows"),
-        );
-    };
+    // Within the value budget (checked by the caller), so this cannot overflow.
+    let expected = frames * num_channels;
     // Every value takes at least two bytes (a digit and a separator), so the remaining
     // input bounds what can be present; never allocate from the untrusted count alone.
     let remaining = lx.bytes.len() - lx.pos;
     let mut motion = Vec::with_capacity(expected.min(remaining / 2 + 1));
+    // Rotation bound per channel (positions are bounded after retargeting, in metres).
+    let bound: Vec<f64> = (0..num_channels)
+        .map(|c| match channel_kind(joints, c) {
+            Some((_, ch)) if ch.is_rotation() => budget::MAX_ROTATION_DEGREES,
+            _ => f64::INFINITY,
+        })
+        .collect();
+    let mut column = 0;
     while motion.len() < expected {
         let Some((tok, line)) = lx.next() else {
             let found = motion.len();
@@ -665,7 +733,27 @@ fn parse_motion(
             );
         };
         match parse_f64(tok) {
-            Some(v) if v.is_finite() => motion.push(v),
+            Some(v) if v.is_finite() && v.abs() <= bound[column] => {
+                motion.push(v);
+                column = if column + 1 == num_channels {
+                    0
+                } else {
+                    column + 1
+                };
+            }
+            Some(v) if v.is_finite() => {
+                let n = motion.len();
+                return err(
+                    line,
+                    format!(
+                        "implausible rotation {v:e}° at frame {} channel {} ({}), beyond ±{:e}°",
+                        n / num_channels + 1,
+                        column + 1,
+                        channel_label(joints, column),
+                        budget::MAX_ROTATION_DEGREES
+                    ),
+                );
+            }
             parsed => {
                 let n = motion.len();
                 let what = if parsed.is_some() {
@@ -706,7 +794,17 @@ fn parse_motion(
 pub fn read_clip(path: &Path, rel_path: &Path, map: Option<&RigMap>) -> Result<RawClip, Reject> {
     let bytes =
         std::fs::read(path).map_err(|e| Reject::new("read", format!("{}: {e}", path.display())))?;
-    if let Err(e) = std::str::from_utf8(&bytes) {
+    clip_from_bytes(&bytes, path, rel_path, map)
+}
+
+/// [`read_clip`] on the bytes of the file at `path`.
+pub fn clip_from_bytes(
+    bytes: &[u8],
+    path: &Path,
+    rel_path: &Path,
+    map: Option<&RigMap>,
+) -> Result<RawClip, Reject> {
+    if let Err(e) = std::str::from_utf8(bytes) {
         return Err(Reject::new(
             "read",
             format!(
@@ -716,8 +814,8 @@ pub fn read_clip(path: &Path, rel_path: &Path, map: Option<&RigMap>) -> Result<R
             ),
         ));
     }
-    let bvh = parse_bytes(&bytes)
-        .map_err(|e| Reject::new("parse", format!("{}: {e}", path.display())))?;
+    let bvh =
+        parse_bytes(bytes).map_err(|e| Reject::new("parse", format!("{}: {e}", path.display())))?;
     let detected;
     let map = match map {
         Some(m) => m,

@@ -1,11 +1,18 @@
-//! Structured mutation fuzzing of the BVH parser, shared by `examples/fuzz_bvh.rs` and the
-//! tests: a seeded generator of valid BVH files of several shapes, mutations that target
-//! the grammar (tokens, counts, braces, lines), and a panic-catching check of one input.
+//! Structured mutation fuzzing of the whole per-input BVH path, shared by
+//! `examples/fuzz_bvh.rs` and the tests: seeded generators of valid BVH files (random rigs
+//! of several shapes, and SMPL-22 humanoids that go all the way to features), mutations that
+//! target the grammar (tokens, counts, frame times, braces, lines), and a panic-catching check
+//! of one input through parse → retarget → budgets → resample → segment → features.
 
-use super::{parse_bytes, Channel};
+use super::{clip_from_bytes, parse_bytes, Channel};
+use crate::budget::MAX_RESAMPLED_FRAMES;
+use crate::hml263::FEATURE_DIM;
+use crate::pipeline::{process_clip, IngestOptions};
 use crate::quat::Vec3;
 use crate::rng::SplitMix64 as Rng;
+use crate::skeleton::{JOINT_NAMES, NUM_JOINTS, PARENTS, TARGET_OFFSETS};
 use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::path::Path;
 
 /// A joint for [`write_bvh`]: parents must precede children.
 #[derive(Debug, Clone)]
@@ -161,6 +168,36 @@ pub fn generate(rng: &mut Rng) -> String {
     )
 }
 
+/// A random valid BVH of the SMPL-22 rig (our export's joint names, centimetres): root
+/// translation and 3 rotations per joint drifting smoothly over 10–249 frames at 10–120 fps,
+/// so that unmutated it is retargeted and, when long enough, ingested.
+pub fn humanoid(rng: &mut Rng) -> String {
+    let rotations = vec![Channel::Zrotation, Channel::Xrotation, Channel::Yrotation];
+    let joints: Vec<SeedJoint> = (0..NUM_JOINTS)
+        .map(|j| SeedJoint {
+            name: JOINT_NAMES[j].to_string(),
+            parent: (j > 0).then_some(PARENTS[j]),
+            offset: TARGET_OFFSETS[j].map(|v| v * 100.0),
+            channels: if j == 0 {
+                [&ALL_CHANNELS[..3], &rotations[..]].concat()
+            } else {
+                rotations.clone()
+            },
+        })
+        .collect();
+    let channels = 3 + 3 * NUM_JOINTS;
+    let frames = 10 + rng.index(240);
+    let mut value: Vec<f64> = (0..channels).map(|_| rng.range(-20.0, 20.0)).collect();
+    value[1] += 90.0;
+    let mut motion = Vec::with_capacity(frames * channels);
+    for _ in 0..frames {
+        value.iter_mut().for_each(|v| *v += rng.range(-3.0, 3.0));
+        motion.extend_from_slice(&value);
+    }
+    let fps = 10.0 + rng.index(111) as f64;
+    write_bvh(&joints, 1.0 / fps, &motion, Layout::default())
+}
+
 /// Replacement tokens that stress the grammar and the number parser.
 const NASTY: [&str; 24] = [
     "nan",
@@ -231,8 +268,24 @@ fn splice(input: &[u8], (s, e): (usize, usize), with: &[u8]) -> Vec<u8> {
 /// Apply one random mutation to `input`; `other` is a second input for splicing.
 pub fn mutate(rng: &mut Rng, input: &[u8], other: &[u8]) -> Vec<u8> {
     let toks = tokens(input);
+    // Tokens of the motion section (counts, frame time, values).
+    let motion = toks
+        .iter()
+        .position(|t| &input[t.0..t.1] == b"MOTION")
+        .map_or(&toks[..0], |m| &toks[m + 1..]);
     let lns = lines(input);
-    match rng.index(10) {
+    match rng.index(13) {
+        10..=12 if !motion.is_empty() => {
+            // A value becomes another finite number that still parses: huge, tiny, negative.
+            let t = motion[rng.index(motion.len())];
+            let magnitude = 10f64.powf(rng.range(-30.0, 30.0));
+            let with = match rng.index(3) {
+                0 => "1e26".to_string(),
+                1 => format!("{magnitude:e}"),
+                _ => format!("{:e}", -magnitude),
+            };
+            splice(input, t, with.as_bytes())
+        }
         0 if !input.is_empty() => {
             let mut out = input.to_vec();
             for _ in 0..1 + rng.index(4) {
@@ -275,12 +328,12 @@ pub fn mutate(rng: &mut Rng, input: &[u8], other: &[u8]) -> Vec<u8> {
             }
         }
         7 => {
-            // Edit a count: the number after CHANNELS or Frames:.
+            // Edit a count or the frame time: the number after CHANNELS, Frames: or Time:.
             let counts: Vec<(usize, usize)> = toks
                 .windows(2)
                 .filter(|w| {
                     let k = &input[w[0].0..w[0].1];
-                    k == b"CHANNELS" || k == b"Frames:"
+                    k == b"CHANNELS" || k == b"Frames:" || k == b"Time:"
                 })
                 .map(|w| w[1])
                 .collect();
@@ -288,10 +341,12 @@ pub fn mutate(rng: &mut Rng, input: &[u8], other: &[u8]) -> Vec<u8> {
                 input.to_vec()
             } else {
                 let t = counts[rng.index(counts.len())];
-                let with = match rng.index(4) {
+                let with = match rng.index(6) {
                     0 => rng.index(8).to_string(),
                     1 => "-3".to_string(),
                     2 => "4000000000000".to_string(),
+                    3 => ["100000", "1000", "0.9", "1e-9", "0.0001", ""][rng.index(6)].to_string(),
+                    4 => format!("{:e}", rng.range(0.0, 1.0).powi(8) * 1e6),
                     _ => (1usize << (rng.index(40) + 20)).to_string(),
                 };
                 splice(input, t, with.as_bytes())
@@ -313,19 +368,64 @@ pub fn mutate(rng: &mut Rng, input: &[u8], other: &[u8]) -> Vec<u8> {
     }
 }
 
-/// Parse `input` and run forward kinematics on success, catching panics.
-///
-/// `Ok(true)`: parsed; `Ok(false)`: rejected with an error; `Err`: the panic message.
-pub fn check(input: &[u8]) -> Result<bool, String> {
-    catch_unwind(AssertUnwindSafe(|| match parse_bytes(input) {
-        Ok(bvh) => {
-            let world = bvh.world_positions();
-            assert_eq!(world.len(), bvh.num_frames() * bvh.joints.len());
-            true
+/// How far one input got along the per-input path.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outcome {
+    /// Refused by the parser.
+    Unparsed,
+    /// Parsed, then refused by retargeting (unknown rig, implausible size, not UTF-8).
+    NotRetargeted,
+    /// Retargeted and processed: `clips` clips ingested, `rejects` rejected (at least one
+    /// of the two: every input is accounted for).
+    Processed {
+        /// Clips ingested (mirrored copies included).
+        clips: usize,
+        /// Clips or segments rejected.
+        rejects: usize,
+    },
+}
+
+/// Run `input` through the whole per-input path (parse and forward kinematics, retarget,
+/// budgets and plausibility, resample, segment, mirror, features), catching panics and
+/// checking that every outcome is accounted for and every ingested clip is within budget
+/// and finite. `Err`: the panic message.
+pub fn check(input: &[u8]) -> Result<Outcome, String> {
+    catch_unwind(AssertUnwindSafe(|| {
+        let bvh = match parse_bytes(input) {
+            Ok(bvh) => bvh,
+            Err(e) => {
+                assert!(e.line >= 1 && !e.message.is_empty(), "bad error {e:?}");
+                return Outcome::Unparsed;
+            }
+        };
+        let world = bvh.world_positions();
+        assert_eq!(world.len(), bvh.num_frames() * bvh.joints.len());
+        let path = Path::new("fuzz.bvh");
+        let raw = match clip_from_bytes(input, path, path, None) {
+            Ok(raw) => raw,
+            Err(r) => {
+                assert!(!r.reason.is_empty(), "reject without a reason");
+                return Outcome::NotRetargeted;
+            }
+        };
+        let opts = IngestOptions {
+            mirror: true,
+            ..Default::default()
+        };
+        let (clips, rejects) = process_clip(&raw, &opts);
+        assert!(
+            !clips.is_empty() || !rejects.is_empty(),
+            "neither ingested nor rejected"
+        );
+        for c in &clips {
+            let n = c.num_frames as usize;
+            assert!(n <= MAX_RESAMPLED_FRAMES, "{n} frames ingested");
+            assert_eq!(c.features.len(), n * FEATURE_DIM);
+            assert!(c.features.iter().chain(&c.joints).all(|v| v.is_finite()));
         }
-        Err(e) => {
-            assert!(e.line >= 1 && !e.message.is_empty(), "bad error {e:?}");
-            false
+        Outcome::Processed {
+            clips: clips.len(),
+            rejects: rejects.len(),
         }
     }))
     .map_err(|p| {
@@ -334,6 +434,15 @@ pub fn check(input: &[u8]) -> Result<bool, String> {
             .or_else(|| p.downcast_ref::<&str>().map(|s| s.to_string()))
             .unwrap_or_else(|| "panic".to_string())
     })
+}
+
+/// A generated seed: a random rig for even `k`, a humanoid for odd `k`.
+fn fresh(rng: &mut Rng, k: usize) -> String {
+    if k % 2 == 0 {
+        generate(rng)
+    } else {
+        humanoid(rng)
+    }
 }
 
 /// A corpus of seed inputs and a generator of mutated inputs from it.
@@ -345,24 +454,32 @@ pub struct Fuzzer {
 }
 
 impl Fuzzer {
-    /// A fuzzer with `generated` random seed BVHs plus `extra` seeds.
+    /// A fuzzer with `generated` random seed BVHs (random rigs and humanoids, half each)
+    /// plus `extra` seeds.
     pub fn new(seed: u64, generated: usize, extra: Vec<Vec<u8>>) -> Self {
         let mut rng = Rng(seed);
         let mut seeds: Vec<Vec<u8>> = (0..generated)
-            .map(|_| generate(&mut rng).into_bytes())
+            .map(|k| fresh(&mut rng, k).into_bytes())
             .collect();
         seeds.extend(extra);
         Self { rng, seeds }
     }
 
-    /// Next input: a seed (or a fresh generated file) with 1–4 stacked mutations.
+    /// Next input: a seed (or a fresh generated file) with one mutation half the time, 1–4
+    /// stacked ones otherwise.
     pub fn next_input(&mut self) -> Vec<u8> {
         let mut input = if self.seeds.is_empty() || self.rng.index(8) == 0 {
-            generate(&mut self.rng).into_bytes()
+            let k = self.rng.index(2);
+            fresh(&mut self.rng, k).into_bytes()
         } else {
             self.seeds[self.rng.index(self.seeds.len())].clone()
         };
-        for _ in 0..1 + self.rng.index(4) {
+        let mutations = if self.rng.index(2) == 0 {
+            1
+        } else {
+            1 + self.rng.index(4)
+        };
+        for _ in 0..mutations {
             let other = if self.seeds.is_empty() {
                 Vec::new()
             } else {
@@ -379,31 +496,47 @@ mod tests {
     use super::*;
 
     #[test]
-    fn generated_seeds_parse() {
+    fn generated_seeds_parse_and_humanoids_are_ingested() {
         let mut rng = Rng(7);
-        for _ in 0..200 {
+        for _ in 0..100 {
             let text = generate(&mut rng);
-            assert_eq!(check(text.as_bytes()), Ok(true), "{text}");
+            assert_ne!(check(text.as_bytes()), Ok(Outcome::Unparsed), "{text}");
         }
+        let ingested = (0..40)
+            .filter(|_| {
+                let text = humanoid(&mut rng);
+                match check(text.as_bytes()) {
+                    Ok(Outcome::Processed { clips, .. }) => clips > 0,
+                    other => panic!("{other:?}\n{text}"),
+                }
+            })
+            .count();
+        // Clips under 20 frames after resampling are rejected as too short.
+        assert!(ingested > 20, "{ingested} of 40 humanoids ingested");
     }
 
     #[test]
-    fn two_thousand_mutations_neither_panic_nor_hang() {
+    fn two_thousand_mutations_neither_panic_nor_lose_an_input() {
         let mut fuzzer = Fuzzer::new(42, 32, Vec::new());
-        let (mut ok, mut rejected) = (0, 0);
-        let start = std::time::Instant::now();
+        let (mut unparsed, mut processed, mut ingested) = (0, 0, 0);
         for i in 0..2000 {
             let input = fuzzer.next_input();
             match check(&input) {
-                Ok(true) => ok += 1,
-                Ok(false) => rejected += 1,
+                Ok(Outcome::Unparsed) => unparsed += 1,
+                Ok(Outcome::NotRetargeted) => {}
+                Ok(Outcome::Processed { clips, .. }) => {
+                    processed += 1;
+                    ingested += usize::from(clips > 0);
+                }
                 Err(p) => panic!(
                     "input {i} panicked: {p}\n{}",
                     String::from_utf8_lossy(&input)
                 ),
             }
         }
-        assert!(ok > 20 && rejected > 500, "ok {ok} rejected {rejected}");
-        assert!(start.elapsed().as_secs() < 60);
+        assert!(
+            unparsed > 500 && processed > 50 && ingested > 40,
+            "unparsed {unparsed} processed {processed} ingested {ingested}"
+        );
     }
 }
