@@ -133,7 +133,14 @@ for s in json.load(open(f"{c}/manifest.json"))["shards"]:
         let mut total = 0;
         for d in datasets {
             let n = |s: &str| d["clips"][s].as_array().unwrap().len();
-            assert!(n("train") > 0 && n("test") > 0, "{split} {}", d["name"]);
+            // Clips keep their corpus split, so a scenario of a few long source clips (Bandai
+            // dance) can have no train or no test clip; the command says so.
+            for list in ["train", "test"] {
+                if n(list) == 0 {
+                    let warning = format!("{} has no {list} clip", d["name"].as_str().unwrap());
+                    assert!(text(&run).contains(&warning), "{split}: {}", text(&run));
+                }
+            }
             total += n("train") + n("val") + n("test");
             let listed =
                 std::fs::read_to_string(out.join(d["name"].as_str().unwrap()).join("test.txt"))
