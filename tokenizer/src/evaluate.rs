@@ -50,13 +50,16 @@ pub struct EvalReport {
     pub mpjpe_mm: f64,
     /// Mean per-joint position error in millimetres on root-aligned joints (the pelvis
     /// subtracted per frame from both), comparable with T2M-GPT / MoMask's reconstruction MPJPE.
+    #[serde(default)]
     pub mpjpe_root_mm: f64,
     /// Fraction of codes used at least once.
     pub utilization: f64,
     /// Tokens per code, N/K.
+    #[serde(default)]
     pub tokens_per_code: f64,
     /// Fraction of codes a perfectly uniform tokenizer would use with N tokens, 1 − e^(−N/K):
     /// the ceiling `utilization` is read against on a small split.
+    #[serde(default)]
     pub uniform_coverage: f64,
     /// Codes used at least once.
     pub used_codes: usize,

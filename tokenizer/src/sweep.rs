@@ -144,7 +144,7 @@ pub fn sweep(
                 let eval_path = dir.join(format!("eval-{split}.json"));
                 let cached = read_json::<EvalReport>(&eval_path)
                     .ok()
-                    .filter(|r| r.tokenizer_id == id);
+                    .filter(|r| r.tokenizer_id == id && r.mpjpe_root_mm > 0.0);
                 let report = match cached {
                     Some(report) => report,
                     None => {
