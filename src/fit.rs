@@ -20,6 +20,9 @@ use std::time::Instant;
     95% t intervals, R²), and L_opt = α·log10 C + β. The parametric L(N, D) = E + A/N^α + B/D^β \
     minimises the summed Huber loss of log residuals with L-BFGS from every start of a grid, \
     and bootstraps runs for 95% percentile intervals.\n\n\
+    Approaches 2 and 3 are compared on the N_opt and D_opt exponents (a warning when their \
+    intervals do not overlap), and with an N_v column the whole fit is repeated with N counted \
+    as every parameter (N + N_v, `total_n` in fits.json).\n\n\
     Writes OUT/fits.json and plots (isoflop_n, isoflop_v, law_*, log_law; .svg and .png).\n\n\
     Columns default to the sweep's results table: n_nv, tokens, budget, norm_test_loss, \
     test_loss, vocab, n_v, d_model. A default column that is missing only disables what needs \
@@ -59,6 +62,18 @@ pub struct FitArgs {
     /// Budget-group column [default: budget; else C values within --group-tol dex form a group].
     #[arg(long, value_name = "COL")]
     pub group_col: Option<String>,
+    /// Epochs-over-unique-tokens column, for --repeated-data [default: epochs].
+    #[arg(long, value_name = "COL")]
+    pub epochs_col: Option<String>,
+    /// Fit without the runs of the budget group at C (FLOPs) and score the prediction on
+    /// them: predicted vs trained N_opt and loss, inside or outside the 95% interval.
+    #[arg(long, value_name = "C")]
+    pub holdout_budget: Option<f64>,
+    /// Also fit Muennighoff et al.'s data-constrained L(N, D') (effective data
+    /// D' = U + U·R*·(1 − e^(−R/R*)), R = epochs − 1) with R* fitted, and compare it with the
+    /// plain fit by the error on each budget left out in turn.
+    #[arg(long)]
+    pub repeated_data: bool,
     /// Grouping tolerance in log10 C, used without a group column.
     #[arg(long, default_value_t = 0.05, value_name = "DEX")]
     pub group_tol: f64,
@@ -116,6 +131,7 @@ impl FitArgs {
                 nv: col(&self.nv_col, &d.nv.name),
                 width: col(&self.width_col, &d.width.name),
                 group: col(&self.group_col, &d.group.name),
+                epochs: col(&self.epochs_col, &d.epochs.name),
             },
             group_tol_dex: self.group_tol,
             grid: StartGrid::parse(&self.starts_grid)?,
@@ -124,6 +140,8 @@ impl FitArgs {
             bootstrap_starts,
             seed: self.seed,
             huber_delta: self.huber_delta,
+            holdout_budget: self.holdout_budget,
+            repeated_data: self.repeated_data,
             ..FitOptions::default()
         })
     }
@@ -247,6 +265,13 @@ pub fn prediction_rows(p: &Prediction) -> Vec<(&'static str, String)> {
             v.levels
         );
         rows.push(("vocabulary V", text));
+    }
+    if let Some(v) = &p.v_opt {
+        let (k, _) = fits::predict::fsq_for(v.value);
+        rows.push((
+            "V (its own C-law)",
+            format!("{} -> FSQ 2^{k}", estimate_text(v)),
+        ));
     }
     if let Some(pp) = &p.parametric {
         rows.push(("parametric N_opt", estimate_text(&pp.n_opt)));

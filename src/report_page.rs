@@ -394,11 +394,11 @@ fn laws(path: &str, f: &Fits) -> Result<String> {
             p.bootstrap.resamples
         );
         let rows: [(&str, &Estimate); 7] = [
-            ("E", &p.e),
-            ("A", &p.a),
-            ("B", &p.b),
-            ("α", &p.alpha),
-            ("β", &p.beta),
+            ("E", &p.law.e),
+            ("A", &p.law.a),
+            ("B", &p.law.b),
+            ("α", &p.law.alpha),
+            ("β", &p.law.beta),
             ("N_opt ∝ C^", &p.n_opt_exponent),
             ("D_opt ∝ C^", &p.d_opt_exponent),
         ];

@@ -75,6 +75,20 @@ pub struct PlanArgs {
     /// Checkpoint and evaluate the test split every N steps (and at the end) [default: 100].
     #[arg(long)]
     pub checkpoint_every: Option<u64>,
+    /// An earlier fit (`fit`'s fits.json, e.g. of a pilot sweep): each budget then gets the
+    /// --sizes-per-budget models of --models nearest its predicted N_opt (the fit's parabola at
+    /// that budget, else its N_opt ∝ C^b law), with a warning where they do not bracket it.
+    #[arg(long, value_name = "FITS_JSON")]
+    pub fits: Option<PathBuf>,
+    /// Models per budget when centring on --fits.
+    #[arg(long, default_value_t = 6, requires = "fits")]
+    pub sizes_per_budget: usize,
+    /// Flag points that take more than E epochs of the train split (`above-max-epochs`).
+    #[arg(long, value_name = "E")]
+    pub max_epochs: Option<f64>,
+    /// Drop the points above --max-epochs instead of flagging them (listed as warnings).
+    #[arg(long, requires = "max_epochs")]
+    pub drop_above_max_epochs: bool,
     /// Output plan file (.toml).
     #[arg(long)]
     pub out: PathBuf,
@@ -156,6 +170,22 @@ impl PlanArgs {
             models: self.models.clone(),
             vocabularies,
             train: self.settings(),
+            centring: match &self.fits {
+                None => None,
+                Some(path) => Some(plan::Centring {
+                    fits: serde_json::from_slice(
+                        &std::fs::read(path).with_context(|| path.display().to_string())?,
+                    )
+                    .with_context(|| {
+                        format!("{}: not a fits.json of `motionscale fit`", path.display())
+                    })?,
+                    sizes: self.sizes_per_budget,
+                }),
+            },
+            max_epochs: self.max_epochs.map(|epochs| plan::EpochLimit {
+                epochs,
+                drop: self.drop_above_max_epochs,
+            }),
         })
     }
 }
@@ -189,6 +219,15 @@ pub fn plan_cmd(args: PlanArgs) -> Result<ExitCode> {
             "vocabulary {} ({} codes): {} train clips, {} train tokens per epoch",
             v.codebook, v.codebook_size, v.train_clips, v.train_tokens
         );
+    }
+    for c in &plan.centres {
+        println!(
+            "budget {:.3e}: centred on N_opt = {:.3e} from {}",
+            c.budget, c.n_opt, c.source
+        );
+    }
+    for w in &plan.warnings {
+        println!("warning: {w}");
     }
     let skipped = plan.points.iter().filter(|p| !p.runnable()).count();
     println!(

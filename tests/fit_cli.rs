@@ -160,3 +160,99 @@ fn fit_errors_name_the_file_and_the_problem() {
     let out = motionscale(&["predict", "--budget", "1e18"]);
     assert_ne!(code(&out), 0, "needs --fits or --preset");
 }
+
+#[test]
+fn fit_holds_out_a_budget_fits_both_conventions_and_says_what_it_cannot_fit() {
+    let tmp = tempfile::tempdir().unwrap();
+    let csv = tmp.path().join("sweep.csv");
+    synth::write_sweep_csv(&csv, &synth::vocab_sweep(2)).unwrap();
+    let out = tmp.path().join("fits");
+    let fit = |results: &std::path::Path, extra: &[&str]| {
+        let mut args = vec![
+            "fit",
+            "--results",
+            arg(results),
+            "--out",
+            arg(&out),
+            "--starts-grid",
+            "coarse",
+            "--bootstrap",
+            "10",
+        ];
+        args.extend_from_slice(extra);
+        motionscale(&args)
+    };
+    let run = fit(&csv, &["--holdout-budget", "1e18", "--repeated-data"]);
+    assert_eq!(code(&run), 0, "{}", text(&run));
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        stdout.contains("held-out budget 1.000e18 (42 runs"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("N_opt exponent: IsoFLOP (approach 2)"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("total parameters (N = n_nv + n_v)"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains(
+            "skipped: data-constrained L(N, D'): needs a tokens column and an epochs column"
+        ),
+        "{stdout}"
+    );
+    let fits: serde_json::Value = read_json(&out.join("fits.json"));
+    assert_eq!(
+        fits["budgets"].as_array().unwrap().len(),
+        6,
+        "1e18 not fitted"
+    );
+    let checks = fits["holdout"]["checks"].as_array().unwrap();
+    assert_eq!(checks[0]["quantity"], "N_opt (IsoFLOP law)");
+    assert!(
+        checks[0]["ratio"].as_f64().unwrap() > 0.5 && checks[0]["ratio"].as_f64().unwrap() < 2.0
+    );
+    assert_eq!(fits["total_n"]["input"]["columns"]["N"], "n_nv + n_v");
+    assert!(fits["power_laws"]["v_opt_vs_c"]["fit"]["slope"]["value"].is_number());
+
+    let pred = motionscale(&[
+        "predict",
+        "--fits",
+        arg(&out.join("fits.json")),
+        "--budget",
+        "1e19",
+    ]);
+    assert_eq!(code(&pred), 0, "{}", text(&pred));
+    let p = String::from_utf8_lossy(&pred.stdout);
+    assert!(p.contains("V (its own C-law)"), "{p}");
+    assert!(
+        p.contains("N_opt: IsoFLOP law (approach 2) vs parametric (approach 3)"),
+        "{p}"
+    );
+
+    // One budget and one vocabulary: what cannot be fitted is named, the rest is fitted, exit 0.
+    let one = tmp.path().join("one.csv");
+    let text_all = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = text_all.lines();
+    let mut kept = vec![lines.next().unwrap().to_string()];
+    kept.extend(
+        lines
+            .filter(|l| l.contains("c1e15-") && l.contains("-v1024,"))
+            .map(String::from),
+    );
+    std::fs::write(&one, kept.join("\n") + "\n").unwrap();
+    let run = fit(&one, &[]);
+    assert_eq!(code(&run), 0, "{}", text(&run));
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        stdout.contains("1 vocabulary size(s) in the table (1024); a minimum over V needs 3"),
+        "{stdout}"
+    );
+    assert!(
+        stdout.contains("in 1 budget group(s), need 3 budgets"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("parametric L(N, D)"), "{stdout}");
+}

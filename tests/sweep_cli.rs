@@ -227,3 +227,129 @@ fn a_sweep_killed_five_times_ends_with_one_row_per_point() {
     assert_eq!(code(&out), 1);
     assert!(text(&out).contains("different plan"), "{}", text(&out));
 }
+
+/// A results CSV whose IsoFLOP minima follow N_opt = 10^-0.52 · C^0.57 at 1e9, 1e10 and 1e11.
+fn pilot_results(path: &Path) {
+    let mut csv = String::from("budget,n_nv,norm_test_loss\n");
+    for c in [1e9f64, 1e10, 1e11] {
+        let centre = -0.52 + 0.57 * c.log10();
+        for k in 0..7 {
+            let ln = centre - 0.6 + 0.2 * k as f64;
+            let loss = 2.0 + 0.3 * (ln - centre).powi(2);
+            csv.push_str(&format!("{c},{},{loss}\n", 10f64.powf(ln)));
+        }
+    }
+    std::fs::write(path, csv).unwrap();
+}
+
+#[test]
+fn a_plan_centred_on_an_earlier_fit_brackets_n_opt_warns_past_the_ladder_and_limits_epochs() {
+    let tmp = tempfile::tempdir().unwrap();
+    let corpus = tmp.path().join("corpus");
+    tiny_lm_corpus(&corpus);
+    let results = tmp.path().join("pilot.csv");
+    pilot_results(&results);
+    let fits_dir = tmp.path().join("fits");
+    motionscale_ok(&[
+        "fit",
+        "--results",
+        arg(&results),
+        "--out",
+        arg(&fits_dir),
+        "--starts-grid",
+        "coarse",
+        "--bootstrap",
+        "0",
+    ]);
+    let plan_path = tmp.path().join("plan.toml");
+    let fits_json = fits_dir.join("fits.json");
+    let plan_args = |extra: &[&str]| {
+        let mut a = vec![
+            "sweep",
+            "plan",
+            "--corpus",
+            arg(&corpus),
+            "--budgets",
+            "1e11,1e15",
+            "--models",
+            "cpu",
+            "--vocabs",
+            "256",
+            "--tokenizer-flags=--width 32 --batch 8 --steps 30",
+            "--batch",
+            "8",
+            "--fits",
+            arg(&fits_json),
+            "--sizes-per-budget",
+            "4",
+            "--out",
+            arg(&plan_path),
+        ];
+        a.extend_from_slice(extra);
+        a.into_iter().map(String::from).collect::<Vec<String>>()
+    };
+    let owned = plan_args(&["--max-epochs", "1000"]);
+    let out = motionscale_ok(&owned.iter().map(String::as_str).collect::<Vec<_>>());
+    let plan = IsoFlopPlan::read(&plan_path).unwrap();
+
+    // 1e11 sits inside the CPU ladder: four sizes, two on each side of N_opt, no warning.
+    let n_opt = 10f64.powf(-0.52 + 0.57 * 11.0);
+    assert_eq!(plan.centres.len(), 2);
+    assert!(
+        (plan.centres[0].n_opt / n_opt - 1.0).abs() < 1e-6,
+        "{:?}",
+        plan.centres[0]
+    );
+    let at = |c: f64| -> Vec<f64> {
+        plan.points
+            .iter()
+            .filter(|p| p.budget == c)
+            .map(|p| p.n_nv as f64)
+            .collect()
+    };
+    let sizes = at(1e11);
+    assert_eq!(sizes.len(), 4, "{sizes:?}");
+    assert_eq!(sizes.iter().filter(|&&n| n < n_opt).count(), 2, "{sizes:?}");
+    assert!(
+        plan.warnings.iter().all(|w| !w.contains("budget 1.000e11")),
+        "{:?}",
+        plan.warnings
+    );
+    // 1e15 predicts ~1e8 parameters, past the largest CPU model: the four largest, and a warning.
+    assert_eq!(at(1e15).len(), 4);
+    let w = plan
+        .warnings
+        .iter()
+        .find(|w| w.contains("budget 1.000e15"))
+        .expect("warned");
+    assert!(
+        w.contains("4 below and 0 above") && w.contains("add larger models"),
+        "{w}"
+    );
+    assert!(out.contains("warning: budget 1.000e15"), "{out}");
+    // Above --max-epochs: flagged.
+    for p in &plan.points {
+        assert_eq!(
+            p.flags.contains(&PointFlag::AboveMaxEpochs),
+            p.epochs > 1000.0,
+            "{p:?}"
+        );
+    }
+    assert!(
+        plan.points.iter().any(|p| p.epochs > 1000.0),
+        "the tiny corpus repeats a lot"
+    );
+
+    // Dropped instead: every point left is within the limit, every dropped one is listed.
+    let owned = plan_args(&["--max-epochs", "1000", "--drop-above-max-epochs"]);
+    motionscale_ok(&owned.iter().map(String::as_str).collect::<Vec<_>>());
+    let dropped = IsoFlopPlan::read(&plan_path).unwrap();
+    assert!(dropped.points.iter().all(|p| p.epochs <= 1000.0));
+    let listed = dropped
+        .warnings
+        .iter()
+        .filter(|w| w.starts_with("dropped "))
+        .count();
+    assert_eq!(dropped.points.len() + listed, plan.points.len());
+    assert!(listed > 0);
+}

@@ -1,10 +1,13 @@
 //! The whole fit of a results table: columns → budget groups → IsoFLOP minima → power laws,
 //! log law and the parametric L(N, D) with bootstrap → [`Fits`] (written as `fits.json`).
 
+use crate::holdout::{self, Holdout};
 use crate::isoflop::{self, BudgetMinimum, Columns, IsoMinimum};
 use crate::laws::{Estimate, LogLaw, PowerLaw};
 use crate::lbfgs::LbfgsOptions;
 use crate::parametric::{self, LogRuns, StartGrid};
+use crate::repeated::{self, RepeatedData};
+use crate::runs::Runs;
 use crate::table::Table;
 use crate::FitError;
 use serde::{Deserialize, Serialize};
@@ -62,6 +65,8 @@ pub struct ColumnSpec {
     pub width: ColumnChoice,
     /// Budget group (default `budget`; if absent, C values within `group_tol_dex` are grouped).
     pub group: ColumnChoice,
+    /// Epochs over the unique training tokens (default `epochs`; the data-constrained fit).
+    pub epochs: ColumnChoice,
 }
 
 impl Default for ColumnSpec {
@@ -77,6 +82,7 @@ impl Default for ColumnSpec {
             nv: d("n_v"),
             width: d("d_model"),
             group: d("budget"),
+            epochs: d("epochs"),
         }
     }
 }
@@ -103,6 +109,10 @@ pub struct FitOptions {
     pub huber_delta: f64,
     /// L-BFGS settings.
     pub lbfgs: LbfgsOptions,
+    /// Fit without the runs of this budget group and score the prediction on them.
+    pub holdout_budget: Option<f64>,
+    /// Also fit the data-constrained L(N, D') of Muennighoff et al. (needs an epochs column).
+    pub repeated_data: bool,
 }
 
 impl Default for FitOptions {
@@ -117,6 +127,8 @@ impl Default for FitOptions {
             seed: 0,
             huber_delta: 1e-3,
             lbfgs: LbfgsOptions::default(),
+            holdout_budget: None,
+            repeated_data: false,
         }
     }
 }
@@ -172,6 +184,46 @@ pub struct Settings {
     pub group_tol_dex: f64,
 }
 
+impl Settings {
+    /// The settings of `opts`, as recorded.
+    fn of(opts: &FitOptions) -> Self {
+        Self {
+            seed: opts.seed,
+            huber_delta: opts.huber_delta,
+            starts: opts.grid.len(),
+            starts_grid: opts.grid_name.clone(),
+            grid: opts.grid.clone(),
+            bootstrap: opts.bootstrap,
+            bootstrap_starts: match opts.bootstrap_starts {
+                Some(k) => {
+                    format!("the best (up to {k}) distinct local optima of the full-data grid")
+                }
+                None => "full".into(),
+            },
+            lbfgs: LbfgsRecord {
+                memory: opts.lbfgs.memory,
+                max_iter: opts.lbfgs.max_iter,
+                gtol: opts.lbfgs.gtol,
+            },
+            group_tol_dex: opts.group_tol_dex,
+        }
+    }
+}
+
+/// One exponent from approach 2 (IsoFLOP minima, OLS interval) beside approach 3 (parametric,
+/// bootstrap interval).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Agreement {
+    /// `N_opt` or `D_opt` (∝ C^exponent).
+    pub quantity: String,
+    /// The IsoFLOP power law's exponent.
+    pub isoflop: Estimate,
+    /// The parametric fit's exponent.
+    pub parametric: Estimate,
+    /// Whether the two 95% intervals overlap (`None` when one has no interval).
+    pub overlap: Option<bool>,
+}
+
 /// Bootstrap draws of the parametric fit.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Bootstrap {
@@ -187,9 +239,10 @@ pub struct Bootstrap {
     pub samples: Vec<[f64; 5]>,
 }
 
-/// The parametric fit L(N, D) = E + A/N^α + B/D^β.
+/// E, A, B, α and β of L(N, D) = E + A/N^α + B/D^β, each with its bootstrap 95% percentile
+/// interval.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Parametric {
+pub struct LawEstimates {
     /// E with bootstrap 95% percentile interval.
     #[serde(rename = "E")]
     pub e: Estimate,
@@ -203,6 +256,14 @@ pub struct Parametric {
     pub alpha: Estimate,
     /// β.
     pub beta: Estimate,
+}
+
+/// The parametric fit L(N, D) = E + A/N^α + B/D^β.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Parametric {
+    /// The law's parameters.
+    #[serde(flatten)]
+    pub law: LawEstimates,
     /// Compute-optimal N ∝ C^(β/(α+β)).
     pub n_opt_exponent: Estimate,
     /// Compute-optimal D ∝ C^(α/(α+β)).
@@ -242,219 +303,105 @@ pub struct Fits {
     pub budgets: Vec<BudgetMinimum>,
     /// IsoFLOP minima over V at each (budget, N).
     pub vocab_minima: Vec<IsoMinimum>,
-    /// Power laws by name: `n_opt_vs_c`, `d_opt_vs_c`, `nv_opt_vs_c`, `nv_vs_n`.
+    /// Power laws by name: `n_opt_vs_c`, `d_opt_vs_c`, `v_opt_vs_c`, `nv_opt_vs_c`, `nv_vs_n`.
     pub power_laws: BTreeMap<String, PowerLaw>,
     /// L_opt = α·log10 C + β over the interior budget minima.
     pub log_law: Option<LogLaw>,
     /// The parametric fit.
     pub parametric: Option<Parametric>,
+    /// Approaches 2 and 3 side by side on the N_opt and D_opt exponents.
+    #[serde(default)]
+    pub agreement: Vec<Agreement>,
     /// Fits not done, and why.
     pub skipped: Vec<String>,
     /// Things to look at before trusting the numbers.
     pub warnings: Vec<String>,
     /// Plot files written (stems; each has .svg and .png).
     pub plots: Vec<String>,
+    /// The same fit with N counted as every parameter (N + N_v), beside this one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub total_n: Option<Box<Fits>>,
+    /// The data-constrained parametric fit (`--repeated-data`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub repeated_data: Option<RepeatedData>,
+    /// The held-out budget's prediction against its runs (`--holdout-budget`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub holdout: Option<Holdout>,
 }
 
 /// A power law to fit: key, x name, y name, and the (x, y) minima.
 type LawPoints = (&'static str, &'static str, &'static str, Vec<(f64, f64)>);
 
-/// Reads a column the user may or may not have named; `Ok(None)` for a missing default.
-fn optional(t: &Table, col: &ColumnChoice, flag: &str) -> Result<Option<Vec<f64>>, FitError> {
-    if t.has(&col.name) || col.explicit {
-        t.numbers(&col.name, flag).map(Some)
-    } else {
-        Ok(None)
-    }
-}
-
-/// Every value must be > 0 (the column goes on a log axis).
-fn positive(t: &Table, name: &str, values: &[f64]) -> Result<(), FitError> {
-    match values.iter().position(|&v| v <= 0.0) {
-        None => Ok(()),
-        Some(row) => Err(FitError::BadCell {
-            path: t.path().to_path_buf(),
-            column: name.into(),
-            row: row + 1,
-            problem: format!("{} must be > 0 (it goes on a log scale)", values[row]),
-        }),
-    }
-}
-
-/// Fits every law the table's columns allow.
+/// Fits every law the table's columns allow; with `opts.holdout_budget`, without that budget's
+/// runs, then scores the prediction on them.
 pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
-    let cs = &opts.columns;
-    let mut notes = Vec::new();
+    let all = Runs::read(t, opts)?;
+    let (runs, held_out) = match opts.holdout_budget {
+        None => (all, None),
+        Some(c) => {
+            let (kept, held) = holdout::split(&all, c, opts.group_tol_dex).map_err(|message| {
+                FitError::Invalid(format!("{}: {message}", t.path().display()))
+            })?;
+            (all.select(&kept), Some(all.select(&held)))
+        }
+    };
+    let mut fits = fit_runs(t, &runs, opts)?;
+    if let Some(held) = &held_out {
+        fits.input.notes.push(format!(
+            "budget {:.3e} held out: {} runs not fitted, scored under `holdout`",
+            opts.holdout_budget.unwrap_or_default(),
+            held.len()
+        ));
+        fits.holdout = Some(holdout::score(held, &fits)?);
+    }
+    match runs.total_parameters() {
+        Some(total) => match fit_runs(t, &total, opts) {
+            Ok(f) => fits.total_n = Some(Box::new(f)),
+            Err(e) => fits
+                .skipped
+                .push(format!("total-parameter convention: {e}")),
+        },
+        None => fits.skipped.push(format!(
+            "total-parameter convention (N + N_v): no vocabulary-parameter column {:?}",
+            opts.columns.nv.name
+        )),
+    }
+    if opts.repeated_data {
+        match repeated::fit(&runs, &fits, opts) {
+            Ok(r) => fits.repeated_data = Some(r),
+            Err(why) => fits
+                .skipped
+                .push(format!("data-constrained L(N, D'): {why}")),
+        }
+    }
+    Ok(fits)
+}
+
+/// Fits every law `runs` allow, in one parameter convention.
+fn fit_runs(t: &Table, runs: &Runs, opts: &FitOptions) -> Result<Fits, FitError> {
     let mut skipped = Vec::new();
     let mut warnings = Vec::new();
-    let mut used: BTreeMap<String, Option<String>> = BTreeMap::new();
-
-    let n = t.numbers(&cs.n.name, "--n-col")?;
-    positive(t, &cs.n.name, &n)?;
-    let loss = t.numbers(&cs.loss.name, "--loss-col")?;
-    used.insert("N".into(), Some(cs.n.name.clone()));
-    used.insert("loss".into(), Some(cs.loss.name.clone()));
-    let d = optional(t, &cs.d, "--d-col")?;
-    let v = optional(t, &cs.v, "--v-col")?;
-    let nv = optional(t, &cs.nv, "--nv-col")?;
-    let width_col = optional(t, &cs.width, "--width-col")?;
-    let group = optional(t, &cs.group, "--group-col")?;
-    for (role, col, values) in [
-        ("D", &cs.d, &d),
-        ("V", &cs.v, &v),
-        ("N_v", &cs.nv, &nv),
-        ("width", &cs.width, &width_col),
-    ] {
-        if let Some(vals) = values {
-            positive(t, &col.name, vals)?;
-        }
-        used.insert(role.into(), values.as_ref().map(|_| col.name.clone()));
-    }
-    let c = match optional(t, &cs.c, "--c-col")? {
-        Some(c) => {
-            positive(t, &cs.c.name, &c)?;
-            used.insert("C".into(), Some(cs.c.name.clone()));
-            c
-        }
-        None => {
-            let Some(d) = &d else {
-                return Err(FitError::MissingColumn {
-                    path: t.path().to_path_buf(),
-                    column: cs.c.name.clone(),
-                    available: t.names().join(", "),
-                    hint: "pick the compute column with --c-col (or give --d-col so C = 6·N·D)"
-                        .into(),
-                });
-            };
-            let extra = nv.as_deref();
-            notes.push(format!(
-                "no column {:?}: C computed as 6·({}{})·{}",
-                cs.c.name,
-                cs.n.name,
-                extra.map_or(String::new(), |_| format!(" + {}", cs.nv.name)),
-                cs.d.name
-            ));
-            used.insert("C".into(), None);
-            (0..n.len())
-                .map(|i| 6.0 * (n[i] + extra.map_or(0.0, |x| x[i])) * d[i])
-                .collect()
-        }
-    };
-    let width: Option<Vec<f64>> = match (&width_col, &v, &nv) {
-        (Some(w), _, _) => Some(w.clone()),
-        (None, Some(v), Some(nv)) => {
-            notes.push(format!(
-                "no column {:?}: width = {} / {}",
-                cs.width.name, cs.nv.name, cs.v.name
-            ));
-            Some(nv.iter().zip(v).map(|(a, b)| a / b).collect())
-        }
-        _ => None,
-    };
-
-    let groups = isoflop::group_rows(&c, group.as_deref(), opts.group_tol_dex);
-    used.insert(
-        "group".into(),
-        group.as_ref().map(|_| cs.group.name.clone()),
-    );
-    let grouping = match &group {
-        Some(_) => format!("equal values of column {:?}", cs.group.name),
+    let groups = isoflop::group_rows(&runs.c, runs.group.as_deref(), opts.group_tol_dex);
+    let grouping = match &runs.group {
+        Some(_) => format!("equal values of column {:?}", opts.columns.group.name),
         None => format!(
             "C values within {} dex of each other (no column {:?})",
-            opts.group_tol_dex, cs.group.name
+            opts.group_tol_dex, opts.columns.group.name
         ),
     };
     let cols = Columns {
-        c: &c,
-        n: &n,
-        loss: &loss,
-        d: d.as_deref(),
-        v: v.as_deref(),
-        width: width.as_deref(),
+        c: &runs.c,
+        n: &runs.n,
+        loss: &runs.loss,
+        d: runs.d.as_deref(),
+        v: runs.v.as_deref(),
+        width: runs.width.as_deref(),
     };
     let vocab_minima = isoflop::vocab_minima(&cols, &groups);
     let budgets = isoflop::budget_minima(&cols, &groups, &vocab_minima);
-    for b in &budgets {
-        if let (false, Some(reason)) = (b.min.interior, &b.min.reason) {
-            warnings.push(format!(
-                "budget {:.3e}: no interior minimum over N ({reason}); excluded from the laws",
-                b.min.budget
-            ));
-        }
-    }
-    let excluded_v = vocab_minima.iter().filter(|m| !m.interior).count();
-    if excluded_v > 0 {
-        warnings.push(format!(
-            "{excluded_v} of {} minima over V at fixed N are not interior; excluded from N_v ∝ N^γ",
-            vocab_minima.len()
-        ));
-    }
-
-    let mut power_laws = BTreeMap::new();
+    minima_warnings(&budgets, &vocab_minima, &mut warnings);
+    let power_laws = power_laws(runs, opts, &budgets, &vocab_minima, &mut skipped);
     let interior: Vec<&BudgetMinimum> = budgets.iter().filter(|b| b.min.interior).collect();
-    let mut candidates: Vec<LawPoints> = vec![(
-        "n_opt_vs_c",
-        "C",
-        "N_opt",
-        interior
-            .iter()
-            .filter_map(|b| Some((b.min.budget, b.min.opt?)))
-            .collect(),
-    )];
-    if d.is_some() {
-        candidates.push((
-            "d_opt_vs_c",
-            "C",
-            "D_opt",
-            interior
-                .iter()
-                .filter_map(|b| Some((b.min.budget, b.d_opt?)))
-                .collect(),
-        ));
-    } else {
-        skipped.push(format!("d_opt_vs_c: no tokens column {:?}", cs.d.name));
-    }
-    if v.is_some() && width.is_some() {
-        candidates.push((
-            "nv_opt_vs_c",
-            "C",
-            "N_v_opt",
-            interior
-                .iter()
-                .filter_map(|b| Some((b.min.budget, b.nv_opt?)))
-                .collect(),
-        ));
-        candidates.push((
-            "nv_vs_n",
-            "N",
-            "N_v_opt",
-            vocab_minima
-                .iter()
-                .filter_map(|m| Some((m.fixed_n?, m.nv_opt?)))
-                .collect(),
-        ));
-    } else {
-        skipped.push(format!(
-            "nv_opt_vs_c, nv_vs_n: need a vocabulary column {:?} and a width ({:?}, or {:?} to divide by V)",
-            cs.v.name, cs.width.name, cs.nv.name
-        ));
-    }
-    for (key, x_name, y_name, pts) in candidates {
-        if pts.len() < 3 {
-            skipped.push(format!(
-                "{key} ({y_name} ∝ {x_name}^k): {} usable minima, need 3",
-                pts.len()
-            ));
-            continue;
-        }
-        let (x, y): (Vec<f64>, Vec<f64>) = pts.into_iter().unzip();
-        match PowerLaw::fit(x_name, y_name, &x, &y) {
-            Some(l) => {
-                power_laws.insert(key.to_string(), l);
-            }
-            None => skipped.push(format!("{key}: the minima share one {x_name}")),
-        }
-    }
     let log_law = if interior.len() >= 3 {
         let (x, y): (Vec<f64>, Vec<f64>) = interior
             .iter()
@@ -463,110 +410,231 @@ pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
         LogLaw::fit(&x, &y)
     } else {
         skipped.push(format!(
-            "log law: {} interior IsoFLOP minima, need 3",
-            interior.len()
+            "log law: {} interior IsoFLOP minima in {} budget group(s), need 3 budgets",
+            interior.len(),
+            groups.len()
         ));
         None
     };
-
-    // The parametric fit.
-    let (name, pl) = match optional(t, &cs.param_loss, "--param-loss-col")? {
-        Some(l) => (cs.param_loss.name.clone(), l),
-        None => {
-            notes.push(format!(
-                "no column {:?}: the parametric fit uses {:?}",
-                cs.param_loss.name, cs.loss.name
-            ));
-            (cs.loss.name.clone(), loss.clone())
-        }
-    };
-    used.insert("parametric_loss".into(), Some(name.clone()));
-    let parametric = match &d {
-        None => {
-            skipped.push(format!(
-                "parametric L(N, D): no tokens column {:?}",
-                cs.d.name
-            ));
-            None
-        }
-        Some(d) => {
-            if let Some(row) = pl.iter().position(|&l| l <= 0.0) {
-                skipped.push(format!(
-                    "parametric L(N, D): {name:?} has a non-positive loss ({}) at row {}; fit a positive loss with --param-loss-col",
-                    pl[row],
-                    row + 1
-                ));
-                None
-            } else if n.len() < 6 {
-                skipped.push(format!(
-                    "parametric L(N, D): {} runs, need at least 6 for 5 parameters",
-                    n.len()
-                ));
-                None
-            } else {
-                let p = fit_parametric(&LogRuns::new(&n, d, &pl), &name, opts)?;
-                if p.bootstrap.succeeded < p.bootstrap.resamples {
-                    warnings.push(format!(
-                        "parametric bootstrap: {} of {} refits failed",
-                        p.bootstrap.resamples - p.bootstrap.succeeded,
-                        p.bootstrap.resamples
-                    ));
-                }
-                Some(p)
-            }
-        }
-    };
+    let parametric = parametric_fit(runs, opts, &mut skipped, &mut warnings)?;
     if power_laws.is_empty() && log_law.is_none() && parametric.is_none() {
         return Err(FitError::TooFew {
             path: t.path().to_path_buf(),
             fit: "any law".into(),
             message: format!(
                 "{} rows in {} budget group(s), {} interior IsoFLOP minima; {}",
-                n.len(),
+                runs.len(),
                 groups.len(),
                 interior.len(),
                 skipped.join("; ")
             ),
         });
     }
+    let agreement = agreement(&power_laws, parametric.as_ref());
+    for a in agreement.iter().filter(|a| a.overlap == Some(false)) {
+        warnings.push(format!(
+            "approaches 2 and 3 disagree on the {} exponent: IsoFLOP {} vs parametric {} (95% intervals do not overlap)",
+            a.quantity,
+            crate::report::estimate_text(&a.isoflop),
+            crate::report::estimate_text(&a.parametric)
+        ));
+    }
     Ok(Fits {
         input: Input {
             file: t.path().display().to_string(),
-            rows: t.rows(),
-            columns: used,
+            rows: runs.len(),
+            columns: runs.columns.clone(),
             grouping,
             groups: groups.len(),
-            notes,
+            notes: runs.notes.clone(),
         },
-        settings: Settings {
-            seed: opts.seed,
-            huber_delta: opts.huber_delta,
-            starts: opts.grid.len(),
-            starts_grid: opts.grid_name.clone(),
-            grid: opts.grid.clone(),
-            bootstrap: opts.bootstrap,
-            bootstrap_starts: match opts.bootstrap_starts {
-                Some(k) => {
-                    format!("the best (up to {k}) distinct local optima of the full-data grid")
-                }
-                None => "full".into(),
-            },
-            lbfgs: LbfgsRecord {
-                memory: opts.lbfgs.memory,
-                max_iter: opts.lbfgs.max_iter,
-                gtol: opts.lbfgs.gtol,
-            },
-            group_tol_dex: opts.group_tol_dex,
-        },
+        settings: Settings::of(opts),
         budgets,
         vocab_minima,
         power_laws,
         log_law,
         parametric,
+        agreement,
         skipped,
         warnings,
         plots: Vec::new(),
+        total_n: None,
+        repeated_data: None,
+        holdout: None,
     })
+}
+
+/// Warnings about budgets and vocabulary minima that are not interior.
+fn minima_warnings(budgets: &[BudgetMinimum], vocab: &[IsoMinimum], warnings: &mut Vec<String>) {
+    for b in budgets {
+        if let (false, Some(reason)) = (b.min.interior, &b.min.reason) {
+            warnings.push(format!(
+                "budget {:.3e}: no interior minimum over N ({reason}); excluded from the laws",
+                b.min.budget
+            ));
+        }
+    }
+    let excluded_v = vocab.iter().filter(|m| !m.interior).count();
+    if excluded_v > 0 {
+        warnings.push(format!(
+            "{excluded_v} of {} minima over V at fixed N are not interior; excluded from N_v ∝ N^γ",
+            vocab.len()
+        ));
+    }
+}
+
+/// The power laws over the interior minima: N_opt, D_opt, and the vocabulary laws.
+fn power_laws(
+    runs: &Runs,
+    opts: &FitOptions,
+    budgets: &[BudgetMinimum],
+    vocab_minima: &[IsoMinimum],
+    skipped: &mut Vec<String>,
+) -> BTreeMap<String, PowerLaw> {
+    let interior: Vec<&BudgetMinimum> = budgets.iter().filter(|b| b.min.interior).collect();
+    let along = |f: fn(&BudgetMinimum) -> Option<f64>| -> Vec<(f64, f64)> {
+        interior
+            .iter()
+            .filter_map(|b| Some((b.min.budget, f(b)?)))
+            .collect()
+    };
+    let mut candidates: Vec<LawPoints> = vec![("n_opt_vs_c", "C", "N_opt", along(|b| b.min.opt))];
+    if runs.d.is_some() {
+        candidates.push(("d_opt_vs_c", "C", "D_opt", along(|b| b.d_opt)));
+    } else {
+        skipped.push(format!(
+            "d_opt_vs_c: no tokens column {:?}",
+            opts.columns.d.name
+        ));
+    }
+    match vocabulary_gap(runs, opts) {
+        Some(why) => skipped.push(format!("v_opt_vs_c, nv_opt_vs_c, nv_vs_n: {why}")),
+        None => {
+            candidates.push(("v_opt_vs_c", "C", "V_opt", along(|b| b.v_opt)));
+            candidates.push(("nv_opt_vs_c", "C", "N_v_opt", along(|b| b.nv_opt)));
+            let at_n = vocab_minima
+                .iter()
+                .filter_map(|m| Some((m.fixed_n?, m.nv_opt?)))
+                .collect();
+            candidates.push(("nv_vs_n", "N", "N_v_opt", at_n));
+        }
+    }
+    let budgets_seen = budgets.len();
+    let mut laws = BTreeMap::new();
+    for (key, x_name, y_name, pts) in candidates {
+        if pts.len() < 3 {
+            skipped.push(format!(
+                "{key} ({y_name} ∝ {x_name}^k): {} usable minima (from {budgets_seen} budget group(s)), need 3",
+                pts.len()
+            ));
+            continue;
+        }
+        let (x, y): (Vec<f64>, Vec<f64>) = pts.into_iter().unzip();
+        match PowerLaw::fit(x_name, y_name, &x, &y) {
+            Some(l) => {
+                laws.insert(key.to_string(), l);
+            }
+            None => skipped.push(format!("{key}: the minima share one {x_name}")),
+        }
+    }
+    laws
+}
+
+/// Why the vocabulary laws cannot be fitted (`None` when they can be tried).
+fn vocabulary_gap(runs: &Runs, opts: &FitOptions) -> Option<String> {
+    let cs = &opts.columns;
+    let Some(v) = &runs.v else {
+        return Some(format!("no vocabulary column {:?}", cs.v.name));
+    };
+    if runs.width.is_none() {
+        return Some(format!(
+            "no width ({:?}, or {:?} to divide by V)",
+            cs.width.name, cs.nv.name
+        ));
+    }
+    let mut sizes = v.clone();
+    sizes.sort_by(f64::total_cmp);
+    sizes.dedup();
+    (sizes.len() < 3).then(|| {
+        let list: Vec<String> = sizes.iter().map(|s| format!("{s}")).collect();
+        format!(
+            "{} vocabulary size(s) in the table ({}); a minimum over V needs 3",
+            sizes.len(),
+            list.join(", ")
+        )
+    })
+}
+
+/// The parametric L(N, D) when the runs allow it (else the reason under `skipped`).
+fn parametric_fit(
+    runs: &Runs,
+    opts: &FitOptions,
+    skipped: &mut Vec<String>,
+    warnings: &mut Vec<String>,
+) -> Result<Option<Parametric>, FitError> {
+    let (name, pl) = &runs.param_loss;
+    let Some(d) = &runs.d else {
+        skipped.push(format!(
+            "parametric L(N, D): no tokens column {:?}",
+            opts.columns.d.name
+        ));
+        return Ok(None);
+    };
+    if let Some(row) = pl.iter().position(|&l| l <= 0.0) {
+        skipped.push(format!(
+            "parametric L(N, D): {name:?} has a non-positive loss ({}) at row {}; fit a positive loss with --param-loss-col",
+            pl[row],
+            row + 1
+        ));
+        return Ok(None);
+    }
+    if runs.len() < 6 {
+        skipped.push(format!(
+            "parametric L(N, D): {} runs, need at least 6 for 5 parameters",
+            runs.len()
+        ));
+        return Ok(None);
+    }
+    let p = fit_parametric(&LogRuns::new(&runs.n, d, pl), name, opts)?;
+    if p.bootstrap.succeeded < p.bootstrap.resamples {
+        warnings.push(format!(
+            "parametric bootstrap: {} of {} refits failed",
+            p.bootstrap.resamples - p.bootstrap.succeeded,
+            p.bootstrap.resamples
+        ));
+    }
+    Ok(Some(p))
+}
+
+/// Approach 2 (IsoFLOP minima) against approach 3 (parametric) on the N_opt and D_opt exponents.
+fn agreement(laws: &BTreeMap<String, PowerLaw>, p: Option<&Parametric>) -> Vec<Agreement> {
+    let Some(p) = p else {
+        return Vec::new();
+    };
+    [
+        ("N_opt", "n_opt_vs_c", p.n_opt_exponent),
+        ("D_opt", "d_opt_vs_c", p.d_opt_exponent),
+    ]
+    .into_iter()
+    .filter_map(|(quantity, key, parametric)| {
+        let isoflop = laws.get(key)?.fit.slope;
+        let overlap = match (
+            isoflop.ci_low,
+            isoflop.ci_high,
+            parametric.ci_low,
+            parametric.ci_high,
+        ) {
+            (Some(a), Some(b), Some(c), Some(d)) => Some(a <= d && c <= b),
+            _ => None,
+        };
+        Some(Agreement {
+            quantity: quantity.into(),
+            isoflop,
+            parametric,
+            overlap,
+        })
+    })
+    .collect()
 }
 
 /// Grid fit, then bootstrap, of L(N, D) on `runs`.
@@ -618,11 +686,13 @@ pub fn fit_parametric(
         *terminations.entry(key).or_insert(0) += 1;
     }
     Ok(Parametric {
-        e: est(0),
-        a: est(1),
-        b: est(2),
-        alpha: est(3),
-        beta: est(4),
+        law: LawEstimates {
+            e: est(0),
+            a: est(1),
+            b: est(2),
+            alpha: est(3),
+            beta: est(4),
+        },
         n_opt_exponent: interval(best_exps[0], &|s| exps(s)[0]),
         d_opt_exponent: interval(best_exps[1], &|s| exps(s)[1]),
         n_runs: runs.len(),
@@ -643,4 +713,232 @@ pub fn fit_parametric(
             samples,
         },
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::{Law, CHINCHILLA};
+    use std::fmt::Write as _;
+
+    /// Writes rows (budget, n_nv, tokens, loss, epochs) as a results CSV and reads it back.
+    fn table(dir: &tempfile::TempDir, rows: &[[f64; 5]]) -> Table {
+        let mut csv = String::from("budget,n_nv,tokens,test_loss,norm_test_loss,epochs\n");
+        for r in rows {
+            let _ = writeln!(csv, "{},{},{},{},{},{}", r[0], r[1], r[2], r[3], r[3], r[4]);
+        }
+        let path = dir.path().join("results.csv");
+        std::fs::write(&path, csv).unwrap();
+        Table::read(&path).unwrap()
+    }
+
+    fn quick() -> FitOptions {
+        FitOptions {
+            grid: StartGrid::coarse(),
+            grid_name: "coarse".into(),
+            bootstrap: 40,
+            ..FitOptions::default()
+        }
+    }
+
+    /// Seven sizes per budget, log-spaced over N_opt(C)·10^[−0.6, 0.6], loss from `law`.
+    fn isoflop_rows(law: &Law, budgets: &[f64], shift: f64) -> Vec<[f64; 5]> {
+        let mut rows = Vec::new();
+        for &c in budgets {
+            for k in 0..7 {
+                let n = law.n_opt(c) * 10f64.powf(-0.6 + 0.2 * k as f64);
+                let d = c / (6.0 * n);
+                rows.push([c, n, d, law.loss(n * shift, d), 1.0]);
+            }
+        }
+        rows
+    }
+
+    #[test]
+    fn holdout_budget_is_predicted_inside_its_interval_and_a_moved_optimum_is_caught() {
+        let dir = tempfile::tempdir().unwrap();
+        let budgets = [1e18, 3e18, 1e19, 3e19, 1e20];
+        let opts = FitOptions {
+            holdout_budget: Some(1e20),
+            ..quick()
+        };
+        let fits = fit_table(
+            &table(&dir, &isoflop_rows(&CHINCHILLA, &budgets, 1.0)),
+            &opts,
+        )
+        .unwrap();
+        assert_eq!(fits.budgets.len(), 4, "the held-out budget is not fitted");
+        let h = fits.holdout.as_ref().unwrap();
+        assert_eq!((h.runs, h.budget), (7, 1e20));
+        let n_check = &h.checks[0];
+        assert_eq!(n_check.quantity, "N_opt (IsoFLOP law)");
+        assert!(
+            (n_check.trained / CHINCHILLA.n_opt(1e20) - 1.0).abs() < 0.05,
+            "{n_check:?}"
+        );
+        assert!(
+            (n_check.ratio - 1.0).abs() < 0.05 && n_check.inside == Some(true),
+            "{n_check:?}"
+        );
+        let p = h
+            .checks
+            .iter()
+            .find(|c| c.quantity == "N_opt (parametric)")
+            .unwrap();
+        assert!((p.ratio - 1.0).abs() < 0.05, "{p:?}");
+
+        // The held-out runs as if their N were 4× larger (their optimum moves about 2× smaller): the prediction must miss it.
+        let mut rows = isoflop_rows(&CHINCHILLA, &budgets[..4], 1.0);
+        rows.extend(isoflop_rows(&CHINCHILLA, &budgets[4..], 4.0));
+        let fits = fit_table(&table(&dir, &rows), &opts).unwrap();
+        let n_check = &fits.holdout.as_ref().unwrap().checks[0];
+        assert!(
+            n_check.ratio > 1.5 && n_check.inside == Some(false),
+            "{n_check:?}"
+        );
+
+        let none = FitOptions {
+            holdout_budget: Some(5e21),
+            ..quick()
+        };
+        let err = fit_table(&table(&dir, &rows), &none)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("no budget group there") && err.contains("1.000e18"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn data_constrained_fit_recovers_r_star_and_wins_on_held_out_budgets() {
+        let law = Law {
+            e: 1.2,
+            a: 60.0,
+            b: 400.0,
+            alpha: 0.35,
+            beta: 0.3,
+        };
+        let (unique, r_star) = (2e7, 6.0f64);
+        let mut rows = Vec::new();
+        for c in [1e13, 3e13, 1e14, 3e14, 1e15] {
+            for k in 0..7 {
+                let n = 10f64.powf(4.0 + 0.33 * k as f64);
+                let d = c / (6.0 * n);
+                let (ln_dp, _) = repeated::effective_data(d, unique, r_star.ln());
+                let loss = law.e + law.a / n.powf(law.alpha) + law.b / ln_dp.exp().powf(law.beta);
+                rows.push([c, n, d, loss, d / unique]);
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let opts = FitOptions {
+            repeated_data: true,
+            ..quick()
+        };
+        let fits = fit_table(&table(&dir, &rows), &opts).unwrap();
+        let r = fits.repeated_data.as_ref().expect("fitted");
+        assert!(r.max_epochs > 100.0 && r.repeated_runs > 10, "{r:?}");
+        assert!(
+            (r.r_star.value / r_star - 1.0).abs() < 0.02,
+            "R* {:?}",
+            r.r_star
+        );
+        assert!(
+            (r.law.alpha.value - law.alpha).abs() < 0.01
+                && (r.law.beta.value - law.beta).abs() < 0.01
+        );
+        assert!((r.law.e.value - law.e).abs() < 0.01, "{:?}", r.law.e);
+        let h = r.held_out.as_ref().unwrap();
+        assert_eq!((h.folds, h.better.as_str()), (5, "repeated"), "{h:?}");
+        assert!(h.repeated_rms < 0.2 * h.plain_rms, "{h:?}");
+
+        // Without any repetition R* is not fitted, and the skip says why.
+        let once: Vec<[f64; 5]> = rows.iter().map(|r| [r[0], r[1], r[2], r[3], 0.5]).collect();
+        let fits = fit_table(&table(&dir, &once), &opts).unwrap();
+        assert!(fits.repeated_data.is_none());
+        assert!(
+            fits.skipped
+                .iter()
+                .any(|s| s.contains("no run repeats data")),
+            "{:?}",
+            fits.skipped
+        );
+    }
+
+    #[test]
+    fn one_budget_and_one_vocabulary_say_which_laws_cannot_be_fitted() {
+        let dir = tempfile::tempdir().unwrap();
+        let rows = isoflop_rows(&CHINCHILLA, &[1e19], 1.0);
+        let mut csv =
+            String::from("budget,n_nv,n_v,vocab,d_model,tokens,test_loss,norm_test_loss\n");
+        for r in &rows {
+            let _ = writeln!(
+                csv,
+                "{},{},{},{},{},{},{},{}",
+                r[0],
+                r[1],
+                1024.0 * 64.0,
+                1024,
+                64,
+                r[2],
+                r[3],
+                r[3]
+            );
+        }
+        let path = dir.path().join("one.csv");
+        std::fs::write(&path, csv).unwrap();
+        let fits = fit_table(&Table::read(&path).unwrap(), &quick()).unwrap();
+        assert!(fits.parametric.is_some(), "the parametric fit still runs");
+        let said = |needle: &str| fits.skipped.iter().any(|s| s.contains(needle));
+        assert!(
+            said("n_opt_vs_c (N_opt ∝ C^k): 1 usable minima (from 1 budget group(s))"),
+            "{:?}",
+            fits.skipped
+        );
+        assert!(
+            said("log law: 1 interior IsoFLOP minima in 1 budget group(s)"),
+            "{:?}",
+            fits.skipped
+        );
+        assert!(
+            said("1 vocabulary size(s) in the table (1024); a minimum over V needs 3"),
+            "{:?}",
+            fits.skipped
+        );
+        let total = fits
+            .total_n
+            .as_ref()
+            .expect("the total-parameter convention is fitted too");
+        assert_eq!(total.input.columns["N"].as_deref(), Some("n_nv + n_v"));
+    }
+
+    #[test]
+    fn approaches_two_and_three_agree_on_a_clean_law() {
+        let dir = tempfile::tempdir().unwrap();
+        let budgets = [1e18, 3e18, 1e19, 3e19, 1e20, 3e20];
+        let fits = fit_table(
+            &table(&dir, &isoflop_rows(&CHINCHILLA, &budgets, 1.0)),
+            &quick(),
+        )
+        .unwrap();
+        let n = fits
+            .agreement
+            .iter()
+            .find(|a| a.quantity == "N_opt")
+            .unwrap();
+        assert!(
+            (n.isoflop.value - CHINCHILLA.n_exponent()).abs() < 0.01,
+            "{n:?}"
+        );
+        assert!(
+            (n.parametric.value - CHINCHILLA.n_exponent()).abs() < 0.01,
+            "{n:?}"
+        );
+        assert_eq!(n.overlap, Some(true));
+        assert!(
+            fits.warnings.iter().all(|w| !w.contains("disagree")),
+            "{:?}",
+            fits.warnings
+        );
+    }
 }

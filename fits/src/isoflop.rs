@@ -56,6 +56,9 @@ pub struct BudgetMinimum {
     /// Why `nv_opt` is missing, when a vocabulary column exists.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub nv_reason: Option<String>,
+    /// V at N_opt (log10 of the fixed-N vocabulary optima linear in log10 N, as `nv_opt`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub v_opt: Option<f64>,
 }
 
 /// Fits a parabola of `loss` in log10 `x` (lowest loss per distinct x) and judges its vertex.
@@ -234,13 +237,16 @@ pub fn budget_minima(
                 let ly: Vec<f64> = best.iter().map(|&i| d[i].log10()).collect();
                 Line::fit(&lx, &ly).and_then(|line| at_opt(&line))
             });
+            let v_opt = cols
+                .v
+                .and_then(|_| at_optimum(&min, budget, vocab, |m| m.opt).0);
             let (nv_opt, nv_reason) = match (cols.v, cols.width) {
                 (None, _) => (None, None),
                 (Some(_), None) => (
                     None,
                     Some("no width column: N_v = V·d cannot be formed".to_string()),
                 ),
-                (Some(_), Some(_)) => nv_at_optimum(&min, budget, vocab),
+                (Some(_), Some(_)) => at_optimum(&min, budget, vocab, |m| m.nv_opt),
             };
             BudgetMinimum {
                 min,
@@ -248,6 +254,7 @@ pub fn budget_minima(
                 d_opt,
                 nv_opt,
                 nv_reason,
+                v_opt,
             }
         })
         .collect()
@@ -270,20 +277,22 @@ fn best_rows(cols: &Columns, rows: &[usize]) -> Vec<usize> {
     best
 }
 
-/// N_v_opt at N_opt: log10 N_v of the budget's interior fixed-N vocabulary minima, linear in
-/// log10 N, evaluated at N_opt when N_opt lies inside their N range.
-fn nv_at_optimum(
+/// A vocabulary optimum read off at N_opt: log10 of `value` (V_opt or N_v_opt) of the budget's
+/// interior fixed-N vocabulary minima, linear in log10 N, evaluated at N_opt when N_opt lies
+/// inside their N range.
+fn at_optimum(
     min: &IsoMinimum,
     budget: f64,
     vocab: &[IsoMinimum],
+    value: fn(&IsoMinimum) -> Option<f64>,
 ) -> (Option<f64>, Option<String>) {
     let Some(n_opt) = min.opt.filter(|_| min.interior) else {
         return (None, Some("no interior N minimum at this budget".into()));
     };
     let (lx, ly): (Vec<f64>, Vec<f64>) = vocab
         .iter()
-        .filter(|m| m.budget == budget)
-        .filter_map(|m| Some((m.fixed_n?.log10(), m.nv_opt?.log10())))
+        .filter(|m| m.budget == budget && m.interior)
+        .filter_map(|m| Some((m.fixed_n?.log10(), value(m)?.log10())))
         .unzip();
     if distinct(&lx) < 2 {
         return (

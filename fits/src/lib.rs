@@ -5,13 +5,16 @@
 pub mod analysis;
 mod error;
 mod fastmath;
+pub mod holdout;
 pub mod isoflop;
 pub mod laws;
 pub mod lbfgs;
 pub mod ols;
 pub mod parametric;
 pub mod predict;
+pub mod repeated;
 pub mod report;
+pub mod runs;
 pub mod synth;
 pub mod table;
 

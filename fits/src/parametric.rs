@@ -63,7 +63,7 @@ impl LogRuns {
 }
 
 /// log(Σ exp(tᵢ)) and the softmax weights, overflow-safe.
-fn lse3(t: [f64; 3]) -> (f64, [f64; 3]) {
+pub(crate) fn lse3(t: [f64; 3]) -> (f64, [f64; 3]) {
     let m = t[0].max(t[1]).max(t[2]);
     let e = t.map(|v| (v - m).exp());
     let s = e[0] + e[1] + e[2];

@@ -42,6 +42,8 @@ pub struct Laws {
     pub n: Option<PowerLaw>,
     /// N_v,opt = k·C^a.
     pub nv: Option<PowerLaw>,
+    /// V_opt = k·C^v (from the minima over V; fitted laws only).
+    pub v: Option<PowerLaw>,
     /// D_opt = k·C^c.
     pub d: Option<PowerLaw>,
     /// N_v = k·N_nv^γ.
@@ -62,6 +64,7 @@ impl Laws {
                 .into(),
             n: Some(PowerLaw::exact("C", "N_nv", -0.52, 0.57)),
             nv: Some(PowerLaw::exact("C", "N_v", -5.29, 0.75)),
+            v: None,
             d: Some(PowerLaw::exact("C", "D", -0.05, 0.43)),
             nv_vs_n: Some(PowerLaw::exact("N_nv", "N_v", -5.604, 1.467)),
             loss: Some(LogLaw::exact(-1.062, 13.839)),
@@ -77,6 +80,7 @@ impl Laws {
             source: source.into(),
             n: law("n_opt_vs_c"),
             nv: law("nv_opt_vs_c"),
+            v: law("v_opt_vs_c"),
             d: law("d_opt_vs_c"),
             nv_vs_n: law("nv_vs_n"),
             loss: f.log_law.clone(),
@@ -230,6 +234,8 @@ pub struct Prediction {
     pub width: Option<Width>,
     /// Codebook.
     pub vocab: Option<Vocab>,
+    /// V from its own C-law (the minima over V), when the fit has one.
+    pub v_opt: Option<Estimate>,
     /// Loss from the log law (95% interval of the fitted mean).
     pub loss: Option<Estimate>,
     /// From the parametric fit, when the fits have one.
@@ -295,7 +301,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
     let mut warnings = Vec::new();
     let mut checks = Vec::new();
     let mut equations = Vec::new();
-    for law in [&laws.n, &laws.nv, &laws.d, &laws.nv_vs_n]
+    for law in [&laws.n, &laws.nv, &laws.v, &laws.d, &laws.nv_vs_n]
         .into_iter()
         .flatten()
     {
@@ -398,6 +404,24 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
             "the C-laws imply an N_v–N_nv exponent; the direct fit should agree".into(),
         ));
     }
+    let v_opt = laws.v.as_ref().map(|l| l.at(c));
+    if let (Some(v), Some(from_nv)) = (&v_opt, &vocab) {
+        checks.push(Check::codebook(
+            "V: V-law vs N_v / d",
+            v.value,
+            from_nv.exact.value,
+            "V_opt from its own C-law, against N_v (its C-law) over the width".into(),
+        ));
+    }
+    let parametric = laws.parametric.as_ref().map(|p| parametric_at(p, c));
+    if let (Some(n), Some(pp)) = (&n_nv, &parametric) {
+        checks.push(Check::ratio(
+            "N_opt: IsoFLOP law (approach 2) vs parametric (approach 3)",
+            n.value,
+            pp.n_opt.value,
+            "the two ways of fitting the same runs should place the optimum alike".into(),
+        ));
+    }
     if laws.is_scamo {
         paper_checks(
             c,
@@ -435,8 +459,9 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         d_from_budget,
         width,
         vocab,
+        v_opt,
         loss: laws.loss.as_ref().map(|l| l.at(c)),
-        parametric: laws.parametric.as_ref().map(|p| parametric_at(p, c)),
+        parametric,
         consistency: checks,
         warnings,
     })
@@ -524,7 +549,13 @@ fn parametric_at(p: &Parametric, c: f64) -> ParametricPrediction {
         let d = c / (6.0 * n);
         [n, d, e + a / n.powf(alpha) + b / d.powf(beta)]
     };
-    let best = alloc([p.e.value, p.a.value, p.b.value, p.alpha.value, p.beta.value]);
+    let best = alloc([
+        p.law.e.value,
+        p.law.a.value,
+        p.law.b.value,
+        p.law.alpha.value,
+        p.law.beta.value,
+    ]);
     let draws: Vec<[f64; 3]> = p.bootstrap.samples.iter().map(|&s| alloc(s)).collect();
     let est = |k: usize| {
         let v: Vec<f64> = draws.iter().map(|d| d[k]).collect();

@@ -22,23 +22,21 @@ fn curve_color(i: usize) -> usize {
     }
 }
 
+/// The column the fit used for `role` (empty when none).
+fn column(f: &Fits, role: &str) -> String {
+    f.input
+        .columns
+        .get(role)
+        .cloned()
+        .flatten()
+        .unwrap_or_default()
+}
+
 /// The charts of a fit, each with its file stem.
 pub fn charts(f: &Fits) -> Vec<(String, Chart)> {
     let mut out = Vec::new();
-    let n_name = f
-        .input
-        .columns
-        .get("N")
-        .cloned()
-        .flatten()
-        .unwrap_or_default();
-    let loss_name = f
-        .input
-        .columns
-        .get("loss")
-        .cloned()
-        .flatten()
-        .unwrap_or_default();
+    let n_name = column(f, "N");
+    let loss_name = column(f, "loss");
     let mut iso = Chart::new(
         "IsoFLOP curves: loss vs N per budget, fitted parabolas in log10 N",
         format!("N ({n_name})"),
@@ -307,17 +305,32 @@ pub fn summary(f: &Fits) -> String {
             p.bootstrap.resamples
         );
         for (name, e) in [
-            ("E", &p.e),
-            ("A", &p.a),
-            ("B", &p.b),
-            ("alpha", &p.alpha),
-            ("beta", &p.beta),
+            ("E", &p.law.e),
+            ("A", &p.law.a),
+            ("B", &p.law.b),
+            ("alpha", &p.law.alpha),
+            ("beta", &p.law.beta),
         ] {
             let _ = writeln!(s, "  {name:<5} = {}", estimate_text(e));
         }
         let _ = writeln!(s, "  N_opt ∝ C^{}", estimate_text(&p.n_opt_exponent));
         let _ = writeln!(s, "  D_opt ∝ C^{}", estimate_text(&p.d_opt_exponent));
     }
+    for a in &f.agreement {
+        let _ = writeln!(
+            s,
+            "{} exponent: IsoFLOP (approach 2) {} vs parametric (approach 3) {}{}",
+            a.quantity,
+            estimate_text(&a.isoflop),
+            estimate_text(&a.parametric),
+            match a.overlap {
+                Some(true) => ": intervals overlap",
+                Some(false) => ": intervals DO NOT overlap",
+                None => "",
+            }
+        );
+    }
+    extras(f, &mut s);
     for k in &f.skipped {
         let _ = writeln!(s, "skipped: {k}");
     }
@@ -325,4 +338,85 @@ pub fn summary(f: &Fits) -> String {
         let _ = writeln!(s, "warning: {w}");
     }
     s
+}
+
+/// The summary lines of the total-parameter convention, the data-constrained fit and the
+/// held-out budget.
+fn extras(f: &Fits, s: &mut String) {
+    if let Some(t) = &f.total_n {
+        let n = column(t, "N");
+        let law = |k: &str, y: &str| {
+            t.power_laws
+                .get(k)
+                .map_or(format!("{y} law not fitted"), |l| {
+                    format!("{y} ∝ C^{}", estimate_text(&l.fit.slope))
+                })
+        };
+        let _ = writeln!(
+            s,
+            "total parameters (N = {n}): {}, {}{}",
+            law("n_opt_vs_c", "N_opt"),
+            law("d_opt_vs_c", "D_opt"),
+            t.parametric.as_ref().map_or(String::new(), |p| format!(
+                "; parametric alpha {}, beta {}, N_opt ∝ C^{}",
+                estimate_text(&p.law.alpha),
+                estimate_text(&p.law.beta),
+                estimate_text(&p.n_opt_exponent)
+            ))
+        );
+    }
+    if let Some(r) = &f.repeated_data {
+        let _ = writeln!(
+            s,
+            "data-constrained L(N, D'): R* = {}, alpha {}, beta {}, E {} ({} of {} runs repeat data, up to {:.1} epochs)",
+            estimate_text(&r.r_star),
+            estimate_text(&r.law.alpha),
+            estimate_text(&r.law.beta),
+            estimate_text(&r.law.e),
+            r.repeated_runs,
+            r.n_runs,
+            r.max_epochs
+        );
+        if let Some(note) = &r.note {
+            let _ = writeln!(s, "  note: {note}");
+        }
+        if let Some(h) = &r.held_out {
+            let _ = writeln!(
+                s,
+                "  leave-one-budget-out RMS log error over {} budgets: plain {}, data-constrained {} ({} is better)",
+                h.folds,
+                sig(h.plain_rms),
+                sig(h.repeated_rms),
+                h.better
+            );
+        }
+    }
+    if let Some(h) = &f.holdout {
+        let _ = writeln!(
+            s,
+            "held-out budget {:.3e} ({} runs; lowest loss {} at N = {:.3e}):",
+            h.budget,
+            h.runs,
+            sig(h.best_run[1]),
+            h.best_run[0]
+        );
+        for c in &h.checks {
+            let _ = writeln!(
+                s,
+                "  {}: predicted {} vs trained {} (ratio {:.3}){}",
+                c.quantity,
+                estimate_text(&c.predicted),
+                sig(c.trained),
+                c.ratio,
+                match c.inside {
+                    Some(true) => ": inside the interval",
+                    Some(false) => ": OUTSIDE the interval",
+                    None => "",
+                }
+            );
+        }
+        for m in &h.missing {
+            let _ = writeln!(s, "  not predicted: {m}");
+        }
+    }
 }

@@ -62,11 +62,11 @@ fn chinchilla_standin_parameters_lie_in_their_bootstrap_intervals() {
     assert_eq!(p.bootstrap.succeeded, 200);
     assert_eq!(p.loss_column, "loss");
     for (name, est, truth) in [
-        ("E", &p.e, CHINCHILLA.e),
-        ("A", &p.a, CHINCHILLA.a),
-        ("B", &p.b, CHINCHILLA.b),
-        ("alpha", &p.alpha, CHINCHILLA.alpha),
-        ("beta", &p.beta, CHINCHILLA.beta),
+        ("E", &p.law.e, CHINCHILLA.e),
+        ("A", &p.law.a, CHINCHILLA.a),
+        ("B", &p.law.b, CHINCHILLA.b),
+        ("alpha", &p.law.alpha, CHINCHILLA.alpha),
+        ("beta", &p.law.beta, CHINCHILLA.beta),
     ] {
         inside(name, est, truth);
     }
@@ -88,9 +88,18 @@ fn chinchilla_standin_parameters_lie_in_their_bootstrap_intervals() {
     assert!(n_law.fit.r2.unwrap() > 0.99);
     assert!(f.log_law.is_some());
     assert!(
-        f.skipped.iter().any(|s| s.starts_with("nv_opt_vs_c")),
+        f.skipped
+            .iter()
+            .any(|s| s.starts_with("v_opt_vs_c, nv_opt_vs_c, nv_vs_n: no vocabulary column")),
         "{:?}",
         f.skipped
+    );
+    // Approaches 2 and 3 agree on both exponents: their 95% intervals overlap.
+    assert_eq!(f.agreement.len(), 2);
+    assert!(
+        f.agreement.iter().all(|a| a.overlap == Some(true)),
+        "{:?}",
+        f.agreement
     );
 }
 
@@ -180,6 +189,16 @@ fn vocabulary_sweep_with_default_columns_recovers_gamma_from_csv_and_parquet() {
         &f.power_laws["nv_opt_vs_c"].fit.slope,
         VOCAB_LAW.gamma * base.n_exponent(),
     );
+    // V* = N_v*/d with d ∝ N^(1/3) (N = 12·(d/32)·d²): V_opt ∝ C^((γ − 1/3)·b).
+    within_2se(
+        "V_opt exponent",
+        &f.power_laws["v_opt_vs_c"].fit.slope,
+        (VOCAB_LAW.gamma - 1.0 / 3.0) * base.n_exponent(),
+    );
+    // The total-parameter convention is fitted beside N_nv.
+    let total = f.total_n.as_ref().unwrap();
+    assert_eq!(total.input.columns["N"].as_deref(), Some("n_nv + n_v"));
+    assert!(total.power_laws.contains_key("n_opt_vs_c"));
     // The normalised loss is negative for many runs: the log law uses it, the parametric fit
     // uses the positive test_loss.
     assert!(f.log_law.is_some());

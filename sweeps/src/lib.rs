@@ -13,6 +13,7 @@
 //! RUNS/slurm/                    sbatch scripts, job ids, logs (Slurm backend)
 //! ```
 
+pub mod centring;
 pub mod cl2gen;
 pub mod continual;
 pub mod error;

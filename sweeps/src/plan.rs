@@ -43,6 +43,7 @@
 //! tokenizer (`kind = "tokenizer"`) is only tokenized there, and a given token set
 //! (`kind = "token_set"`) is used as it is.
 
+use crate::centring::{self, Centre};
 use crate::SweepError;
 use ingest::corpus::manifest::Manifest;
 use ingest::corpus::Corpus;
@@ -68,12 +69,19 @@ pub struct IsoFlopPlan {
     pub text_encoder: String,
     /// Width of the caption embeddings (it sizes the text projection, part of N_nv).
     pub text_dim: usize,
+    /// Things to look at before running: sizes that do not bracket the predicted N_opt,
+    /// points dropped above `--max-epochs`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
     /// Training settings shared by every point.
     pub train: TrainSettings,
     /// The vocabularies, one per codebook size.
     pub vocabularies: Vec<Vocabulary>,
     /// Every (budget, model, vocabulary) point, in index order.
     pub points: Vec<PlanPoint>,
+    /// Each budget's predicted N_opt, when the sizes were centred on an earlier fit.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub centres: Vec<Centre>,
 }
 
 /// Prefix-LM training settings shared by every point (the rest of `model::train::TrainConfig`).
@@ -193,6 +201,8 @@ pub enum PointFlag {
     ExceedsData,
     /// D is less than one batch of mean-length clips: the point is not run.
     BelowOneStep,
+    /// D is more epochs of the train split than `--max-epochs` allows (kept, flagged).
+    AboveMaxEpochs,
 }
 
 /// One run of the sweep.
@@ -232,6 +242,7 @@ impl PointFlag {
         match self {
             Self::ExceedsData => "exceeds-data",
             Self::BelowOneStep => "below-one-step",
+            Self::AboveMaxEpochs => "above-max-epochs",
         }
     }
 }
@@ -258,6 +269,28 @@ pub struct PlanRequest {
     pub vocabularies: Vec<(usize, VocabSource)>,
     /// Shared training settings.
     pub train: TrainSettings,
+    /// Centre each budget's sizes on an earlier fit's N_opt.
+    pub centring: Option<Centring>,
+    /// The most epochs of the train split a point may take.
+    pub max_epochs: Option<EpochLimit>,
+}
+
+/// Sizes per budget, taken from the model list around an earlier fit's N_opt.
+#[derive(Debug, Clone)]
+pub struct Centring {
+    /// The earlier fit (`fits.json`).
+    pub fits: fits::Fits,
+    /// Models per budget.
+    pub sizes: usize,
+}
+
+/// A limit on data repetition.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EpochLimit {
+    /// Epochs over the unique train tokens.
+    pub epochs: f64,
+    /// Drop points above it (else keep them flagged `above-max-epochs`).
+    pub drop: bool,
 }
 
 /// The shape a plan's model name stands for: a preset, or `WxL` / `WxLxH` (width W, L
@@ -413,38 +446,39 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
             source,
         });
     }
+    let mut warnings = Vec::new();
+    let mut centres = Vec::new();
     let mut points = Vec::new();
     for &budget in &request.budgets {
-        for name in &models {
+        let names = match &request.centring {
+            None => models.clone(),
+            Some(c) => {
+                let (names, centre) =
+                    centred_models(&models, c, budget, &vocabularies[0], text_dim)?;
+                let sizes: Vec<f64> = names.iter().map(|(_, n)| *n).collect();
+                warnings.extend(centring::bracket_warning(&sizes, centre.n_opt, budget));
+                centres.push(centre);
+                names.into_iter().map(|(name, _)| name).collect()
+            }
+        };
+        for name in &names {
             for vocab in &vocabularies {
-                let config: PrefixLmConfig =
-                    model_shape(name)?.resolve(vocab.codebook_size, text_dim)?;
-                let params = accounting::param_count(&config);
-                let tokens = accounting::tokens_for_budget(&config, budget).round() as u64;
-                let per_step = settings.batch_size as f64 * vocab.train_tokens as f64
-                    / vocab.train_clips.max(1) as f64;
-                let mut flags = Vec::new();
-                if tokens > vocab.train_tokens {
-                    flags.push(PointFlag::ExceedsData);
+                let mut point = plan_point(budget, name, vocab, settings, text_dim)?;
+                match request.max_epochs {
+                    Some(limit) if point.epochs > limit.epochs && limit.drop => {
+                        warnings.push(format!(
+                            "dropped {}: {:.1} epochs of the train split > --max-epochs {}",
+                            point.run_id, point.epochs, limit.epochs
+                        ));
+                        continue;
+                    }
+                    Some(limit) if point.epochs > limit.epochs => {
+                        point.flags.push(PointFlag::AboveMaxEpochs)
+                    }
+                    _ => {}
                 }
-                if (tokens as f64) < per_step {
-                    flags.push(PointFlag::BelowOneStep);
-                }
-                points.push(PlanPoint {
-                    index: points.len(),
-                    run_id: run_id(budget, name, vocab.codebook),
-                    budget,
-                    model: name.clone(),
-                    codebook: vocab.codebook,
-                    d_model: config.d_model,
-                    n_layers: config.n_layers,
-                    n_heads: config.n_heads,
-                    n_nv: params.n_nv,
-                    n_v: params.n_v,
-                    tokens,
-                    epochs: tokens as f64 / vocab.train_tokens.max(1) as f64,
-                    flags,
-                });
+                point.index = points.len();
+                points.push(point);
             }
         }
     }
@@ -453,12 +487,74 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
         corpus,
         text_encoder,
         text_dim,
+        warnings,
         train: settings.clone(),
         vocabularies,
         points,
+        centres,
     };
     plan.validate(Path::new("plan"))?;
     Ok(plan)
+}
+
+/// The point of `budget`, model `name` and `vocab` (index 0; the caller numbers it).
+fn plan_point(
+    budget: f64,
+    name: &str,
+    vocab: &Vocabulary,
+    settings: &TrainSettings,
+    text_dim: usize,
+) -> Result<PlanPoint, SweepError> {
+    let config: PrefixLmConfig = model_shape(name)?.resolve(vocab.codebook_size, text_dim)?;
+    let params = accounting::param_count(&config);
+    let tokens = accounting::tokens_for_budget(&config, budget).round() as u64;
+    let per_step =
+        settings.batch_size as f64 * vocab.train_tokens as f64 / vocab.train_clips.max(1) as f64;
+    let mut flags = Vec::new();
+    if tokens > vocab.train_tokens {
+        flags.push(PointFlag::ExceedsData);
+    }
+    if (tokens as f64) < per_step {
+        flags.push(PointFlag::BelowOneStep);
+    }
+    Ok(PlanPoint {
+        index: 0,
+        run_id: run_id(budget, name, vocab.codebook),
+        budget,
+        model: name.to_string(),
+        codebook: vocab.codebook,
+        d_model: config.d_model,
+        n_layers: config.n_layers,
+        n_heads: config.n_heads,
+        n_nv: params.n_nv,
+        n_v: params.n_v,
+        tokens,
+        epochs: tokens as f64 / vocab.train_tokens.max(1) as f64,
+        flags,
+    })
+}
+
+/// The `centring.sizes` models (with their N_nv, smallest first) around the N_opt that the
+/// earlier fit predicts at `budget`, and that prediction.
+fn centred_models(
+    models: &[String],
+    centring: &Centring,
+    budget: f64,
+    vocab: &Vocabulary,
+    text_dim: usize,
+) -> Result<(Vec<(String, f64)>, Centre), SweepError> {
+    let mut sized = Vec::new();
+    for name in models {
+        let config = model_shape(name)?.resolve(vocab.codebook_size, text_dim)?;
+        sized.push((name.clone(), accounting::param_count(&config).n_nv as f64));
+    }
+    sized.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let fits = &centring.fits;
+    let centre = centring::centre(&fits.budgets, fits.power_laws.get("n_opt_vs_c"), budget)
+        .map_err(SweepError::Argument)?;
+    let sizes: Vec<f64> = sized.iter().map(|(_, n)| *n).collect();
+    let range = centring::window(&sizes, centre.n_opt, centring.sizes);
+    Ok((sized[range].to_vec(), centre))
 }
 
 /// `source` with its folder made absolute (plans are run from other folders, e.g. by Slurm).
@@ -614,6 +710,7 @@ mod tests {
             corpus: "/corpus".into(),
             text_encoder: "encoder".into(),
             text_dim: 384,
+            warnings: vec!["budget 1e12: a warning".into()],
             train: TrainSettings::default(),
             vocabularies: vec![
                 vocab(
@@ -640,6 +737,11 @@ mod tests {
                     vec![PointFlag::ExceedsData, PointFlag::BelowOneStep],
                 ),
             ],
+            centres: vec![Centre {
+                budget: 1e12,
+                n_opt: 1.5e5,
+                source: "the fit's law".into(),
+            }],
         }
     }
 

@@ -1,0 +1,355 @@
+//! The data-constrained law of Muennighoff et al. (2023): repeated tokens are worth less than
+//! fresh ones. With U unique tokens seen for D tokens in all, R = D/U − 1 repetitions and the
+//! effective data D' = U + U·R*·(1 − e^(−R/R*)) replaces D in L(N, D) = E + A/N^α + B/D'^β.
+//! R* (the repetitions after which extra epochs are worth 1/e of fresh data) is fitted with the
+//! other five parameters (Huber on log residuals, L-BFGS, bootstrap intervals), and both this
+//! fit and the plain one are scored on each budget left out in turn.
+
+use crate::analysis::{FitOptions, Fits, LawEstimates};
+use crate::isoflop;
+use crate::laws::Estimate;
+use crate::lbfgs::{minimize, Minimum, Termination};
+use crate::parametric::{self, huber, lse3, percentile, LogRuns, StartGrid};
+use crate::runs::Runs;
+use ingest::rng::SplitMix64;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Runs for the data-constrained fit.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DataRuns {
+    /// ln N.
+    pub ln_n: Vec<f64>,
+    /// Tokens seen, D.
+    pub d: Vec<f64>,
+    /// Unique tokens, U.
+    pub u: Vec<f64>,
+    /// ln L.
+    pub ln_l: Vec<f64>,
+}
+
+impl DataRuns {
+    /// From positive N, D, U and L.
+    pub fn new(n: &[f64], d: &[f64], u: &[f64], loss: &[f64]) -> Self {
+        Self {
+            ln_n: n.iter().map(|v| v.ln()).collect(),
+            d: d.to_vec(),
+            u: u.to_vec(),
+            ln_l: loss.iter().map(|v| v.ln()).collect(),
+        }
+    }
+
+    /// Number of runs.
+    pub fn len(&self) -> usize {
+        self.ln_l.len()
+    }
+
+    /// True without runs.
+    pub fn is_empty(&self) -> bool {
+        self.ln_l.is_empty()
+    }
+
+    fn select(&self, idx: &[usize]) -> Self {
+        let pick = |v: &[f64]| idx.iter().map(|&i| v[i]).collect();
+        Self {
+            ln_n: pick(&self.ln_n),
+            d: pick(&self.d),
+            u: pick(&self.u),
+            ln_l: pick(&self.ln_l),
+        }
+    }
+
+    /// The plain runs (D' = D).
+    fn plain(&self) -> LogRuns {
+        LogRuns {
+            ln_n: self.ln_n.clone(),
+            ln_d: self.d.iter().map(|v| v.ln()).collect(),
+            ln_l: self.ln_l.clone(),
+        }
+    }
+}
+
+/// ln D' and d(ln D')/d(ln R*) for one run.
+pub fn effective_data(d: f64, u: f64, ln_r_star: f64) -> (f64, f64) {
+    let r_star = ln_r_star.exp();
+    let r = (d / u - 1.0).max(0.0);
+    let x = r / r_star;
+    let decay = (-x).exp();
+    let dp = d.min(u) + u * r_star * (1.0 - decay);
+    let d_dp = u * r_star * ((1.0 - decay) - x * decay);
+    (dp.ln(), d_dp / dp)
+}
+
+/// Σ Huber_δ of the log residuals at θ = (a, b, e, α, β, ln R*); writes the gradient.
+pub fn objective(runs: &DataRuns, delta: f64, theta: &[f64; 6], grad: &mut [f64; 6]) -> f64 {
+    *grad = [0.0; 6];
+    let [a, b, e, alpha, beta, r] = *theta;
+    let mut total = 0.0;
+    for i in 0..runs.len() {
+        let (ln_dp, dln_dp) = effective_data(runs.d[i], runs.u[i], r);
+        let (lse, w) = lse3([a - alpha * runs.ln_n[i], b - beta * ln_dp, e]);
+        let (h, dh) = huber(lse - runs.ln_l[i], delta);
+        total += h;
+        grad[0] += dh * w[0];
+        grad[1] += dh * w[1];
+        grad[2] += dh * w[2];
+        grad[3] -= dh * w[0] * runs.ln_n[i];
+        grad[4] -= dh * w[1] * ln_dp;
+        grad[5] -= dh * w[1] * beta * dln_dp;
+    }
+    total
+}
+
+/// Leave-one-budget-out error of the plain and the data-constrained fits, in ln L.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HeldOutError {
+    /// Budgets left out in turn.
+    pub folds: usize,
+    /// RMS log residual of the plain L(N, D) on the left-out budgets.
+    pub plain_rms: f64,
+    /// RMS log residual of L(N, D') on the left-out budgets.
+    pub repeated_rms: f64,
+    /// `plain` or `repeated`: the lower held-out error.
+    pub better: String,
+}
+
+/// The data-constrained fit as recorded in `fits.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RepeatedData {
+    /// The law's parameters.
+    #[serde(flatten)]
+    pub law: LawEstimates,
+    /// R*.
+    pub r_star: Estimate,
+    /// Runs fitted.
+    pub n_runs: usize,
+    /// Runs that saw some token more than once (epochs > 1).
+    pub repeated_runs: usize,
+    /// The most epochs of any run.
+    pub max_epochs: f64,
+    /// Σ Huber at the optimum.
+    pub objective: f64,
+    /// Why the best start stopped.
+    pub termination: Termination,
+    /// Bootstrap resamples drawn and those that refitted to finite values.
+    pub bootstrap: [usize; 2],
+    /// The plain and data-constrained fits on budgets they did not see.
+    pub held_out: Option<HeldOutError>,
+    /// How to read R* (set when it is far beyond the repetitions the runs have).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
+}
+
+/// Starts: the plain fit's optimum and the coarse grid, each with several R*.
+fn starts(plain: &[f64; 5]) -> Vec<[f64; 6]> {
+    let with_r = |t: &[f64; 5], rs: &[f64]| -> Vec<[f64; 6]> {
+        rs.iter()
+            .map(|r| [t[0], t[1], t[2], t[3], t[4], r.ln()])
+            .collect()
+    };
+    let mut out = with_r(plain, &[0.5, 1.0, 2.0, 5.0, 15.0, 50.0, 200.0]);
+    for t in StartGrid::coarse().points() {
+        out.extend(with_r(&t, &[2.0, 15.0, 100.0]));
+    }
+    out
+}
+
+/// The best end point of L-BFGS from every start (`None` if none is finite).
+fn best_of(runs: &DataRuns, opts: &FitOptions, starts: &[[f64; 6]]) -> Option<Minimum<6>> {
+    let delta = opts.huber_delta;
+    starts
+        .par_iter()
+        .map(|&s| minimize(|t, g| objective(runs, delta, t, g), s, &opts.lbfgs))
+        .filter(|m| m.f.is_finite() && m.x.iter().all(|v| v.is_finite()))
+        .min_by(|a, b| a.f.total_cmp(&b.f))
+}
+
+/// The data-constrained fit of `runs` (the plain parametric fit in `fits` seeds it); the error
+/// says why it cannot be fitted.
+pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, String> {
+    let (Some(d), Some(u), Some(epochs)) = (&runs.d, runs.unique_tokens(), &runs.epochs) else {
+        return Err(format!(
+            "needs a tokens column and an epochs column ({:?}: epochs over the unique tokens)",
+            opts.columns.epochs.name
+        ));
+    };
+    let plain = fits
+        .parametric
+        .as_ref()
+        .ok_or("needs the plain parametric fit (see its skip reason)")?;
+    let max_epochs = epochs.iter().copied().fold(0.0, f64::max);
+    let repeated_runs = epochs.iter().filter(|&&e| e > 1.0).count();
+    if repeated_runs == 0 {
+        return Err(format!(
+            "no run repeats data (at most {max_epochs:.2} epochs): R* cannot be fitted"
+        ));
+    }
+    let data = DataRuns::new(&runs.n, d, &u, &runs.param_loss.1);
+    let best = best_of(&data, opts, &starts(&plain.theta))
+        .ok_or("the objective is not finite at any start")?;
+    let draws: Vec<[f64; 6]> = (0..opts.bootstrap)
+        .into_par_iter()
+        .filter_map(|i| {
+            let mut rng = SplitMix64::stream(opts.seed, i as u64);
+            let idx: Vec<usize> = (0..data.len()).map(|_| rng.index(data.len())).collect();
+            let sample = data.select(&idx);
+            let m = minimize(
+                |t, g| objective(&sample, opts.huber_delta, t, g),
+                best.x,
+                &opts.lbfgs,
+            );
+            let nat = natural(&m.x);
+            (m.f.is_finite() && nat.iter().all(|v| v.is_finite())).then_some(nat)
+        })
+        .collect();
+    let value = natural(&best.x);
+    // Far past the largest repetition count, e^(−R/R*) ≈ 1 − R/R* and D' ≈ D: no discount.
+    let note = (value[5] > 100.0 * (max_epochs - 1.0)).then(|| {
+        format!(
+            "R* = {:.3e} is more than 100 times the largest repetition count ({:.1}): D' ≈ D for every run, so repetition costs nothing these runs can measure",
+            value[5],
+            max_epochs - 1.0
+        )
+    });
+    let est = |k: usize| {
+        let v: Vec<f64> = draws.iter().map(|s| s[k]).collect();
+        Estimate {
+            value: value[k],
+            se: None,
+            ci_low: percentile(&v, 0.025),
+            ci_high: percentile(&v, 0.975),
+        }
+    };
+    Ok(RepeatedData {
+        law: LawEstimates {
+            e: est(0),
+            a: est(1),
+            b: est(2),
+            alpha: est(3),
+            beta: est(4),
+        },
+        r_star: est(5),
+        n_runs: data.len(),
+        repeated_runs,
+        max_epochs,
+        objective: best.f,
+        termination: best.termination,
+        bootstrap: [opts.bootstrap, draws.len()],
+        held_out: held_out(runs, &data, opts, &plain.theta, &best.x),
+        note,
+    })
+}
+
+/// θ → (E, A, B, α, β, R*).
+fn natural(t: &[f64; 6]) -> [f64; 6] {
+    [t[2].exp(), t[0].exp(), t[1].exp(), t[3], t[4], t[5].exp()]
+}
+
+/// Leave each budget out, refit both forms on the rest (from the full-data optima and the
+/// coarse grid), and collect the log residuals on the left-out runs; `None` below 3 budgets.
+fn held_out(
+    runs: &Runs,
+    data: &DataRuns,
+    opts: &FitOptions,
+    plain: &[f64; 5],
+    repeated: &[f64; 6],
+) -> Option<HeldOutError> {
+    let groups = isoflop::group_rows(&runs.c, runs.group.as_deref(), opts.group_tol_dex);
+    if groups.len() < 3 {
+        return None;
+    }
+    let mut plain_starts = StartGrid::coarse().points();
+    plain_starts.push(*plain);
+    let mut repeated_starts = starts(plain);
+    repeated_starts.push(*repeated);
+    let (mut sq_plain, mut sq_rep, mut count) = (0.0, 0.0, 0usize);
+    for (g, left_out) in groups.iter().enumerate() {
+        let kept: Vec<usize> = groups
+            .iter()
+            .enumerate()
+            .filter(|&(k, _)| k != g)
+            .flat_map(|(_, rows)| rows.iter().copied())
+            .collect();
+        let train = data.select(&kept);
+        let test = data.select(left_out);
+        let p =
+            parametric::multi_start(&train.plain(), opts.huber_delta, &plain_starts, &opts.lbfgs)
+                .ok()?;
+        let r = best_of(&train, opts, &repeated_starts)?;
+        sq_plain += test
+            .plain()
+            .residuals(&p.best().x)
+            .iter()
+            .map(|v| v * v)
+            .sum::<f64>();
+        let mut scratch = [0.0; 6];
+        for i in 0..test.len() {
+            let one = test.select(&[i]);
+            // Huber with a huge δ is r²/2: the squared residual of one run.
+            sq_rep += 2.0 * objective(&one, f64::MAX, &r.x, &mut scratch);
+        }
+        count += test.len();
+    }
+    let (plain_rms, repeated_rms) = (
+        (sq_plain / count as f64).sqrt(),
+        (sq_rep / count as f64).sqrt(),
+    );
+    Some(HeldOutError {
+        folds: groups.len(),
+        plain_rms,
+        repeated_rms,
+        better: if repeated_rms < plain_rms {
+            "repeated"
+        } else {
+            "plain"
+        }
+        .into(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn effective_data_is_d_without_repetition_and_saturates_with_it() {
+        let (ln_dp, _) = effective_data(5e8, 1e9, 2.0f64.ln());
+        assert!((ln_dp - 5e8f64.ln()).abs() < 1e-12);
+        // Many epochs: D' → U·(1 + R*).
+        let (ln_dp, _) = effective_data(1e9 * 1e4, 1e9, 15f64.ln());
+        assert!((ln_dp.exp() / (1e9 * 16.0) - 1.0).abs() < 1e-9);
+        // Few repetitions count almost fully: 2 epochs with R* = 100 are ≈ 2U.
+        let (ln_dp, _) = effective_data(2e9, 1e9, 100f64.ln());
+        assert!((ln_dp.exp() / 2e9 - 1.0).abs() < 0.01);
+    }
+
+    #[test]
+    fn gradient_matches_finite_differences() {
+        let runs = DataRuns::new(
+            &[1e5, 3e5, 2e6, 5e5],
+            &[1e7, 4e7, 9e6, 3e8],
+            &[2e7, 1e7, 1e7, 1e7],
+            &[2.1, 1.9, 2.0, 1.8],
+        );
+        let theta = [6.0, 5.5, 0.4, 0.33, 0.27, 1.5];
+        for delta in [1e-3, 10.0] {
+            let mut g = [0.0; 6];
+            objective(&runs, delta, &theta, &mut g);
+            for k in 0..6 {
+                let h = 1e-6;
+                let (mut tp, mut tm) = (theta, theta);
+                tp[k] += h;
+                tm[k] -= h;
+                let mut s = [0.0; 6];
+                let fd = (objective(&runs, delta, &tp, &mut s)
+                    - objective(&runs, delta, &tm, &mut s))
+                    / (2.0 * h);
+                assert!(
+                    (fd - g[k]).abs() < 1e-6 * (1.0 + g[k].abs()),
+                    "δ={delta} k={k}: {fd} vs {}",
+                    g[k]
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,261 @@
+//! The runs a fit reads: the results table's columns, checked and row-aligned, with the
+//! derived ones (C without a compute column, width without a width column).
+
+use crate::analysis::{ColumnChoice, FitOptions};
+use crate::table::Table;
+use crate::FitError;
+use std::collections::BTreeMap;
+
+/// One results table as the fit sees it; every vector has one value per run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Runs {
+    /// Model size N (the N column; `N_nv + N_v` in the total-parameter convention).
+    pub n: Vec<f64>,
+    /// Loss for the minima, power laws and log law.
+    pub loss: Vec<f64>,
+    /// Loss for the parametric fit, and its column's name.
+    pub param_loss: (String, Vec<f64>),
+    /// Compute C.
+    pub c: Vec<f64>,
+    /// Training tokens D.
+    pub d: Option<Vec<f64>>,
+    /// Vocabulary size V.
+    pub v: Option<Vec<f64>>,
+    /// Vocabulary parameters N_v.
+    pub nv: Option<Vec<f64>>,
+    /// Model width.
+    pub width: Option<Vec<f64>>,
+    /// Budget-group key.
+    pub group: Option<Vec<f64>>,
+    /// Epochs over the unique training tokens (the data-constrained fit's input).
+    pub epochs: Option<Vec<f64>>,
+    /// Role → column used (`None`: not used).
+    pub columns: BTreeMap<String, Option<String>>,
+    /// Defaults substituted or computed.
+    pub notes: Vec<String>,
+}
+
+/// Reads a column the user may or may not have named; `Ok(None)` for a missing default.
+fn optional(t: &Table, col: &ColumnChoice, flag: &str) -> Result<Option<Vec<f64>>, FitError> {
+    if t.has(&col.name) || col.explicit {
+        t.numbers(&col.name, flag).map(Some)
+    } else {
+        Ok(None)
+    }
+}
+
+/// Every value must be > 0 (the column goes on a log axis).
+fn positive(t: &Table, name: &str, values: &[f64]) -> Result<(), FitError> {
+    match values.iter().position(|&v| v <= 0.0) {
+        None => Ok(()),
+        Some(row) => Err(FitError::BadCell {
+            path: t.path().to_path_buf(),
+            column: name.into(),
+            row: row + 1,
+            problem: format!("{} must be > 0 (it goes on a log scale)", values[row]),
+        }),
+    }
+}
+
+impl Runs {
+    /// Reads and checks the columns `opts` names from `t`.
+    pub fn read(t: &Table, opts: &FitOptions) -> Result<Self, FitError> {
+        let cs = &opts.columns;
+        let mut notes = Vec::new();
+        let mut columns: BTreeMap<String, Option<String>> = BTreeMap::new();
+        let n = t.numbers(&cs.n.name, "--n-col")?;
+        positive(t, &cs.n.name, &n)?;
+        let loss = t.numbers(&cs.loss.name, "--loss-col")?;
+        columns.insert("N".into(), Some(cs.n.name.clone()));
+        columns.insert("loss".into(), Some(cs.loss.name.clone()));
+        let mut read = |role: &str, col: &ColumnChoice, flag: &str| {
+            let values = optional(t, col, flag)?;
+            if let Some(vals) = &values {
+                positive(t, &col.name, vals)?;
+            }
+            columns.insert(role.into(), values.as_ref().map(|_| col.name.clone()));
+            Ok::<_, FitError>(values)
+        };
+        let d = read("D", &cs.d, "--d-col")?;
+        let v = read("V", &cs.v, "--v-col")?;
+        let nv = read("N_v", &cs.nv, "--nv-col")?;
+        let width_col = read("width", &cs.width, "--width-col")?;
+        let epochs = read("epochs", &cs.epochs, "--epochs-col")?;
+        let c = match optional(t, &cs.c, "--c-col")? {
+            Some(c) => {
+                positive(t, &cs.c.name, &c)?;
+                columns.insert("C".into(), Some(cs.c.name.clone()));
+                c
+            }
+            None => {
+                let Some(d) = &d else {
+                    return Err(FitError::MissingColumn {
+                        path: t.path().to_path_buf(),
+                        column: cs.c.name.clone(),
+                        available: t.names().join(", "),
+                        hint: "pick the compute column with --c-col (or give --d-col so C = 6·N·D)"
+                            .into(),
+                    });
+                };
+                let extra = nv.as_deref();
+                notes.push(format!(
+                    "no column {:?}: C computed as 6·({}{})·{}",
+                    cs.c.name,
+                    cs.n.name,
+                    extra.map_or(String::new(), |_| format!(" + {}", cs.nv.name)),
+                    cs.d.name
+                ));
+                columns.insert("C".into(), None);
+                (0..n.len())
+                    .map(|i| 6.0 * (n[i] + extra.map_or(0.0, |x| x[i])) * d[i])
+                    .collect()
+            }
+        };
+        let width = match (&width_col, &v, &nv) {
+            (Some(w), _, _) => Some(w.clone()),
+            (None, Some(v), Some(nv)) => {
+                notes.push(format!(
+                    "no column {:?}: width = {} / {}",
+                    cs.width.name, cs.nv.name, cs.v.name
+                ));
+                Some(nv.iter().zip(v).map(|(a, b)| a / b).collect())
+            }
+            _ => None,
+        };
+        let group = optional(t, &cs.group, "--group-col")?;
+        columns.insert(
+            "group".into(),
+            group.as_ref().map(|_| cs.group.name.clone()),
+        );
+        let param_loss = match optional(t, &cs.param_loss, "--param-loss-col")? {
+            Some(l) => (cs.param_loss.name.clone(), l),
+            None => {
+                notes.push(format!(
+                    "no column {:?}: the parametric fit uses {:?}",
+                    cs.param_loss.name, cs.loss.name
+                ));
+                (cs.loss.name.clone(), loss.clone())
+            }
+        };
+        columns.insert("parametric_loss".into(), Some(param_loss.0.clone()));
+        Ok(Self {
+            n,
+            loss,
+            param_loss,
+            c,
+            d,
+            v,
+            nv,
+            width,
+            group,
+            epochs,
+            columns,
+            notes,
+        })
+    }
+
+    /// Number of runs.
+    pub fn len(&self) -> usize {
+        self.n.len()
+    }
+
+    /// True without runs.
+    pub fn is_empty(&self) -> bool {
+        self.n.is_empty()
+    }
+
+    /// The runs at `rows`, in that order.
+    pub fn select(&self, rows: &[usize]) -> Self {
+        let pick = |v: &[f64]| rows.iter().map(|&i| v[i]).collect::<Vec<f64>>();
+        let pick_opt = |v: &Option<Vec<f64>>| v.as_deref().map(pick);
+        Self {
+            n: pick(&self.n),
+            loss: pick(&self.loss),
+            param_loss: (self.param_loss.0.clone(), pick(&self.param_loss.1)),
+            c: pick(&self.c),
+            d: pick_opt(&self.d),
+            v: pick_opt(&self.v),
+            nv: pick_opt(&self.nv),
+            width: pick_opt(&self.width),
+            group: pick_opt(&self.group),
+            epochs: pick_opt(&self.epochs),
+            columns: self.columns.clone(),
+            notes: self.notes.clone(),
+        }
+    }
+
+    /// The same runs with N counted as every parameter, N + N_v (embedding and output head
+    /// included, as Pearce & Song 2024 recommend at small scale); `None` without an N_v column.
+    pub fn total_parameters(&self) -> Option<Self> {
+        let nv = self.nv.as_ref()?;
+        let mut out = self.clone();
+        out.n = self.n.iter().zip(nv).map(|(a, b)| a + b).collect();
+        let name = |c: &Option<String>| c.clone().unwrap_or_default();
+        let total = format!(
+            "{} + {}",
+            name(&self.columns["N"]),
+            name(&self.columns["N_v"])
+        );
+        out.columns.insert("N".into(), Some(total));
+        Some(out)
+    }
+
+    /// Unique training tokens per run, D / epochs (needs both columns).
+    pub fn unique_tokens(&self) -> Option<Vec<f64>> {
+        let (d, e) = (self.d.as_ref()?, self.epochs.as_ref()?);
+        Some(d.iter().zip(e).map(|(d, e)| d / e).collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn runs() -> Runs {
+        let mut columns = BTreeMap::new();
+        columns.insert("N".to_string(), Some("n_nv".to_string()));
+        columns.insert("N_v".to_string(), Some("n_v".to_string()));
+        Runs {
+            n: vec![74_048.0, 24_672.0],
+            loss: vec![-3.1, -3.3],
+            param_loss: ("test_loss".into(), vec![1.84, 1.71]),
+            c: vec![3e11, 3e11],
+            d: Some(vec![476_163.0, 1_243_403.0]),
+            v: Some(vec![240.0, 240.0]),
+            nv: Some(vec![31_104.0, 15_552.0]),
+            width: Some(vec![64.0, 32.0]),
+            group: None,
+            epochs: Some(vec![2.0, 4.0]),
+            columns,
+            notes: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn total_parameters_add_the_vocabulary_parameters_by_hand() {
+        // The sweep's c3e11 rows: N_v = (240 codes + 3 specials)·d for the embedding and
+        // again for the head: 243·64·2 = 31,104 and 243·32·2 = 15,552.
+        let r = runs();
+        assert_eq!(r.nv.as_ref().unwrap()[0], 243.0 * 64.0 * 2.0);
+        assert_eq!(r.nv.as_ref().unwrap()[1], 243.0 * 32.0 * 2.0);
+        let t = r.total_parameters().unwrap();
+        assert_eq!(t.n, vec![74_048.0 + 31_104.0, 24_672.0 + 15_552.0]);
+        assert_eq!(t.columns["N"].as_deref(), Some("n_nv + n_v"));
+        assert_eq!(t.loss, r.loss);
+        let mut no_nv = r.clone();
+        no_nv.nv = None;
+        assert!(no_nv.total_parameters().is_none());
+    }
+
+    #[test]
+    fn select_and_unique_tokens() {
+        let r = runs();
+        let s = r.select(&[1]);
+        assert_eq!(s.n, vec![24_672.0]);
+        assert_eq!(s.param_loss.1, vec![1.71]);
+        assert_eq!(
+            r.unique_tokens().unwrap(),
+            vec![476_163.0 / 2.0, 1_243_403.0 / 4.0]
+        );
+    }
+}
