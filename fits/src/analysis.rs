@@ -258,6 +258,19 @@ pub struct LawEstimates {
     pub beta: Estimate,
 }
 
+impl LawEstimates {
+    /// The five parameters from `est(k)`, k = 0..5 in the order E, A, B, α, β.
+    pub fn from_fn(est: impl Fn(usize) -> Estimate) -> Self {
+        Self {
+            e: est(0),
+            a: est(1),
+            b: est(2),
+            alpha: est(3),
+            beta: est(4),
+        }
+    }
+}
+
 /// The parametric fit L(N, D) = E + A/N^α + B/D^β.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Parametric {
@@ -664,12 +677,7 @@ pub fn fit_parametric(
     let exps = |s: &[f64; 5]| [s[4] / (s[3] + s[4]), s[3] / (s[3] + s[4])];
     let interval = |value: f64, f: &dyn Fn(&[f64; 5]) -> f64| {
         let vals: Vec<f64> = samples.iter().map(f).collect();
-        Estimate {
-            value,
-            se: None,
-            ci_low: parametric::percentile(&vals, 0.025),
-            ci_high: parametric::percentile(&vals, 0.975),
-        }
+        parametric::with_draws(value, &vals)
     };
     let est = |k: usize| interval(nat[k], &|s| s[k]);
     let best_exps = exps(&nat);
@@ -686,13 +694,7 @@ pub fn fit_parametric(
         *terminations.entry(key).or_insert(0) += 1;
     }
     Ok(Parametric {
-        law: LawEstimates {
-            e: est(0),
-            a: est(1),
-            b: est(2),
-            alpha: est(3),
-            beta: est(4),
-        },
+        law: LawEstimates::from_fn(est),
         n_opt_exponent: interval(best_exps[0], &|s| exps(s)[0]),
         d_opt_exponent: interval(best_exps[1], &|s| exps(s)[1]),
         n_runs: runs.len(),

@@ -418,6 +418,16 @@ pub fn finite_draws(draws: &[Option<[f64; 5]>]) -> Vec<[f64; 5]> {
         .collect()
 }
 
+/// `value` with the 95% percentile interval (2.5th to 97.5th) of its bootstrap `draws`.
+pub fn with_draws(value: f64, draws: &[f64]) -> crate::laws::Estimate {
+    crate::laws::Estimate {
+        value,
+        se: None,
+        ci_low: percentile(draws, 0.025),
+        ci_high: percentile(draws, 0.975),
+    }
+}
+
 /// Percentile `q` ∈ [0, 1] of `values` (linear interpolation between order statistics).
 pub fn percentile(values: &[f64], q: f64) -> Option<f64> {
     let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();

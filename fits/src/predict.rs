@@ -3,7 +3,7 @@
 
 use crate::analysis::{Fits, Parametric};
 use crate::laws::{Estimate, LogLaw, PowerLaw};
-use crate::parametric::percentile;
+use crate::parametric::with_draws;
 use crate::FitError;
 use serde::Serialize;
 use std::path::Path;
@@ -559,12 +559,7 @@ fn parametric_at(p: &Parametric, c: f64) -> ParametricPrediction {
     let draws: Vec<[f64; 3]> = p.bootstrap.samples.iter().map(|&s| alloc(s)).collect();
     let est = |k: usize| {
         let v: Vec<f64> = draws.iter().map(|d| d[k]).collect();
-        Estimate {
-            value: best[k],
-            se: None,
-            ci_low: percentile(&v, 0.025),
-            ci_high: percentile(&v, 0.975),
-        }
+        with_draws(best[k], &v)
     };
     ParametricPrediction {
         n_opt: est(0),

@@ -9,7 +9,7 @@ use crate::analysis::{FitOptions, Fits, LawEstimates};
 use crate::isoflop;
 use crate::laws::Estimate;
 use crate::lbfgs::{minimize, Minimum, Termination};
-use crate::parametric::{self, huber, lse3, percentile, LogRuns, StartGrid};
+use crate::parametric::{self, huber, lse3, LogRuns, StartGrid};
 use crate::runs::Runs;
 use ingest::rng::SplitMix64;
 use rayon::prelude::*;
@@ -213,21 +213,10 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
     });
     let est = |k: usize| {
         let v: Vec<f64> = draws.iter().map(|s| s[k]).collect();
-        Estimate {
-            value: value[k],
-            se: None,
-            ci_low: percentile(&v, 0.025),
-            ci_high: percentile(&v, 0.975),
-        }
+        parametric::with_draws(value[k], &v)
     };
     Ok(RepeatedData {
-        law: LawEstimates {
-            e: est(0),
-            a: est(1),
-            b: est(2),
-            alpha: est(3),
-            beta: est(4),
-        },
+        law: LawEstimates::from_fn(est),
         r_star: est(5),
         n_runs: data.len(),
         repeated_runs,
