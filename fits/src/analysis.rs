@@ -788,8 +788,14 @@ mod tests {
             .find(|c| c.quantity == "N_opt (parametric)")
             .unwrap();
         assert!((p.ratio - 1.0).abs() < 0.05, "{p:?}");
+        let best = h
+            .checks
+            .iter()
+            .find(|c| c.quantity == "best loss (parametric)");
+        assert!((best.unwrap().ratio - 1.0).abs() < 0.01, "{best:?}");
 
-        // The held-out runs as if their N were 4× larger (their optimum moves about 2× smaller): the prediction must miss it.
+        // The held-out runs as if their N were 4× larger (their optimum moves about 2× smaller):
+        // the prediction must miss it.
         let mut rows = isoflop_rows(&CHINCHILLA, &budgets[..4], 1.0);
         rows.extend(isoflop_rows(&CHINCHILLA, &budgets[4..], 4.0));
         let fits = fit_table(&table(&dir, &rows), &opts).unwrap();

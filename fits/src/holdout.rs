@@ -1,10 +1,10 @@
 //! A budget held out of the fit and predicted: the laws fitted on the other budgets predict
 //! its N_opt and loss (with their 95% intervals), and its own runs say what training found.
 
-use crate::analysis::Fits;
+use crate::analysis::{Fits, Parametric};
 use crate::isoflop::{self, IsoMinimum};
 use crate::laws::Estimate;
-use crate::predict::{predict, Laws, PredictOptions};
+use crate::predict::parametric_at;
 use crate::runs::Runs;
 use crate::FitError;
 use serde::{Deserialize, Serialize};
@@ -81,34 +81,12 @@ pub fn score(held: &Runs, fits: &Fits) -> Result<Holdout, FitError> {
     let best = (0..held.len())
         .min_by(|&i, &j| held.loss[i].total_cmp(&held.loss[j]))
         .ok_or_else(|| FitError::Invalid("the held-out budget has no runs".into()))?;
-    let best_param_loss = held
-        .param_loss
-        .1
-        .iter()
-        .copied()
-        .fold(f64::INFINITY, f64::min);
-    let laws = Laws::from_fits(fits, "the fit without the held-out budget");
     let mut checks = Vec::new();
     let mut missing = Vec::new();
-    let mut notes = Vec::new();
-    let p = match predict(
-        &laws,
-        &PredictOptions {
-            budget,
-            width: None,
-            vocab: None,
-        },
-    ) {
-        Ok(p) => Some(p),
-        Err(e) => {
-            missing.push(e.to_string());
-            None
-        }
-    };
     let trained_n = match (trained.interior, trained.opt) {
         (true, Some(n)) => Some(n),
         _ => {
-            notes.push(format!(
+            missing.push(format!(
                 "N_opt: the held-out runs have no interior minimum ({})",
                 trained.reason.as_deref().unwrap_or("?")
             ));
@@ -125,33 +103,42 @@ pub fn score(held: &Runs, fits: &Fits) -> Result<Holdout, FitError> {
         )),
         (Some(_), None) => {}
     };
-    let p = p.as_ref();
     push(
         "N_opt (IsoFLOP law)",
-        p.and_then(|p| p.n_nv),
+        fits.power_laws.get("n_opt_vs_c").map(|l| l.predict_at(budget)),
         trained_n,
-        "N_opt ∝ C^b of the other budgets vs the vertex of the held-out budget's own parabola",
+        "N_opt ∝ C^b of the other budgets, 95% prediction interval (the law's residual scatter included), vs the vertex of the held-out budget's own parabola",
     );
     push(
         "loss at N_opt (log law)",
-        p.and_then(|p| p.loss),
+        fits.log_law.as_ref().map(|l| l.predict_at(budget)),
         trained.loss_opt.filter(|_| trained.interior),
-        "the log law of the other budgets vs the held-out parabola's minimum (the loss column)",
+        "the log law of the other budgets, 95% prediction interval, vs the held-out parabola's minimum (the loss column)",
     );
-    let param = p.and_then(|p| p.parametric.as_ref());
+    let param = fits
+        .parametric
+        .as_ref()
+        .map(|p| (p, parametric_at(p, budget)));
+    // The held-out vertex is itself uncertain: its t interval widens the bootstrap one.
+    let vertex_spread = trained
+        .log10_opt
+        .and_then(|e| Some(e.ci_high? - e.value))
+        .unwrap_or(0.0);
     push(
         "N_opt (parametric)",
-        param.map(|q| q.n_opt),
+        param.as_ref().map(|(_, q)| widen(q.n_opt, vertex_spread)),
         trained_n,
-        "the parametric fit's compute-optimal N under C = 6·N·D vs the held-out parabola's vertex",
+        "the parametric fit's compute-optimal N under C = 6·N·D (bootstrap interval widened by the held-out vertex's own 95% interval) vs the held-out parabola's vertex",
     );
+    // The smoothed best loss of the parametric column (the lowest run's loss is biased low:
+    // it is selected by its noise).
+    let param_min = isoflop::parabola_minimum(budget, "N", None, &held.n, &held.param_loss.1);
     push(
-        "lowest loss (parametric)",
-        param.map(|q| q.loss),
-        Some(best_param_loss),
-        "L(N_opt, D_opt) of the parametric fit vs the held-out budget's lowest loss (the parametric loss column)",
+        "best loss (parametric)",
+        param.as_ref().map(|(p, q)| widen(q.loss, run_scatter(p))),
+        param_min.loss_opt.filter(|_| param_min.interior),
+        "L(N_opt, D_opt) of the parametric fit (bootstrap interval widened by 1.96 × the fit's RMS log residual) vs the minimum of a parabola over the held-out runs' parametric loss column",
     );
-    missing.extend(notes);
     Ok(Holdout {
         budget,
         runs: held.len(),
@@ -160,6 +147,28 @@ pub fn score(held: &Runs, fits: &Fits) -> Result<Holdout, FitError> {
         checks,
         missing,
     })
+}
+
+/// 1.96 × the RMS log residual of the parametric fit, in log10: the scatter of one run's loss.
+fn run_scatter(p: &Parametric) -> f64 {
+    let r = &p.residuals_log;
+    let rms = (r.iter().map(|v| v * v).sum::<f64>() / r.len().max(1) as f64).sqrt();
+    1.96 * rms / std::f64::consts::LN_10
+}
+
+/// `e` with each end of its interval moved out, in log10, by `extra` added in quadrature.
+fn widen(e: Estimate, extra: f64) -> Estimate {
+    let out = |end: Option<f64>, sign: f64| {
+        end.map(|v| {
+            let h = (e.value.log10() - v.log10()).abs();
+            10f64.powf(e.value.log10() + sign * (h * h + extra * extra).sqrt())
+        })
+    };
+    Estimate {
+        ci_low: out(e.ci_low, -1.0),
+        ci_high: out(e.ci_high, 1.0),
+        ..e
+    }
 }
 
 fn check(quantity: &str, predicted: Estimate, trained: f64, note: &str) -> HoldoutCheck {

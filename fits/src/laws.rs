@@ -105,6 +105,19 @@ impl LineFit {
         };
         Estimate::with_se(value, se, self.dof)
     }
+
+    /// A new observation at `x` with its 95% prediction interval: the fitted mean's variance
+    /// plus the residual variance (None without residual degrees of freedom).
+    pub fn predict_at(&self, x: f64) -> Estimate {
+        let mean = self.at(x);
+        let residual_var = (self.dof > 0)
+            .then(|| self.residuals.iter().map(|r| r * r).sum::<f64>() / self.dof as f64);
+        let se = match (mean.se, residual_var) {
+            (Some(s), Some(v)) => Some((s * s + v).sqrt()),
+            _ => None,
+        };
+        Estimate::with_se(mean.value, se, self.dof)
+    }
 }
 
 /// y = k·x^p, fitted as log10 y = log10 k + p·log10 x.
@@ -146,13 +159,12 @@ impl PowerLaw {
 
     /// y at `x` with a 95% interval (from the log-space interval), in y's units.
     pub fn at(&self, x: f64) -> Estimate {
-        let e = self.fit.at(x.log10());
-        Estimate {
-            value: 10f64.powf(e.value),
-            se: None,
-            ci_low: e.ci_low.map(|v| 10f64.powf(v)),
-            ci_high: e.ci_high.map(|v| 10f64.powf(v)),
-        }
+        unlog(self.fit.at(x.log10()))
+    }
+
+    /// A new y observed at `x`, with its 95% prediction interval, in y's units.
+    pub fn predict_at(&self, x: f64) -> Estimate {
+        unlog(self.fit.predict_at(x.log10()))
     }
 
     /// The law as text, e.g. `N_opt = 10^-0.520 · C^0.570`.
@@ -161,6 +173,16 @@ impl PowerLaw {
             "{} = 10^{:.3} · {}^{:.3}",
             self.y, self.fit.intercept.value, self.x, self.fit.slope.value
         )
+    }
+}
+
+/// An estimate of log10 y as one of y (the interval's ends mapped; no SE).
+fn unlog(e: Estimate) -> Estimate {
+    Estimate {
+        value: 10f64.powf(e.value),
+        se: None,
+        ci_low: e.ci_low.map(|v| 10f64.powf(v)),
+        ci_high: e.ci_high.map(|v| 10f64.powf(v)),
     }
 }
 
@@ -190,6 +212,11 @@ impl LogLaw {
     /// L at budget `c` with a 95% interval.
     pub fn at(&self, c: f64) -> Estimate {
         self.fit.at(c.log10())
+    }
+
+    /// A new minimum's L at budget `c`, with its 95% prediction interval.
+    pub fn predict_at(&self, c: f64) -> Estimate {
+        self.fit.predict_at(c.log10())
     }
 
     /// The law as text.
@@ -229,6 +256,10 @@ mod tests {
         // At the centre the SE of the mean is σ/√n.
         let s2: f64 = fit.residuals.iter().map(|r| r * r).sum::<f64>() / 3.0;
         assert!((fit.at(2.0).se.unwrap() - (s2 / 5.0).sqrt()).abs() < 1e-12);
+        // A new observation adds the residual variance: at the centre σ·√(1 + 1/n).
+        let new = fit.predict_at(2.0);
+        assert!((new.se.unwrap() - (s2 * (1.0 + 1.0 / 5.0)).sqrt()).abs() < 1e-12);
+        assert!(new.ci_high.unwrap() - new.ci_low.unwrap() > width(2.0));
     }
 
     #[test]

@@ -541,7 +541,7 @@ fn paper_checks(
 }
 
 /// Compute-optimal N, D and loss from the parametric fit (and each bootstrap draw).
-fn parametric_at(p: &Parametric, c: f64) -> ParametricPrediction {
+pub fn parametric_at(p: &Parametric, c: f64) -> ParametricPrediction {
     let alloc = |s: [f64; 5]| {
         let [e, a, b, alpha, beta] = s;
         let g = (alpha * a / (beta * b)).powf(1.0 / (alpha + beta));

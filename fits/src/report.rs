@@ -103,8 +103,15 @@ pub fn charts(f: &Fits) -> Vec<(String, Chart)> {
         out.push((format!("isoflop_v_{}", k + 1), v));
     }
 
+    // The held-out budget's own minimum, marked on the laws that predicted it.
+    let held = f
+        .holdout
+        .as_ref()
+        .filter(|h| h.trained.interior)
+        .and_then(|h| Some((h.budget, h.trained.opt?, h.trained.loss_opt?)));
     for (key, law) in &f.power_laws {
-        out.push((format!("law_{key}"), power_law_chart(law)));
+        let held_point = held.filter(|_| key == "n_opt_vs_c").map(|(c, n, _)| (c, n));
+        out.push((format!("law_{key}"), power_law_chart(law, held_point)));
     }
     if let Some(law) = &f.log_law {
         let pts: Vec<(f64, f64)> = law
@@ -113,7 +120,8 @@ pub fn charts(f: &Fits) -> Vec<(String, Chart)> {
             .iter()
             .map(|p| (10f64.powf(p[0]), p[1]))
             .collect();
-        let (lo, hi) = x_range(&pts);
+        let held_point = held.map(|(c, _, l)| (c, l));
+        let (lo, hi) = x_range(&pts, held_point);
         let mut chart = Chart::new(
             format!(
                 "Log law: {}  (R² = {})",
@@ -125,10 +133,7 @@ pub fn charts(f: &Fits) -> Vec<(String, Chart)> {
         );
         chart.log_x = true;
         chart.series.push(Series::points("IsoFLOP minima", pts));
-        chart.series.push(Series::line(
-            "fit",
-            [lo, hi].iter().map(|&c| (c, law.at(c).value)).collect(),
-        ));
+        push_fit(&mut chart, lo, hi, |c| law.at(c), held_point);
         out.push(("log_law".to_string(), chart));
     }
     out
@@ -138,11 +143,47 @@ fn r2_text(r2: Option<f64>) -> String {
     r2.map_or("n/a".into(), |v| format!("{v:.4}"))
 }
 
-fn x_range(pts: &[(f64, f64)]) -> (f64, f64) {
+/// The x range of `pts` and of the held-out point, if any.
+fn x_range(pts: &[(f64, f64)], held: Option<(f64, f64)>) -> (f64, f64) {
     pts.iter()
+        .chain(held.as_ref())
         .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| {
             (a.min(p.0), b.max(p.0))
         })
+}
+
+/// The fitted line over [lo, hi] (log-spaced), its 95% interval band as two thin lines, and
+/// the held-out budget's own minimum.
+fn push_fit(
+    chart: &mut Chart,
+    lo: f64,
+    hi: f64,
+    at: impl Fn(f64) -> Estimate,
+    held: Option<(f64, f64)>,
+) {
+    let xs: Vec<f64> = (0..60)
+        .map(|k| 10f64.powf(lo.log10() + (hi.log10() - lo.log10()) * k as f64 / 59.0))
+        .collect();
+    let curve = |f: &dyn Fn(&Estimate) -> Option<f64>| -> Vec<(f64, f64)> {
+        xs.iter().filter_map(|&x| Some((x, f(&at(x))?))).collect()
+    };
+    chart
+        .series
+        .push(Series::line("fit", curve(&|e| Some(e.value))).with_color(0));
+    let low = curve(&|e| e.ci_low);
+    if !low.is_empty() {
+        chart
+            .series
+            .push(Series::line("95% interval", low).with_color(1));
+        chart
+            .series
+            .push(Series::line("", curve(&|e| e.ci_high)).with_color(1));
+    }
+    if let Some(p) = held {
+        chart
+            .series
+            .push(Series::points("held-out budget (trained)", vec![p]).with_color(3));
+    }
 }
 
 /// 60 points of a fitted parabola across the sampled x range.
@@ -161,14 +202,14 @@ fn parabola_curve(points: &[[f64; 2]], parabola: Option<[f64; 4]>) -> Option<Vec
     )
 }
 
-fn power_law_chart(law: &PowerLaw) -> Chart {
+fn power_law_chart(law: &PowerLaw, held: Option<(f64, f64)>) -> Chart {
     let pts: Vec<(f64, f64)> = law
         .fit
         .points
         .iter()
         .map(|p| (10f64.powf(p[0]), 10f64.powf(p[1])))
         .collect();
-    let (lo, hi) = x_range(&pts);
+    let (lo, hi) = x_range(&pts, held);
     let mut chart = Chart::new(
         format!("{}  (R² = {})", law.equation(), r2_text(law.fit.r2)),
         law.x.clone(),
@@ -177,10 +218,7 @@ fn power_law_chart(law: &PowerLaw) -> Chart {
     chart.log_x = true;
     chart.log_y = true;
     chart.series.push(Series::points("IsoFLOP minima", pts));
-    chart.series.push(Series::line(
-        "fit",
-        [lo, hi].iter().map(|&x| (x, law.at(x).value)).collect(),
-    ));
+    push_fit(&mut chart, lo, hi, |x| law.at(x), held);
     chart
 }
 
