@@ -409,11 +409,116 @@ fn laws(path: &str, f: &Fits) -> Result<String> {
             rows,
         ));
     }
+    s.push_str(&checks_of_the_law(f));
     s.push_str(&list("Input notes:", "", &f.input.notes));
     s.push_str(&list("Fits not done:", "warn", &f.skipped));
     s.push_str(&list("Warnings:", "warn", &f.warnings));
     s.push_str(&charts(f, |k| !k.starts_with("isoflop"))?);
     Ok(s)
+}
+
+/// Approaches 2 and 3 side by side, the total-parameter convention, the data-constrained fit
+/// and the held-out budget, as far as the fit has them.
+fn checks_of_the_law(f: &Fits) -> String {
+    let mut s = String::new();
+    if !f.agreement.is_empty() {
+        let rows = f.agreement.iter().map(|a| {
+            let overlap = match a.overlap {
+                Some(true) => "yes",
+                Some(false) => "no",
+                None => "n/a",
+            };
+            let class = (a.overlap == Some(false)).then_some("fail");
+            let cells = vec![
+                format!("{} ∝ C^", a.quantity),
+                estimate_text(&a.isoflop),
+                estimate_text(&a.parametric),
+                overlap.to_string(),
+            ];
+            (class, cells)
+        });
+        s.push_str("<h3>Approach 2 (IsoFLOP minima) vs approach 3 (parametric)</h3>");
+        let head = ["exponent", "approach 2", "approach 3", "intervals overlap"];
+        s.push_str(&table("", &head, rows));
+    }
+    if let Some(t) = &f.total_n {
+        let exponent = |g: &Fits, k: &str| {
+            g.power_laws
+                .get(k)
+                .map_or("–".into(), |l| estimate_text(&l.fit.slope))
+        };
+        let row = |name: &str, g: &Fits| {
+            let p = g.parametric.as_ref();
+            let cells = vec![
+                name.to_string(),
+                exponent(g, "n_opt_vs_c"),
+                exponent(g, "d_opt_vs_c"),
+                p.map_or("–".into(), |p| estimate_text(&p.n_opt_exponent)),
+            ];
+            (None, cells)
+        };
+        s.push_str("<h3>Parameter conventions</h3>");
+        let head = [
+            "N counts",
+            "N_opt ∝ C^ (approach 2)",
+            "D_opt ∝ C^",
+            "N_opt ∝ C^ (approach 3)",
+        ];
+        let rows = [
+            row("non-vocabulary (N_nv)", f),
+            row("every parameter (N_nv + N_v)", t),
+        ];
+        s.push_str(&table("", &head, rows));
+    }
+    if let Some(r) = &f.repeated_data {
+        let _ = write!(
+            s,
+            "<h3>Data-constrained L(N, D')</h3><p>R* = {}, α = {}, β = {} ({} of {} runs repeat data, up to {:.1} epochs).{}</p>",
+            esc(&estimate_text(&r.r_star)),
+            esc(&estimate_text(&r.law.alpha)),
+            esc(&estimate_text(&r.law.beta)),
+            r.repeated_runs,
+            r.n_runs,
+            r.max_epochs,
+            r.held_out.as_ref().map_or(String::new(), |h| format!(
+                " Leave-one-budget-out RMS log error: plain {}, data-constrained {}.",
+                sig(h.plain_rms),
+                sig(h.repeated_rms)
+            ))
+        );
+    }
+    if let Some(h) = &f.holdout {
+        let rows = h.checks.iter().map(|c| {
+            let inside = c
+                .inside
+                .map_or("n/a", |i| if i { "inside" } else { "outside" });
+            let class = (c.inside == Some(false)).then_some("fail");
+            let cells = vec![
+                c.quantity.clone(),
+                estimate_text(&c.predicted),
+                sig(c.trained),
+                format!("{:.3}", c.ratio),
+                inside.to_string(),
+            ];
+            (class, cells)
+        });
+        let _ = write!(
+            s,
+            "<h3>Held-out budget C = {} ({} runs, not fitted)</h3>",
+            sig(h.budget),
+            h.runs
+        );
+        let head = [
+            "quantity",
+            "predicted [95% prediction interval]",
+            "trained",
+            "ratio",
+            "",
+        ];
+        s.push_str(&table("", &head, rows));
+        s.push_str(&list("Not predicted:", "warn", &h.missing));
+    }
+    s
 }
 
 /// An integer in full below 10^5, else in scientific notation like [`sig`].
