@@ -62,6 +62,10 @@ pub struct FitArgs {
     /// Budget-group column [default: budget; else C values within --group-tol dex form a group].
     #[arg(long, value_name = "COL")]
     pub group_col: Option<String>,
+    /// Training-seed column: rows that differ only in it are averaged for the IsoFLOP minima,
+    /// and their spread is reported as the run-to-run noise [default: seed].
+    #[arg(long, value_name = "COL")]
+    pub seed_col: Option<String>,
     /// Epochs-over-unique-tokens column, for --repeated-data [default: epochs].
     #[arg(long, value_name = "COL")]
     pub epochs_col: Option<String>,
@@ -132,6 +136,7 @@ impl FitArgs {
                 width: col(&self.width_col, &d.width.name),
                 group: col(&self.group_col, &d.group.name),
                 epochs: col(&self.epochs_col, &d.epochs.name),
+                seed: col(&self.seed_col, &d.seed.name),
             },
             group_tol_dex: self.group_tol,
             grid: StartGrid::parse(&self.starts_grid)?,

@@ -7,6 +7,7 @@ use crate::laws::{Estimate, LogLaw, PowerLaw};
 use crate::lbfgs::LbfgsOptions;
 use crate::parametric::{self, LogRuns, StartGrid};
 use crate::repeated::{self, RepeatedData};
+use crate::replicates::{self, SeedNoise};
 use crate::runs::Runs;
 use crate::table::Table;
 use crate::FitError;
@@ -67,6 +68,8 @@ pub struct ColumnSpec {
     pub group: ColumnChoice,
     /// Epochs over the unique training tokens (default `epochs`; the data-constrained fit).
     pub epochs: ColumnChoice,
+    /// Training seed (default `seed`): rows differing only in it are averaged for the minima.
+    pub seed: ColumnChoice,
 }
 
 impl Default for ColumnSpec {
@@ -83,6 +86,7 @@ impl Default for ColumnSpec {
             width: d("d_model"),
             group: d("budget"),
             epochs: d("epochs"),
+            seed: d("seed"),
         }
     }
 }
@@ -325,6 +329,9 @@ pub struct Fits {
     /// Approaches 2 and 3 side by side on the N_opt and D_opt exponents.
     #[serde(default)]
     pub agreement: Vec<Agreement>,
+    /// The loss over training seeds where runs were repeated (averaged for the minima).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub seed_noise: Vec<SeedNoise>,
     /// Fits not done, and why.
     pub skipped: Vec<String>,
     /// Things to look at before trusting the numbers.
@@ -394,7 +401,9 @@ pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
 fn fit_runs(t: &Table, runs: &Runs, opts: &FitOptions) -> Result<Fits, FitError> {
     let mut skipped = Vec::new();
     let mut warnings = Vec::new();
-    let groups = isoflop::group_rows(&runs.c, runs.group.as_deref(), opts.group_tol_dex);
+    let all_groups = isoflop::group_rows(&runs.c, runs.group.as_deref(), opts.group_tol_dex);
+    let (averaged, mut seed_noise) = replicates::average(runs, &all_groups);
+    let groups = isoflop::group_rows(&averaged.c, averaged.group.as_deref(), opts.group_tol_dex);
     let grouping = match &runs.group {
         Some(_) => format!("equal values of column {:?}", opts.columns.group.name),
         None => format!(
@@ -403,17 +412,18 @@ fn fit_runs(t: &Table, runs: &Runs, opts: &FitOptions) -> Result<Fits, FitError>
         ),
     };
     let cols = Columns {
-        c: &runs.c,
-        n: &runs.n,
-        loss: &runs.loss,
-        d: runs.d.as_deref(),
-        v: runs.v.as_deref(),
-        width: runs.width.as_deref(),
+        c: &averaged.c,
+        n: &averaged.n,
+        loss: &averaged.loss,
+        d: averaged.d.as_deref(),
+        v: averaged.v.as_deref(),
+        width: averaged.width.as_deref(),
     };
     let vocab_minima = isoflop::vocab_minima(&cols, &groups);
     let budgets = isoflop::budget_minima(&cols, &groups, &vocab_minima);
+    replicates::resolve_gaps(&mut seed_noise, &budgets);
     minima_warnings(&budgets, &vocab_minima, &mut warnings);
-    let power_laws = power_laws(runs, opts, &budgets, &vocab_minima, &mut skipped);
+    let power_laws = power_laws(&averaged, opts, &budgets, &vocab_minima, &mut skipped);
     let interior: Vec<&BudgetMinimum> = budgets.iter().filter(|b| b.min.interior).collect();
     let log_law = if interior.len() >= 3 {
         let (x, y): (Vec<f64>, Vec<f64>) = interior
@@ -468,6 +478,7 @@ fn fit_runs(t: &Table, runs: &Runs, opts: &FitOptions) -> Result<Fits, FitError>
         log_law,
         parametric,
         agreement,
+        seed_noise,
         skipped,
         warnings,
         plots: Vec::new(),
@@ -918,6 +929,37 @@ mod tests {
             .as_ref()
             .expect("the total-parameter convention is fitted too");
         assert_eq!(total.input.columns["N"].as_deref(), Some("n_nv + n_v"));
+    }
+
+    #[test]
+    fn seeds_are_averaged_for_the_minima_and_their_noise_reported() {
+        let dir = tempfile::tempdir().unwrap();
+        let rows = isoflop_rows(&CHINCHILLA, &[1e18, 1e19, 1e20], 1.0);
+        let mut csv = String::from("budget,n_nv,tokens,test_loss,norm_test_loss,seed\n");
+        for r in &rows {
+            let _ = writeln!(csv, "{},{},{},{},{},0", r[0], r[1], r[2], r[3], r[3]);
+        }
+        // Two more seeds at the middle size of 1e19, 0.03 and 0.06 above seed 0.
+        let mid = rows[10];
+        for (seed, extra) in [(1, 0.03), (2, 0.06)] {
+            let l = mid[3] + extra;
+            let _ = writeln!(csv, "{},{},{},{l},{l},{seed}", mid[0], mid[1], mid[2]);
+        }
+        let path = dir.path().join("seeds.csv");
+        std::fs::write(&path, csv).unwrap();
+        let fits = fit_table(&Table::read(&path).unwrap(), &quick()).unwrap();
+        let noise = &fits.seed_noise;
+        assert_eq!(noise.len(), 1, "{noise:?}");
+        assert_eq!((noise[0].budget, noise[0].n), (1e19, mid[1]));
+        assert_eq!(noise[0].seeds, vec![0.0, 1.0, 2.0]);
+        assert!((noise[0].mean - (mid[3] + 0.03)).abs() < 1e-12);
+        assert!((noise[0].sd - 0.03).abs() < 1e-12, "{:?}", noise[0]);
+        assert!(noise[0].resolved_gap.unwrap() > 0.0);
+        // The minimum at 1e19 sees the mean of the three seeds, not the lowest.
+        let b = &fits.budgets[1];
+        let at_mid = b.min.points.iter().find(|p| p[0] == mid[1]).unwrap();
+        assert!((at_mid[1] - (mid[3] + 0.03)).abs() < 1e-12, "{at_mid:?}");
+        assert_eq!(fits.budgets[0].min.points.len(), 7);
     }
 
     #[test]

@@ -13,6 +13,7 @@ pub mod ols;
 pub mod parametric;
 pub mod predict;
 pub mod repeated;
+pub mod replicates;
 pub mod report;
 pub mod runs;
 pub mod synth;

@@ -381,6 +381,19 @@ pub fn summary(f: &Fits) -> String {
 /// The summary lines of the total-parameter convention, the data-constrained fit and the
 /// held-out budget.
 fn extras(f: &Fits, s: &mut String) {
+    for n in &f.seed_noise {
+        let _ = writeln!(
+            s,
+            "seed noise at C = {:.3e}, N = {:.3e}{}: loss {} ± sd {} over {} seeds; the parabola resolves {} (one size step from its vertex)",
+            n.budget,
+            n.n,
+            n.v.map_or(String::new(), |v| format!(", V = {v}")),
+            sig(n.mean),
+            sig(n.sd),
+            n.seeds.len(),
+            n.resolved_gap.map_or("n/a".into(), sig)
+        );
+    }
     if let Some(t) = &f.total_n {
         let n = column(t, "N");
         let law = |k: &str, y: &str| {

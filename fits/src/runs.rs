@@ -29,6 +29,8 @@ pub struct Runs {
     pub group: Option<Vec<f64>>,
     /// Epochs over the unique training tokens (the data-constrained fit's input).
     pub epochs: Option<Vec<f64>>,
+    /// Training seed (runs repeated with other seeds are averaged for the minima).
+    pub seed: Option<Vec<f64>>,
     /// Role → column used (`None`: not used).
     pub columns: BTreeMap<String, Option<String>>,
     /// Defaults substituted or computed.
@@ -123,6 +125,8 @@ impl Runs {
             _ => None,
         };
         let group = optional(t, &cs.group, "--group-col")?;
+        let seed = optional(t, &cs.seed, "--seed-col")?;
+        columns.insert("seed".into(), seed.as_ref().map(|_| cs.seed.name.clone()));
         columns.insert(
             "group".into(),
             group.as_ref().map(|_| cs.group.name.clone()),
@@ -149,6 +153,7 @@ impl Runs {
             width,
             group,
             epochs,
+            seed,
             columns,
             notes,
         })
@@ -179,6 +184,7 @@ impl Runs {
             width: pick_opt(&self.width),
             group: pick_opt(&self.group),
             epochs: pick_opt(&self.epochs),
+            seed: pick_opt(&self.seed),
             columns: self.columns.clone(),
             notes: self.notes.clone(),
         }
@@ -226,6 +232,7 @@ mod tests {
             width: Some(vec![64.0, 32.0]),
             group: None,
             epochs: Some(vec![2.0, 4.0]),
+            seed: None,
             columns,
             notes: Vec::new(),
         }
