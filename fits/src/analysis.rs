@@ -871,6 +871,17 @@ mod tests {
         assert_eq!((h.folds, h.better.as_str()), (5, "repeated"), "{h:?}");
         assert!(h.repeated_rms < 0.2 * h.plain_rms, "{h:?}");
 
+        // Repeated data that costs nothing (the plain law): R* runs off, and is reported as
+        // not identified, without an interval.
+        let free: Vec<[f64; 5]> = rows
+            .iter()
+            .map(|r| [r[0], r[1], r[2], law.loss(r[1], r[2]), r[4]])
+            .collect();
+        let fits = fit_table(&table(&dir, &free), &opts).unwrap();
+        let r = fits.repeated_data.as_ref().unwrap();
+        assert!(r.note.as_ref().unwrap().contains("not identified"), "{r:?}");
+        assert_eq!(r.r_star.ci_low, None);
+
         // Without any repetition R* is not fitted, and the skip says why.
         let once: Vec<[f64; 5]> = rows.iter().map(|r| [r[0], r[1], r[2], r[3], 0.5]).collect();
         let fits = fit_table(&table(&dir, &once), &opts).unwrap();

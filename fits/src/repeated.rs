@@ -206,7 +206,7 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
     // Far past the largest repetition count, e^(−R/R*) ≈ 1 − R/R* and D' ≈ D: no discount.
     let note = (value[5] > 100.0 * (max_epochs - 1.0)).then(|| {
         format!(
-            "R* = {:.3e} is more than 100 times the largest repetition count ({:.1}): D' ≈ D for every run, so repetition costs nothing these runs can measure",
+            "R* = {:.3e} is more than 100 times the largest repetition count ({:.1}): D' ≈ D for every run, so repetition costs nothing these runs can measure; R* itself is not identified (no interval)",
             value[5],
             max_epochs - 1.0
         )
@@ -217,7 +217,12 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
     };
     Ok(RepeatedData {
         law: LawEstimates::from_fn(est),
-        r_star: est(5),
+        // Past the runs' repetitions the objective is flat in R*: refits from the optimum
+        // stay where they start, and their spread would be a false interval.
+        r_star: match note {
+            Some(_) => Estimate::exact(value[5]),
+            None => est(5),
+        },
         n_runs: data.len(),
         repeated_runs,
         max_epochs,
