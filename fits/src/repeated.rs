@@ -59,6 +59,17 @@ impl DataRuns {
         }
     }
 
+    /// Log-space residuals at θ = (a, b, e, α, β, ln R*), prediction − observation.
+    fn residuals(&self, t: &[f64; 6]) -> Vec<f64> {
+        (0..self.len())
+            .map(|i| {
+                let (ln_dp, _) = effective_data(self.d[i], self.u[i], t[5]);
+                let terms = [t[0] - t[3] * self.ln_n[i], t[1] - t[4] * ln_dp, t[2]];
+                lse3(terms).0 - self.ln_l[i]
+            })
+            .collect()
+    }
+
     /// The plain runs (D' = D).
     fn plain(&self) -> LogRuns {
         LogRuns {
@@ -270,18 +281,9 @@ fn held_out(
             parametric::multi_start(&train.plain(), opts.huber_delta, &plain_starts, &opts.lbfgs)
                 .ok()?;
         let r = best_of(&train, opts, &repeated_starts)?;
-        sq_plain += test
-            .plain()
-            .residuals(&p.best().x)
-            .iter()
-            .map(|v| v * v)
-            .sum::<f64>();
-        let mut scratch = [0.0; 6];
-        for i in 0..test.len() {
-            let one = test.select(&[i]);
-            // Huber with a huge δ is r²/2: the squared residual of one run.
-            sq_rep += 2.0 * objective(&one, f64::MAX, &r.x, &mut scratch);
-        }
+        let squares = |r: Vec<f64>| r.iter().map(|v| v * v).sum::<f64>();
+        sq_plain += squares(test.plain().residuals(&p.best().x));
+        sq_rep += squares(test.residuals(&r.x));
         count += test.len();
     }
     let (plain_rms, repeated_rms) = (
@@ -326,6 +328,10 @@ mod tests {
             &[2.1, 1.9, 2.0, 1.8],
         );
         let theta = [6.0, 5.5, 0.4, 0.33, 0.27, 1.5];
+        // Huber with a huge δ is r²/2: the objective and the residuals agree.
+        let half_sq: f64 = runs.residuals(&theta).iter().map(|r| 0.5 * r * r).sum();
+        let mut g = [0.0; 6];
+        assert!((objective(&runs, f64::MAX, &theta, &mut g) - half_sq).abs() < 1e-12);
         for delta in [1e-3, 10.0] {
             let mut g = [0.0; 6];
             objective(&runs, delta, &theta, &mut g);

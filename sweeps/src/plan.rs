@@ -449,12 +449,16 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
     let mut warnings = Vec::new();
     let mut centres = Vec::new();
     let mut points = Vec::new();
+    // N_nv does not depend on the vocabulary: the sizes of the first one serve every budget.
+    let sized = match &request.centring {
+        Some(_) => sized_models(&models, &vocabularies[0], text_dim)?,
+        None => Vec::new(),
+    };
     for &budget in &request.budgets {
         let names = match &request.centring {
             None => models.clone(),
             Some(c) => {
-                let (names, centre) =
-                    centred_models(&models, c, budget, &vocabularies[0], text_dim)?;
+                let (names, centre) = centred_models(&sized, c, budget)?;
                 let sizes: Vec<f64> = names.iter().map(|(_, n)| *n).collect();
                 warnings.extend(centring::bracket_warning(&sizes, centre.n_opt, budget));
                 centres.push(centre);
@@ -534,21 +538,28 @@ fn plan_point(
     })
 }
 
-/// The `centring.sizes` models (with their N_nv, smallest first) around the N_opt that the
-/// earlier fit predicts at `budget`, and that prediction.
-fn centred_models(
+/// Each model with its N_nv, smallest first.
+fn sized_models(
     models: &[String],
-    centring: &Centring,
-    budget: f64,
     vocab: &Vocabulary,
     text_dim: usize,
-) -> Result<(Vec<(String, f64)>, Centre), SweepError> {
+) -> Result<Vec<(String, f64)>, SweepError> {
     let mut sized = Vec::new();
     for name in models {
         let config = model_shape(name)?.resolve(vocab.codebook_size, text_dim)?;
         sized.push((name.clone(), accounting::param_count(&config).n_nv as f64));
     }
     sized.sort_by(|a, b| a.1.total_cmp(&b.1));
+    Ok(sized)
+}
+
+/// The `centring.sizes` models of `sized` (smallest first) around the N_opt that the earlier
+/// fit predicts at `budget`, and that prediction.
+fn centred_models(
+    sized: &[(String, f64)],
+    centring: &Centring,
+    budget: f64,
+) -> Result<(Vec<(String, f64)>, Centre), SweepError> {
     let fits = &centring.fits;
     let centre = centring::centre(&fits.budgets, fits.power_laws.get("n_opt_vs_c"), budget)
         .map_err(SweepError::Argument)?;
