@@ -1,6 +1,6 @@
 """PyTorch CPU reference: one training step of BI-CTVAE, for `motionscale bench ctvae --reference`.
 
-Written from the spec of the project's model (model/src/ctvae.rs, model/src/ctvae_train.rs):
+Written from the spec of the project's model (experiments/src/ctvae.rs, experiments/src/ctvae_train.rs):
 - encoder: nn.GRU(F + C + 1 → h, num_layers=L, batch_first) over [pose, one-hot class,
   t / max_frames], packed by length; the top layer's final state → Linear(h→z) for μ and for
   log σ²; z = μ + ε·exp(log σ² / 2);

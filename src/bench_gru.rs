@@ -10,13 +10,13 @@
 
 use anyhow::{Context, Result};
 use candle_core::Device;
-use ingest::rng::SplitMix64;
-use model::ctvae::CtvaeConfig;
-use model::ctvae_train::{CtvaeTrainer, LossWeights, Sample};
-use model::evaluator::{init_evaluator, labelled_cross_entropy, EvaluatorConfig, Padded};
+use evaluator::model::{init_evaluator, labelled_cross_entropy, EvaluatorConfig, Padded};
+use experiments::ctvae::CtvaeConfig;
+use experiments::ctvae_train::{CtvaeTrainer, LossWeights, Sample};
+use motionscale_core::rng::SplitMix64;
+use nn::optim::{AdamW, AdamWConfig};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use tokenizer::optim::{AdamW, AdamWConfig};
 
 /// Arguments of `motionscale bench evaluator`.
 #[derive(clap::Args, Debug)]
@@ -291,7 +291,7 @@ fn add_reference(
 fn write_figures(path: Option<&PathBuf>, figures: &serde_json::Value) -> Result<()> {
     if let Some(path) = path {
         let text = serde_json::to_string_pretty(figures)?;
-        ingest::npy::write_atomic(path, text.as_bytes())
+        motionscale_core::write_atomic(path, text.as_bytes())
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())

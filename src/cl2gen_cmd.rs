@@ -1,12 +1,12 @@
 //! `motionscale cl2gen`: continual learning to generate with BI-CTVAE.
 
 use anyhow::{bail, Context, Result};
-use model::ctvae::CtvaeConfig;
-use model::ctvae_train::LossWeights;
-use model::metrics::Interval;
+use evaluator::metrics::Interval;
+use experiments::cl2gen::{compare_table, run_cl2gen, Cl2GenConfig, MetricIntervals, ReplaySource};
+use experiments::ctvae::CtvaeConfig;
+use experiments::ctvae_train::LossWeights;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use sweeps::cl2gen::{compare_table, run_cl2gen, Cl2GenConfig, MetricIntervals, ReplaySource};
 
 /// Arguments of `motionscale cl2gen`.
 #[derive(clap::Args, Debug)]

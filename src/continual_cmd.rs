@@ -2,11 +2,11 @@
 //! `motionscale continual compare` for the paper's Table-2-shaped comparison.
 
 use anyhow::{bail, Result};
-use model::es_moe::EsMoeConfig;
-use model::lora::LoraConfig;
+use experiments::continual::{compare_table, run_continual, ContinualConfig, Method};
+use lm::es_moe::EsMoeConfig;
+use lm::lora::LoraConfig;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use sweeps::continual::{compare_table, run_continual, ContinualConfig, Method};
 
 /// Arguments of `motionscale continual`.
 #[derive(clap::Args, Debug)]

@@ -3,14 +3,14 @@
 
 use crate::commands::progress_bar;
 use anyhow::{Context, Result};
-use model::evaluator::TrainedEvaluator;
-use model::evaluator_train::{corpus_clips, train_evaluator, EvaluatorEvent, EvaluatorTrainConfig};
-use model::motion_eval::{
+use evaluator::model::TrainedEvaluator;
+use evaluator::score::{
     corpus_split, embed_set, evaluate_motions, hml3d_folder, EvalOptions, EvalReport, MotionSet,
 };
-use model::{BertEncoder, TextEncoder};
+use evaluator::train::{corpus_clips, train_evaluator, EvaluatorEvent, EvaluatorTrainConfig};
 use std::path::PathBuf;
 use std::process::ExitCode;
+use text::{BertEncoder, TextEncoder};
 
 /// Arguments of `motionscale evaluator train`.
 #[derive(clap::Args, Debug)]
@@ -239,7 +239,7 @@ pub fn eval(args: EvalArgs) -> Result<ExitCode> {
         loaded.encoder(),
     )?;
     let text = serde_json::to_string_pretty(&report)?;
-    ingest::npy::write_atomic(&args.out, text.as_bytes())
+    motionscale_core::write_atomic(&args.out, text.as_bytes())
         .with_context(|| format!("writing {}", args.out.display()))?;
     print_report(&report);
     println!(
@@ -301,7 +301,7 @@ pub fn embed(args: EmbedArgs) -> Result<ExitCode> {
         });
         lines.push_str(&format!("{line}\n"));
     }
-    ingest::npy::write_atomic(&args.out.join("motions.jsonl"), lines.as_bytes())?;
+    motionscale_core::write_atomic(&args.out.join("motions.jsonl"), lines.as_bytes())?;
     println!(
         "{} motions embedded by evaluator {} → {}",
         set.motions.len(),
@@ -312,7 +312,7 @@ pub fn embed(args: EmbedArgs) -> Result<ExitCode> {
 }
 
 fn print_report(r: &EvalReport) {
-    let line = |name: &str, i: Option<&model::metrics::Interval>| match i {
+    let line = |name: &str, i: Option<&evaluator::metrics::Interval>| match i {
         Some(i) => println!("{name:<22} {:>9.4} ± {:.4}", i.mean, i.high - i.mean),
         None => println!("{name:<22} {:>9}", "n/a"),
     };

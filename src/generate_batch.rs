@@ -1,40 +1,33 @@
 //! `motionscale generate --captions-from C`: the captions of a corpus split animated into a
-//! HumanML3D-layout folder (`model::caption_set` documents the files).
+//! HumanML3D-layout folder (`lm::caption_set` documents the files).
 
-use crate::lm::GenerateArgs;
 use anyhow::Result;
-use model::caption_set::{generate_caption_set, CaptionSetOptions};
-use model::generate::Sampling;
-use model::train::RunConfig;
-use model::{MotionLm, TextEncoder};
+use lm::caption_set::{generate_caption_set, CaptionSetOptions};
+use lm::train::RunConfig;
+use lm::MotionLm;
+use std::path::Path;
 use std::process::ExitCode;
+use text::TextEncoder;
+use tokenizer::model::MotionTokenizer;
 
-/// `motionscale generate --captions-from`.
+/// `motionscale generate --captions-from`: `options` animated by the model of `run` (whose
+/// tokens `tokenizer` decodes) into the folder `out`.
 pub fn generate_batch(
-    args: &GenerateArgs,
+    options: &CaptionSetOptions,
     model: &dyn MotionLm,
     run: &RunConfig,
+    tokenizer: &MotionTokenizer,
     encoder: &dyn TextEncoder,
-    sampling: Sampling,
+    out: &Path,
 ) -> Result<ExitCode> {
-    let options = CaptionSetOptions {
-        corpus: args.captions_from.clone().expect("batch mode"),
-        split: args.split.clone(),
-        splits: args.splits.clone(),
-        mm_texts: args.mm_texts,
-        mm_samples: args.mm_samples,
-        batch: args.batch,
-        sampling,
-    };
-    let tokenizer = model::train::run_tokenizer(run, args.tokenizer.as_deref())?;
     let bar = crate::commands::progress_bar("generate", "motions");
     let report = generate_caption_set(
         model,
         run,
-        &tokenizer,
+        tokenizer,
         Some(encoder),
-        &options,
-        &args.out,
+        options,
+        out,
         |done, total| {
             bar.set_length(total as u64);
             bar.set_position(done.min(total) as u64);
@@ -48,7 +41,7 @@ pub fn generate_batch(
         report.rejected,
         report.seconds,
         report.motion_tokens as f64 / report.seconds,
-        args.out.display()
+        out.display()
     );
     Ok(if report.rejected == 0 {
         ExitCode::SUCCESS

@@ -5,14 +5,14 @@
 //! session and prints the ratios.
 
 use anyhow::{Context, Result};
-use model::accounting::{self, SequenceShape};
-use model::generate::Sampling;
-use model::prefix_lm::{init_model, LmBatch, PrefixLmConfig};
+use lm::accounting::{self, SequenceShape};
+use lm::generate::Sampling;
+use lm::prefix_lm::{init_model, LmBatch, PrefixLmConfig};
+use nn::optim::{AdamW, AdamWConfig};
 use serde_json::{json, Value};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
-use tokenizer::optim::{AdamW, AdamWConfig};
 
 /// Motion codes of the benchmark model (the reference's N_CODES).
 const CODES: usize = 1024;
@@ -129,7 +129,7 @@ fn parse_size(s: &str) -> Result<(usize, usize)> {
 
 /// The reference's batch: random text embeddings and 64 random codes per sequence.
 fn bench_batch(config: &PrefixLmConfig, batch: usize, seed: u64) -> Result<LmBatch> {
-    let mut rng = ingest::rng::SplitMix64(seed);
+    let mut rng = motionscale_core::rng::SplitMix64(seed);
     let seq = SequenceShape::BENCH;
     let texts: Vec<Vec<f32>> = (0..batch)
         .map(|_| {
@@ -218,7 +218,7 @@ fn bench_generate(args: &BenchTrainArgs) -> Result<Value> {
                 ..Sampling::default()
             };
             let st = time(1, 3, args.min_time / 2.0, || {
-                model::generate::generate(&model, &texts, &s)?;
+                lm::generate::generate(&model, &texts, &s)?;
                 Ok(())
             })?;
             let tps = (batch * s.max_tokens) as f64 / st["median_s"].as_f64().expect("median");
@@ -355,7 +355,7 @@ pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
         report["generate"] = gen;
     }
     if let Some(path) = &args.json {
-        ingest::npy::write_atomic(path, serde_json::to_string_pretty(&report)?.as_bytes())?;
+        motionscale_core::write_atomic(path, serde_json::to_string_pretty(&report)?.as_bytes())?;
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -10,14 +10,14 @@ mod continual_cmd;
 mod eval_cmd;
 mod fit;
 mod generate_batch;
-mod lm;
 mod lm_bench;
+mod lm_cmd;
 mod memory;
 mod quickstart;
 mod report;
 mod report_page;
 mod sweep_cmd;
-mod text;
+mod text_cmd;
 mod tokenizer_cmd;
 
 use clap::{Parser, Subcommand};
@@ -44,7 +44,7 @@ enum Command {
     /// sweep, fit, predict, a BVH from a caption, eval and the HTML report.
     Quickstart(quickstart::QuickstartArgs),
     /// Embed every distinct caption of a corpus with a frozen text encoder.
-    EmbedText(text::EmbedTextArgs),
+    EmbedText(text_cmd::EmbedTextArgs),
     /// Build a corpus from motion sources (bvh:DIR, joints:DIR, amass:DIR, hml3d:DIR, synth:CLIPS[:SEED]).
     Ingest(commands::IngestArgs),
     /// Inspect or check a corpus.
@@ -79,9 +79,9 @@ enum Command {
     #[command(subcommand)]
     Model(ModelCommand),
     /// Train (or resume) a text-prefix autoregressive motion transformer on a token set.
-    Train(lm::TrainArgs),
+    Train(lm_cmd::TrainArgs),
     /// Generate motion for a text with a trained prefix LM.
-    Generate(lm::GenerateArgs),
+    Generate(lm_cmd::GenerateArgs),
     /// Train the text–motion evaluator that `eval` scores motions with.
     #[command(subcommand)]
     Evaluator(EvaluatorCommand),
@@ -129,11 +129,11 @@ enum EvaluatorCommand {
 #[derive(Subcommand)]
 enum ModelCommand {
     /// N_nv, N_v, N and FLOPs per token (6N and exact) of one shape.
-    Info(Box<lm::InfoArgs>),
+    Info(Box<lm_cmd::InfoArgs>),
     /// The preset table at one codebook size.
-    Presets(lm::PresetsArgs),
+    Presets(lm_cmd::PresetsArgs),
     /// A trained model's logits on a few clips, with their inputs (for cross-framework checks).
-    Logits(lm::LogitsArgs),
+    Logits(lm_cmd::LogitsArgs),
 }
 
 #[derive(Subcommand)]
@@ -230,7 +230,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Ingest(args) => commands::ingest(args),
         Command::Quickstart(args) => quickstart::quickstart(args),
-        Command::EmbedText(args) => text::embed_text(args),
+        Command::EmbedText(args) => text_cmd::embed_text(args),
         Command::Corpus(CorpusCommand::Stats { corpus, json }) => commands::stats(&corpus, json),
         Command::Corpus(CorpusCommand::Verify { corpus, json }) => commands::verify(&corpus, json),
         Command::Export(ExportCommand::Hml3d {
@@ -254,11 +254,11 @@ fn main() -> ExitCode {
         Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
         Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
         Command::Bench(BenchCommand::Train(args)) => lm_bench::train(args),
-        Command::Model(ModelCommand::Info(args)) => lm::info(*args),
-        Command::Model(ModelCommand::Presets(args)) => lm::presets(args),
-        Command::Model(ModelCommand::Logits(args)) => lm::logits(args),
-        Command::Train(args) => lm::train(args),
-        Command::Generate(args) => lm::generate(args),
+        Command::Model(ModelCommand::Info(args)) => lm_cmd::info(*args),
+        Command::Model(ModelCommand::Presets(args)) => lm_cmd::presets(args),
+        Command::Model(ModelCommand::Logits(args)) => lm_cmd::logits(args),
+        Command::Train(args) => lm_cmd::train(args),
+        Command::Generate(args) => lm_cmd::generate(args),
         Command::Evaluator(EvaluatorCommand::Train(args)) => eval_cmd::evaluator_train(args),
         Command::Evaluator(EvaluatorCommand::Embed(args)) => eval_cmd::embed(args),
         Command::Eval(args) => eval_cmd::eval(args),

@@ -352,7 +352,7 @@ fn sweep_steps(
 
 /// The trained model of the sweep's best run at its largest budget (lowest L_u).
 fn best_run(sweep: &Path) -> Result<PathBuf> {
-    let rows = sweeps::results::read_csv(&sweep.join("results.csv"))?;
+    let rows = experiments::results::read_csv(&sweep.join("results.csv"))?;
     let largest = rows.iter().map(|r| r.budget).fold(0.0, f64::max);
     let best = rows
         .iter()

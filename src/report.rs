@@ -4,12 +4,12 @@
 
 use crate::commands::{corpus_stats, CorpusStats};
 use anyhow::{bail, Context, Result};
+use experiments::plan::IsoFlopPlan;
+use experiments::results::RunRow;
+use experiments::status::PointStatus;
 use fits::{Fits, Laws, PredictOptions, Prediction};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use sweeps::plan::IsoFlopPlan;
-use sweeps::results::RunRow;
-use sweeps::status::PointStatus;
 use tokenizer::evaluate::EvalReport;
 
 /// Arguments of `motionscale report`.
@@ -80,7 +80,7 @@ pub fn report(args: ReportArgs) -> Result<ExitCode> {
     }
     study.predictions = predictions(study.fits.as_ref(), &args.budgets);
     let html = crate::report_page::page(&study)?;
-    ingest::npy::write_atomic(&args.out, html.as_bytes())
+    motionscale_core::write_atomic(&args.out, html.as_bytes())
         .with_context(|| format!("writing {}", args.out.display()))?;
     println!(
         "wrote {} ({} KiB): {}",
@@ -161,11 +161,11 @@ fn parse<T: serde::de::DeserializeOwned>(
 /// A sweep folder: its plan, point states and results table, its fit and its tokenizer
 /// evaluations when it has them.
 fn add_sweep(study: &mut Study, dir: &Path) -> Result<()> {
-    let plan = sweeps::local::read_adopted_plan(dir)?;
-    let points = sweeps::status::status(&plan, dir)?;
+    let plan = experiments::local::read_adopted_plan(dir)?;
+    let points = experiments::status::status(&plan, dir)?;
     let csv = dir.join("results.csv");
     let rows = if csv.is_file() {
-        sweeps::results::read_csv(&csv)?
+        experiments::results::read_csv(&csv)?
     } else {
         Vec::new()
     };

@@ -4,11 +4,11 @@
 
 use crate::report::{Study, Sweep};
 use anyhow::Result;
+use experiments::status::PointState;
 use fits::laws::Estimate;
 use fits::report::{estimate_text, sig};
 use fits::{Fits, Prediction};
 use std::fmt::Write as _;
-use sweeps::status::PointState;
 
 const STYLE: &str = "body{font-family:'DejaVu Sans',system-ui,sans-serif;font-size:16px;\
 line-height:1.45;color:#1b1b1b;max-width:1200px;margin:0 auto;padding:8px 24px 48px}\
@@ -219,7 +219,7 @@ fn tokenizers(study: &Study) -> String {
 
 /// A point's state, counting a row of the results table as done when its run folder is absent
 /// (a sweep whose results were kept without its run folders).
-fn state(sweep: &Sweep, i: usize) -> (&'static str, Option<&sweeps::results::RunRow>) {
+fn state(sweep: &Sweep, i: usize) -> (&'static str, Option<&experiments::results::RunRow>) {
     let point = &sweep.points[i];
     let row = sweep.rows.iter().find(|r| r.run_id == point.run_id);
     match (point.state, row) {
@@ -255,7 +255,7 @@ fn sweep(sweep: &Sweep) -> String {
         sweep.rows.len()
     );
     let rows = plan.points.iter().zip(&states).map(|(p, (state, row))| {
-        let loss = |f: fn(&sweeps::results::RunRow) -> f64| {
+        let loss = |f: fn(&experiments::results::RunRow) -> f64| {
             row.map_or(String::new(), |r| format!("{:.4}", f(r)))
         };
         let cells = vec![

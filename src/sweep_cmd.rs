@@ -4,14 +4,14 @@
 use crate::tokenizer_cmd::TrainFlags;
 use anyhow::{bail, Context, Result};
 use clap::Parser;
+use experiments::local::{self, LocalOptions};
+use experiments::plan::{self, PlanRequest, TrainSettings, VocabSource};
+use experiments::slurm::{self, SlurmOptions};
+use experiments::status::PointState;
+use experiments::IsoFlopPlan;
 use std::path::PathBuf;
 use std::process::{Command, ExitCode};
 use std::time::Duration;
-use sweeps::local::{self, LocalOptions};
-use sweeps::plan::{self, PlanRequest, TrainSettings, VocabSource};
-use sweeps::slurm::{self, SlurmOptions};
-use sweeps::status::PointState;
-use sweeps::IsoFlopPlan;
 
 /// Arguments of `motionscale sweep plan`.
 #[derive(clap::Args, Debug)]
@@ -330,7 +330,7 @@ pub struct StatusArgs {
 /// `motionscale sweep status`.
 pub fn status_cmd(args: StatusArgs) -> Result<ExitCode> {
     let plan = local::read_adopted_plan(&args.out)?;
-    let points = sweeps::status::status(&plan, &args.out)?;
+    let points = experiments::status::status(&plan, &args.out)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&points)?);
         return Ok(ExitCode::SUCCESS);

@@ -230,7 +230,7 @@ pub fn eval_cmd(args: EvalArgs) -> Result<ExitCode> {
     let report = eval_report(&args.tokenizer, &corpus, &args.split)?;
     let json = serde_json::to_string_pretty(&report)?;
     if let Some(out) = &args.out {
-        ingest::npy::write_atomic(out, json.as_bytes())
+        motionscale_core::write_atomic(out, json.as_bytes())
             .with_context(|| format!("writing {}", out.display()))?;
     }
     println!("{json}");
@@ -407,7 +407,7 @@ pub struct SweepArgs {
 /// `motionscale tokenizer sweep`: train and evaluate every (quantizer, codebook) pair.
 pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
-    use tokenizer::sweep::{sweep, SweepEvent, SweepPlan};
+    use experiments::codebook_sweep::{sweep, SweepEvent, SweepPlan};
     if let Some(q) = args
         .quantizers
         .iter()

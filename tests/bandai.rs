@@ -4,8 +4,8 @@
 mod common;
 
 use common::*;
+use ingest::bvh_fuzzing::Fuzzer;
 use ingest::corpus::Corpus;
-use ingest::source::bvh::fuzzing::Fuzzer;
 use std::collections::HashSet;
 use std::path::PathBuf;
 

@@ -121,13 +121,13 @@ fn slurm_sweep_end_to_end() {
         array.contains("--only-index \"$SLURM_ARRAY_TASK_ID\""),
         "{array}"
     );
-    let jobs: sweeps::slurm::Submission = read_json(&runs.join("slurm/jobs.json"));
+    let jobs: experiments::slurm::Submission = read_json(&runs.join("slurm/jobs.json"));
     let array_job = jobs.array.as_deref().expect("an array job");
-    let states = sweeps::slurm::job_states(array_job).unwrap();
+    let states = experiments::slurm::job_states(array_job).unwrap();
     assert_eq!(states, vec!["COMPLETED"; 6], "one task per plan row");
 
     // Every point once in the table, each run on its own row of the plan.
-    let (rows, missing) = sweeps::local::collect(&runs).unwrap();
+    let (rows, missing) = experiments::local::collect(&runs).unwrap();
     assert!(missing.is_empty(), "{missing:?}");
     assert_eq!(
         rows.iter().map(|r| r.index).collect::<Vec<_>>(),

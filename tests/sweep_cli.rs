@@ -7,12 +7,12 @@
 mod common;
 
 use common::*;
-use ingest::rng::SplitMix64;
+use experiments::plan::{PointFlag, VocabSource};
+use experiments::{IsoFlopPlan, RunRow};
+use motionscale_core::rng::SplitMix64;
 use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-use sweeps::plan::{PointFlag, VocabSource};
-use sweeps::{IsoFlopPlan, RunRow};
 
 /// `sweep plan` on `corpus` with budgets `budgets`: one model, two trained vocabularies.
 fn make_plan(corpus: &Path, budgets: &str, out: &Path) -> IsoFlopPlan {
@@ -93,7 +93,7 @@ fn a_sweep_killed_five_times_ends_with_one_row_per_point() {
     let plan_path = tmp.path().join("plan.toml");
     let plan = make_plan(&corpus, "1e6,1.5e10,3e10", &plan_path);
 
-    // The plan: 3 budgets × 1 model × 2 vocabularies, D from model::accounting.
+    // The plan: 3 budgets × 1 model × 2 vocabularies, D from lm::accounting.
     assert_eq!(plan.points.len(), 6);
     assert_eq!(plan.vocabularies.len(), 2);
     for (v, codes) in plan.vocabularies.iter().zip([240, 1000]) {
@@ -170,7 +170,7 @@ fn a_sweep_killed_five_times_ends_with_one_row_per_point() {
         let ids: std::collections::HashSet<&str> = rows.iter().map(|r| r.run_id.as_str()).collect();
         assert_eq!(ids.len(), rows.len(), "a duplicate row after kill {kill}");
         for row in &rows {
-            let done = sweeps::results::read_row(&killed, &row.run_id).unwrap();
+            let done = experiments::results::read_row(&killed, &row.run_id).unwrap();
             assert_eq!(
                 done.as_ref(),
                 Some(row),

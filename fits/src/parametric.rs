@@ -7,7 +7,7 @@
 use crate::fastmath;
 use crate::lbfgs::{minimize, LbfgsOptions, Minimum, Termination};
 use crate::FitError;
-use ingest::rng::SplitMix64;
+use motionscale_core::rng::SplitMix64;
 use rayon::prelude::*;
 
 /// Runs in log space: ln N, ln D, ln L.

@@ -11,7 +11,7 @@ use crate::laws::Estimate;
 use crate::lbfgs::{minimize, Minimum, Termination};
 use crate::parametric::{self, huber, lse3, LogRuns, StartGrid};
 use crate::runs::Runs;
-use ingest::rng::SplitMix64;
+use motionscale_core::rng::SplitMix64;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 

@@ -1,7 +1,7 @@
 //! Synthetic results tables with known laws and noise: for checking that the fitters recover
 //! what they should, and for the `bench fit` timing.
 
-use ingest::rng::SplitMix64;
+use motionscale_core::rng::SplitMix64;
 use std::io::Write;
 use std::path::Path;
 

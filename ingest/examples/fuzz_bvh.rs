@@ -7,7 +7,7 @@
 //! hanging input is written to `fuzz-crash-<seed>-<n>.bvh` and the process exits non-zero;
 //! an input that aborts the process (allocation failure) ends it with the abort's status.
 
-use ingest::source::bvh::fuzzing::{check, Fuzzer, Outcome};
+use ingest::bvh_fuzzing::{check, Fuzzer, Outcome};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};

@@ -393,9 +393,9 @@ pub fn write_demo_inputs(dir: &Path) -> std::io::Result<Vec<PathBuf>> {
     let mut written = Vec::new();
     for motion in &MOTIONS {
         let path = dir.join(format!("{}.bvh", motion.name));
-        crate::npy::write_atomic(&path, bvh_text(motion).as_bytes())?;
+        motionscale_core::write_atomic(&path, bvh_text(motion).as_bytes())?;
         let captions = motion.captions.join("\n") + "\n";
-        crate::npy::write_atomic(&path.with_extension("txt"), captions.as_bytes())?;
+        motionscale_core::write_atomic(&path.with_extension("txt"), captions.as_bytes())?;
         written.push(path);
     }
     Ok(written)

@@ -2,6 +2,7 @@
 //! a Parquet corpus with manifest, statistics, splits and a rejects list.
 
 pub mod budget;
+pub mod bvh_fuzzing;
 pub mod corpus;
 pub mod demo;
 pub mod export;
@@ -10,7 +11,6 @@ pub mod npy;
 pub mod pipeline;
 pub mod quat;
 pub mod resample;
-pub mod rng;
 pub mod scenarios;
 pub mod skeleton;
 pub mod source;

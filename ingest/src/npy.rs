@@ -1,7 +1,6 @@
 //! Minimal NumPy `.npy` reader and writer for the float arrays motion data uses
 //! (little-endian f32/f64, C order), so joints, features and stats interchange with numpy.
 
-use std::io::Write;
 use std::path::Path;
 
 /// A dense float array read from a `.npy` file, widened to f64.
@@ -169,26 +168,9 @@ pub fn encode_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
     out
 }
 
-/// Write bytes to `path` atomically: a temporary file in the same folder, then rename.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = path.parent().unwrap_or_else(|| Path::new("."));
-    std::fs::create_dir_all(dir)?;
-    let tmp = dir.join(format!(
-        ".{}.tmp{}",
-        path.file_name().and_then(|n| n.to_str()).unwrap_or("out"),
-        std::process::id()
-    ));
-    {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-    }
-    std::fs::rename(&tmp, path)
-}
-
 /// Write an f32 array as a `.npy` file, atomically.
 pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> std::io::Result<()> {
-    write_atomic(path, &encode_f32(shape, data))
+    motionscale_core::write_atomic(path, &encode_f32(shape, data))
 }
 
 #[cfg(test)]

@@ -11,8 +11,8 @@ use crate::corpus::{CaptionSpan, ClipRecord};
 use crate::hml263::{Hml263, Hml263Extractor, Hml263Options, FEATURE_DIM};
 use crate::resample::resample;
 use crate::skeleton::{mirror_pose, Pose};
-use crate::source::retarget::RigMap;
-use crate::source::{amass, bandai, bvh, hml3d, joints, synth, RawClip, Reject};
+use crate::source::retarget::{self, RigMap};
+use crate::source::{amass, bandai, hml3d, joints, synth, RawClip, Reject};
 use rayon::prelude::*;
 use serde::Serialize;
 use sha2::Digest;
@@ -519,7 +519,7 @@ fn read_file(kind: &Reader, spec: &SourceSpec, path: &Path) -> Vec<Result<RawCli
         rel
     };
     match kind {
-        Reader::Bvh(map) => vec![bvh::read_clip(path, rel, *map)],
+        Reader::Bvh(map) => vec![retarget::read_clip(path, rel, *map)],
         Reader::Joints(fps) => vec![joints::read_clip(path, rel, *fps)],
         Reader::Amass(model) => vec![amass::read_clip(path, rel, model)],
         Reader::Hml3d(folder) => folder.read_clips(path),
@@ -763,8 +763,9 @@ fn write_corpus(
     let mut file_sha256 = BTreeMap::new();
     for (rel, bytes) in files {
         let path = out_dir.join(rel);
-        crate::npy::write_atomic(&path, &bytes).map_err(|e| format!("{}: {e}", path.display()))?;
-        let sha = crate::corpus::writer::hex(&sha2::Sha256::digest(&bytes));
+        motionscale_core::write_atomic(&path, &bytes)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
+        let sha = motionscale_core::hex(&sha2::Sha256::digest(&bytes));
         file_sha256.insert(rel.to_string(), sha);
     }
 

@@ -10,7 +10,7 @@
 use crate::corpus::reader::ClipMeta;
 use crate::corpus::split::SPLITS;
 use crate::corpus::Corpus;
-use crate::rng::SplitMix64;
+use motionscale_core::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -259,12 +259,12 @@ pub fn write(out: &Path, sets: &ScenarioDatasets) -> Result<(), String> {
         for (split, ids) in &d.clips {
             let path = out.join(&d.name).join(format!("{split}.txt"));
             let text: String = ids.iter().map(|id| format!("{id}\n")).collect();
-            crate::npy::write_atomic(&path, text.as_bytes()).map_err(|e| io(&path, e))?;
+            motionscale_core::write_atomic(&path, text.as_bytes()).map_err(|e| io(&path, e))?;
         }
     }
     let path = out.join("datasets.json");
     let text = serde_json::to_string_pretty(sets).map_err(|e| e.to_string())?;
-    crate::npy::write_atomic(&path, text.as_bytes()).map_err(|e| io(&path, e))
+    motionscale_core::write_atomic(&path, text.as_bytes()).map_err(|e| io(&path, e))
 }
 
 /// A table like the L²-EMG paper's Table 1: clips per dataset and split, then per emotion.

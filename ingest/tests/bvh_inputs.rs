@@ -4,11 +4,11 @@
 mod common;
 
 use common::data_dir;
+use ingest::bvh_fuzzing::{write_bvh, Layout, SeedJoint};
 use ingest::quat;
 use ingest::skeleton::{Pose, PARENTS};
-use ingest::source::bvh::fuzzing::{write_bvh, Layout, SeedJoint};
 use ingest::source::bvh::{self, Bvh, Channel};
-use ingest::source::retarget::{estimate_stature, RigMap};
+use ingest::source::retarget::{self, estimate_stature, RigMap};
 use std::path::{Path, PathBuf};
 
 fn close(a: [f64; 3], b: [f64; 3], tol: f64) {
@@ -333,7 +333,7 @@ fn retarget_tpose(rig: &Rig, unit: f64, z_up: bool, map: Option<&RigMap>) -> (Ve
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("tpose.bvh");
     std::fs::write(&path, rig_bvh(rig, unit, z_up)).unwrap();
-    let clip = bvh::read_clip(&path, Path::new("sub/tpose.bvh"), map).unwrap();
+    let clip = retarget::read_clip(&path, Path::new("sub/tpose.bvh"), map).unwrap();
     assert_eq!(clip.clip_id, "tpose");
     assert_eq!(clip.source, "bvh");
     assert!((clip.fps - 60.0).abs() < 1e-9);
@@ -449,7 +449,7 @@ fn toml_map_for_another_rig_and_unknown_rigs() {
     // The same rig without a map: no built-in fits; the reason lists what was expected.
     let path = dir.path().join("custom.bvh");
     std::fs::write(&path, rig_bvh(&rig, 1.0, false)).unwrap();
-    let e = bvh::read_clip(&path, Path::new("custom.bvh"), None).unwrap_err();
+    let e = retarget::read_clip(&path, Path::new("custom.bvh"), None).unwrap_err();
     assert_eq!(e.stage, "retarget");
     assert!(
         e.reason.contains("unknown rig: no built-in map fits"),
@@ -464,7 +464,8 @@ fn toml_map_for_another_rig_and_unknown_rigs() {
     );
     assert!(e.reason.contains("l_knee (expects"), "{}", e.reason);
     // A map that does not fit the file names the missing joints too.
-    let e = bvh::read_clip(&path, Path::new("custom.bvh"), Some(&RigMap::bandai())).unwrap_err();
+    let e =
+        retarget::read_clip(&path, Path::new("custom.bvh"), Some(&RigMap::bandai())).unwrap_err();
     assert!(
         e.reason.contains(
             "rig map 'bandai' does not fit: missing source joints for pelvis (expects 'Hips')"
@@ -479,12 +480,12 @@ fn unreadable_files_are_rejected_at_read() {
     let dir = tempfile::tempdir().unwrap();
     let as_dir = dir.path().join("x.bvh");
     std::fs::create_dir(&as_dir).unwrap();
-    let e = bvh::read_clip(&as_dir, Path::new("x.bvh"), None).unwrap_err();
+    let e = retarget::read_clip(&as_dir, Path::new("x.bvh"), None).unwrap_err();
     assert_eq!(e.stage, "read");
     assert!(e.reason.contains("x.bvh"), "{}", e.reason);
     let bad = dir.path().join("bad.bvh");
     std::fs::write(&bad, b"HIERARCHY\nROOT \xff\xfe\n").unwrap();
-    let e = bvh::read_clip(&bad, Path::new("bad.bvh"), None).unwrap_err();
+    let e = retarget::read_clip(&bad, Path::new("bad.bvh"), None).unwrap_err();
     assert_eq!(e.stage, "read");
     assert!(
         e.reason
@@ -494,7 +495,7 @@ fn unreadable_files_are_rejected_at_read() {
     );
     let trunc = dir.path().join("trunc.bvh");
     std::fs::write(&trunc, &TWO_JOINTS[..TWO_JOINTS.len() - 10]).unwrap();
-    let e = bvh::read_clip(&trunc, Path::new("trunc.bvh"), None).unwrap_err();
+    let e = retarget::read_clip(&trunc, Path::new("trunc.bvh"), None).unwrap_err();
     assert_eq!(e.stage, "parse");
     assert!(
         e.reason.contains("trunc.bvh: line 20: truncated"),
@@ -538,7 +539,7 @@ fn bandai_clips_retarget_with_rigid_bones_on_the_floor_and_left_on_the_left() {
         return;
     };
     for path in &files {
-        let clip = bvh::read_clip(path, path, None).unwrap();
+        let clip = retarget::read_clip(path, path, None).unwrap();
         let name = clip.clip_id.clone();
         assert!(
             clip.conversion.starts_with("bandai rig, cm→m"),

@@ -23,10 +23,10 @@
 //! ([`crate::conv_op`]), with the ReLUs and up-samplings of the PyTorch `net` fused into the
 //! input reads of the convolutions that follow them.
 
-use crate::conv_op::{conv1d, ConvGeometry};
 use crate::error::TokenizerError;
 use candle_core::{Module, Tensor};
 use candle_nn::{Init, VarBuilder};
+use nn::conv_op::{conv1d, ConvGeometry};
 use serde::{Deserialize, Serialize};
 
 /// Shape of a T2M-GPT encoder/decoder pair.

@@ -21,3 +21,25 @@ pub enum TokenizerError {
         message: String,
     },
 }
+
+impl From<motionscale_core::FileError> for TokenizerError {
+    fn from(e: motionscale_core::FileError) -> Self {
+        let message = match &e {
+            motionscale_core::FileError::Io { source, .. } => source.to_string(),
+            motionscale_core::FileError::Invalid { message, .. } => message.clone(),
+        };
+        Self::File {
+            path: e.path().to_path_buf(),
+            message,
+        }
+    }
+}
+
+impl From<nn::NnError> for TokenizerError {
+    fn from(e: nn::NnError) -> Self {
+        match e {
+            nn::NnError::Candle(e) => Self::Candle(e),
+            nn::NnError::File(e) => e.into(),
+        }
+    }
+}

@@ -2,31 +2,23 @@
 //! turn HumanML3D-263 motion into one token per 4 frames, and everything around them.
 //!
 //! - [`ConvEncoder`] / [`ConvDecoder`]: the T2M-GPT networks, channels-last, on the fused
-//!   convolution of [`conv_op`] (im2col + AVX-512 gemm with ReLU and up-sampling fused in).
+//!   convolution of `nn::conv_op` (im2col + AVX-512 gemm with ReLU and up-sampling fused in).
 //! - [`FsqQuantizer`] (Mentzer et al.'s finite scalar quantization, tanh or ScaMo's sigmoid
 //!   bound) and [`VqQuantizer`] (EMA codebook with dead-code reset); [`CodeUsage`] metrics.
 //! - [`model::MotionTokenizer`]: encoder + quantizer + decoder + normalisation statistics,
-//!   saved as a checkpoint PyTorch loads; [`train`], [`evaluate`], [`sweep`] and [`tokens`]
-//!   (token sets, the transformer stage's input). [`optim`] (AdamW with saveable state and a
-//!   warm-up + cosine schedule), [`checkpoint`], [`matmul`] and [`cpu_f32`] are shared with
-//!   later training stages.
+//!   saved as a checkpoint PyTorch loads; [`train`], [`evaluate`] and [`tokens`]
+//!   (token sets, the transformer stage's input).
 //!
 //! The `cuda` feature (off by default) builds candle with CUDA; the fused CPU ops then fall
 //! back to candle's own ops on GPU tensors.
 
-pub mod checkpoint;
 pub mod conv;
-pub mod conv_op;
-pub mod cpu_f32;
 pub mod error;
 pub mod evaluate;
 pub mod fsq;
 pub mod loss;
-pub mod matmul;
 pub mod model;
-pub mod optim;
 pub mod ste;
-pub mod sweep;
 pub mod tokens;
 pub mod train;
 pub mod usage;

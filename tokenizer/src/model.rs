@@ -14,14 +14,15 @@
 //! `model.load_state_dict(safetensors.torch.load_file("DIR/model.safetensors"))` restores the
 //! reference PyTorch model exactly (strict), so both compute the same reconstruction.
 
-use crate::checkpoint::{read_json, save_safetensors, write_json};
 use crate::conv::{ConvConfig, ConvDecoder, ConvEncoder};
 use crate::error::TokenizerError;
 use crate::fsq::{levels_for, Bound, FsqConfig, FsqQuantizer};
 use crate::vq::{VqConfig, VqQuantizer};
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
-use ingest::rng::SplitMix64;
+use motionscale_core::rng::SplitMix64;
+use motionscale_core::{read_json, write_json};
+use nn::checkpoint::save_safetensors;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
@@ -423,7 +424,7 @@ impl MotionTokenizer {
             ingest::npy::write_f32(&path, &[values.len()], values)
                 .map_err(|e| file_error(&path, &e))?;
         }
-        write_json(&dir.join(CONFIG_FILE), &self.config)
+        Ok(write_json(&dir.join(CONFIG_FILE), &self.config)?)
     }
 
     /// Load a checkpoint folder written by [`Self::save`] onto `device`.

@@ -11,7 +11,6 @@
 //! Unigram counts feed the normalised loss (ScaMo Eq. 8), which uses the train split's
 //! frequencies with add-one smoothing. Files are written to temporary names and renamed.
 
-use crate::checkpoint::{read_json, write_json};
 use crate::error::TokenizerError;
 use arrow_array::builder::{ListBuilder, StringBuilder, UInt32Builder};
 use arrow_array::cast::AsArray;
@@ -20,7 +19,8 @@ use arrow_array::{ArrayRef, RecordBatch};
 use arrow_schema::{DataType, Field, Schema};
 use bytes::Bytes;
 use ingest::corpus::schema::list_item;
-use ingest::npy::write_atomic;
+use motionscale_core::write_atomic;
+use motionscale_core::{read_json, write_json};
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use parquet::arrow::ArrowWriter;
 use parquet::basic::{Compression, ZstdLevel};
@@ -68,7 +68,7 @@ pub struct TokenClip {
 pub struct TokenizerInfo {
     /// Tokenizer checkpoint folder, as given.
     pub dir: PathBuf,
-    /// Content hash of its weights and config (see `tokenizer::checkpoint`).
+    /// Content hash of its weights and config (see `nn::checkpoint`).
     pub id: String,
     /// `fsq` or `vq`.
     pub quantizer: String,

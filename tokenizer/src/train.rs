@@ -15,14 +15,15 @@
 //! Batch `s` is drawn with seed `hash(seed, s)`, so a run killed at any moment and started
 //! again reproduces the uninterrupted run exactly.
 
-use crate::checkpoint::{read_json, write_json, ResumeFiles};
 use crate::error::TokenizerError;
 use crate::loss::reconstruction_losses;
 use crate::model::{MotionTokenizer, TokenizerConfig, FEATURES};
-use crate::optim::{AdamW, AdamWConfig, LrSchedule};
 use candle_core::{Device, Tensor};
 use ingest::corpus::Corpus;
-use ingest::rng::SplitMix64;
+use motionscale_core::files::{check_same_run, read_json, write_json};
+use motionscale_core::rng::SplitMix64;
+use nn::checkpoint::ResumeFiles;
+use nn::optim::{AdamW, AdamWConfig, LrSchedule};
 use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -288,21 +289,15 @@ fn resume_or_start(
 ) -> Result<(MotionTokenizer, TrainState), TokenizerError> {
     let spec_path = out.join("train.json");
     let state_path = resume.state_path();
-    if spec_path.exists() {
-        let saved: TrainSpec = read_json(&spec_path)?;
-        if &saved != spec {
-            return Err(TokenizerError::File {
-                path: spec_path,
-                message: "holds a run with other settings; use a new --out folder".into(),
-            });
-        }
-        if state_path.exists() {
-            let state: TrainState = read_json(state_path)?;
-            truncate_log(out, state.step)?;
-            let mut model = MotionTokenizer::load(&resume.files(state.step), device)?;
-            model.set_vq_rng_state(state.vq_rng);
-            return Ok((model, state));
-        }
+    check_same_run(&spec_path, "a tokenizer run", |saved: TrainSpec| {
+        &saved == spec
+    })?;
+    if spec_path.exists() && state_path.exists() {
+        let state: TrainState = read_json(state_path)?;
+        truncate_log(out, state.step)?;
+        let mut model = MotionTokenizer::load(&resume.files(state.step), device)?;
+        model.set_vq_rng_state(state.vq_rng);
+        return Ok((model, state));
     }
     std::fs::create_dir_all(out).map_err(|e| corpus_error(out, e.to_string()))?;
     write_json(&spec_path, spec)?;
@@ -379,7 +374,7 @@ fn truncate_log(out: &Path, step: u64) -> Result<(), TokenizerError> {
         })
         .map(|line| format!("{line}\n"))
         .collect();
-    ingest::npy::write_atomic(&path, kept.as_bytes())
+    motionscale_core::write_atomic(&path, kept.as_bytes())
         .map_err(|e| corpus_error(&path, e.to_string()))
 }
 

@@ -8,7 +8,7 @@
 use crate::error::TokenizerError;
 use crate::ste::straight_through;
 use candle_core::{DType, Device, Tensor, D};
-use ingest::rng::SplitMix64;
+use motionscale_core::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 
 /// Configuration of a [`VqQuantizer`].

@@ -6,7 +6,7 @@
 //! of the corpus (README "Corpus integrity" gives the measured cost).
 
 use super::manifest::Manifest;
-use super::writer::hex;
+use motionscale_core::hex;
 use rayon::prelude::*;
 use sha2::{Digest, Sha256};
 use std::collections::HashSet;

@@ -146,7 +146,7 @@ impl Manifest {
     pub fn write(&self, dir: &Path) -> Result<(), String> {
         let path = dir.join("manifest.json");
         let text = serde_json::to_string_pretty(self).map_err(|e| e.to_string())?;
-        crate::npy::write_atomic(&path, text.as_bytes())
+        motionscale_core::write_atomic(&path, text.as_bytes())
             .map_err(|e| format!("{}: {e}", path.display()))
     }
 

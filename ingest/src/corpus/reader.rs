@@ -4,12 +4,12 @@
 use super::manifest::Manifest;
 use super::schema::{col, FEATURE_DIM};
 use super::{CaptionSpan, ClipRecord};
-use crate::rng::SplitMix64;
 use crate::source::Labels;
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, Float64Type, UInt32Type};
 use arrow_array::{Array, RecordBatch};
 use bytes::Bytes;
+use motionscale_core::rng::SplitMix64;
 use parquet::arrow::arrow_reader::{
     ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection,
     RowSelector,

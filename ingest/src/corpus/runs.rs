@@ -73,7 +73,8 @@ impl RunSet {
         }
         let path = self.dir.join(format!("run-{:05}.parquet", self.runs.len()));
         let bytes = encode_run(&records)?;
-        crate::npy::write_atomic(&path, &bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+        motionscale_core::write_atomic(&path, &bytes)
+            .map_err(|e| format!("{}: {e}", path.display()))?;
         self.runs.push(Run::File(path));
         Ok(())
     }

@@ -139,18 +139,14 @@ pub fn write_shard(
 ) -> Result<ShardEntry, String> {
     let bytes = encode_shard(clips)?;
     let path = corpus_dir.join(rel_file);
-    crate::npy::write_atomic(&path, &bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+    motionscale_core::write_atomic(&path, &bytes)
+        .map_err(|e| format!("{}: {e}", path.display()))?;
     Ok(ShardEntry {
         file: rel_file.to_string(),
         rows: clips.len() as u64,
         frames: clips.iter().map(|c| c.num_frames as u64).sum(),
-        sha256: hex(&Sha256::digest(&bytes)),
+        sha256: motionscale_core::hex(&Sha256::digest(&bytes)),
     })
-}
-
-/// Lower-case hex of bytes.
-pub fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 #[cfg(test)]

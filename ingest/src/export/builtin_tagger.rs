@@ -5,7 +5,7 @@
 //! narrow vocabulary of motion captions without Python or model files.
 
 use super::text_process::Token;
-use crate::rng::SplitMix64;
+use motionscale_core::rng::SplitMix64;
 use std::collections::{HashMap, HashSet};
 use std::sync::OnceLock;
 

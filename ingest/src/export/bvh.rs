@@ -11,7 +11,6 @@
 //! the observed ones (Horn's quaternion method); its children are then off by the mismatch of
 //! the observed shape against the rigid rest shape.
 
-use crate::npy;
 use crate::quat::{self, Quat, Vec3, IDENTITY};
 use crate::skeleton::{Pose, JOINT_NAMES, NUM_JOINTS, PARENTS, TARGET_OFFSETS};
 use std::fmt::Write as _;
@@ -54,7 +53,7 @@ pub fn write_bvh(joints: &[Pose], fps: f64) -> String {
 
 /// Write [`write_bvh`]'s text to `path` atomically.
 pub fn write_bvh_file(path: &Path, joints: &[Pose], fps: f64) -> std::io::Result<()> {
-    npy::write_atomic(path, write_bvh(joints, fps).as_bytes())
+    motionscale_core::write_atomic(path, write_bvh(joints, fps).as_bytes())
 }
 
 /// Joints in the depth-first order of the HIERARCHY section, which the MOTION values follow.

@@ -216,7 +216,7 @@ impl Hml3dWriter {
             for (caption, start, end) in spans {
                 text += &tagged.line(caption, *start, *end);
             }
-            npy::write_atomic(
+            motionscale_core::write_atomic(
                 &self.out.join("texts").join(format!("{id}.txt")),
                 text.as_bytes(),
             )?;
@@ -244,7 +244,7 @@ impl ClipTexts {
 
 fn write_ids<'a>(path: &Path, ids: impl Iterator<Item = &'a String>) -> io::Result<()> {
     let text: String = ids.map(|id| format!("{id}\n")).collect();
-    npy::write_atomic(path, text.as_bytes())
+    motionscale_core::write_atomic(path, text.as_bytes())
 }
 
 /// One `texts/<id>.txt` line for a caption covering the whole clip, tagged by the built-in

@@ -14,8 +14,8 @@
 //!
 //! End Sites can be named as `<joint>_End`. `t` defaults to 0.5.
 
-use super::bvh::Bvh;
-use super::Reject;
+use super::bvh::{parse_bytes, Bvh};
+use super::{Labels, RawClip, Reject};
 use crate::quat::{self, Quat, Vec3};
 use crate::skeleton::{Pose, JOINT_NAMES, NUM_JOINTS};
 use serde::Deserialize;
@@ -437,6 +437,65 @@ pub fn retarget(bvh: &Bvh, map: &RigMap) -> Result<(Vec<Pose>, String), Reject> 
             size * factor
         ),
     ))
+}
+
+/// Read a BVH file and retarget it to SMPL-22.
+///
+/// `path` is the file to read and becomes `source_path`; `rel_path` (its path inside the
+/// source folder) gives `clip_id` (the file stem). With `map` = `None` the rig is detected
+/// from the joint names. Labels and captions are left empty.
+pub fn read_clip(path: &Path, rel_path: &Path, map: Option<&RigMap>) -> Result<RawClip, Reject> {
+    let bytes =
+        std::fs::read(path).map_err(|e| Reject::new("read", format!("{}: {e}", path.display())))?;
+    clip_from_bytes(&bytes, path, rel_path, map)
+}
+
+/// [`read_clip`] on the bytes of the file at `path`.
+pub fn clip_from_bytes(
+    bytes: &[u8],
+    path: &Path,
+    rel_path: &Path,
+    map: Option<&RigMap>,
+) -> Result<RawClip, Reject> {
+    if let Err(e) = std::str::from_utf8(bytes) {
+        return Err(Reject::new(
+            "read",
+            format!(
+                "{}: not UTF-8 text (invalid byte at offset {})",
+                path.display(),
+                e.valid_up_to()
+            ),
+        ));
+    }
+    let bvh =
+        parse_bytes(bytes).map_err(|e| Reject::new("parse", format!("{}: {e}", path.display())))?;
+    let detected;
+    let map = match map {
+        Some(m) => m,
+        None => {
+            detected = detect(&bvh.joint_names())
+                .map_err(|r| Reject::new(&r.stage, format!("{}: {}", path.display(), r.reason)))?;
+            &detected
+        }
+    };
+    let (poses, conversion) = retarget(&bvh, map)
+        .map_err(|r| Reject::new(&r.stage, format!("{}: {}", path.display(), r.reason)))?;
+    let clip_id = rel_path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    Ok(RawClip {
+        clip_id,
+        source: "bvh".to_string(),
+        source_path: path.to_path_buf(),
+        fps: bvh.fps(),
+        poses,
+        labels: Labels::default(),
+        captions: Vec::new(),
+        conversion,
+        split: None,
+        span: None,
+    })
 }
 
 #[cfg(test)]

@@ -34,8 +34,8 @@
 
 use super::{Labels, RawClip};
 use crate::quat::{self, Quat, Vec3};
-use crate::rng::SplitMix64;
 use crate::skeleton::{Pose, NUM_JOINTS, PARENTS, RAW_OFFSETS, TARGET_OFFSETS};
+use motionscale_core::rng::SplitMix64;
 use std::f64::consts::{FRAC_PI_2, PI, TAU};
 use std::path::PathBuf;
 

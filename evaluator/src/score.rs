@@ -1,0 +1,550 @@
+//! `motionscale eval`: the metrics of a set of motions against the ground truth of a corpus
+//! split, in a trained evaluator's space, with mean and 95% interval over repeats.
+//!
+//! A motion set is a corpus split (ground truth) or a HumanML3D-layout folder
+//! (`new_joint_vecs/<id>.npy` de-normalised features, `texts/<id>.txt`, optional
+//! `<split>.txt`), such as `motionscale generate --captions-from` writes. Such a folder may
+//! carry `generated.jsonl` (one `{"id", "source_motion_id", "caption", "sample"}` per motion):
+//! then motions of one source clip form one group (one is drawn per repeat; groups of
+//! ≥ 10 give multimodality), the caption is the one generated from, and labels come from the
+//! source clip. Without it, ids that match corpus clips take those clips' labels.
+//! [`EvalOptions::splits`] (e.g. a scenario dataset) decides which clips (or, for generated
+//! motions, which source clips) form the split, in both sets.
+
+use crate::metrics::{self, Interval};
+use crate::model::{MotionPredictions, TrainedEvaluator};
+use crate::train::{class_of, corpus_clips, LabelledClip};
+use crate::EvaluatorError;
+use ingest::corpus::schema::FEATURE_DIM;
+use lm::caption_set::{split_assignment, GeneratedEntry};
+use motionscale_core::rng::SplitMix64;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use text::embed::CaptionEmbeddings;
+use text::TextEncoder;
+
+/// How to evaluate.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvalOptions {
+    /// Split of the reference corpus (and of the motion set).
+    pub split: String,
+    /// Repeats (each redraws captions, samples, pools and pairs).
+    pub repeats: usize,
+    /// Seed of every draw.
+    pub seed: u64,
+    /// Only clips of this source kind (`bvh`, `synth`…), in both sets.
+    pub source: Option<String>,
+    /// Folder of `{train,val,test}.txt` clip lists (e.g. a scenario dataset) that decides
+    /// which clips form `split`, in both sets.
+    #[serde(default)]
+    pub splits: Option<PathBuf>,
+    /// Compare two disjoint random halves of the motion set with each other instead of the
+    /// set with the reference (a floor for FID on ground truth).
+    pub halves: bool,
+    /// Give each motion another motion's caption (R-precision should fall to chance).
+    pub shuffle_captions: bool,
+    /// Standard deviation of Gaussian noise added to every normalised feature.
+    pub noise: f64,
+    /// R-precision pool size.
+    pub pool: usize,
+    /// Diversity pairs.
+    pub diversity_pairs: usize,
+    /// Samples per text for multimodality.
+    pub multimodality_samples: usize,
+}
+
+impl Default for EvalOptions {
+    fn default() -> Self {
+        Self {
+            split: "test".into(),
+            repeats: 20,
+            seed: 0,
+            source: None,
+            splits: None,
+            halves: false,
+            shuffle_captions: false,
+            noise: 0.0,
+            pool: 32,
+            diversity_pairs: 300,
+            multimodality_samples: 10,
+        }
+    }
+}
+
+/// One motion to evaluate: the clip (id, features, captions it should match, labels it
+/// should show) and its group (the source clip: motions of one group are samples for one
+/// text).
+#[derive(Debug, Clone)]
+pub struct EvalMotion {
+    /// Group.
+    pub group: String,
+    /// The motion.
+    pub clip: LabelledClip,
+}
+
+/// A loaded motion set and where it came from.
+#[derive(Debug, Clone)]
+pub struct MotionSet {
+    /// `corpus` or `hml3d`.
+    pub kind: String,
+    /// Its folder.
+    pub path: PathBuf,
+    /// The motions.
+    pub motions: Vec<EvalMotion>,
+}
+
+impl MotionSet {
+    /// Short sha256 of the ids and features, in order.
+    pub fn content_id(&self) -> String {
+        let mut hasher = Sha256::new();
+        for m in &self.motions {
+            hasher.update(m.clip.motion_id.as_bytes());
+            for v in &m.clip.features {
+                hasher.update(v.to_le_bytes());
+            }
+        }
+        motionscale_core::hex(&hasher.finalize()[..6])
+    }
+}
+
+fn from_clip(clip: LabelledClip) -> EvalMotion {
+    EvalMotion {
+        group: clip.motion_id.clone(),
+        clip,
+    }
+}
+
+/// The ground-truth clips of `split` in the corpus at `dir` (those with a caption).
+pub fn corpus_split(dir: &Path, options: &EvalOptions) -> Result<MotionSet, EvaluatorError> {
+    let source = options.source.as_deref();
+    let splits = split_assignment(options.splits.as_deref())?;
+    let clips = corpus_clips(dir, |m| {
+        splits.split_of(&m.motion_id, &m.split) == Some(options.split.as_str())
+            && source.is_none_or(|s| m.source == s)
+    })?;
+    Ok(MotionSet {
+        kind: "corpus".into(),
+        path: dir.to_path_buf(),
+        motions: clips
+            .into_iter()
+            .filter(|c| !c.captions.is_empty())
+            .map(from_clip)
+            .collect(),
+    })
+}
+
+/// The motions of a HumanML3D-layout folder; labels come from `labels` (corpus clips by id).
+pub fn hml3d_folder(
+    dir: &Path,
+    options: &EvalOptions,
+    labels: &HashMap<String, LabelledClip>,
+) -> Result<MotionSet, EvaluatorError> {
+    let vecs = dir.join("new_joint_vecs");
+    if !vecs.is_dir() {
+        return Err(EvaluatorError::Missing {
+            path: vecs,
+            what: "HumanML3D features folder (or pass a corpus folder)",
+        });
+    }
+    let splits = split_assignment(options.splits.as_deref())?;
+    let split_file = dir.join(format!("{}.txt", options.split));
+    let listed = ingest::corpus::split::read_ids(&split_file)
+        .map_err(|e| EvaluatorError::invalid(&split_file, e))?;
+    let mut ids: Vec<String> = if let Some(ids) = listed {
+        ids
+    } else {
+        let entries = std::fs::read_dir(&vecs).map_err(|e| EvaluatorError::io(&vecs, e))?;
+        let mut ids = Vec::new();
+        for entry in entries {
+            let path = entry.map_err(|e| EvaluatorError::io(&vecs, e))?.path();
+            if path.extension().is_some_and(|e| e == "npy") {
+                if let Some(stem) = path.file_stem() {
+                    ids.push(stem.to_string_lossy().into_owned());
+                }
+            }
+        }
+        ids
+    };
+    ids.sort();
+    let sidecar = dir.join("generated.jsonl");
+    let mut generated = HashMap::new();
+    if sidecar.is_file() {
+        let text =
+            std::fs::read_to_string(&sidecar).map_err(|e| EvaluatorError::io(&sidecar, e))?;
+        for (n, line) in text
+            .lines()
+            .enumerate()
+            .filter(|(_, l)| !l.trim().is_empty())
+        {
+            let entry: GeneratedEntry = serde_json::from_str(line)
+                .map_err(|e| EvaluatorError::invalid(&sidecar, format!("line {}: {e}", n + 1)))?;
+            generated.insert(entry.id.clone(), entry);
+        }
+    }
+    let mut motions = Vec::with_capacity(ids.len());
+    for id in ids {
+        let path = vecs.join(format!("{id}.npy"));
+        let array = ingest::npy::read(&path).map_err(|e| EvaluatorError::invalid(&path, e))?;
+        if array.shape.len() != 2 || array.shape[1] != FEATURE_DIM || array.shape[0] == 0 {
+            return Err(EvaluatorError::invalid(
+                &path,
+                format!(
+                    "shape {:?}, expected (frames ≥ 1, {FEATURE_DIM})",
+                    array.shape
+                ),
+            ));
+        }
+        let features = array.data.iter().map(|&v| v as f32).collect();
+        let (group, captions) = match generated.get(&id) {
+            Some(g) => (g.source_motion_id.clone(), vec![g.caption.clone()]),
+            None => {
+                let texts = dir.join("texts").join(format!("{id}.txt"));
+                let text =
+                    std::fs::read_to_string(&texts).map_err(|e| EvaluatorError::io(&texts, e))?;
+                let lines = ingest::source::hml3d::parse_texts(&text)
+                    .map_err(|e| EvaluatorError::invalid(&texts, e))?;
+                (id.clone(), lines.into_iter().map(|l| l.caption).collect())
+            }
+        };
+        // Generated motions belong to the split of the clip they were generated from.
+        if splits.split_of(&group, &options.split) != Some(options.split.as_str()) {
+            continue;
+        }
+        let label = labels.get(&group);
+        if options
+            .source
+            .as_deref()
+            .is_some_and(|s| label.is_none_or(|l| l.source != s))
+        {
+            continue;
+        }
+        motions.push(EvalMotion {
+            clip: LabelledClip {
+                motion_id: id,
+                source: label.map_or_else(|| "hml3d".into(), |l| l.source.clone()),
+                features,
+                captions,
+                emotion: label.and_then(|l| l.emotion.clone()),
+                action: label.and_then(|l| l.action.clone()),
+            },
+            group,
+        });
+    }
+    Ok(MotionSet {
+        kind: "hml3d".into(),
+        path: dir.to_path_buf(),
+        motions,
+    })
+}
+
+/// The metrics over repeats, and what they were computed on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvalReport {
+    /// Evaluator folder.
+    pub evaluator: PathBuf,
+    /// Evaluator content id (sha256 of its config, weights and statistics).
+    pub evaluator_id: String,
+    /// Reference corpus folder.
+    pub corpus: PathBuf,
+    /// Reference corpus id (sha256 of its manifest).
+    pub corpus_id: String,
+    /// Motion set kind (`corpus` or `hml3d`).
+    pub motions_kind: String,
+    /// Motion set folder.
+    pub motions: PathBuf,
+    /// Motion set content id (sha256 of ids and features).
+    pub motions_id: String,
+    /// Motions evaluated, and groups (texts) among them.
+    pub motion_count: usize,
+    /// Distinct groups.
+    pub group_count: usize,
+    /// Reference clips (ground truth of the split).
+    pub reference_count: usize,
+    /// Options, split, seed and repeats included.
+    pub options: EvalOptions,
+    /// FID against the reference (or between the halves).
+    pub fid: Interval,
+    /// R-precision top-1, top-2, top-3.
+    pub r_precision: [Interval; 3],
+    /// Mean text–motion distance.
+    pub matching_score: Interval,
+    /// Diversity (`None` with fewer motions than pairs).
+    pub diversity: Option<Interval>,
+    /// Multimodality (`None` without groups of enough samples).
+    pub multimodality: Option<Interval>,
+    /// Groups that had enough samples for multimodality.
+    pub multimodality_groups: usize,
+    /// Emotion classifier weighted F1 on motions with an emotion label known to it.
+    pub emotion_weighted_f1: Option<Interval>,
+    /// Action classifier accuracy on motions with an action label known to it.
+    pub action_accuracy: Option<Interval>,
+    /// Chance level of top-1 R-precision (1 / pool).
+    pub r_precision_chance: f64,
+}
+
+/// Per-token caption embeddings: from the reference corpus, else encoded with `encoder`.
+pub fn caption_embeddings(
+    captions: &[String],
+    stored: &CaptionEmbeddings,
+    encoder: Option<&dyn TextEncoder>,
+) -> Result<HashMap<String, Vec<f32>>, EvaluatorError> {
+    let mut table = HashMap::new();
+    let mut missing = Vec::new();
+    for caption in captions {
+        match stored.get(caption)? {
+            Some(t) => {
+                table.insert(caption.clone(), t.embeddings);
+            }
+            None => missing.push(caption.as_str()),
+        }
+    }
+    if missing.is_empty() {
+        return Ok(table);
+    }
+    let encoder = encoder.ok_or_else(|| {
+        EvaluatorError::Argument(format!(
+            "{} captions (e.g. {:?}) are not embedded in the corpus; pass the text encoder \
+             ({}) with --encoder",
+            missing.len(),
+            missing[0],
+            stored.encoder()
+        ))
+    })?;
+    for chunk in missing.chunks(64) {
+        for (caption, t) in chunk.iter().zip(encoder.encode(chunk)?) {
+            table.insert(caption.to_string(), t.embeddings);
+        }
+    }
+    Ok(table)
+}
+
+/// Evaluate `set` against the ground truth `reference` with `evaluator`.
+pub fn evaluate_motions(
+    evaluator: &TrainedEvaluator,
+    evaluator_dir: &Path,
+    reference: &MotionSet,
+    set: &MotionSet,
+    options: &EvalOptions,
+    encoder: Option<&dyn TextEncoder>,
+) -> Result<EvalReport, EvaluatorError> {
+    let need = if options.halves { 2 } else { 1 } * options.pool;
+    let mut groups: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
+    for (i, m) in set.motions.iter().enumerate() {
+        groups.entry(m.group.as_str()).or_default().push(i);
+    }
+    if groups.len() < need {
+        return Err(EvaluatorError::Argument(format!(
+            "{}: {} texts in split {:?}, fewer than {need} (R-precision pools of {})",
+            set.path.display(),
+            groups.len(),
+            options.split,
+            options.pool
+        )));
+    }
+    let stored = CaptionEmbeddings::open(&reference.path, &evaluator.file.text_encoder)?;
+    let mut captions: Vec<String> = set
+        .motions
+        .iter()
+        .flat_map(|m| m.clip.captions.clone())
+        .collect();
+    captions.sort();
+    captions.dedup();
+    let tokens = caption_embeddings(&captions, &stored, encoder)?;
+    let rows: Vec<&[f32]> = captions.iter().map(|c| tokens[c].as_slice()).collect();
+    let text_embedding: HashMap<&str, Vec<f32>> = captions
+        .iter()
+        .map(String::as_str)
+        .zip(evaluator.embed_texts(&rows, 128)?)
+        .collect();
+    let reference_embeddings = match options.halves {
+        true => Vec::new(),
+        false => {
+            let motions: Vec<&[f32]> = reference.motions.iter().map(features).collect();
+            evaluator.embed_motions(&motions, 128)?.embeddings
+        }
+    };
+    let clean = match options.noise > 0.0 {
+        true => None,
+        false => {
+            let motions: Vec<&[f32]> = set.motions.iter().map(features).collect();
+            Some(evaluator.embed_motions(&motions, 128)?)
+        }
+    };
+    let config = &evaluator.net.config;
+    let group_list: Vec<&Vec<usize>> = groups.values().collect();
+    let mut values: BTreeMap<&str, Vec<f64>> = BTreeMap::new();
+    let mut push = |name: &'static str, v: f64| values.entry(name).or_default().push(v);
+    let mut multimodality_groups = 0;
+    for repeat in 0..options.repeats {
+        let mut rng = SplitMix64::stream(options.seed, repeat as u64);
+        let noisy_predictions;
+        let predictions = match &clean {
+            Some(p) => p,
+            None => {
+                let noisy: Vec<Vec<f32>> = set
+                    .motions
+                    .iter()
+                    .map(|m| add_noise(&m.clip.features, evaluator, options.noise, &mut rng))
+                    .collect();
+                let motions: Vec<&[f32]> = noisy.iter().map(Vec::as_slice).collect();
+                noisy_predictions = evaluator.embed_motions(&motions, 128)?;
+                &noisy_predictions
+            }
+        };
+        // One motion per group and one of its captions, in a random order.
+        let mut picks: Vec<usize> = group_list.iter().map(|g| g[rng.index(g.len())]).collect();
+        rng.shuffle(&mut picks);
+        let mut texts: Vec<&str> = picks
+            .iter()
+            .map(|&i| {
+                let c = &set.motions[i].clip.captions;
+                c[rng.index(c.len())].as_str()
+            })
+            .collect();
+        if options.shuffle_captions {
+            rng.shuffle(&mut texts);
+        }
+        let embedding = |i: usize| predictions.embeddings[i].clone();
+        let (matched, fid) = if options.halves {
+            let half = picks.len() / 2;
+            let a: Vec<Vec<f32>> = picks[..half].iter().map(|&i| embedding(i)).collect();
+            let b: Vec<Vec<f32>> = picks[half..2 * half]
+                .iter()
+                .map(|&i| embedding(i))
+                .collect();
+            (half, metrics::fid(&a, &b))
+        } else {
+            let a: Vec<Vec<f32>> = picks.iter().map(|&i| embedding(i)).collect();
+            (picks.len(), metrics::fid(&a, &reference_embeddings))
+        };
+        push("fid", fid);
+        let motion_rows: Vec<Vec<f32>> = picks[..matched].iter().map(|&i| embedding(i)).collect();
+        let text_rows: Vec<Vec<f32>> = texts[..matched]
+            .iter()
+            .map(|t| text_embedding[t].clone())
+            .collect();
+        let r = metrics::r_precision::<3>(&text_rows, &motion_rows, options.pool);
+        push("top1", r[0]);
+        push("top2", r[1]);
+        push("top3", r[2]);
+        push(
+            "matching",
+            metrics::matching_score(&text_rows, &motion_rows),
+        );
+        let all: Vec<Vec<f32>> = picks.iter().map(|&i| embedding(i)).collect();
+        if let Some(d) = metrics::diversity(&all, options.diversity_pairs, &mut rng) {
+            push("diversity", d);
+        }
+        let mm_groups: Vec<Vec<Vec<f32>>> = group_list
+            .iter()
+            .filter(|g| g.len() >= options.multimodality_samples)
+            .map(|g| g.iter().map(|&i| embedding(i)).collect())
+            .collect();
+        multimodality_groups = mm_groups.len();
+        if let Some(mm) =
+            metrics::multimodality(&mm_groups, options.multimodality_samples, &mut rng)
+        {
+            push("multimodality", mm);
+        }
+        let scored = |classes: &[String],
+                      label: fn(&LabelledClip) -> &Option<String>,
+                      predicted: &[usize]| {
+            let (p, t): (Vec<usize>, Vec<usize>) = picks
+                .iter()
+                .filter_map(|&i| {
+                    class_of(classes, label(&set.motions[i].clip))
+                        .map(|t| (predicted[i], t as usize))
+                })
+                .unzip();
+            (!t.is_empty()).then_some((p, t))
+        };
+        if let Some((p, t)) = scored(&config.emotions, |m| &m.emotion, &predictions.emotion) {
+            push("emotion_f1", metrics::weighted_f1(&p, &t));
+        }
+        if let Some((p, t)) = scored(&config.actions, |m| &m.action, &predictions.action) {
+            push("action_accuracy", metrics::accuracy(&p, &t));
+        }
+    }
+    let mut take = |name: &str| values.remove(name).map(Interval::of);
+    let required = |v: Option<Interval>| v.expect("computed every repeat");
+    Ok(EvalReport {
+        evaluator: evaluator_dir.to_path_buf(),
+        evaluator_id: evaluator.id.clone(),
+        corpus: reference.path.clone(),
+        corpus_id: crate::model::corpus_id(&reference.path)?,
+        motions_kind: set.kind.clone(),
+        motions: set.path.clone(),
+        motions_id: set.content_id(),
+        motion_count: set.motions.len(),
+        group_count: groups.len(),
+        reference_count: reference.motions.len(),
+        options: options.clone(),
+        fid: required(take("fid")),
+        r_precision: [
+            required(take("top1")),
+            required(take("top2")),
+            required(take("top3")),
+        ],
+        matching_score: required(take("matching")),
+        diversity: take("diversity"),
+        multimodality: take("multimodality"),
+        multimodality_groups,
+        emotion_weighted_f1: take("emotion_f1"),
+        action_accuracy: take("action_accuracy"),
+        r_precision_chance: 1.0 / options.pool as f64,
+    })
+}
+
+/// Every motion of a set in the evaluator's space, with the first caption's embedding and
+/// the classifiers' predictions (for inspection, retrieval, or checking against PyTorch).
+pub struct SetEmbeddings {
+    /// Motion embeddings, in set order.
+    pub motions: MotionPredictions,
+    /// Embedding of each motion's first caption.
+    pub texts: Vec<Vec<f32>>,
+}
+
+/// Embed every motion of `set` and its first caption (caption token embeddings from the
+/// corpus at `reference`, else from `encoder`).
+pub fn embed_set(
+    evaluator: &TrainedEvaluator,
+    reference: &Path,
+    set: &MotionSet,
+    encoder: Option<&dyn TextEncoder>,
+) -> Result<SetEmbeddings, EvaluatorError> {
+    let stored = CaptionEmbeddings::open(reference, &evaluator.file.text_encoder)?;
+    let first: Vec<String> = set
+        .motions
+        .iter()
+        .map(|m| m.clip.captions[0].clone())
+        .collect();
+    let tokens = caption_embeddings(&first, &stored, encoder)?;
+    let rows: Vec<&[f32]> = first.iter().map(|c| tokens[c].as_slice()).collect();
+    let motions: Vec<&[f32]> = set.motions.iter().map(features).collect();
+    Ok(SetEmbeddings {
+        motions: evaluator.embed_motions(&motions, 128)?,
+        texts: evaluator.embed_texts(&rows, 128)?,
+    })
+}
+
+fn features(m: &EvalMotion) -> &[f32] {
+    &m.clip.features
+}
+
+/// `features` plus Gaussian noise of `sd` in normalised units (σ scaled by each feature's
+/// standard deviation).
+fn add_noise(
+    features: &[f32],
+    evaluator: &TrainedEvaluator,
+    sd: f64,
+    rng: &mut SplitMix64,
+) -> Vec<f32> {
+    let std = evaluator.std();
+    features
+        .iter()
+        .enumerate()
+        .map(|(k, &v)| v + (sd * rng.normal()) as f32 * std[k % FEATURE_DIM])
+        .collect()
+}

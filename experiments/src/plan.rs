@@ -1,0 +1,818 @@
+//! The IsoFLOP plan: every (budget C, model, vocabulary) point with its token budget
+//! D = C / (6·(N_nv + N_v)) (`lm::accounting`), written as TOML.
+//!
+//! ```toml
+//! format = "motionscale-isoflop-plan-v1"
+//! corpus = "/abs/corpus"              # captions (and tokenizer training data)
+//! text_encoder = "all-MiniLM-L6-v2-…" # caption embeddings used by every run
+//! text_dim = 384
+//!
+//! [train]                             # prefix-LM settings shared by every point
+//! batch_size = 32
+//! lr = 0.001
+//! …
+//! checkpoint_every = 100              # steps; the test split is evaluated at each checkpoint
+//!
+//! [[vocabularies]]                    # one per --vocabs entry, shared by all its points
+//! codebook = 256                      # nominal size (the key points refer to)
+//! codebook_size = 240                 # codes the model sees (FSQ 2^8 = [8,6,5])
+//! train_clips = 8186
+//! train_tokens = 231012               # loss positions in one epoch of the train split
+//! [vocabularies.source]
+//! kind = "train"                      # or "tokenizer" (dir = …), or "token_set" (dir = …)
+//! …                                   # "train": the tokenizer config and its training settings
+//!
+//! [[points]]
+//! index = 0                           # the Slurm array task id
+//! run_id = "c1e12-cpu-50K-v256"       # RUNS/<run_id>/
+//! budget = 1e12
+//! model = "cpu-50K"
+//! codebook = 256
+//! d_model = 64
+//! n_layers = 1
+//! n_heads = 1
+//! n_nv = 49728
+//! n_v = 31104                         # 2·V·d: untied embedding + head, V = K + 3
+//! tokens = 5361254                    # D
+//! epochs = 23.2                       # D / train_tokens
+//! flags = ["exceeds-data"]            # or "below-one-step" (not run)
+//! ```
+//!
+//! A vocabulary is trained (`kind = "train"`) into `RUNS/tokenizers/<codebook>/` and
+//! tokenized into `RUNS/tokens/<codebook>/` by the first stage of `sweep run`, a given
+//! tokenizer (`kind = "tokenizer"`) is only tokenized there, and a given token set
+//! (`kind = "token_set"`) is used as it is.
+
+use crate::centring::{self, Centre};
+use crate::SweepError;
+use ingest::corpus::manifest::Manifest;
+use ingest::corpus::Corpus;
+use lm::accounting;
+use lm::prefix_lm::{PrefixLmConfig, PRESETS};
+use lm::train::{ModelShape, TrainConfig};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use tokenizer::model::{MotionTokenizer, TokenizerConfig};
+use tokenizer::TokenSet;
+
+/// Format tag of a plan file.
+pub const FORMAT: &str = "motionscale-isoflop-plan-v1";
+
+/// A whole IsoFLOP sweep: shared settings, vocabularies and points.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct IsoFlopPlan {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// Corpus with the caption embeddings (and the tokenizers' training data).
+    pub corpus: PathBuf,
+    /// Text encoder id of the caption embeddings.
+    pub text_encoder: String,
+    /// Width of the caption embeddings (it sizes the text projection, part of N_nv).
+    pub text_dim: usize,
+    /// Things to look at before running: sizes that do not bracket the predicted N_opt,
+    /// points dropped above `--max-epochs`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<String>,
+    /// Training settings shared by every point.
+    pub train: TrainSettings,
+    /// The vocabularies, one per codebook size.
+    pub vocabularies: Vec<Vocabulary>,
+    /// Every (budget, model, vocabulary) point, in index order.
+    pub points: Vec<PlanPoint>,
+    /// Each budget's predicted N_opt, when the sizes were centred on an earlier fit.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub centres: Vec<Centre>,
+}
+
+/// Prefix-LM training settings shared by every point (the rest of `lm::train::TrainConfig`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainSettings {
+    /// Clips per batch.
+    pub batch_size: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Final learning rate as a fraction of the peak.
+    pub final_lr_ratio: f64,
+    /// Warm-up as a fraction of all steps.
+    pub warmup_fraction: f64,
+    /// AdamW weight decay.
+    pub weight_decay: f64,
+    /// Global gradient-norm clip.
+    pub grad_clip: f64,
+    /// Seed of initial weights and batch order.
+    pub seed: u64,
+    /// Text tokens kept per caption.
+    pub max_text_tokens: usize,
+    /// Motion tokens kept per clip.
+    pub max_motion_tokens: usize,
+    /// Checkpoint (and evaluate the test split) every this many steps, and at the end.
+    pub checkpoint_every: u64,
+}
+
+impl Default for TrainSettings {
+    /// `lm::train::TrainConfig`'s defaults, checkpointing every 100 steps.
+    fn default() -> Self {
+        let c = TrainConfig::new(
+            Path::new(""),
+            ModelShape::Preset(String::new()),
+            0,
+            Path::new(""),
+        );
+        Self {
+            batch_size: c.batch_size,
+            lr: c.lr,
+            final_lr_ratio: c.final_lr_ratio,
+            warmup_fraction: c.warmup_fraction,
+            weight_decay: c.weight_decay,
+            grad_clip: c.grad_clip,
+            seed: c.seed,
+            max_text_tokens: c.max_text_tokens,
+            max_motion_tokens: c.max_motion_tokens,
+            checkpoint_every: 100,
+        }
+    }
+}
+
+/// One vocabulary (codebook size) and where its token set comes from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Vocabulary {
+    /// Nominal codebook size (`--vocabs` entry; FSQ level sets are named by 2^k).
+    pub codebook: usize,
+    /// Motion codes K the model sees (the vocabulary adds BOS, EOS, PAD).
+    pub codebook_size: usize,
+    /// Train clips.
+    pub train_clips: u64,
+    /// Loss positions of one epoch of the train split (tokens + EOS, cut at
+    /// `max_motion_tokens`): the data available without repetition.
+    pub train_tokens: u64,
+    /// Where the token set comes from.
+    pub source: VocabSource,
+}
+
+/// Where a vocabulary's token set comes from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum VocabSource {
+    /// A token set made beforehand (`motionscale tokenize`).
+    TokenSet {
+        /// Token set folder.
+        dir: PathBuf,
+    },
+    /// A trained tokenizer; the sweep tokenizes the corpus into `RUNS/tokens/<codebook>/`.
+    Tokenizer {
+        /// Tokenizer checkpoint folder.
+        dir: PathBuf,
+    },
+    /// Trained by the sweep into `RUNS/tokenizers/<codebook>/`, then tokenized.
+    Train {
+        /// Architecture.
+        tokenizer: Box<TokenizerConfig>,
+        /// Training settings.
+        train: Box<tokenizer::train::TrainConfig>,
+    },
+}
+
+impl Vocabulary {
+    /// The token set folder of this vocabulary in the sweep folder `runs`.
+    pub fn tokens_dir(&self, runs: &Path) -> PathBuf {
+        match &self.source {
+            VocabSource::TokenSet { dir } => dir.clone(),
+            _ => runs.join("tokens").join(self.codebook.to_string()),
+        }
+    }
+
+    /// The tokenizer folder to tokenize with (none for a given token set).
+    pub fn tokenizer_dir(&self, runs: &Path) -> Option<PathBuf> {
+        match &self.source {
+            VocabSource::TokenSet { .. } => None,
+            VocabSource::Tokenizer { dir } => Some(dir.clone()),
+            VocabSource::Train { .. } => {
+                Some(runs.join("tokenizers").join(self.codebook.to_string()))
+            }
+        }
+    }
+}
+
+/// Why a point is marked.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum PointFlag {
+    /// D exceeds one epoch of the train split: the run repeats data.
+    ExceedsData,
+    /// D is less than one batch of mean-length clips: the point is not run.
+    BelowOneStep,
+    /// D is more epochs of the train split than `--max-epochs` allows (kept, flagged).
+    AboveMaxEpochs,
+}
+
+/// One run of the sweep.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PlanPoint {
+    /// Row of the plan (the Slurm array task id).
+    pub index: usize,
+    /// Run folder name, `c<budget>-<model>-v<codebook>`.
+    pub run_id: String,
+    /// Compute budget C in FLOPs (6·N·D convention).
+    pub budget: f64,
+    /// Model preset.
+    pub model: String,
+    /// Nominal codebook size (a [`Vocabulary::codebook`]).
+    pub codebook: usize,
+    /// Width d.
+    pub d_model: usize,
+    /// Blocks.
+    pub n_layers: usize,
+    /// Heads.
+    pub n_heads: usize,
+    /// Non-vocabulary parameters.
+    pub n_nv: u64,
+    /// Vocabulary parameters (2·V·d, untied).
+    pub n_v: u64,
+    /// Token budget D = C / (6·(N_nv + N_v)).
+    pub tokens: u64,
+    /// D over one epoch of the train split.
+    pub epochs: f64,
+    /// Marks (data repetition, too small to run).
+    pub flags: Vec<PointFlag>,
+}
+
+impl PointFlag {
+    /// The flag as the plan and the results table spell it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::ExceedsData => "exceeds-data",
+            Self::BelowOneStep => "below-one-step",
+            Self::AboveMaxEpochs => "above-max-epochs",
+        }
+    }
+}
+
+impl PlanPoint {
+    /// Whether the point is trained (not below one step).
+    pub fn runnable(&self) -> bool {
+        !self.flags.contains(&PointFlag::BelowOneStep)
+    }
+}
+
+/// What to plan.
+#[derive(Debug, Clone)]
+pub struct PlanRequest {
+    /// Corpus with caption embeddings.
+    pub corpus: PathBuf,
+    /// Text encoder id (default: the corpus's only one).
+    pub text_encoder: Option<String>,
+    /// Compute budgets C.
+    pub budgets: Vec<f64>,
+    /// Model presets, ladder names or `WxL[xH]` shapes (see [`expand_models`]).
+    pub models: Vec<String>,
+    /// Nominal codebook size and token source of each vocabulary.
+    pub vocabularies: Vec<(usize, VocabSource)>,
+    /// Shared training settings.
+    pub train: TrainSettings,
+    /// Centre each budget's sizes on an earlier fit's N_opt.
+    pub centring: Option<Centring>,
+    /// The most epochs of the train split a point may take.
+    pub max_epochs: Option<EpochLimit>,
+}
+
+/// Sizes per budget, taken from the model list around an earlier fit's N_opt.
+#[derive(Debug, Clone)]
+pub struct Centring {
+    /// The earlier fit (`fits.json`).
+    pub fits: fits::Fits,
+    /// Models per budget.
+    pub sizes: usize,
+}
+
+/// A limit on data repetition.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct EpochLimit {
+    /// Epochs over the unique train tokens.
+    pub epochs: f64,
+    /// Drop points above it (else keep them flagged `above-max-epochs`).
+    pub drop: bool,
+}
+
+/// The shape a plan's model name stands for: a preset, or `WxL` / `WxLxH` (width W, L
+/// blocks, H heads; by default heads of width 64 as in the CPU ladder, at least one).
+pub fn model_shape(name: &str) -> Result<ModelShape, SweepError> {
+    if lm::prefix_lm::preset(name).is_some() {
+        return Ok(ModelShape::Preset(name.to_string()));
+    }
+    let numbers: Option<Vec<usize>> = name.split('x').map(|n| n.parse().ok()).collect();
+    match numbers.as_deref() {
+        Some(&[d_model, n_layers]) => Ok((d_model, n_layers, (d_model / 64).max(1))),
+        Some(&[d_model, n_layers, n_heads]) => Ok((d_model, n_layers, n_heads)),
+        _ => Err(SweepError::Argument(format!(
+            "model {name:?}: not a preset (known: cpu, scamo, {}) nor WIDTHxLAYERS[xHEADS]",
+            PRESETS.map(|p| p.name).join(", ")
+        ))),
+    }
+    .map(|(d_model, n_layers, n_heads)| ModelShape::Custom {
+        d_model,
+        n_layers,
+        n_heads,
+        ffn_hidden: None,
+    })
+}
+
+/// Model names for `names`, where `cpu` stands for the whole CPU ladder and `scamo` for
+/// ScaMo's six sizes; presets and `WxL[xH]` shapes stand for themselves, anything else is an
+/// error.
+pub fn expand_models(names: &[String]) -> Result<Vec<String>, SweepError> {
+    let mut out = Vec::new();
+    for name in names {
+        let ladder: Vec<&str> = match name.as_str() {
+            "cpu" => PRESETS
+                .iter()
+                .filter(|p| p.name.starts_with("cpu-"))
+                .map(|p| p.name)
+                .collect(),
+            "scamo" => PRESETS
+                .iter()
+                .filter(|p| p.nominal_params.is_some())
+                .map(|p| p.name)
+                .collect(),
+            n => {
+                model_shape(n)?;
+                vec![n]
+            }
+        };
+        out.extend(ladder.into_iter().map(String::from));
+    }
+    out.dedup();
+    Ok(out)
+}
+
+/// Loss positions of a clip of `tokens` tokens when at most `max` are kept: the kept tokens,
+/// plus EOS when the clip ends within them (as `lm::lm_data::Example::targets`).
+fn lm_targets(tokens: usize, max: usize) -> u64 {
+    let keep = tokens.min(max);
+    keep as u64 + u64::from(keep == tokens)
+}
+
+/// Train clips and their loss positions per epoch for a vocabulary, from its token set or,
+/// before tokenizing, from the corpus clip lengths and the tokenizer's down-sampling.
+fn train_data(
+    source: &VocabSource,
+    codebook: usize,
+    corpus: &Path,
+    max_motion: usize,
+) -> Result<(usize, Vec<u64>), SweepError> {
+    let from_corpus = |downsample: usize| -> Result<Vec<u64>, SweepError> {
+        let c = Corpus::open(corpus).map_err(|e| SweepError::invalid(corpus, e))?;
+        Ok(c.clips()
+            .iter()
+            .filter(|clip| clip.split == "train")
+            .map(|clip| lm_targets(clip.num_frames as usize / downsample, max_motion))
+            .collect())
+    };
+    let (codes, nominal, targets) = match source {
+        VocabSource::TokenSet { dir } => {
+            let set = TokenSet::open(dir)?;
+            let t = &set.manifest.tokenizer;
+            let targets = set
+                .split("train")
+                .map(|c| lm_targets(c.tokens.len(), max_motion))
+                .collect();
+            (t.codebook_size, t.nominal_codebook, targets)
+        }
+        VocabSource::Tokenizer { dir } => {
+            let t = MotionTokenizer::load(dir, &candle_core::Device::Cpu)?;
+            let c = t.config();
+            (
+                c.codebook_size(),
+                c.nominal_codebook,
+                from_corpus(t.downsample())?,
+            )
+        }
+        VocabSource::Train { tokenizer, .. } => (
+            tokenizer.codebook_size(),
+            tokenizer.nominal_codebook,
+            from_corpus(tokenizer.conv.downsample_factor())?,
+        ),
+    };
+    if codebook != nominal && codebook != codes {
+        return Err(SweepError::Argument(format!(
+            "vocabulary {codebook}: its tokenizer has {codes} codes (nominal {nominal})"
+        )));
+    }
+    Ok((codes, targets))
+}
+
+/// Run folder name of a point: `c<budget>-<model>-v<codebook>`, e.g. `c3e12-cpu-800K-v1024`.
+pub fn run_id(budget: f64, model: &str, codebook: usize) -> String {
+    format!("c{budget:e}-{model}-v{codebook}")
+}
+
+/// Plan every (budget, model, vocabulary) point of `request`.
+pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
+    if request.budgets.is_empty() || request.models.is_empty() || request.vocabularies.is_empty() {
+        return Err(SweepError::Argument(
+            "a plan needs at least one budget, model and vocabulary".into(),
+        ));
+    }
+    if let Some(b) = request
+        .budgets
+        .iter()
+        .find(|b| !(b.is_finite() && **b > 0.0))
+    {
+        return Err(SweepError::Argument(format!(
+            "budget {b} must be a positive number"
+        )));
+    }
+    let corpus =
+        std::fs::canonicalize(&request.corpus).map_err(|e| SweepError::io(&request.corpus, e))?;
+    let text_encoder = text::resolve_encoder(&corpus, request.text_encoder.as_deref())?;
+    let manifest = Manifest::read(&corpus).map_err(|e| SweepError::invalid(&corpus, e))?;
+    let text_dim = manifest
+        .text_embeddings
+        .iter()
+        .find(|e| e.encoder == text_encoder)
+        .map(|e| e.dim)
+        .expect("resolve_encoder found it in the manifest");
+    let models = expand_models(&request.models)?;
+    let settings = &request.train;
+    let mut vocabularies = Vec::new();
+    for (codebook, source) in &request.vocabularies {
+        let source = absolute_source(source)?;
+        let (codebook_size, targets) =
+            train_data(&source, *codebook, &corpus, settings.max_motion_tokens)?;
+        vocabularies.push(Vocabulary {
+            codebook: *codebook,
+            codebook_size,
+            train_clips: targets.len() as u64,
+            train_tokens: targets.iter().sum(),
+            source,
+        });
+    }
+    let mut warnings = Vec::new();
+    let mut centres = Vec::new();
+    let mut points = Vec::new();
+    // N_nv does not depend on the vocabulary: the sizes of the first one serve every budget.
+    let sized = match &request.centring {
+        Some(_) => sized_models(&models, &vocabularies[0], text_dim)?,
+        None => Vec::new(),
+    };
+    for &budget in &request.budgets {
+        let names = match &request.centring {
+            None => models.clone(),
+            Some(c) => {
+                let (names, centre) = centred_models(&sized, c, budget)?;
+                let sizes: Vec<f64> = names.iter().map(|(_, n)| *n).collect();
+                warnings.extend(centring::bracket_warning(&sizes, centre.n_opt, budget));
+                centres.push(centre);
+                names.into_iter().map(|(name, _)| name).collect()
+            }
+        };
+        for name in &names {
+            for vocab in &vocabularies {
+                let mut point = plan_point(budget, name, vocab, settings, text_dim)?;
+                match request.max_epochs {
+                    Some(limit) if point.epochs > limit.epochs && limit.drop => {
+                        warnings.push(format!(
+                            "dropped {}: {:.1} epochs of the train split > --max-epochs {}",
+                            point.run_id, point.epochs, limit.epochs
+                        ));
+                        continue;
+                    }
+                    Some(limit) if point.epochs > limit.epochs => {
+                        point.flags.push(PointFlag::AboveMaxEpochs)
+                    }
+                    _ => {}
+                }
+                point.index = points.len();
+                points.push(point);
+            }
+        }
+    }
+    let plan = IsoFlopPlan {
+        format: FORMAT.into(),
+        corpus,
+        text_encoder,
+        text_dim,
+        warnings,
+        train: settings.clone(),
+        vocabularies,
+        points,
+        centres,
+    };
+    plan.validate(Path::new("plan"))?;
+    Ok(plan)
+}
+
+/// The point of `budget`, model `name` and `vocab` (index 0; the caller numbers it).
+fn plan_point(
+    budget: f64,
+    name: &str,
+    vocab: &Vocabulary,
+    settings: &TrainSettings,
+    text_dim: usize,
+) -> Result<PlanPoint, SweepError> {
+    let config: PrefixLmConfig = model_shape(name)?.resolve(vocab.codebook_size, text_dim)?;
+    let params = accounting::param_count(&config);
+    let tokens = accounting::tokens_for_budget(&config, budget).round() as u64;
+    let per_step =
+        settings.batch_size as f64 * vocab.train_tokens as f64 / vocab.train_clips.max(1) as f64;
+    let mut flags = Vec::new();
+    if tokens > vocab.train_tokens {
+        flags.push(PointFlag::ExceedsData);
+    }
+    if (tokens as f64) < per_step {
+        flags.push(PointFlag::BelowOneStep);
+    }
+    Ok(PlanPoint {
+        index: 0,
+        run_id: run_id(budget, name, vocab.codebook),
+        budget,
+        model: name.to_string(),
+        codebook: vocab.codebook,
+        d_model: config.d_model,
+        n_layers: config.n_layers,
+        n_heads: config.n_heads,
+        n_nv: params.n_nv,
+        n_v: params.n_v,
+        tokens,
+        epochs: tokens as f64 / vocab.train_tokens.max(1) as f64,
+        flags,
+    })
+}
+
+/// Each model with its N_nv, smallest first.
+fn sized_models(
+    models: &[String],
+    vocab: &Vocabulary,
+    text_dim: usize,
+) -> Result<Vec<(String, f64)>, SweepError> {
+    let mut sized = Vec::new();
+    for name in models {
+        let config = model_shape(name)?.resolve(vocab.codebook_size, text_dim)?;
+        sized.push((name.clone(), accounting::param_count(&config).n_nv as f64));
+    }
+    sized.sort_by(|a, b| a.1.total_cmp(&b.1));
+    Ok(sized)
+}
+
+/// The `centring.sizes` models of `sized` (smallest first) around the N_opt that the earlier
+/// fit predicts at `budget`, and that prediction.
+fn centred_models(
+    sized: &[(String, f64)],
+    centring: &Centring,
+    budget: f64,
+) -> Result<(Vec<(String, f64)>, Centre), SweepError> {
+    let fits = &centring.fits;
+    let centre = centring::centre(&fits.budgets, fits.power_laws.get("n_opt_vs_c"), budget)
+        .map_err(SweepError::Argument)?;
+    let sizes: Vec<f64> = sized.iter().map(|(_, n)| *n).collect();
+    let range = centring::window(&sizes, centre.n_opt, centring.sizes);
+    Ok((sized[range].to_vec(), centre))
+}
+
+/// `source` with its folder made absolute (plans are run from other folders, e.g. by Slurm).
+fn absolute_source(source: &VocabSource) -> Result<VocabSource, SweepError> {
+    let abs = |dir: &PathBuf| std::fs::canonicalize(dir).map_err(|e| SweepError::io(dir, e));
+    Ok(match source {
+        VocabSource::TokenSet { dir } => VocabSource::TokenSet { dir: abs(dir)? },
+        VocabSource::Tokenizer { dir } => VocabSource::Tokenizer { dir: abs(dir)? },
+        train @ VocabSource::Train { .. } => train.clone(),
+    })
+}
+
+impl IsoFlopPlan {
+    /// Read a plan file.
+    pub fn read(path: &Path) -> Result<Self, SweepError> {
+        let text = std::fs::read_to_string(path).map_err(|e| SweepError::io(path, e))?;
+        let plan: Self = toml::from_str(&text).map_err(|e| SweepError::invalid(path, e))?;
+        plan.validate(path)?;
+        Ok(plan)
+    }
+
+    /// Write the plan as TOML, atomically.
+    pub fn write(&self, path: &Path) -> Result<(), SweepError> {
+        let text = toml::to_string(self).map_err(|e| SweepError::invalid(path, e))?;
+        motionscale_core::write_atomic(path, text.as_bytes()).map_err(|e| SweepError::io(path, e))
+    }
+
+    /// The vocabulary with nominal size `codebook`.
+    pub fn vocabulary(&self, codebook: usize) -> Option<&Vocabulary> {
+        self.vocabularies.iter().find(|v| v.codebook == codebook)
+    }
+
+    /// Check the format tag, that indices are 0..n, run ids unique and every point's
+    /// vocabulary listed.
+    pub fn validate(&self, path: &Path) -> Result<(), SweepError> {
+        let bad = |m: String| Err(SweepError::invalid(path, m));
+        if self.format != FORMAT {
+            return bad(format!("format {:?}, expected {FORMAT:?}", self.format));
+        }
+        let mut ids = std::collections::HashSet::new();
+        for (i, p) in self.points.iter().enumerate() {
+            if p.index != i {
+                return bad(format!(
+                    "point {} has index {} (want 0..n in order)",
+                    p.run_id, p.index
+                ));
+            }
+            if !ids.insert(&p.run_id) {
+                return bad(format!("run id {} appears twice", p.run_id));
+            }
+            if self.vocabulary(p.codebook).is_none() {
+                return bad(format!("point {}: no vocabulary {}", p.run_id, p.codebook));
+            }
+            if let Err(e) = model_shape(&p.model) {
+                return bad(format!("point {}: {e}", p.run_id));
+            }
+        }
+        Ok(())
+    }
+
+    /// The training configuration of `point` writing into `out`, reading `tokens`.
+    pub fn train_config(
+        &self,
+        point: &PlanPoint,
+        tokens: &Path,
+        out: &Path,
+    ) -> Result<TrainConfig, SweepError> {
+        let s = &self.train;
+        let mut c = TrainConfig::new(tokens, model_shape(&point.model)?, point.tokens, out);
+        c.corpus = Some(self.corpus.clone());
+        c.text_encoder = Some(self.text_encoder.clone());
+        c.batch_size = s.batch_size;
+        c.lr = s.lr;
+        c.final_lr_ratio = s.final_lr_ratio;
+        c.warmup_fraction = s.warmup_fraction;
+        c.weight_decay = s.weight_decay;
+        c.grad_clip = s.grad_clip;
+        c.seed = s.seed;
+        c.max_text_tokens = s.max_text_tokens;
+        c.max_motion_tokens = s.max_motion_tokens;
+        c.eval_every = Some(s.checkpoint_every);
+        c.checkpoint_every = Some(s.checkpoint_every);
+        Ok(c)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ladders_expand_and_unknown_models_fail() {
+        let cpu = expand_models(&["cpu".into()]).unwrap();
+        assert_eq!(cpu.first().map(String::as_str), Some("cpu-50K"));
+        assert!(cpu.iter().all(|m| m.starts_with("cpu-")) && cpu.len() == 9);
+        assert_eq!(expand_models(&["scamo".into()]).unwrap().len(), 6);
+        let two = expand_models(&["cpu-50K".into(), "cpu-400K".into()]).unwrap();
+        assert_eq!(two, ["cpu-50K", "cpu-400K"]);
+        assert!(expand_models(&["cpu-1B".into()]).is_err());
+        assert!(expand_models(&["32x1x1x1".into()]).is_err());
+        assert_eq!(expand_models(&["32x1".into()]).unwrap(), ["32x1"]);
+        let custom = |d_model, n_layers, n_heads| ModelShape::Custom {
+            d_model,
+            n_layers,
+            n_heads,
+            ffn_hidden: None,
+        };
+        assert_eq!(model_shape("32x1").unwrap(), custom(32, 1, 1));
+        assert_eq!(model_shape("256x4").unwrap(), custom(256, 4, 4));
+        assert_eq!(model_shape("96x2x3").unwrap(), custom(96, 2, 3));
+        assert_eq!(
+            model_shape("cpu-3M").unwrap(),
+            ModelShape::Preset("cpu-3M".into())
+        );
+    }
+
+    #[test]
+    fn loss_positions_follow_the_lm_data_rule() {
+        assert_eq!(lm_targets(10, 64), 11, "tokens + EOS");
+        assert_eq!(lm_targets(64, 64), 65, "exactly the limit still ends");
+        assert_eq!(lm_targets(100, 64), 64, "cut: no EOS");
+        assert_eq!(lm_targets(0, 64), 1, "EOS only");
+    }
+
+    fn small_plan() -> IsoFlopPlan {
+        let conv = tokenizer::ConvConfig::default();
+        let tokenizer = TokenizerConfig::new("fsq", 256, tokenizer::Bound::Tanh, conv).unwrap();
+        let train = tokenizer::train::TrainConfig::default();
+        let vocab = |codebook, codebook_size, source| Vocabulary {
+            codebook,
+            codebook_size,
+            train_clips: 10,
+            train_tokens: 300,
+            source,
+        };
+        let point = |index, codebook, flags| PlanPoint {
+            index,
+            run_id: run_id(1e12, "cpu-50K", codebook),
+            budget: 1e12,
+            model: "cpu-50K".into(),
+            codebook,
+            d_model: 64,
+            n_layers: 1,
+            n_heads: 1,
+            n_nv: 74_048,
+            n_v: 31_104,
+            tokens: 1_587_000,
+            epochs: 5290.0,
+            flags,
+        };
+        IsoFlopPlan {
+            format: FORMAT.into(),
+            corpus: "/corpus".into(),
+            text_encoder: "encoder".into(),
+            text_dim: 384,
+            warnings: vec!["budget 1e12: a warning".into()],
+            train: TrainSettings::default(),
+            vocabularies: vec![
+                vocab(
+                    256,
+                    240,
+                    VocabSource::Train {
+                        tokenizer: Box::new(tokenizer),
+                        train: Box::new(train),
+                    },
+                ),
+                vocab(
+                    1024,
+                    1000,
+                    VocabSource::TokenSet {
+                        dir: "/tokens".into(),
+                    },
+                ),
+            ],
+            points: vec![
+                point(0, 256, vec![PointFlag::ExceedsData]),
+                point(
+                    1,
+                    1024,
+                    vec![PointFlag::ExceedsData, PointFlag::BelowOneStep],
+                ),
+            ],
+            centres: vec![Centre {
+                budget: 1e12,
+                n_opt: 1.5e5,
+                source: "the fit's law".into(),
+            }],
+        }
+    }
+
+    #[test]
+    fn a_plan_round_trips_through_toml_and_is_validated() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("plan.toml");
+        let plan = small_plan();
+        plan.write(&path).unwrap();
+        assert_eq!(IsoFlopPlan::read(&path).unwrap(), plan);
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.contains("kind = \"train\"") && text.contains("kind = \"token_set\""));
+        assert!(
+            text.contains("flags = [\"exceeds-data\", \"below-one-step\"]"),
+            "{text}"
+        );
+        for flag in [PointFlag::ExceedsData, PointFlag::BelowOneStep] {
+            assert_eq!(serde_json::to_value(flag).unwrap(), flag.as_str());
+        }
+        assert!(plan.points[0].runnable() && !plan.points[1].runnable());
+        assert_eq!(
+            plan.vocabularies[0].tokens_dir(Path::new("/runs")),
+            Path::new("/runs/tokens/256")
+        );
+        assert_eq!(
+            plan.vocabularies[1].tokens_dir(Path::new("/runs")),
+            Path::new("/tokens")
+        );
+        assert_eq!(
+            plan.vocabularies[0].tokenizer_dir(Path::new("/runs")),
+            Some(PathBuf::from("/runs/tokenizers/256"))
+        );
+
+        let mut bad = plan.clone();
+        bad.points[1].index = 5;
+        assert!(bad
+            .validate(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("index 5"));
+        let mut bad = plan.clone();
+        bad.points[1].run_id = bad.points[0].run_id.clone();
+        assert!(bad
+            .validate(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("twice"));
+        let mut bad = plan;
+        bad.points[1].codebook = 4096;
+        assert!(bad
+            .validate(&path)
+            .unwrap_err()
+            .to_string()
+            .contains("no vocabulary 4096"));
+    }
+
+    #[test]
+    fn run_ids_name_budget_model_and_vocabulary() {
+        assert_eq!(run_id(1e12, "cpu-50K", 256), "c1e12-cpu-50K-v256");
+        assert_eq!(run_id(3e12, "cpu-800K", 1024), "c3e12-cpu-800K-v1024");
+        assert_eq!(run_id(2.5e11, "cpu-3M", 4096), "c2.5e11-cpu-3M-v4096");
+    }
+}

@@ -1,0 +1,1044 @@
+//! ES-MoE (L²-EMG; `../shared/docs/continual.md`): one LoRA expert per scenario on the frozen
+//! prefix LM, mixed per sequence by a gate, θ' = θ + Σ_j w_j·ΔW_j.
+//!
+//! The gate reads the caption (the text prefix X, `L × E` token embeddings), the only input a
+//! sequence has before its first motion token, so generation can run it too:
+//! - CGED (causal-guided emotion decoupling): self-sampling s_x = softmax(f(X)·K(X)ᵀ/√c)·V(X),
+//!   cross-sampling s_m = softmax(g(X)·K(D)ᵀ/√c)·V(D) over a global dictionary D (seeded
+//!   K-means centroids of the first step's training text features, frozen), and
+//!   h = W·(FFN₁(s_x) ⊕ FFN₂(s_m)) + b, mean-pooled over the caption; an MLP emotion
+//!   classifier on h adds λ·CE(emotion) to the loss. Without CGED, h is a linear projection
+//!   of X, pooled, and there is no emotion loss.
+//! - Query up(down(h)) against mutually orthogonal expert keys (Gram–Schmidt at
+//!   initialisation), softmax over the experts; during training each older expert is masked
+//!   with a probability that falls linearly from `mask_probability` to 0 over the step's
+//!   schedule; of the rest the top k are kept and their softmax renormalised.
+//!
+//! At step i only expert i's A and B, key i, and the gate network (CGED, emotion head, query
+//! projections) train. Weights differ per caption, so training runs one sequence at a time
+//! through the fused LM: expert i's gradient is Σ_b w_bi·∂L_b/∂W', and the gate's comes from
+//! candle autograd on the surrogate Σ_b Σ_j w_bj·⟨∂L_b/∂W', ΔW_j⟩ (+ λ·CE), whose gradient
+//! with respect to every gate parameter is the loss's (∂L/∂w_bj = ⟨∂L_b/∂W', ΔW_j⟩).
+//!
+//! Without the mixture (the "single LoRA" ablation) one expert is fine-tuned through every
+//! step with weight 1 and no gate: since h reaches the LM only through the gate, that is
+//! sequential LoRA by construction.
+//!
+//! Files of a run folder besides `config.json`: `adapter.safetensors` (every expert, keyed as
+//! [`crate::lora`]), `gate.safetensors` (`gate.cged.*`, `gate.emotion.*`, `gate.query.*`,
+//! `gate.keys.<j>`, the dictionary `gate.cged.dictionary`) and `moe.json` ([`MoeManifest`]).
+
+use crate::lora::{add_deltas, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
+use crate::prefix_lm::{LmBatch, PrefixLm, PrefixLmConfig};
+use crate::{LmError, MotionLm};
+use candle_core::backprop::GradStore;
+use candle_core::{DType, Device, Result, Tensor, Var, D};
+use candle_nn::{Init, Linear, Module, VarBuilder, VarMap};
+use motionscale_core::rng::SplitMix64;
+use motionscale_core::{read_json, write_json};
+use nn::checkpoint::var_tensors;
+use nn::kmeans::kmeans;
+use serde::{Deserialize, Serialize};
+use std::borrow::Cow;
+use std::collections::HashMap;
+use std::path::Path;
+
+/// The gate's weights in a run folder.
+pub const GATE_FILE: &str = "gate.safetensors";
+/// The experts and emotion classes of a run folder.
+pub const MANIFEST_FILE: &str = "moe.json";
+/// K-means rows drawn from the training text features (more add little to 32 centroids).
+const KMEANS_ROWS: usize = 20_000;
+/// Lloyd iterations of the dictionary's K-means.
+const KMEANS_ITERATIONS: usize = 25;
+
+/// Everything that shapes an ES-MoE model and its training.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct EsMoeConfig {
+    /// Rank and scale of every expert.
+    pub lora: LoraConfig,
+    /// Experts kept per sequence (renormalised); ≥ 2 lets the gate learn from the LM loss.
+    pub top_k: usize,
+    /// Initial probability of masking each older expert during a step's training.
+    pub mask_probability: f64,
+    /// Expert keys created (the most steps a run can have).
+    pub max_experts: usize,
+    /// Width of the keys and queries (≥ `max_experts`, so the keys can be orthogonal).
+    pub key_dim: usize,
+    /// Width of the query network's down projection.
+    pub query_hidden: usize,
+    /// Width c of the CGED features h.
+    pub cged_dim: usize,
+    /// Centroids of the global dictionary.
+    pub dictionary_size: usize,
+    /// Weight λ of the emotion loss.
+    pub emotion_weight: f64,
+    /// Whether the CGED block (and its emotion classifier) builds h.
+    pub cged: bool,
+    /// Whether experts are mixed by the gate (otherwise one shared expert).
+    pub mixture: bool,
+}
+
+impl Default for EsMoeConfig {
+    /// Rank 8 (α 16), top-2, masking from 0.5, 16 keys of 16, query bottleneck 16, c = 64,
+    /// 32 centroids, λ = 0.1, CGED and mixture on.
+    fn default() -> Self {
+        Self {
+            lora: LoraConfig {
+                rank: 8,
+                alpha: 16.0,
+            },
+            top_k: 2,
+            mask_probability: 0.5,
+            max_experts: 16,
+            key_dim: 16,
+            query_hidden: 16,
+            cged_dim: 64,
+            dictionary_size: 32,
+            emotion_weight: 0.1,
+            cged: true,
+            mixture: true,
+        }
+    }
+}
+
+/// `moe.json`: the experts in the order learned and the emotion classes of the classifier.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MoeManifest {
+    /// Expert names (their key prefixes in `adapter.safetensors`), oldest first.
+    pub experts: Vec<String>,
+    /// Emotion classes, in classifier output order.
+    pub emotions: Vec<String>,
+}
+
+/// A linear layer with zero-initialised variables (set by [`seeded_init`]).
+fn linear(vb: &VarBuilder, inp: usize, out: usize, name: &str) -> Result<Linear> {
+    let vb = vb.pp(name);
+    let w = vb.get_with_hints((out, inp), "weight", Init::Const(0.0))?;
+    let b = vb.get_with_hints(out, "bias", Init::Const(0.0))?;
+    Ok(Linear::new(w, Some(b)))
+}
+
+/// Two linear layers with a ReLU between them.
+struct Mlp(Linear, Linear);
+
+impl Mlp {
+    fn new(vb: &VarBuilder, inp: usize, hidden: usize, out: usize, name: &str) -> Result<Self> {
+        let vb = vb.pp(name);
+        Ok(Self(
+            linear(&vb, inp, hidden, "0")?,
+            linear(&vb, hidden, out, "2")?,
+        ))
+    }
+
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.1.forward(&self.0.forward(x)?.relu()?)
+    }
+}
+
+/// Scaled dot-product attention of queries over keys and values.
+fn attend(q: &Tensor, k: &Tensor, v: &Tensor) -> Result<Tensor> {
+    let scale = 1.0 / (q.dim(D::Minus1)? as f64).sqrt();
+    candle_nn::ops::softmax(&(q.matmul(&k.t()?)? * scale)?, D::Minus1)?.matmul(v)
+}
+
+/// The causal-guided emotion decoupling block.
+struct Cged {
+    self_q: Linear,
+    self_k: Linear,
+    self_v: Linear,
+    cross_q: Linear,
+    cross_k: Linear,
+    cross_v: Linear,
+    ffn_self: Mlp,
+    ffn_cross: Mlp,
+    fuse: Linear,
+    dictionary: Tensor,
+}
+
+impl Cged {
+    fn new(vb: &VarBuilder, c: &EsMoeConfig, text_dim: usize) -> Result<Self> {
+        let (e, d) = (text_dim, c.cged_dim);
+        Ok(Self {
+            self_q: linear(vb, e, d, "self_q")?,
+            self_k: linear(vb, e, d, "self_k")?,
+            self_v: linear(vb, e, d, "self_v")?,
+            cross_q: linear(vb, e, d, "cross_q")?,
+            cross_k: linear(vb, e, d, "cross_k")?,
+            cross_v: linear(vb, e, d, "cross_v")?,
+            ffn_self: Mlp::new(vb, d, d, d, "ffn_self")?,
+            ffn_cross: Mlp::new(vb, d, d, d, "ffn_cross")?,
+            fuse: linear(vb, 2 * d, d, "fuse")?,
+            dictionary: vb.get_with_hints(
+                (c.dictionary_size, e),
+                "dictionary",
+                Init::Const(0.0),
+            )?,
+        })
+    }
+
+    /// h of every token of `x` (`L × E`), `L × c`.
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        let s_x = attend(
+            &self.self_q.forward(x)?,
+            &self.self_k.forward(x)?,
+            &self.self_v.forward(x)?,
+        )?;
+        let dict = &self.dictionary;
+        let s_m = attend(
+            &self.cross_q.forward(x)?,
+            &self.cross_k.forward(dict)?,
+            &self.cross_v.forward(dict)?,
+        )?;
+        let both = Tensor::cat(
+            &[self.ffn_self.forward(&s_x)?, self.ffn_cross.forward(&s_m)?],
+            1,
+        )?;
+        self.fuse.forward(&both)
+    }
+}
+
+/// The gate: h from the caption, the emotion head, and query·key scores over the experts.
+struct Gate {
+    varmap: VarMap,
+    cged: Option<Cged>,
+    /// h without CGED: a projection of the caption's tokens.
+    input: Option<Linear>,
+    emotion: Option<Mlp>,
+    down: Linear,
+    up: Linear,
+    keys: Vec<Tensor>,
+    text_dim: usize,
+    cged_dim: usize,
+}
+
+/// Fill every `.weight` matrix of `varmap` with PyTorch's `nn.Linear` default,
+/// U(±1/√fan_in), drawn from `seed` and the variable's place in name order.
+fn seeded_init(varmap: &VarMap, seed: u64) -> Result<()> {
+    let vars = varmap.data().lock().expect("varmap lock");
+    let mut names: Vec<&String> = vars.keys().filter(|n| n.ends_with(".weight")).collect();
+    names.sort();
+    for (i, name) in names.into_iter().enumerate() {
+        let var = &vars[name];
+        let (out, inp) = var.dims2()?;
+        let bound = 1.0 / (inp as f64).sqrt();
+        let mut rng = SplitMix64::stream(seed, i as u64);
+        let values: Vec<f32> = (0..out * inp)
+            .map(|_| rng.range(-bound, bound) as f32)
+            .collect();
+        var.set(&Tensor::from_vec(values, (out, inp), &Device::Cpu)?)?;
+    }
+    Ok(())
+}
+
+/// `n` mutually orthogonal unit vectors of width `dim` (Gram–Schmidt on seeded Gaussians).
+pub fn orthogonal_keys(n: usize, dim: usize, seed: u64) -> Vec<Vec<f32>> {
+    let mut rng = SplitMix64::stream(seed, 0x6b657973);
+    let mut keys: Vec<Vec<f64>> = Vec::with_capacity(n);
+    while keys.len() < n {
+        let mut v: Vec<f64> = (0..dim).map(|_| rng.normal()).collect();
+        for k in &keys {
+            let dot: f64 = v.iter().zip(k).map(|(a, b)| a * b).sum();
+            v.iter_mut().zip(k).for_each(|(a, b)| *a -= dot * b);
+        }
+        let norm = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+        if norm > 1e-6 {
+            keys.push(v.iter().map(|a| a / norm).collect());
+        }
+    }
+    keys.into_iter()
+        .map(|k| k.into_iter().map(|a| a as f32).collect())
+        .collect()
+}
+
+impl Gate {
+    fn new(c: &EsMoeConfig, text_dim: usize, emotions: usize, seed: u64) -> Result<Self> {
+        if c.key_dim < c.max_experts {
+            candle_core::bail!(
+                "{} orthogonal keys need a key width of at least that (got {})",
+                c.max_experts,
+                c.key_dim
+            )
+        }
+        let varmap = VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu).pp("gate");
+        let d = c.cged_dim;
+        let (cged, input, emotion) = if c.cged {
+            (
+                Some(Cged::new(&vb.pp("cged"), c, text_dim)?),
+                None,
+                Some(Mlp::new(&vb, d, d, emotions.max(1), "emotion")?),
+            )
+        } else {
+            (None, Some(linear(&vb, text_dim, d, "input")?), None)
+        };
+        let down = linear(&vb.pp("query"), d, c.query_hidden, "down")?;
+        let up = linear(&vb.pp("query"), c.query_hidden, c.key_dim, "up")?;
+        let keys = (0..c.max_experts)
+            .map(|j| vb.get_with_hints(c.key_dim, &format!("keys.{j}"), Init::Const(0.0)))
+            .collect::<Result<Vec<_>>>()?;
+        seeded_init(&varmap, seed)?;
+        let vars = varmap.data().lock().expect("varmap lock").clone();
+        for (j, key) in orthogonal_keys(c.max_experts, c.key_dim, seed)
+            .into_iter()
+            .enumerate()
+        {
+            vars[&format!("gate.keys.{j}")].set(&Tensor::new(key, &Device::Cpu)?)?;
+        }
+        Ok(Self {
+            varmap,
+            cged,
+            input,
+            emotion,
+            down,
+            up,
+            keys,
+            text_dim,
+            cged_dim: d,
+        })
+    }
+
+    /// h of each caption (`rows × E` token embeddings), `batch × c`.
+    fn h(&self, texts: &[&[f32]]) -> Result<Tensor> {
+        let rows = texts
+            .iter()
+            .map(|t| {
+                let n = t.len() / self.text_dim;
+                if n == 0 {
+                    return Tensor::zeros(self.cged_dim, DType::F32, &Device::Cpu);
+                }
+                let x = Tensor::from_slice(t, (n, self.text_dim), &Device::Cpu)?;
+                let tokens = match (&self.cged, &self.input) {
+                    (Some(cged), _) => cged.forward(&x)?,
+                    (None, Some(input)) => input.forward(&x)?,
+                    (None, None) => unreachable!("the gate has CGED or an input projection"),
+                };
+                tokens.mean(0)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        Tensor::stack(&rows, 0)
+    }
+
+    /// Scores query(h)·K_j of the first `experts` experts, `batch × experts`.
+    fn scores(&self, h: &Tensor, experts: usize) -> Result<Tensor> {
+        let query = self.up.forward(&self.down.forward(h)?.relu()?)?;
+        let keys = Tensor::stack(&self.keys[..experts], 0)?;
+        query.matmul(&keys.t()?)
+    }
+
+    /// Every gate variable by name.
+    fn vars(&self) -> HashMap<String, Var> {
+        self.varmap.data().lock().expect("varmap lock").clone()
+    }
+}
+
+/// The additive mask keeping, of `scores`, the `k` largest not `masked` (0 for kept, −∞ for
+/// dropped): softmax(scores + mask) is the top-k renormalised gate.
+pub fn top_k_mask(scores: &[f32], masked: &[bool], k: usize) -> Vec<f32> {
+    let mut open: Vec<usize> = (0..scores.len()).filter(|&j| !masked[j]).collect();
+    open.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]).then(a.cmp(&b)));
+    let mut mask = vec![f32::NEG_INFINITY; scores.len()];
+    for &j in open.iter().take(k.max(1)) {
+        mask[j] = 0.0;
+    }
+    mask
+}
+
+/// An ES-MoE model: the frozen base, the experts so far and the gate.
+pub struct EsMoe {
+    /// Its configuration.
+    pub config: EsMoeConfig,
+    /// The experts and emotion classes.
+    pub manifest: MoeManifest,
+    model: PrefixLmConfig,
+    base: HashMap<String, Tensor>,
+    experts: Vec<LoraAdapter>,
+    gate: Gate,
+}
+
+impl EsMoe {
+    /// The model of a run folder (`adapter.safetensors`, `gate.safetensors`, `moe.json`) on
+    /// the base weights in `base_file`.
+    pub fn load(
+        dir: &Path,
+        base_file: &Path,
+        model: &PrefixLmConfig,
+        config: EsMoeConfig,
+    ) -> std::result::Result<Self, LmError> {
+        let manifest: MoeManifest = read_json(&dir.join(MANIFEST_FILE))?;
+        let mut moe = Self::build(
+            model,
+            config,
+            base_weights(base_file)?,
+            manifest.emotions.clone(),
+            0,
+        )?;
+        moe.load_parts(dir, &manifest.experts)?;
+        moe.manifest = manifest;
+        Ok(moe)
+    }
+
+    /// A model with no expert yet; gate initialised from `seed`.
+    fn build(
+        model: &PrefixLmConfig,
+        config: EsMoeConfig,
+        base: HashMap<String, Tensor>,
+        emotions: Vec<String>,
+        seed: u64,
+    ) -> std::result::Result<Self, LmError> {
+        let gate = Gate::new(&config, model.text_dim, emotions.len(), seed)
+            .map_err(|e| LmError::Argument(format!("ES-MoE gate: {e}")))?;
+        Ok(Self {
+            config,
+            manifest: MoeManifest {
+                experts: Vec::new(),
+                emotions,
+            },
+            model: model.clone(),
+            base,
+            experts: Vec::new(),
+            gate,
+        })
+    }
+
+    /// Load the experts `names` and the gate from a run folder.
+    fn load_parts(&mut self, dir: &Path, names: &[String]) -> std::result::Result<(), LmError> {
+        let adapters = dir.join(ADAPTER_FILE);
+        for name in names {
+            let expert = LoraAdapter::new(&self.model, self.config.lora, name, 0)
+                .map_err(LmError::inference)?;
+            expert.load(&adapters)?;
+            self.experts.push(expert);
+        }
+        self.manifest.experts = names.to_vec();
+        let gate = dir.join(GATE_FILE);
+        self.gate
+            .varmap
+            .load(&gate)
+            .map_err(|e| LmError::invalid(&gate, e))
+    }
+
+    /// Save the experts, the gate and the manifest into `dir`.
+    pub fn save(&self, dir: &Path) -> std::result::Result<(), LmError> {
+        let mut adapters = HashMap::new();
+        for expert in &self.experts {
+            adapters.extend(var_tensors(&expert.vars()));
+        }
+        let save = |t: &HashMap<String, Tensor>, path: &Path| {
+            nn::checkpoint::save_safetensors(t, path).map_err(|e| LmError::invalid(path, e))
+        };
+        save(&adapters, &dir.join(ADAPTER_FILE))?;
+        save(&var_tensors(&self.gate.vars()), &dir.join(GATE_FILE))?;
+        Ok(write_json(&dir.join(MANIFEST_FILE), &self.manifest)?)
+    }
+
+    /// The global dictionary: K-means centroids of (up to [`KMEANS_ROWS`] seeded rows of)
+    /// the token embeddings of the training captions `texts`.
+    fn fit_dictionary(&self, texts: &[&[f32]], seed: u64) -> Result<()> {
+        if self.gate.cged.is_none() {
+            return Ok(());
+        }
+        let e = self.model.text_dim;
+        let mut rows: Vec<&[f32]> = texts.iter().flat_map(|t| t.chunks_exact(e)).collect();
+        SplitMix64::stream(seed, 0x64696374).shuffle(&mut rows);
+        rows.truncate(KMEANS_ROWS);
+        let flat: Vec<f32> = rows.concat();
+        let k = self.config.dictionary_size;
+        let mut centroids = kmeans(&flat, e, k, KMEANS_ITERATIONS, seed);
+        // Fewer distinct rows than centroids: repeat them (the attention is unchanged).
+        while centroids.len() < k {
+            let again = centroids
+                .get(centroids.len() % centroids.len().max(1))
+                .cloned()
+                .unwrap_or_else(|| vec![0.0; e]);
+            centroids.push(again);
+        }
+        let values: Vec<f32> = centroids.concat();
+        let dict = Tensor::from_vec(values, (k, e), &Device::Cpu)?;
+        self.gate.vars()["gate.cged.dictionary"].set(&dict)
+    }
+
+    /// Experts in the mixture.
+    pub fn experts(&self) -> usize {
+        self.experts.len()
+    }
+
+    /// The gate's weight of every expert for each caption, `masked` experts excluded.
+    fn gate_weights(&self, h: &Tensor, masked: &[Vec<bool>]) -> Result<Tensor> {
+        let n = self.experts.len();
+        let scores = self.gate.scores(h, n)?;
+        let values = scores.to_vec2::<f32>()?;
+        let mask: Vec<f32> = values
+            .iter()
+            .zip(masked)
+            .flat_map(|(s, m)| top_k_mask(s, m, self.config.top_k))
+            .collect();
+        let mask = Tensor::from_vec(mask, (values.len(), n), &Device::Cpu)?;
+        candle_nn::ops::softmax(&(scores + mask)?, D::Minus1)
+    }
+
+    /// The expert weights of one caption (top-k of every expert, renormalised; 1 for the one
+    /// shared expert without the mixture).
+    pub fn weights(&self, text: &[f32]) -> Result<Vec<f32>> {
+        if !self.config.mixture || self.experts.len() == 1 {
+            return Ok(vec![1.0; self.experts.len()]);
+        }
+        let h = self.gate.h(&[text])?;
+        let none = vec![vec![false; self.experts.len()]];
+        self.gate_weights(&h, &none)?.squeeze(0)?.to_vec1()
+    }
+
+    /// Every expert's update ΔW_j by weight name.
+    fn deltas(&self) -> Result<Vec<Vec<(String, Tensor)>>> {
+        self.experts.iter().map(LoraAdapter::deltas).collect()
+    }
+
+    /// The base with the experts merged in at `weights`: the model and its weight tensors.
+    fn merged(
+        &self,
+        deltas: &[Vec<(String, Tensor)>],
+        weights: &[f32],
+    ) -> Result<(PrefixLm, HashMap<String, Tensor>)> {
+        let updates: Vec<(f32, Vec<(String, Tensor)>)> = weights
+            .iter()
+            .copied()
+            .zip(deltas.iter().cloned())
+            .collect();
+        let merged = add_deltas(&self.base, &updates)?;
+        let vb = VarBuilder::from_tensors(merged.clone(), DType::F32, &Device::Cpu);
+        Ok((PrefixLm::new(&self.model, vb)?, merged))
+    }
+}
+
+impl MotionLm for EsMoe {
+    fn config(&self) -> &PrefixLmConfig {
+        &self.model
+    }
+
+    fn per_caption(&self) -> bool {
+        true
+    }
+
+    fn for_caption(&self, text: &[f32]) -> Result<Cow<'_, PrefixLm>> {
+        let weights = self.weights(text)?;
+        Ok(Cow::Owned(self.merged(&self.deltas()?, &weights)?.0))
+    }
+}
+
+/// One training clip as ES-MoE sees it.
+#[derive(Debug, Clone, Copy)]
+pub struct MoeExample<'a> {
+    /// The clip's id (its emotion label).
+    pub motion_id: &'a str,
+    /// Caption token embeddings (rows of the text width).
+    pub text: &'a [f32],
+    /// Motion tokens.
+    pub tokens: &'a [u32],
+    /// Whether EOS is a target.
+    pub ends: bool,
+}
+
+impl MoeExample<'_> {
+    /// Loss positions.
+    fn targets(&self) -> usize {
+        self.tokens.len() + usize::from(self.ends)
+    }
+}
+
+/// What one ES-MoE training step computed.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MoeStepLoss {
+    /// LM cross-entropy (mean over the batch's targets).
+    pub lm: f32,
+    /// Emotion cross-entropy of the labelled captions (0 without the emotion loss).
+    pub emotion: f32,
+    /// Mean gate weight of the expert being trained.
+    pub current_weight: f32,
+}
+
+impl MoeStepLoss {
+    /// The training objective LM + λ·emotion.
+    pub fn total(&self, emotion_weight: f64) -> f32 {
+        self.lm + emotion_weight as f32 * self.emotion
+    }
+}
+
+/// ES-MoE at one continual step: the model with the new expert last, and the emotion class of
+/// each training clip.
+pub struct EsMoeTrainer {
+    /// The model (its last expert is the one trained).
+    pub moe: EsMoe,
+    emotion_of: HashMap<String, usize>,
+}
+
+impl EsMoeTrainer {
+    /// The step that adds (or, when `previous` has it, continues) expert `expert`: the
+    /// earlier experts, gate and dictionary come from `previous` (a run folder), else a new
+    /// gate is drawn from `seed` and the dictionary is fitted on the training captions
+    /// `train_texts`. `emotions` labels clips by motion id (classes in sorted order).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        model: &PrefixLmConfig,
+        config: EsMoeConfig,
+        base_file: &Path,
+        previous: Option<&Path>,
+        expert: &str,
+        emotions: &HashMap<String, String>,
+        train_texts: &[&[f32]],
+        seed: u64,
+    ) -> std::result::Result<Self, LmError> {
+        let mut moe = match previous {
+            Some(dir) => EsMoe::load(dir, base_file, model, config)?,
+            None => {
+                let mut classes: Vec<String> = emotions.values().cloned().collect();
+                classes.sort();
+                classes.dedup();
+                let moe = EsMoe::build(model, config, base_weights(base_file)?, classes, seed)?;
+                if config.cged {
+                    moe.fit_dictionary(train_texts, seed)
+                        .map_err(LmError::inference)?;
+                }
+                moe
+            }
+        };
+        match moe.manifest.experts.iter().position(|e| e == expert) {
+            // Continuing an expert (the shared one without the mixture): it moves last.
+            Some(i) => {
+                let e = moe.experts.remove(i);
+                let name = moe.manifest.experts.remove(i);
+                moe.experts.push(e);
+                moe.manifest.experts.push(name);
+            }
+            None => {
+                if config.mixture && moe.experts.len() >= config.max_experts {
+                    return Err(LmError::Argument(format!(
+                        "ES-MoE has keys for {} experts; raise max_experts",
+                        config.max_experts
+                    )));
+                }
+                let index = moe.experts.len() as u64;
+                let adapter = LoraAdapter::new(model, config.lora, expert, seed ^ (index << 32))
+                    .map_err(LmError::inference)?;
+                moe.experts.push(adapter);
+                moe.manifest.experts.push(expert.to_string());
+            }
+        }
+        let classes: HashMap<&String, usize> = moe
+            .manifest
+            .emotions
+            .iter()
+            .enumerate()
+            .map(|(i, e)| (e, i))
+            .collect();
+        let emotion_of = emotions
+            .iter()
+            .filter_map(|(id, e)| Some((id.clone(), *classes.get(e)?)))
+            .collect();
+        Ok(Self { moe, emotion_of })
+    }
+
+    /// The trained variables: the current expert's A and B, and (with the mixture) the gate
+    /// network and the current expert's key; not the older keys or the dictionary.
+    pub fn vars(&self) -> HashMap<String, Var> {
+        let moe = &self.moe;
+        let current = moe.experts.len() - 1;
+        let mut vars = moe.experts[current].vars();
+        if moe.config.mixture {
+            let own_key = format!("gate.keys.{current}");
+            vars.extend(moe.gate.vars().into_iter().filter(|(name, _)| {
+                let key = name.starts_with("gate.keys.");
+                (!key || *name == own_key) && name != "gate.cged.dictionary"
+            }));
+        }
+        vars
+    }
+
+    /// Loss of the clips `items` and the gradients of [`Self::vars`]; `mask` (a generator
+    /// and a probability) masks older experts, as in training.
+    pub fn loss_and_grads(
+        &self,
+        items: &[MoeExample<'_>],
+        mask: Option<(&mut SplitMix64, f64)>,
+    ) -> Result<(MoeStepLoss, GradStore)> {
+        let moe = &self.moe;
+        let (n, current) = (moe.experts.len(), moe.experts.len() - 1);
+        let texts: Vec<&[f32]> = items.iter().map(|item| item.text).collect();
+        let gated = moe.config.mixture && n > 1;
+        let h = if moe.config.mixture {
+            Some(moe.gate.h(&texts)?)
+        } else {
+            None
+        };
+        let weights = match (&h, gated) {
+            (Some(h), true) => {
+                let masked: Vec<Vec<bool>> = match mask {
+                    Some((rng, p)) => items
+                        .iter()
+                        .map(|_| (0..n).map(|j| j < current && rng.unit() < p).collect())
+                        .collect(),
+                    None => vec![vec![false; n]; items.len()],
+                };
+                Some(moe.gate_weights(h, &masked)?)
+            }
+            _ => None,
+        };
+        let w: Vec<Vec<f32>> = match &weights {
+            Some(w) => w.to_vec2()?,
+            None => vec![vec![1.0; n]; items.len()],
+        };
+        let deltas = moe.deltas()?;
+        let total: usize = items.iter().map(MoeExample::targets).sum();
+        let mut acc: HashMap<String, Tensor> = HashMap::new();
+        let mut contributions = vec![0f32; items.len() * n];
+        let mut lm = 0f32;
+        for (b, item) in items.iter().enumerate() {
+            let share = item.targets() as f32 / total.max(1) as f32;
+            if share == 0.0 {
+                continue;
+            }
+            let batch = LmBatch::new(&moe.model, &[item.text], &[(item.tokens, item.ends)]);
+            let (model, merged) = moe.merged(&deltas, &w[b])?;
+            let (loss, grads) = model.loss_and_grads(&batch)?;
+            lm += share * loss;
+            // Every expert's updates list the same weights in the same order.
+            for (k, (name, _)) in deltas[current].iter().enumerate() {
+                let Some(g) = grads.get(&merged[name]) else {
+                    continue;
+                };
+                let g = (g * f64::from(share))?;
+                if w[b][current] > 0.0 {
+                    let part = (&g * f64::from(w[b][current]))?;
+                    let sum = match acc.remove(name) {
+                        Some(a) => (a + part)?,
+                        None => part,
+                    };
+                    acc.insert(name.clone(), sum);
+                }
+                if gated {
+                    for (j, expert) in deltas.iter().enumerate() {
+                        if w[b][j] > 0.0 {
+                            contributions[b * n + j] +=
+                                (&g * &expert[k].1)?.sum_all()?.to_scalar::<f32>()?;
+                        }
+                    }
+                }
+            }
+        }
+        let mut grads = moe.experts[current].grads_by_name(&acc)?;
+        let mut emotion = 0f32;
+        if let Some(h) = &h {
+            let mut objective = match &weights {
+                Some(w) => {
+                    let c = Tensor::from_vec(contributions, (items.len(), n), &Device::Cpu)?;
+                    (w * c)?.sum_all()?
+                }
+                None => Tensor::zeros((), DType::F32, &Device::Cpu)?,
+            };
+            if let (Some(head), true) = (&moe.gate.emotion, moe.config.emotion_weight > 0.0) {
+                let (rows, labels): (Vec<u32>, Vec<u32>) = items
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(b, e)| {
+                        Some((b as u32, *self.emotion_of.get(e.motion_id)? as u32))
+                    })
+                    .unzip();
+                if !rows.is_empty() {
+                    let idx = Tensor::new(rows, &Device::Cpu)?;
+                    let logits = head.forward(&h.index_select(&idx, 0)?)?;
+                    let ce = candle_nn::loss::cross_entropy(
+                        &logits,
+                        &Tensor::new(labels, &Device::Cpu)?,
+                    )?;
+                    emotion = ce.to_scalar()?;
+                    objective = (objective + (ce * moe.config.emotion_weight)?)?;
+                }
+            }
+            let gate_grads = objective.backward()?;
+            for var in self.vars().values() {
+                if let Some(g) = gate_grads.get(var.as_tensor()) {
+                    grads.insert(var.as_tensor(), g.clone());
+                }
+            }
+        }
+        let current_weight = w.iter().map(|row| row[current]).sum::<f32>() / w.len().max(1) as f32;
+        Ok((
+            MoeStepLoss {
+                lm,
+                emotion,
+                current_weight,
+            },
+            grads,
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::prefix_lm::init_model;
+    use nn::optim::{AdamW, AdamWConfig};
+    use std::path::PathBuf;
+
+    struct Fixture {
+        config: PrefixLmConfig,
+        base: tempfile::TempDir,
+        texts: Vec<Vec<f32>>,
+        tokens: Vec<Vec<u32>>,
+        emotions: HashMap<String, String>,
+    }
+
+    /// A seeded 1-block base model saved to a folder, four captions with motions, and
+    /// emotion labels for three of them.
+    fn fixture() -> Fixture {
+        let config = PrefixLmConfig::new(16, 1, 2, 12, 6);
+        let (_, varmap) = init_model(&config, 1).unwrap();
+        let base = tempfile::tempdir().unwrap();
+        varmap.save(base.path().join("model.safetensors")).unwrap();
+        let mut rng = SplitMix64(3);
+        let texts = (0..4)
+            .map(|i| {
+                (0..(2 + i) * 6)
+                    .map(|_| rng.range(-1.0, 1.0) as f32)
+                    .collect()
+            })
+            .collect();
+        let tokens = vec![vec![1, 4, 7], vec![2, 9], vec![3, 3, 5, 0], vec![11, 6]];
+        let emotions = [("c0", "happy"), ("c1", "sad"), ("c2", "happy")]
+            .into_iter()
+            .map(|(a, b)| (a.to_string(), b.to_string()))
+            .collect();
+        Fixture {
+            config,
+            base,
+            texts,
+            tokens,
+            emotions,
+        }
+    }
+
+    impl Fixture {
+        fn examples(&self) -> Vec<MoeExample<'_>> {
+            const IDS: [&str; 4] = ["c0", "c1", "c2", "c3"];
+            (0..4)
+                .map(|i| MoeExample {
+                    motion_id: IDS[i],
+                    text: &self.texts[i],
+                    tokens: &self.tokens[i],
+                    ends: i % 2 == 0,
+                })
+                .collect()
+        }
+
+        fn trainer(&self, previous: Option<&Path>, expert: &str, c: EsMoeConfig) -> EsMoeTrainer {
+            let texts: Vec<&[f32]> = self.texts.iter().map(Vec::as_slice).collect();
+            EsMoeTrainer::new(
+                &self.config,
+                c,
+                &self.base.path().join("model.safetensors"),
+                previous,
+                expert,
+                &self.emotions,
+                &texts,
+                7,
+            )
+            .unwrap()
+        }
+    }
+
+    fn small() -> EsMoeConfig {
+        EsMoeConfig {
+            lora: LoraConfig {
+                rank: 2,
+                alpha: 4.0,
+            },
+            max_experts: 4,
+            key_dim: 4,
+            query_hidden: 4,
+            cged_dim: 8,
+            dictionary_size: 3,
+            emotion_weight: 0.5,
+            ..EsMoeConfig::default()
+        }
+    }
+
+    fn values(t: &Tensor) -> Vec<f32> {
+        t.flatten_all().unwrap().to_vec1().unwrap()
+    }
+
+    /// One AdamW step of the trainer's variables on the fixture's clips.
+    fn train_step(t: &EsMoeTrainer, f: &Fixture) {
+        let vars = t.vars();
+        let mut opt = AdamW::new(&vars, AdamWConfig::default());
+        let mut rng = SplitMix64(1);
+        let (_, grads) = t
+            .loss_and_grads(&f.examples(), Some((&mut rng, 0.5)))
+            .unwrap();
+        opt.step(&grads, 1e-2, Some(1.0)).unwrap();
+    }
+
+    /// Step 2 (expert e1) after one training step of expert e0 saved in `dir`.
+    fn second_step(f: &Fixture, dir: &Path) -> EsMoeTrainer {
+        let first = f.trainer(None, "e0", small());
+        train_step(&first, f);
+        first.moe.save(dir).unwrap();
+        f.trainer(Some(dir), "e1", small())
+    }
+
+    #[test]
+    fn keys_are_orthonormal_at_initialisation() {
+        let keys = orthogonal_keys(16, 16, 5);
+        for (i, a) in keys.iter().enumerate() {
+            for (j, b) in keys.iter().enumerate() {
+                let dot: f32 = a.iter().zip(b).map(|(x, y)| x * y).sum();
+                let want = if i == j { 1.0 } else { 0.0 };
+                assert!((dot - want).abs() < 1e-5, "K{i}·K{j} = {dot}");
+            }
+        }
+        let f = fixture();
+        let t = f.trainer(None, "e0", small());
+        let gate = t.moe.gate.vars();
+        for (j, key) in orthogonal_keys(4, 4, 7).iter().enumerate() {
+            assert_eq!(&values(gate[&format!("gate.keys.{j}")].as_tensor()), key);
+        }
+    }
+
+    #[test]
+    fn top_k_weights_are_renormalised_over_the_unmasked_experts() {
+        let scores = [0.3f32, 2.0, -1.0, 1.5];
+        let mask = top_k_mask(&scores, &[false, true, false, false], 2);
+        assert_eq!(mask[1], f32::NEG_INFINITY, "masked");
+        assert_eq!(mask[2], f32::NEG_INFINITY, "not in the top 2 of the rest");
+        let w: Vec<f32> = scores
+            .iter()
+            .zip(&mask)
+            .map(|(s, m)| (s + m).exp())
+            .collect();
+        let sum: f32 = w.iter().sum();
+        assert!(((w[0] + w[3]) / sum - 1.0).abs() < 1e-6);
+        // Through the gate: three experts, top-2 weights sum to one with one zero.
+        let f = fixture();
+        let dir = tempfile::tempdir().unwrap();
+        let mut previous: Option<PathBuf> = None;
+        for e in ["e0", "e1", "e2"] {
+            let t = f.trainer(previous.as_deref(), e, small());
+            let step = dir.path().join(e);
+            std::fs::create_dir_all(&step).unwrap();
+            t.moe.save(&step).unwrap();
+            previous = Some(step);
+        }
+        let t = f.trainer(previous.as_deref(), "e2", small());
+        assert_eq!(t.moe.experts(), 3);
+        for text in &f.texts {
+            let w = t.moe.weights(text).unwrap();
+            assert_eq!(w.len(), 3);
+            assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-6, "{w:?}");
+            assert_eq!(w.iter().filter(|&&v| v == 0.0).count(), 1, "{w:?}");
+        }
+    }
+
+    #[test]
+    fn a_new_expert_leaves_the_base_model_unchanged() {
+        let f = fixture();
+        let t = f.trainer(None, "e0", small());
+        let weights = base_weights(&f.base.path().join("model.safetensors")).unwrap();
+        let vb = VarBuilder::from_tensors(weights, DType::F32, &Device::Cpu);
+        let base = PrefixLm::new(&f.config, vb).unwrap();
+        let batch = LmBatch::new(&f.config, &[&f.texts[0]], &[(&f.tokens[0], true)]);
+        let want = values(&base.forward(&batch).unwrap());
+        let got = values(
+            &t.moe
+                .for_caption(&f.texts[0])
+                .unwrap()
+                .forward(&batch)
+                .unwrap(),
+        );
+        assert_eq!(got, want);
+    }
+
+    #[test]
+    fn only_the_current_expert_its_key_and_the_gate_network_train() {
+        let f = fixture();
+        let dir = tempfile::tempdir().unwrap();
+        let second = second_step(&f, dir.path());
+        let all = |t: &EsMoeTrainer| -> HashMap<String, Vec<f32>> {
+            let mut v = var_tensors(&t.moe.gate.vars());
+            for e in &t.moe.experts {
+                v.extend(var_tensors(&e.vars()));
+            }
+            v.into_iter().map(|(k, t)| (k, values(&t))).collect()
+        };
+        let before = all(&second);
+        assert!(
+            before["experts.e0.blocks.0.attn.wo.lora_B.weight"]
+                .iter()
+                .any(|&v| v != 0.0),
+            "expert 0 was trained"
+        );
+        train_step(&second, &f);
+        let after = all(&second);
+        let trained = second.vars();
+        for (name, value) in &after {
+            let changed = *value != before[name];
+            let current = name.starts_with("experts.e1.") || name == "gate.keys.1";
+            if name.starts_with("experts.e0.")
+                || name == "gate.keys.0"
+                || name == "gate.cged.dictionary"
+            {
+                assert!(!changed, "{name} is frozen at step 2");
+                assert!(!trained.contains_key(name));
+            }
+            if (current && name.ends_with("lora_B.weight")) || name == "gate.keys.1" {
+                assert!(changed, "{name} trains");
+            }
+        }
+        assert!(after["gate.query.up.weight"] != before["gate.query.up.weight"]);
+    }
+
+    #[test]
+    fn gate_gradients_match_finite_differences() {
+        let f = fixture();
+        let dir = tempfile::tempdir().unwrap();
+        let t = second_step(&f, dir.path());
+        // Non-zero B for the new expert too, so both experts' weights matter.
+        let mut rng = SplitMix64(9);
+        for (name, var) in t.moe.experts[1].vars() {
+            if name.ends_with("lora_B.weight") {
+                let v: Vec<f32> = (0..var.elem_count())
+                    .map(|_| rng.range(-0.3, 0.3) as f32)
+                    .collect();
+                var.set(&Tensor::from_vec(v, var.dims(), &Device::Cpu).unwrap())
+                    .unwrap();
+            }
+        }
+        let examples = f.examples();
+        let lambda = small().emotion_weight;
+        let loss = |t: &EsMoeTrainer| {
+            f64::from(t.loss_and_grads(&examples, None).unwrap().0.total(lambda))
+        };
+        let (_, grads) = t.loss_and_grads(&examples, None).unwrap();
+        let vars = t.vars();
+        for name in [
+            "gate.query.up.weight",
+            "gate.keys.1",
+            "gate.cged.fuse.weight",
+            "gate.cged.cross_q.bias",
+            "gate.emotion.2.weight",
+        ] {
+            let var = &vars[name];
+            let analytic = values(
+                grads
+                    .get(var.as_tensor())
+                    .unwrap_or_else(|| panic!("no gradient for {name}")),
+            );
+            let n = var.elem_count();
+            for k in [0, n / 2, n - 1] {
+                let numeric = nn::gradcheck::numeric_gradient(var, k, || loss(&t));
+                let a = f64::from(analytic[k]);
+                assert!(
+                    (a - numeric).abs() <= 1e-3 + 2e-2 * numeric.abs(),
+                    "{name}[{k}]: analytic {a}, numeric {numeric}"
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,863 @@
+//! Training of the prefix LM: AdamW (`nn::optim`) with linear warm-up and cosine decay
+//! sized to the token budget D, global gradient-norm clipping, seeded batches, periodic
+//! evaluation on the test split, and atomic checkpoints a re-run resumes from.
+//!
+//! ```text
+//! OUT/config.json           format, the train config, the resolved model config, text encoder,
+//!                           tokenizer, schedule (total/warm-up steps), accounting
+//! OUT/model.safetensors     weights (PyTorch key names, see prefix_lm)
+//! OUT/state.json            step, tokens seen, executed FLOPs, data position (written last:
+//!                           it commits the checkpoint)
+//! OUT/resume/<step>/        that step's model.safetensors and optimizer.safetensors (AdamW)
+//! OUT/eval.json             the latest evaluation; OUT/evals.jsonl every evaluation
+//! ```
+//!
+//! A run is a pure function of its config: batch k is fixed by the seed, every kernel reduces
+//! in a fixed order, so killing a run and re-running the same command ends with the same
+//! weights as an uninterrupted run.
+
+use crate::accounting::{self, Accounting, SequenceShape};
+use crate::es_moe::{EsMoe, EsMoeConfig, EsMoeTrainer, MoeExample};
+use crate::lm_data::{Limits, LmData};
+use crate::lora::{adapter_a_matrices, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
+use crate::prefix_lm::{init_model, LmBatch, PrefixLm, PrefixLmConfig};
+use crate::test_loss::{evaluate, SplitLoss};
+use crate::{LmError, MotionLm};
+use candle_core::{DType, Device, Tensor};
+use candle_nn::VarBuilder;
+use motionscale_core::files::{append_json_line, check_same_run, read_json, write_json};
+use motionscale_core::rng::SplitMix64;
+use motionscale_core::write_atomic;
+use nn::checkpoint::{save_safetensors, ResumeFiles};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// The weights file of a run folder and of each resume step.
+const MODEL_FILE: &str = "model.safetensors";
+/// The optimiser state inside a resume step.
+const OPTIMIZER_FILE: &str = "optimizer.safetensors";
+use nn::optim::{AdamW, AdamWConfig, LrSchedule};
+use std::time::Instant;
+
+/// Stream of the generator that masks older ES-MoE experts (per step).
+const MASK_STREAM: u64 = 0x6d61_736b;
+
+/// Format tag of `config.json`.
+pub const FORMAT: &str = "motionscale-prefix-lm-v1";
+
+/// The model shape to train: a named preset or explicit sizes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ModelShape {
+    /// A preset of [`crate::prefix_lm::PRESETS`].
+    Preset(String),
+    /// Explicit width, depth and heads (SwiGLU width by the reference rule unless given).
+    Custom {
+        /// Width.
+        d_model: usize,
+        /// Blocks.
+        n_layers: usize,
+        /// Heads.
+        n_heads: usize,
+        /// SwiGLU width (default round(8d/3)).
+        ffn_hidden: Option<usize>,
+    },
+    /// A LoRA adapter on every attention and FFN projection of a trained model, whose own
+    /// weights stay frozen (the run's `model.safetensors` is the merged model, and
+    /// `adapter.safetensors` the adapter alone).
+    Lora {
+        /// The trained run folder.
+        base: PathBuf,
+        /// Rank and scale.
+        lora: LoraConfig,
+        /// Expert name (the adapter's key prefix).
+        expert: String,
+        /// Adapter file to start from (this expert's A and B, e.g. the previous scenario's
+        /// `adapter.safetensors` for sequential fine-tuning) instead of a new adapter.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        init: Option<PathBuf>,
+        /// Adapter files whose `lora_A` subspaces this adapter is kept orthogonal to (O-LoRA).
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        orthogonal_to: Vec<PathBuf>,
+        /// Weight λ of the orthogonality loss.
+        #[serde(default)]
+        orthogonality: f64,
+        /// A trained run whose outputs the model is distilled towards on the new data
+        /// (LwF), with weight `distillation`.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        distill_from: Option<PathBuf>,
+        /// Weight of the distillation loss (temperature [`DISTILLATION_TEMPERATURE`]).
+        #[serde(default)]
+        distillation: f64,
+    },
+    /// An ES-MoE step ([`crate::es_moe`]): a new LoRA expert (or, without the mixture, the
+    /// shared one continued) on a trained model's frozen weights, mixed with the earlier
+    /// experts of `previous` by the gate, which trains too. The run folder holds every expert
+    /// (`adapter.safetensors`) and the gate, not a single model.
+    EsMoe {
+        /// The trained run folder of the frozen base.
+        base: PathBuf,
+        /// The previous step's ES-MoE run (its experts, gate and dictionary), if any.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        previous: Option<PathBuf>,
+        /// Name of the expert this step trains.
+        expert: String,
+        /// Experts, gate and ablation switches.
+        moe: EsMoeConfig,
+    },
+}
+
+/// Softmax temperature of the LwF distillation loss (Hinton et al.'s usual 2).
+pub const DISTILLATION_TEMPERATURE: f32 = 2.0;
+
+impl ModelShape {
+    /// The model configuration for `codebook_size` codes and `text_dim`-wide text.
+    pub fn resolve(
+        &self,
+        codebook_size: usize,
+        text_dim: usize,
+    ) -> Result<PrefixLmConfig, LmError> {
+        let config = match self {
+            Self::Lora { base, .. } | Self::EsMoe { base, .. } => {
+                let run: RunConfig = read_json(&base.join("config.json"))?;
+                if (run.model.codebook_size, run.model.text_dim) != (codebook_size, text_dim) {
+                    return Err(LmError::Argument(format!(
+                        "{}: the base model has {} codes and {}-d text, the data {codebook_size} and {text_dim}",
+                        base.display(),
+                        run.model.codebook_size,
+                        run.model.text_dim
+                    )));
+                }
+                run.model
+            }
+            Self::Preset(name) => PrefixLmConfig::preset(name, codebook_size, text_dim)
+                .ok_or_else(|| LmError::Argument(format!("no model preset {name:?}")))?,
+            Self::Custom {
+                d_model,
+                n_layers,
+                n_heads,
+                ffn_hidden,
+            } => {
+                let mut c =
+                    PrefixLmConfig::new(*d_model, *n_layers, *n_heads, codebook_size, text_dim);
+                c.ffn_hidden = ffn_hidden.unwrap_or(c.ffn_hidden);
+                c
+            }
+        };
+        config.validate()?;
+        Ok(config)
+    }
+}
+
+/// Everything a training run depends on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// Token set folder.
+    pub tokens: PathBuf,
+    /// Corpus folder with the caption embeddings (default: the token set's corpus).
+    pub corpus: Option<PathBuf>,
+    /// Text encoder id of the embeddings (default: the corpus's only one).
+    pub text_encoder: Option<String>,
+    /// Folder of `{train,val,test}.txt` clip lists (e.g. a scenario dataset) replacing the
+    /// token set's own splits: only the listed clips train and evaluate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub splits: Option<PathBuf>,
+    /// Model shape.
+    pub model: ModelShape,
+    /// Token budget D: motion loss positions to train on (rounded up to whole batches).
+    pub tokens_budget: u64,
+    /// Clips per batch.
+    pub batch_size: usize,
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Final learning rate as a fraction of the peak.
+    pub final_lr_ratio: f64,
+    /// Warm-up steps as a fraction of all steps (at least one step).
+    pub warmup_fraction: f64,
+    /// AdamW (β1, β2).
+    pub betas: (f64, f64),
+    /// AdamW decoupled weight decay (all parameters, as the reference).
+    pub weight_decay: f64,
+    /// Global gradient-norm clip.
+    pub grad_clip: f64,
+    /// Seed of the initial weights and of the batch order.
+    pub seed: u64,
+    /// Text tokens kept per caption.
+    pub max_text_tokens: usize,
+    /// Motion tokens kept per clip.
+    pub max_motion_tokens: usize,
+    /// Evaluate every this many steps (default: ten times per run, and at the end).
+    #[serde(skip)]
+    pub eval_every: Option<u64>,
+    /// Checkpoint every this many steps (default: ten times per run, and at the end).
+    #[serde(skip)]
+    pub checkpoint_every: Option<u64>,
+    /// Stop (with a checkpoint) after this many steps of the schedule; a re-run continues.
+    #[serde(skip)]
+    pub stop_after: Option<u64>,
+    /// Output folder.
+    #[serde(skip)]
+    pub out: PathBuf,
+}
+
+impl TrainConfig {
+    /// Defaults for everything but the token set, model, budget and output folder: batch 32,
+    /// lr 1e-3 → 1e-4 with 5% warm-up, AdamW (0.9, 0.95) with weight decay 0.1, clip 1.0,
+    /// seed 0, 64 text and 64 motion tokens, 10 evaluations and checkpoints per run.
+    pub fn new(tokens: &Path, model: ModelShape, tokens_budget: u64, out: &Path) -> Self {
+        Self {
+            tokens: tokens.to_path_buf(),
+            corpus: None,
+            text_encoder: None,
+            splits: None,
+            model,
+            tokens_budget,
+            batch_size: 32,
+            lr: 1e-3,
+            final_lr_ratio: 0.1,
+            warmup_fraction: 0.05,
+            betas: (0.9, 0.95),
+            weight_decay: 0.1,
+            grad_clip: 1.0,
+            seed: 0,
+            max_text_tokens: 64,
+            max_motion_tokens: 64,
+            eval_every: None,
+            checkpoint_every: None,
+            stop_after: None,
+            out: out.to_path_buf(),
+        }
+    }
+}
+
+/// `OUT/config.json`: the run as resolved.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunConfig {
+    /// Always [`FORMAT`].
+    pub format: String,
+    /// The training configuration.
+    pub train: TrainConfig,
+    /// The model as built.
+    pub model: PrefixLmConfig,
+    /// Corpus folder of the captions.
+    pub corpus: PathBuf,
+    /// Text encoder id.
+    pub text_encoder: String,
+    /// The tokenizer of the token set.
+    pub tokenizer: tokenizer::TokenizerInfo,
+    /// The learning-rate schedule (total steps = the whole budget).
+    pub schedule: LrSchedule,
+    /// Parameters and FLOPs per token (exact count at the configured maximum lengths).
+    pub accounting: Accounting,
+}
+
+/// `OUT/state.json`: how far the checkpoint beside it got.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainState {
+    /// Optimiser steps taken.
+    pub step: u64,
+    /// Motion loss positions trained on (D so far).
+    pub tokens_seen: u64,
+    /// Exact FLOPs executed so far (padding included).
+    pub flops_exact: f64,
+    /// Train-stream items consumed (batch k holds items k·B..(k+1)·B).
+    pub data_position: u64,
+    /// Sum of the training losses since the last evaluation (checkpointed, so a resumed run
+    /// logs the same `train_loss` as an uninterrupted one).
+    #[serde(default)]
+    pub loss_sum: f64,
+    /// Steps summed in `loss_sum`.
+    #[serde(default)]
+    pub loss_steps: u64,
+}
+
+/// `OUT/eval.json`: one evaluation with the accounting of the run so far.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvalRecord {
+    /// Step of the evaluation.
+    pub step: u64,
+    /// Motion tokens trained on so far (D).
+    pub tokens_seen: u64,
+    /// Mean training loss since the previous evaluation.
+    pub train_loss: f64,
+    /// Test losses (cross-entropy, L_u, unigram entropy…).
+    pub test: SplitLoss,
+    /// C = 6·(N_nv + N_v)·D.
+    pub flops_6n: f64,
+    /// Exact FLOPs executed (padding included).
+    pub flops_exact: f64,
+    /// Non-vocabulary parameters.
+    pub n_nv: u64,
+    /// Vocabulary parameters (2·V·d: untied).
+    pub n_v: u64,
+    /// Whether embedding and head are tied (false).
+    pub tied: bool,
+    /// ES-MoE: the gate's mean weight of each expert (oldest first) over the test captions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expert_weights: Option<Vec<f64>>,
+}
+
+/// What a training run reports as it goes.
+#[derive(Debug, Clone)]
+pub enum TrainEvent {
+    /// About to train steps `from..total`.
+    Started {
+        /// First step (non-zero when resuming).
+        from: u64,
+        /// Steps of the whole schedule.
+        total: u64,
+        /// The resolved run.
+        run: Box<RunConfig>,
+    },
+    /// One optimiser step done.
+    Step {
+        /// Steps done.
+        step: u64,
+        /// Training loss of the step.
+        loss: f32,
+        /// Learning rate used.
+        lr: f64,
+        /// Motion tokens trained on so far.
+        tokens_seen: u64,
+        /// Motion tokens of this step per second.
+        tokens_per_s: f64,
+    },
+    /// An evaluation finished.
+    Eval(Box<EvalRecord>),
+}
+
+/// Result of [`train`].
+#[derive(Debug, Clone, Serialize)]
+pub struct TrainReport {
+    /// Steps done (less than the schedule when stopped early).
+    pub steps: u64,
+    /// Steps of the whole schedule.
+    pub total_steps: u64,
+    /// The last evaluation.
+    pub eval: EvalRecord,
+    /// Output folder.
+    pub out: PathBuf,
+}
+
+/// The trained model in `dir` (`model.safetensors`, memory-mapped) and its run config.
+pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), LmError> {
+    let run: RunConfig = read_json(&dir.join("config.json"))?;
+    if matches!(run.train.model, ModelShape::EsMoe { .. }) {
+        return Err(LmError::invalid(
+            dir,
+            "an ES-MoE run has a model per caption, not one model file (load it with load_lm)",
+        ));
+    }
+    let weights = dir.join(MODEL_FILE);
+    // SAFETY: the checkpoint is only read; it must not change while the model lives.
+    let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, &Device::Cpu) }
+        .map_err(|e| LmError::invalid(&weights, e))?;
+    let model = PrefixLm::new(&run.model, vb).map_err(|e| LmError::invalid(&weights, e))?;
+    Ok((model, run))
+}
+
+/// The trained LM in `dir` as generation and evaluation use it (one model, or ES-MoE's
+/// experts and gate on their base) and its run config.
+pub fn load_lm(dir: &Path) -> Result<(Box<dyn MotionLm>, RunConfig), LmError> {
+    let run: RunConfig = read_json(&dir.join("config.json"))?;
+    if let ModelShape::EsMoe { base, moe, .. } = &run.train.model {
+        let lm = EsMoe::load(dir, &base.join(MODEL_FILE), &run.model, *moe)?;
+        return Ok((Box::new(lm), run));
+    }
+    let (model, run) = load_model(dir)?;
+    Ok((Box::new(model), run))
+}
+
+/// The emotion label of every labelled clip of a corpus, by motion id.
+fn clip_emotions(corpus_dir: &Path) -> Result<HashMap<String, String>, LmError> {
+    let corpus = ingest::corpus::reader::Corpus::open(corpus_dir).map_err(LmError::Corpus)?;
+    Ok(corpus
+        .clip_metadata()
+        .map_err(LmError::Corpus)?
+        .into_iter()
+        .filter_map(|m| Some((m.motion_id, m.labels.emotion?)))
+        .collect())
+}
+
+/// The run's tokenizer (or the one in `dir`, which must be the same checkpoint), for
+/// decoding its tokens.
+pub fn run_tokenizer(
+    run: &RunConfig,
+    dir: Option<&Path>,
+) -> Result<tokenizer::model::MotionTokenizer, LmError> {
+    use tokenizer::model::MotionTokenizer;
+    let dir = dir.unwrap_or(&run.tokenizer.dir);
+    let id = MotionTokenizer::content_id(dir).map_err(|e| LmError::invalid(dir, e))?;
+    if id != run.tokenizer.id {
+        return Err(LmError::invalid(
+            dir,
+            format!(
+                "tokenizer {id} is not the model's {} (pass --tokenizer DIR)",
+                run.tokenizer.id
+            ),
+        ));
+    }
+    MotionTokenizer::load(dir, &Device::Cpu).map_err(|e| LmError::invalid(dir, e))
+}
+
+/// Train (or resume) the run `config` describes, calling `on_event` as it goes.
+pub fn train(
+    config: &TrainConfig,
+    on_event: &mut dyn FnMut(&TrainEvent),
+) -> Result<TrainReport, LmError> {
+    let mut run = Run::start(config)?;
+    let total = run.config.schedule.total;
+    on_event(&TrainEvent::Started {
+        from: run.state.step,
+        total,
+        run: Box::new(run.config.clone()),
+    });
+    let end = config.stop_after.map_or(total, |s| total.min(s));
+    let every = |n: Option<u64>| n.unwrap_or(total.div_ceil(10)).max(1);
+    let mut last_eval = None;
+    while run.state.step < end {
+        let event = run.step()?;
+        if let TrainEvent::Step { loss, .. } = event {
+            run.state.loss_sum += f64::from(loss);
+            run.state.loss_steps += 1;
+        }
+        on_event(&event);
+        let (step, done) = (run.state.step, run.state.step == end);
+        let scheduled = step % every(config.eval_every) == 0 || step == total;
+        if scheduled || done {
+            let mean = run.state.loss_sum / run.state.loss_steps.max(1) as f64;
+            let record = run.evaluate(mean)?;
+            // An evaluation only because `stop_after` ends the run early keeps the window:
+            // the resumed run's next evaluation then averages the same steps as it would have.
+            if scheduled {
+                (run.state.loss_sum, run.state.loss_steps) = (0.0, 0);
+            }
+            on_event(&TrainEvent::Eval(Box::new(record.clone())));
+            last_eval = Some(record);
+        }
+        if step % every(config.checkpoint_every) == 0 || done {
+            run.checkpoint()?;
+        }
+    }
+    let eval = match last_eval {
+        Some(e) => e,
+        None => read_json(&run.paths.eval)?,
+    };
+    Ok(TrainReport {
+        steps: run.state.step,
+        total_steps: total,
+        eval,
+        out: config.out.clone(),
+    })
+}
+
+/// What a run trains.
+enum Trainee {
+    /// A whole model.
+    Model(PrefixLm),
+    /// A LoRA adapter on a frozen base.
+    Lora(LoraRun),
+    /// An ES-MoE expert and the gate on a frozen base.
+    Moe(Box<EsMoeTrainer>),
+}
+
+/// A run in progress: data, what it trains, optimiser and where it stands.
+struct Run {
+    config: RunConfig,
+    data: LmData,
+    trainee: Trainee,
+    /// The trained variables: the model's, or the adapter's (and gate's) on a frozen base.
+    vars: HashMap<String, candle_core::Var>,
+    opt: AdamW,
+    state: TrainState,
+    paths: Paths,
+}
+
+impl Run {
+    /// Load the data, resolve the run, build the model and optimiser, and restore the
+    /// checkpoint in the output folder if there is one.
+    fn start(config: &TrainConfig) -> Result<Self, LmError> {
+        let corpus = match &config.corpus {
+            Some(c) => c.clone(),
+            None => {
+                tokenizer::TokenSet::open(&config.tokens)
+                    .map_err(|e| LmError::invalid(&config.tokens, e))?
+                    .manifest
+                    .corpus
+            }
+        };
+        let limits = Limits {
+            text_tokens: config.max_text_tokens,
+            motion_tokens: config.max_motion_tokens,
+        };
+        let encoder = config.text_encoder.as_deref();
+        let splits = ingest::corpus::split::SplitAssignment::from_dir(config.splits.as_deref())
+            .map_err(LmError::Argument)?;
+        let data = LmData::load(&config.tokens, &corpus, encoder, limits, &splits)?;
+        let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
+        let total = data
+            .steps_for_tokens(config.tokens_budget, config.batch_size, config.seed)
+            .ok_or_else(|| LmError::Argument("no train clips with motion tokens".into()))?;
+        let seq = SequenceShape {
+            prefix: config.max_text_tokens,
+            motion: config.max_motion_tokens + 1,
+        };
+        let run = RunConfig {
+            format: FORMAT.into(),
+            train: config.clone(),
+            accounting: Accounting::of(&model_config, seq),
+            model: model_config,
+            corpus,
+            text_encoder: data.encoder.clone(),
+            tokenizer: data.tokens.tokenizer.clone(),
+            schedule: LrSchedule {
+                peak: config.lr,
+                warmup: ((total as f64 * config.warmup_fraction).round() as u64).max(1),
+                total,
+                final_ratio: config.final_lr_ratio,
+            },
+        };
+        std::fs::create_dir_all(&config.out).map_err(|e| LmError::io(&config.out, e))?;
+        let (trainee, vars) = match &config.model {
+            ModelShape::Lora {
+                base,
+                lora,
+                expert,
+                init,
+                orthogonal_to,
+                orthogonality,
+                distill_from,
+                distillation,
+            } => {
+                let adapter = LoraAdapter::new(&run.model, *lora, expert, config.seed)
+                    .map_err(LmError::inference)?;
+                if let Some(file) = init {
+                    adapter.load(file)?;
+                }
+                let mut previous = Vec::new();
+                for file in orthogonal_to {
+                    previous.extend(adapter_a_matrices(file)?);
+                }
+                let teacher = match distill_from {
+                    Some(dir) => Some(load_model(dir)?.0),
+                    None => None,
+                };
+                let vars = adapter.vars();
+                let lora = LoraRun {
+                    adapter,
+                    base: base_weights(&base.join(MODEL_FILE))?,
+                    previous,
+                    orthogonality: *orthogonality,
+                    teacher,
+                    distillation: *distillation as f32,
+                };
+                (Trainee::Lora(lora), vars)
+            }
+            ModelShape::EsMoe {
+                base,
+                previous,
+                expert,
+                moe,
+            } => {
+                let train_texts: Vec<&[f32]> = data
+                    .split("train")
+                    .iter()
+                    .flat_map(|e| &e.captions)
+                    .map(|&c| data.text[c].as_slice())
+                    .collect();
+                let trainer = EsMoeTrainer::new(
+                    &run.model,
+                    *moe,
+                    &base.join(MODEL_FILE),
+                    previous.as_deref(),
+                    expert,
+                    &clip_emotions(&run.corpus)?,
+                    &train_texts,
+                    config.seed,
+                )?;
+                let vars = trainer.vars();
+                (Trainee::Moe(Box::new(trainer)), vars)
+            }
+            ModelShape::Preset(_) | ModelShape::Custom { .. } => {
+                let (model, varmap) =
+                    init_model(&run.model, config.seed).map_err(LmError::inference)?;
+                let vars = varmap.data().lock().expect("varmap lock").clone();
+                (Trainee::Model(model), vars)
+            }
+        };
+        let (beta1, beta2) = config.betas;
+        let adamw = AdamWConfig {
+            beta1,
+            beta2,
+            eps: 1e-8,
+            weight_decay: config.weight_decay,
+        };
+        let mut opt = AdamW::new(&vars, adamw);
+        let paths = Paths::new(&config.out);
+        let state = resume(&paths, &run, &vars, &mut opt)?;
+        write_json(&paths.config, &run)?;
+        Ok(Self {
+            config: run,
+            data,
+            trainee,
+            vars,
+            opt,
+            state,
+            paths,
+        })
+    }
+
+    /// One optimiser step on the next batch.
+    fn step(&mut self) -> Result<TrainEvent, LmError> {
+        let (c, started) = (&self.config.train, Instant::now());
+        let items = self.data.train_items(self.state.step, c.batch_size, c.seed);
+        let batch = self.data.batch(&self.config.model, &items);
+        let (loss, grads) = match &self.trainee {
+            Trainee::Model(model) => model.loss_and_grads(&batch),
+            Trainee::Lora(l) => l.loss_and_grads(&self.config.model, &batch),
+            Trainee::Moe(t) => {
+                let examples: Vec<MoeExample> = items
+                    .iter()
+                    .map(|item| MoeExample {
+                        motion_id: &item.0.motion_id,
+                        text: self.data.text_of(item),
+                        tokens: &item.0.tokens,
+                        ends: item.0.ends,
+                    })
+                    .collect();
+                // Older experts are masked less and less as the step's schedule runs.
+                let progress = self.state.step as f64 / self.config.schedule.total as f64;
+                let p = t.moe.config.mask_probability * (1.0 - progress);
+                let mut rng = SplitMix64::stream(c.seed ^ MASK_STREAM, self.state.step);
+                t.loss_and_grads(&examples, Some((&mut rng, p)))
+                    .map(|(l, g)| (l.total(t.moe.config.emotion_weight), g))
+            }
+        }
+        .map_err(LmError::inference)?;
+        let lr = self.config.schedule.at(self.state.step);
+        self.opt
+            .step(&grads, lr, Some(c.grad_clip))
+            .map_err(LmError::inference)?;
+        let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
+        let shape = SequenceShape {
+            prefix: batch.layout.prefix_slots,
+            motion: batch.layout.motion_slots,
+        };
+        let s = &mut self.state;
+        s.step += 1;
+        s.tokens_seen += tokens;
+        s.data_position += c.batch_size as u64;
+        s.flops_exact +=
+            c.batch_size as f64 * accounting::train_flops_exact(&self.config.model, shape);
+        Ok(TrainEvent::Step {
+            step: s.step,
+            loss,
+            lr,
+            tokens_seen: s.tokens_seen,
+            tokens_per_s: tokens as f64 / started.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Evaluate the test split and record it in `eval.json` and `evals.jsonl`.
+    fn evaluate(&self, train_loss: f64) -> Result<EvalRecord, LmError> {
+        // A LoRA run evaluates the base with the adapter as it now stands merged in.
+        let merged;
+        let (lm, expert_weights): (&dyn MotionLm, _) = match &self.trainee {
+            Trainee::Model(model) => (model, None),
+            Trainee::Lora(l) => {
+                merged = l.model(&self.config.model).map_err(LmError::inference)?.0;
+                (&merged, None)
+            }
+            Trainee::Moe(t) => (&t.moe, Some(self.expert_weights(&t.moe)?)),
+        };
+        let test = evaluate(lm, &self.data, "test", self.config.train.batch_size)?;
+        let params = self.config.accounting.params;
+        let record = EvalRecord {
+            step: self.state.step,
+            tokens_seen: self.state.tokens_seen,
+            train_loss,
+            test,
+            flops_6n: accounting::budget(&self.config.model, self.state.tokens_seen as f64),
+            flops_exact: self.state.flops_exact,
+            n_nv: params.n_nv,
+            n_v: params.n_v,
+            tied: params.tied,
+            expert_weights,
+        };
+        write_json(&self.paths.eval, &record)?;
+        append_json_line(&self.paths.evals, &record)?;
+        Ok(record)
+    }
+
+    /// The gate's mean weight of each expert over the test clips' first captions.
+    fn expert_weights(&self, moe: &EsMoe) -> Result<Vec<f64>, LmError> {
+        let items = self.data.eval_items("test");
+        let mut sum = vec![0f64; moe.experts()];
+        for item in &items {
+            let w = moe
+                .weights(self.data.text_of(item))
+                .map_err(LmError::inference)?;
+            sum.iter_mut().zip(w).for_each(|(s, w)| *s += f64::from(w));
+        }
+        Ok(sum.iter().map(|s| s / items.len().max(1) as f64).collect())
+    }
+
+    /// Write the weights others load, then the resume files, committed by `state.json`.
+    fn checkpoint(&mut self) -> Result<(), LmError> {
+        let paths = &self.paths;
+        let weights = nn::checkpoint::var_tensors(&self.vars);
+        let model = match &self.trainee {
+            Trainee::Model(_) => Some(weights.clone()),
+            Trainee::Lora(l) => {
+                let adapter = self.config.train.out.join(ADAPTER_FILE);
+                save_safetensors(&weights, &adapter).map_err(|e| LmError::invalid(&adapter, e))?;
+                Some(l.model(&self.config.model).map_err(LmError::inference)?.1)
+            }
+            Trainee::Moe(t) => {
+                t.moe.save(&self.config.train.out)?;
+                None
+            }
+        };
+        if let Some(model) = model {
+            save_safetensors(&model, &paths.model)
+                .map_err(|e| LmError::invalid(&paths.model, e))?;
+        }
+        let invalid = |e: &dyn std::fmt::Display| LmError::invalid(paths.resume.state_path(), e);
+        let stage = paths.resume.stage().map_err(|e| invalid(&e))?;
+        save_safetensors(&weights, &stage.join(MODEL_FILE)).map_err(|e| invalid(&e))?;
+        self.opt
+            .save(&stage.join(OPTIMIZER_FILE))
+            .map_err(|e| invalid(&e))?;
+        paths
+            .resume
+            .commit(self.state.step, &self.state)
+            .map_err(|e| invalid(&e))
+    }
+}
+
+/// A LoRA run: the adapter being trained, the frozen base weights, the earlier adapters'
+/// `lora_A` matrices it is kept orthogonal to (with weight `orthogonality`), and the model it
+/// is distilled towards (with weight `distillation`).
+struct LoraRun {
+    adapter: LoraAdapter,
+    base: HashMap<String, Tensor>,
+    previous: Vec<HashMap<String, Tensor>>,
+    orthogonality: f64,
+    teacher: Option<PrefixLm>,
+    distillation: f32,
+}
+
+impl LoraRun {
+    /// The merged model and its weights.
+    fn model(
+        &self,
+        config: &PrefixLmConfig,
+    ) -> candle_core::Result<(PrefixLm, HashMap<String, Tensor>)> {
+        self.adapter.merged_model(config, &self.base)
+    }
+
+    /// Loss of `batch` and the adapter's gradients.
+    fn loss_and_grads(
+        &self,
+        config: &PrefixLmConfig,
+        batch: &LmBatch,
+    ) -> candle_core::Result<(f32, candle_core::backprop::GradStore)> {
+        let (model, merged) = self.model(config)?;
+        let (loss, grads) = match &self.teacher {
+            None => model.loss_and_grads(batch)?,
+            Some(teacher) => {
+                let soft: Vec<f32> = teacher.forward(batch)?.flatten_all()?.to_vec1()?;
+                let vocab = config.vocab_size();
+                model.loss_and_grads_with(batch, &|logits| {
+                    Some(nn::lm_kernels::distillation(
+                        logits,
+                        &soft,
+                        vocab,
+                        &batch.targets,
+                        self.distillation,
+                        DISTILLATION_TEMPERATURE,
+                    ))
+                })?
+            }
+        };
+        let mut grads = self.adapter.grads(&merged, &grads)?;
+        let penalty = if self.previous.is_empty() {
+            0.0
+        } else {
+            self.adapter
+                .orthogonality(&self.previous, self.orthogonality, &mut grads)?
+        };
+        Ok((loss + penalty, grads))
+    }
+}
+
+/// The files of a run folder.
+struct Paths {
+    config: PathBuf,
+    model: PathBuf,
+    resume: ResumeFiles,
+    eval: PathBuf,
+    evals: PathBuf,
+}
+
+impl Paths {
+    fn new(out: &Path) -> Self {
+        Self {
+            config: out.join("config.json"),
+            model: out.join(MODEL_FILE),
+            resume: ResumeFiles::new(out),
+            eval: out.join("eval.json"),
+            evals: out.join("evals.jsonl"),
+        }
+    }
+}
+
+/// Restore the checkpoint in the run folder, if any, after checking it belongs to `run`;
+/// evaluations recorded after it are dropped (they will be redone).
+fn resume(
+    paths: &Paths,
+    run: &RunConfig,
+    vars: &HashMap<String, candle_core::Var>,
+    opt: &mut AdamW,
+) -> Result<TrainState, LmError> {
+    let fresh = TrainState {
+        step: 0,
+        tokens_seen: 0,
+        flops_exact: 0.0,
+        data_position: 0,
+        loss_sum: 0.0,
+        loss_steps: 0,
+    };
+    if !paths.resume.state_path().is_file() {
+        let _ = std::fs::remove_file(&paths.evals);
+        return Ok(fresh);
+    }
+    let asked = serde_json::to_value(run).ok();
+    check_same_run(&paths.config, "a run", |old: serde_json::Value| {
+        asked == Some(old)
+    })?;
+    let state: TrainState = read_json(paths.resume.state_path())?;
+    let files = paths.resume.files(state.step);
+    let (weights, moments) = (files.join(MODEL_FILE), files.join(OPTIMIZER_FILE));
+    let saved = base_weights(&weights)?;
+    for (name, var) in vars {
+        let t = saved
+            .get(name)
+            .ok_or_else(|| LmError::invalid(&weights, format!("no tensor {name}")))?;
+        var.set(t).map_err(|e| LmError::invalid(&weights, e))?;
+    }
+    opt.load(&moments)
+        .map_err(|e| LmError::invalid(&moments, e))?;
+    if paths.evals.is_file() {
+        let text =
+            std::fs::read_to_string(&paths.evals).map_err(|e| LmError::io(&paths.evals, e))?;
+        let kept: String = text
+            .lines()
+            .filter(|l| serde_json::from_str::<EvalRecord>(l).is_ok_and(|r| r.step <= state.step))
+            .map(|l| format!("{l}\n"))
+            .collect();
+        write_atomic(&paths.evals, kept.as_bytes()).map_err(|e| LmError::io(&paths.evals, e))?;
+    }
+    Ok(state)
+}

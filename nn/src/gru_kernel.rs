@@ -1,0 +1,403 @@
+//! The GRU recurrence as one fused CPU op with a hand-written backward pass through time.
+//!
+//! Why: as candle ops, every time step was a dozen small graph nodes (narrow, matmul,
+//! sigmoid, mul…), and building and walking that graph made the evaluator's training step
+//! 0.25–0.3× PyTorch's. Here the input projection stays one candle matmul over all steps
+//! (`gi`) and this op runs the recurrence: one `(running, h) × (h, 3h)` gemm per step into
+//! preallocated buffers and the gates in one pass, as PyTorch's packed sequences do: each
+//! group's sequences are sorted longest first, so the ones still running are a prefix and
+//! padding costs nothing. Sequences are independent, so the batch is dealt into groups of a
+//! fixed size that the threads share; the weight gradient is one large gemm over every
+//! (sequence, step) in batch order, so no result depends on the thread count.
+//!
+//! Semantics (PyTorch's `nn.GRU` over a packed batch, gate order r, z, n): with
+//! gh = W_hh·h + b_hh, r = σ(gi_r + gh_r), z = σ(gi_z + gh_z), n = tanh(gi_n + r·gh_n),
+//! h' = (1 − z)·n + z·h, from h = 0. Sequence b runs over its first `lengths[b]` steps (last
+//! to first when `reverse`) and its output is zero past its length.
+
+use crate::cpu_f32::{contiguous_f32, F32Values};
+use crate::lm_kernels::{column_sums, SharedMut};
+use crate::matmul::gemm_with;
+use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
+use rayon::prelude::*;
+use std::sync::Mutex;
+
+/// Batch, steps and hidden width of a scan.
+#[derive(Debug, Clone, Copy)]
+struct Dims {
+    batch: usize,
+    steps: usize,
+    hidden: usize,
+}
+
+impl Dims {
+    fn of(gi: &Shape, w: &Shape, bias: &Shape) -> Result<Self> {
+        let (batch, steps, h3) = gi.dims3()?;
+        let hidden = h3 / 3;
+        if h3 % 3 != 0 || w.dims() != [h3, hidden] || bias.dims() != [h3] {
+            candle_core::bail!("gru scan: gate inputs {gi:?}, weight {w:?}, bias {bias:?}");
+        }
+        Ok(Self {
+            batch,
+            steps,
+            hidden,
+        })
+    }
+}
+
+/// Sequences scanned together on one thread, longest first (the running ones are a prefix).
+struct Group {
+    rows: Vec<usize>,
+    lengths: Vec<usize>,
+}
+
+impl Group {
+    /// Sequences still running at step `s`.
+    fn active(&self, s: usize) -> usize {
+        self.lengths.partition_point(|&l| l > s)
+    }
+}
+
+/// Sequences per group: enough rows for an efficient gemm, and few enough that a batch of 32
+/// keeps two threads busy. Fixed, so every product sees the same rows whatever the thread
+/// count (`gemm` may add in another order for another row count).
+const GROUP_ROWS: usize = 16;
+
+/// The batch dealt round-robin, longest first, into groups of at most [`GROUP_ROWS`].
+fn groups(lengths: &[usize]) -> Vec<Group> {
+    let n = lengths.len().div_ceil(GROUP_ROWS).max(1);
+    let mut order: Vec<usize> = (0..lengths.len()).collect();
+    order.sort_by_key(|&b| (std::cmp::Reverse(lengths[b]), b));
+    let mut groups: Vec<Group> = (0..n)
+        .map(|_| Group {
+            rows: Vec::new(),
+            lengths: Vec::new(),
+        })
+        .collect();
+    for (k, &b) in order.iter().enumerate() {
+        groups[k % n].rows.push(b);
+        groups[k % n].lengths.push(lengths[b]);
+    }
+    groups
+}
+
+/// Round-to-nearest shift for f32 (1.5 · 2²³).
+const MAGIC: f32 = 12_582_912.0;
+
+/// eˣ for x clamped to [−87, 87], in plain arithmetic so the gate loop vectorises (libm's
+/// `expf`/`tanhf` calls were a third of the forward scan): x = k·ln2 + r, |r| ≤ ln2/2, eʳ by
+/// Cephes' `expf` polynomial (≈ 1 ulp), 2ᵏ from k's bits.
+#[inline(always)]
+fn exp(x: f32) -> f32 {
+    let x = x.clamp(-87.0, 87.0);
+    let shifted = x * std::f32::consts::LOG2_E + MAGIC;
+    let k = shifted - MAGIC;
+    let r = (x - k * 0.693_359_4) + k * 2.121_944_4e-4;
+    let mut p = 1.987_569_1e-4;
+    for c in [
+        1.398_199_9e-3,
+        8.333_452e-3,
+        4.166_579_6e-2,
+        0.166_666_65,
+        0.5,
+    ] {
+        p = p * r + c;
+    }
+    let e = p * r * r + r + 1.0;
+    let bits = shifted.to_bits().wrapping_sub(MAGIC.to_bits());
+    e * f32::from_bits(bits.wrapping_add(127) << 23)
+}
+
+#[inline(always)]
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + exp(-x))
+}
+
+#[inline(always)]
+fn tanh(x: f32) -> f32 {
+    1.0 - 2.0 / (1.0 + exp(2.0 * x))
+}
+
+/// One step of one sequence: updates `h` in place from its gate inputs `x` and `gh`
+/// (both `3h`: r, z, n) and keeps r, z, n and gh_n in `saved` for the backward pass.
+fn gate_step(x: &[f32], gh: &[f32], h: &mut [f32], saved: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU supports the features the function was compiled for.
+        return unsafe { gate_step_avx2(x, gh, h, saved) };
+    }
+    gate_step_body(x, gh, h, saved);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn gate_step_avx2(x: &[f32], gh: &[f32], h: &mut [f32], saved: &mut [f32]) {
+    gate_step_body(x, gh, h, saved);
+}
+
+#[inline(always)]
+fn gate_step_body(x: &[f32], gh: &[f32], h: &mut [f32], saved: &mut [f32]) {
+    let hd = h.len();
+    assert!(x.len() == 3 * hd && gh.len() == 3 * hd && saved.len() == 4 * hd);
+    let (xr, xz, xn) = (&x[..hd], &x[hd..2 * hd], &x[2 * hd..]);
+    let (gr, gz, gn) = (&gh[..hd], &gh[hd..2 * hd], &gh[2 * hd..]);
+    let (sr, rest) = saved.split_at_mut(hd);
+    let (sz, rest) = rest.split_at_mut(hd);
+    let (sn, sg) = rest.split_at_mut(hd);
+    for j in 0..hd {
+        let r = sigmoid(xr[j] + gr[j]);
+        let z = sigmoid(xz[j] + gz[j]);
+        let n = tanh(xn[j] + r * gn[j]);
+        h[j] = n + z * (h[j] - n);
+        (sr[j], sz[j], sn[j], sg[j]) = (r, z, n, gn[j]);
+    }
+}
+
+/// The backward of [`gate_step`]: from the state's gradient `dh` (replaced by the part that
+/// flows directly to the previous state, z·dh) and the previous state `prev`, the gradients
+/// of the gate inputs (`dgi`) and of gh (`dgh`).
+fn gate_step_backward(
+    saved: &[f32],
+    prev: &[f32],
+    dh: &mut [f32],
+    dgi: &mut [f32],
+    dgh: &mut [f32],
+) {
+    let hd = dh.len();
+    assert!(
+        saved.len() == 4 * hd && prev.len() == hd && dgi.len() == 3 * hd && dgh.len() == 3 * hd
+    );
+    let (r, z, n, gn) = (
+        &saved[..hd],
+        &saved[hd..2 * hd],
+        &saved[2 * hd..3 * hd],
+        &saved[3 * hd..],
+    );
+    for j in 0..hd {
+        let g = dh[j];
+        let dn = g * (1.0 - z[j]) * (1.0 - n[j] * n[j]);
+        let dz = g * (prev[j] - n[j]) * z[j] * (1.0 - z[j]);
+        let dr = dn * gn[j] * r[j] * (1.0 - r[j]);
+        (dgi[j], dgi[hd + j], dgi[2 * hd + j]) = (dr, dz, dn);
+        (dgh[j], dgh[hd + j], dgh[2 * hd + j]) = (dr, dz, dn * r[j]);
+        dh[j] = g * z[j];
+    }
+}
+
+/// The fused scan of one GRU direction (see the module docs). Keeps the gates of its forward
+/// pass for the backward.
+struct GruScan {
+    lengths: Vec<usize>,
+    reverse: bool,
+    saved: Mutex<Option<Vec<f32>>>,
+}
+
+impl GruScan {
+    /// Index of sequence `row`'s `s`-th step in `(batch, steps)` order.
+    fn cell(&self, d: Dims, row: usize, len: usize, s: usize) -> usize {
+        row * d.steps + if self.reverse { len - 1 - s } else { s }
+    }
+
+    /// States `(batch, steps, h)` and saved gates `(batch, steps, 4h)`.
+    fn forward(&self, gi: &[f32], w: &[f32], bias: &[f32], d: Dims) -> (Vec<f32>, Vec<f32>) {
+        let (hd, h3) = (d.hidden, 3 * d.hidden);
+        let mut out = vec![0f32; d.batch * d.steps * hd];
+        let mut gates = vec![0f32; d.batch * d.steps * 4 * hd];
+        let (out_ptr, gates_ptr) = (SharedMut(out.as_mut_ptr()), SharedMut(gates.as_mut_ptr()));
+        groups(&self.lengths).par_iter().for_each(|g| {
+            let mut h = vec![0f32; g.rows.len() * hd];
+            let mut gh = vec![0f32; g.rows.len() * h3];
+            for s in 0..g.lengths[0] {
+                let a = g.active(s);
+                gh[..a * h3]
+                    .chunks_exact_mut(h3)
+                    .for_each(|row| row.copy_from_slice(bias));
+                gemm_with(
+                    &mut gh[..a * h3],
+                    (&h[..a * hd], false),
+                    (w, true),
+                    (a, h3, hd),
+                    (true, 1.0, false),
+                );
+                for i in 0..a {
+                    let at = self.cell(d, g.rows[i], g.lengths[i], s);
+                    // SAFETY: each (sequence, step) cell belongs to one group and one step.
+                    let (state, saved) = unsafe {
+                        (
+                            out_ptr.slice(at * hd, hd),
+                            gates_ptr.slice(at * 4 * hd, 4 * hd),
+                        )
+                    };
+                    let hi = &mut h[i * hd..][..hd];
+                    gate_step(&gi[at * h3..][..h3], &gh[i * h3..][..h3], hi, saved);
+                    state.copy_from_slice(hi);
+                }
+            }
+        });
+        (out, gates)
+    }
+
+    /// Gradients of the gate inputs `(batch, steps, 3h)`, the recurrent weight `(3h, h)` and
+    /// its bias `(3h)` from the states' gradient `dout`.
+    fn backward(
+        &self,
+        w: &[f32],
+        states: &[f32],
+        gates: &[f32],
+        dout: &[f32],
+        d: Dims,
+    ) -> [Vec<f32>; 3] {
+        let (hd, h3) = (d.hidden, 3 * d.hidden);
+        let mut dgi = vec![0f32; d.batch * d.steps * h3];
+        // gh's gradient and the previous state of every real cell, packed in batch then step
+        // order (sequence b's cells from `first[b]`) for the one weight-gradient product.
+        let first: Vec<usize> = self
+            .lengths
+            .iter()
+            .scan(0, |acc, &l| {
+                let at = *acc;
+                *acc += l;
+                Some(at)
+            })
+            .collect();
+        let cells: usize = self.lengths.iter().sum();
+        let mut dgh = vec![0f32; cells * h3];
+        let mut prev = vec![0f32; cells * hd];
+        let ptrs = (
+            SharedMut(dgi.as_mut_ptr()),
+            SharedMut(dgh.as_mut_ptr()),
+            SharedMut(prev.as_mut_ptr()),
+        );
+        let zero = vec![0f32; hd];
+        groups(&self.lengths).par_iter().for_each(|g| {
+            let mut dh = vec![0f32; g.rows.len() * hd];
+            let mut dgh_step = vec![0f32; g.rows.len() * h3];
+            for s in (0..g.lengths[0]).rev() {
+                let a = g.active(s);
+                for i in 0..a {
+                    let (row, len) = (g.rows[i], g.lengths[i]);
+                    let at = self.cell(d, row, len, s);
+                    let packed = first[row] + at - row * d.steps;
+                    let hp = match s {
+                        0 => &zero[..],
+                        _ => &states[self.cell(d, row, len, s - 1) * hd..][..hd],
+                    };
+                    let dhi = &mut dh[i * hd..][..hd];
+                    dhi.iter_mut()
+                        .zip(&dout[at * hd..][..hd])
+                        .for_each(|(a, b)| *a += b);
+                    let dghi = &mut dgh_step[i * h3..][..h3];
+                    // SAFETY: each (sequence, step) cell, packed or not, belongs to one group
+                    // and one step.
+                    let (dgi_cell, dgh_cell, prev_cell) = unsafe {
+                        (
+                            ptrs.0.slice(at * h3, h3),
+                            ptrs.1.slice(packed * h3, h3),
+                            ptrs.2.slice(packed * hd, hd),
+                        )
+                    };
+                    gate_step_backward(&gates[at * 4 * hd..][..4 * hd], hp, dhi, dgi_cell, dghi);
+                    dgh_cell.copy_from_slice(dghi);
+                    prev_cell.copy_from_slice(hp);
+                }
+                if s > 0 {
+                    gemm_with(
+                        &mut dh[..a * hd],
+                        (&dgh_step[..a * h3], false),
+                        (w, false),
+                        (a, hd, h3),
+                        (true, 1.0, false),
+                    );
+                }
+            }
+        });
+        let mut dw = vec![0f32; h3 * hd];
+        gemm_with(
+            &mut dw,
+            (&dgh, true),
+            (&prev, false),
+            (h3, hd, cells),
+            (false, 1.0, true),
+        );
+        let db = column_sums(&dgh, h3);
+        [dgi, dw, db]
+    }
+}
+
+impl CustomOp3 for GruScan {
+    fn name(&self) -> &'static str {
+        "gru-scan"
+    }
+
+    fn cpu_fwd(
+        &self,
+        gs: &CpuStorage,
+        gl: &Layout,
+        ws: &CpuStorage,
+        wl: &Layout,
+        bs: &CpuStorage,
+        bl: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
+        let d = Dims::of(gl.shape(), wl.shape(), bl.shape())?;
+        let gi = contiguous_f32(gs, gl, "gate inputs")?;
+        let w = contiguous_f32(ws, wl, "recurrent weight")?;
+        let bias = contiguous_f32(bs, bl, "recurrent bias")?;
+        let (out, gates) = self.forward(gi, w, bias, d);
+        *self.saved.lock().expect("gru scan lock") = Some(gates);
+        Ok((
+            CpuStorage::F32(out),
+            Shape::from((d.batch, d.steps, d.hidden)),
+        ))
+    }
+
+    fn bwd(
+        &self,
+        gi: &Tensor,
+        w: &Tensor,
+        bias: &Tensor,
+        res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+        let d = Dims::of(gi.shape(), w.shape(), bias.shape())?;
+        let saved = self.saved.lock().expect("gru scan lock");
+        let gates = saved
+            .as_ref()
+            .ok_or_else(|| candle_core::Error::Msg("gru scan: backward before forward".into()))?;
+        let (wv, states, dout) = (F32Values::of(w)?, F32Values::of(res)?, F32Values::of(grad)?);
+        let [dgi, dw, db] = self.backward(&wv, &states, gates, &dout, d);
+        let device = gi.device();
+        Ok((
+            Some(Tensor::from_vec(dgi, gi.shape(), device)?),
+            Some(Tensor::from_vec(dw, w.shape(), device)?),
+            Some(Tensor::from_vec(db, bias.shape(), device)?),
+        ))
+    }
+}
+
+/// The states `(batch, steps, h)` of one GRU direction from its gate inputs
+/// `gi = x·W_ihᵀ + b_ih` `(batch, steps, 3h)`, recurrent weight `w_hh` `(3h, h)` and bias
+/// `b_hh` `(3h)`; sequence b runs over its first `lengths[b]` steps (backwards when
+/// `reverse`), zero past them. f32 CPU tensors take the fused op, anything else
+/// [`crate::gru::scan_reference`].
+pub fn gru_scan(
+    gi: &Tensor,
+    w_hh: &Tensor,
+    b_hh: &Tensor,
+    lengths: &[usize],
+    reverse: bool,
+) -> Result<Tensor> {
+    let (batch, steps, _) = gi.dims3()?;
+    if lengths.len() != batch || lengths.iter().any(|&l| l == 0 || l > steps) {
+        candle_core::bail!("gru scan: lengths {lengths:?} for {batch} sequences of {steps} steps");
+    }
+    if !(gi.device().is_cpu() && gi.dtype() == DType::F32) {
+        return crate::gru::scan_reference(gi, w_hh, b_hh, lengths, reverse);
+    }
+    let op = GruScan {
+        lengths: lengths.to_vec(),
+        reverse,
+        saved: Mutex::new(None),
+    };
+    gi.contiguous()?
+        .apply_op3(&w_hh.contiguous()?, &b_hh.contiguous()?, op)
+}

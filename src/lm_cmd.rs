@@ -1,0 +1,671 @@
+//! `motionscale model info|presets`, `motionscale train` and `motionscale generate`: the
+//! text-prefix autoregressive motion transformer.
+
+use anyhow::{bail, Context, Result};
+use ingest::corpus::split::SplitAssignment;
+use ingest::npy;
+use lm::accounting::{Accounting, SequenceShape};
+use lm::generate::Sampling;
+use lm::lm_data::{Limits, LmData};
+use lm::prefix_lm::{PrefixLmConfig, PRESETS};
+use lm::train::{ModelShape, RunConfig, TrainConfig, TrainEvent};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use text::{BertEncoder, FallbackEncoder, TextEncoder};
+
+/// A model shape on the command line: `--preset P` or `--width W --layers L --heads H`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ShapeArgs {
+    /// A named preset (ScaMo's 44M, 111M, 343M, 775M, 1.4B, 3B, or a cpu-… ladder size).
+    #[arg(long, conflicts_with_all = ["width", "layers", "heads"])]
+    pub preset: Option<String>,
+    /// Model width d.
+    #[arg(long, requires_all = ["layers", "heads"])]
+    pub width: Option<usize>,
+    /// Blocks.
+    #[arg(long)]
+    pub layers: Option<usize>,
+    /// Attention heads.
+    #[arg(long)]
+    pub heads: Option<usize>,
+    /// SwiGLU width (default round(8d/3)).
+    #[arg(long)]
+    pub ffn: Option<usize>,
+    /// Train a LoRA adapter on this trained run (its weights frozen) instead of a new model.
+    #[arg(long, conflicts_with_all = ["preset", "width"])]
+    pub base: Option<PathBuf>,
+    /// LoRA rank r.
+    #[arg(long, default_value_t = 8, requires = "base")]
+    pub lora_rank: usize,
+    /// LoRA α (the update is scaled by α/r).
+    #[arg(long, default_value_t = 16.0, requires = "base")]
+    pub lora_alpha: f64,
+    /// Expert name of the adapter (its key prefix in adapter.safetensors).
+    #[arg(long, default_value = "expert0", requires = "base")]
+    pub expert: String,
+    /// Start from this adapter file's expert (e.g. the previous scenario's
+    /// adapter.safetensors: sequential LoRA) instead of a new adapter.
+    #[arg(long, requires = "base")]
+    pub lora_init: Option<PathBuf>,
+    /// Keep the adapter's `lora_A` subspaces orthogonal to these adapter files' (O-LoRA).
+    #[arg(long, value_delimiter = ',', requires = "base")]
+    pub lora_orthogonal_to: Vec<PathBuf>,
+    /// Weight λ of the O-LoRA orthogonality loss.
+    #[arg(long, default_value_t = 0.5, requires = "lora_orthogonal_to")]
+    pub lora_orthogonality: f64,
+    /// Distil towards this trained run's outputs on the new data (LwF).
+    #[arg(long, requires = "base")]
+    pub distill_from: Option<PathBuf>,
+    /// Weight of the distillation loss (temperature 2).
+    #[arg(long, default_value_t = 1.0, requires = "distill_from")]
+    pub distillation: f64,
+}
+
+impl ShapeArgs {
+    fn shape(&self) -> Result<ModelShape> {
+        if let Some(base) = &self.base {
+            return Ok(ModelShape::Lora {
+                base: base.clone(),
+                lora: lm::lora::LoraConfig {
+                    rank: self.lora_rank,
+                    alpha: self.lora_alpha,
+                },
+                expert: self.expert.clone(),
+                init: self.lora_init.clone(),
+                orthogonal_to: self.lora_orthogonal_to.clone(),
+                orthogonality: if self.lora_orthogonal_to.is_empty() {
+                    0.0
+                } else {
+                    self.lora_orthogonality
+                },
+                distill_from: self.distill_from.clone(),
+                distillation: if self.distill_from.is_some() {
+                    self.distillation
+                } else {
+                    0.0
+                },
+            });
+        }
+        match (&self.preset, self.width, self.layers, self.heads) {
+            (Some(p), ..) => Ok(ModelShape::Preset(p.clone())),
+            (None, Some(d_model), Some(n_layers), Some(n_heads)) => Ok(ModelShape::Custom {
+                d_model,
+                n_layers,
+                n_heads,
+                ffn_hidden: self.ffn,
+            }),
+            _ => bail!("give --preset P, --width W --layers L --heads H, or --base RUN"),
+        }
+    }
+}
+
+/// Arguments of `motionscale model info`.
+#[derive(clap::Args, Debug)]
+pub struct InfoArgs {
+    /// Model shape.
+    #[command(flatten)]
+    pub shape: ShapeArgs,
+    /// Motion codebook size K (the vocabulary adds BOS, EOS and PAD).
+    #[arg(long)]
+    pub vocab: usize,
+    /// Width of the frozen text embeddings (MiniLM: 384).
+    #[arg(long, default_value_t = 384)]
+    pub text_dim: usize,
+    /// Prefix positions of the exact FLOP count.
+    #[arg(long, default_value_t = SequenceShape::BENCH.prefix)]
+    pub prefix_len: usize,
+    /// Motion positions of the exact FLOP count.
+    #[arg(long, default_value_t = SequenceShape::BENCH.motion)]
+    pub motion_len: usize,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Arguments of `motionscale model logits`.
+#[derive(clap::Args, Debug)]
+pub struct LogitsArgs {
+    /// Trained run folder (`motionscale train --out`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Split of the run's token set whose first clips are scored (first caption each).
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Clips to score.
+    #[arg(long, default_value_t = 4)]
+    pub clips: usize,
+    /// Output folder: clips.jsonl (motion id, prefix length, motion inputs) and
+    /// clip-<k>-text.npy / clip-<k>-logits.npy, for checking the model in another framework.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// `motionscale model logits`: the logits of a trained model on a few clips of its token set,
+/// with the exact inputs that produced them (`scripts/torch-check-lm.py` reads them).
+pub fn logits(args: LogitsArgs) -> Result<ExitCode> {
+    let (model, run) = lm::train::load_model(&args.model)?;
+    let limits = Limits {
+        text_tokens: run.train.max_text_tokens,
+        motion_tokens: run.train.max_motion_tokens,
+    };
+    let data = LmData::load(
+        &run.train.tokens,
+        &run.corpus,
+        Some(&run.text_encoder),
+        limits,
+        &SplitAssignment::default(),
+    )?;
+    let items = data.eval_items(&args.split);
+    if items.is_empty() {
+        bail!(
+            "{}: no clip in split {:?}",
+            run.train.tokens.display(),
+            args.split
+        );
+    }
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let (e, v) = (model.config().text_dim, model.config().vocab_size());
+    let mut lines = String::new();
+    for (k, item) in items.iter().take(args.clips).enumerate() {
+        let batch = data.batch(model.config(), std::slice::from_ref(item));
+        let logits = model.forward(&batch)?.flatten_all()?.to_vec1::<f32>()?;
+        let text = data.text_of(item);
+        for (name, shape, values) in [
+            ("text", [text.len() / e, e], text),
+            ("logits", [batch.inputs.len(), v], logits.as_slice()),
+        ] {
+            let path = args.out.join(format!("clip-{k}-{name}.npy"));
+            npy::write_f32(&path, &shape, values)
+                .with_context(|| format!("writing {}", path.display()))?;
+        }
+        let line = serde_json::json!({
+            "motion_id": item.0.motion_id,
+            "prefix_len": text.len() / e,
+            "inputs": batch.inputs,
+        });
+        lines.push_str(&format!("{line}\n"));
+    }
+    let path = args.out.join("clips.jsonl");
+    motionscale_core::write_atomic(&path, lines.as_bytes())
+        .with_context(|| format!("writing {}", path.display()))?;
+    println!(
+        "logits of {} clip(s) of split {} → {}",
+        items.len().min(args.clips),
+        args.split,
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale model presets`.
+#[derive(clap::Args, Debug)]
+pub struct PresetsArgs {
+    /// Motion codebook size K.
+    #[arg(long, default_value_t = 1024)]
+    pub vocab: usize,
+    /// Width of the frozen text embeddings.
+    #[arg(long, default_value_t = 384)]
+    pub text_dim: usize,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn millions(n: u64) -> String {
+    format!("{:.2}M", n as f64 / 1e6)
+}
+
+/// `motionscale model info`.
+pub fn info(args: InfoArgs) -> Result<ExitCode> {
+    let config = args.shape.shape()?.resolve(args.vocab, args.text_dim)?;
+    let seq = SequenceShape {
+        prefix: args.prefix_len,
+        motion: args.motion_len,
+    };
+    let acc = Accounting::of(&config, seq);
+    if args.json {
+        let value = serde_json::json!({"config": config, "accounting": acc});
+        println!("{}", serde_json::to_string_pretty(&value)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let p = acc.params;
+    println!(
+        "d {} · {} layers · {} heads (head width {}) · SwiGLU {} · vocabulary {} = {} codes + BOS/EOS/PAD · text {}",
+        config.d_model,
+        config.n_layers,
+        config.n_heads,
+        config.head_dim(),
+        config.ffn_hidden,
+        config.vocab_size(),
+        config.codebook_size,
+        config.text_dim
+    );
+    println!(
+        "N_nv {} (blocks {}, text projection {}, final norm {})",
+        millions(p.n_nv),
+        millions(p.blocks),
+        millions(p.text_projection),
+        p.final_norm
+    );
+    println!(
+        "N_v  {} = embedding {} + head {} (untied: both counted)",
+        millions(p.n_v),
+        millions(p.embedding),
+        millions(p.head)
+    );
+    println!("N    {} ({} parameters)", millions(p.total), p.total);
+    println!(
+        "FLOPs per motion token: 6N {:.4e}; exact {:.4e} (training, {} prefix + {} motion positions, attention {:.1}% of forward)",
+        acc.flops_6n_per_token,
+        acc.flops_exact_per_token,
+        seq.prefix,
+        seq.motion,
+        100.0 * acc.forward_per_sequence.attention / acc.forward_per_sequence.total
+    );
+    println!("budget C = 6·N·D = {:.4e}·D", acc.flops_6n_per_token);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `motionscale model presets`.
+pub fn presets(args: PresetsArgs) -> Result<ExitCode> {
+    let rows: Vec<(String, Option<f64>, PrefixLmConfig, Accounting)> = PRESETS
+        .iter()
+        .map(|p| {
+            let c = PrefixLmConfig::preset(p.name, args.vocab, args.text_dim).expect("preset");
+            let acc = Accounting::of(&c, SequenceShape::BENCH);
+            (p.name.to_string(), p.nominal_params, c, acc)
+        })
+        .collect();
+    if args.json {
+        let value: Vec<_> = rows
+            .iter()
+            .map(|(name, nominal, c, acc)| {
+                serde_json::json!({"preset": name, "nominal_params": nominal, "config": c, "accounting": acc})
+            })
+            .collect();
+        println!("{}", serde_json::to_string_pretty(&value)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "{:<9} {:>6} {:>6} {:>5} {:>6} {:>10} {:>10} {:>10} {:>9}  (K = {}, E = {})",
+        "preset",
+        "layers",
+        "heads",
+        "d",
+        "ffn",
+        "N_nv",
+        "N_v",
+        "N",
+        "nominal",
+        args.vocab,
+        args.text_dim
+    );
+    for (name, nominal, c, acc) in &rows {
+        let p = acc.params;
+        println!(
+            "{:<9} {:>6} {:>6} {:>5} {:>6} {:>10} {:>10} {:>10} {:>9}",
+            name,
+            c.n_layers,
+            c.n_heads,
+            c.d_model,
+            c.ffn_hidden,
+            millions(p.n_nv),
+            millions(p.n_v),
+            millions(p.total),
+            nominal.map_or("-".into(), |n| format!("{:.0}M", n / 1e6))
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale train`.
+#[derive(clap::Args, Debug)]
+pub struct TrainArgs {
+    /// Token set folder (`motionscale tokenize`).
+    #[arg(long)]
+    pub tokens: PathBuf,
+    /// Corpus folder with caption embeddings (default: the token set's corpus).
+    #[arg(long)]
+    pub corpus: Option<PathBuf>,
+    /// Text encoder id of the caption embeddings (default: the corpus's only one).
+    #[arg(long)]
+    pub text_emb: Option<String>,
+    /// Folder of `{train,val,test}.txt` clip lists (e.g. a scenario dataset from
+    /// `motionscale scenarios`) replacing the token set's splits.
+    #[arg(long)]
+    pub splits: Option<PathBuf>,
+    /// Model shape.
+    #[command(flatten)]
+    pub shape: ShapeArgs,
+    /// Expected codebook size (checked against the token set).
+    #[arg(long)]
+    pub vocab: Option<usize>,
+    /// Token budget D: motion tokens to train on.
+    #[arg(long)]
+    pub tokens_budget: u64,
+    /// Output folder (a re-run of the same command resumes from its checkpoint).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Clips per batch.
+    #[arg(long, default_value_t = 32)]
+    pub batch: usize,
+    /// Peak learning rate.
+    #[arg(long, default_value_t = 1e-3)]
+    pub lr: f64,
+    /// Final learning rate as a fraction of the peak.
+    #[arg(long, default_value_t = 0.1)]
+    pub final_lr_ratio: f64,
+    /// Warm-up as a fraction of all steps.
+    #[arg(long, default_value_t = 0.05)]
+    pub warmup: f64,
+    /// AdamW weight decay.
+    #[arg(long, default_value_t = 0.1)]
+    pub weight_decay: f64,
+    /// Global gradient-norm clip.
+    #[arg(long, default_value_t = 1.0)]
+    pub grad_clip: f64,
+    /// Seed of the initial weights and the batch order.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Text tokens kept per caption.
+    #[arg(long, default_value_t = 64)]
+    pub max_text_tokens: usize,
+    /// Motion tokens kept per clip.
+    #[arg(long, default_value_t = 64)]
+    pub max_motion_tokens: usize,
+    /// Evaluate every N steps (default: 10 times per run).
+    #[arg(long)]
+    pub eval_every: Option<u64>,
+    /// Checkpoint every N steps (default: 10 times per run).
+    #[arg(long)]
+    pub checkpoint_every: Option<u64>,
+    /// Stop after this many steps of the schedule (checkpointed; re-run to continue).
+    #[arg(long)]
+    pub stop_after: Option<u64>,
+    /// Print the final report as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `motionscale train`.
+pub fn train(args: TrainArgs) -> Result<ExitCode> {
+    crate::memory::keep_freed_memory();
+    let mut config = TrainConfig::new(
+        &args.tokens,
+        args.shape.shape()?,
+        args.tokens_budget,
+        &args.out,
+    );
+    config.corpus = args.corpus.clone();
+    config.text_encoder = args.text_emb.clone();
+    config.splits = args.splits.clone();
+    config.batch_size = args.batch;
+    config.lr = args.lr;
+    config.final_lr_ratio = args.final_lr_ratio;
+    config.warmup_fraction = args.warmup;
+    config.weight_decay = args.weight_decay;
+    config.grad_clip = args.grad_clip;
+    config.seed = args.seed;
+    config.max_text_tokens = args.max_text_tokens;
+    config.max_motion_tokens = args.max_motion_tokens;
+    config.stop_after = args.stop_after;
+    config.eval_every = args.eval_every;
+    config.checkpoint_every = args.checkpoint_every;
+    let bar = crate::commands::progress_bar("train", "steps");
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{spinner} train [{bar:30}] {pos}/{len} steps {msg} eta {eta}",
+        )?
+        .progress_chars("=> "),
+    );
+    let mut tokens_per_s = 0.0;
+    let report = lm::train::train(&config, &mut |event| match event {
+        TrainEvent::Started { from, total, run } => {
+            bar.set_length(*total);
+            bar.set_position(*from);
+            check_vocab(args.vocab, run);
+            let p = run.accounting.params;
+            bar.println(format!(
+                    "model d {} × {} layers, N_nv {} N_v {} (untied), vocabulary {}, text {}; {} steps{}",
+                    run.model.d_model,
+                    run.model.n_layers,
+                    p.n_nv,
+                    p.n_v,
+                    run.model.vocab_size(),
+                    run.text_encoder,
+                    total,
+                    if *from > 0 { format!(", resuming at step {from}") } else { String::new() }
+                ));
+        }
+        TrainEvent::Step {
+            step,
+            loss,
+            lr,
+            tokens_per_s: tps,
+            ..
+        } => {
+            tokens_per_s = if tokens_per_s == 0.0 {
+                *tps
+            } else {
+                0.9 * tokens_per_s + 0.1 * tps
+            };
+            bar.set_position(*step);
+            bar.set_message(format!(
+                "loss {loss:.4} lr {lr:.2e} {tokens_per_s:.0} tok/s"
+            ));
+        }
+        TrainEvent::Eval(e) => bar.println(format!(
+            "step {}: train {:.4}, test CE {:.4}, L_u {:.4} (unigram CE {:.4}), D {}, C {:.3e}",
+            e.step,
+            e.train_loss,
+            e.test.cross_entropy,
+            e.test.normalized_loss,
+            e.test.unigram_cross_entropy,
+            e.tokens_seen,
+            e.flops_6n
+        )),
+    });
+    bar.finish_and_clear();
+    let report = report?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        let e = &report.eval;
+        println!(
+            "{} steps of {}: test CE {:.4} nats (unigram CE {:.4}, entropy {:.4}), L_u {:.4}; D {} tokens, C {:.3e} FLOPs (exact {:.3e}) → {}",
+            report.steps,
+            report.total_steps,
+            e.test.cross_entropy,
+            e.test.unigram_cross_entropy,
+            e.test.unigram_entropy,
+            e.test.normalized_loss,
+            e.tokens_seen,
+            e.flops_6n,
+            e.flops_exact,
+            report.out.display()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn check_vocab(expected: Option<usize>, run: &RunConfig) {
+    if let Some(v) = expected {
+        let t = &run.tokenizer;
+        if v != t.codebook_size && v != t.nominal_codebook {
+            eprintln!(
+                "warning: --vocab {v} but the token set has {} codes (nominal {})",
+                t.codebook_size, t.nominal_codebook
+            );
+        }
+    }
+}
+
+/// Arguments of `motionscale generate`.
+#[derive(clap::Args, Debug)]
+pub struct GenerateArgs {
+    /// Trained model folder (`motionscale train --out`).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Tokenizer checkpoint folder (default: the one that made the model's token set).
+    #[arg(long)]
+    pub tokenizer: Option<PathBuf>,
+    /// The text to animate.
+    #[arg(
+        long,
+        required_unless_present = "captions_from",
+        conflicts_with = "captions_from"
+    )]
+    pub text: Option<String>,
+    /// Batch mode: animate one caption of every clip of `--split` in this corpus, into a
+    /// HumanML3D-layout folder `--out` that `motionscale eval --motions` reads.
+    #[arg(long)]
+    pub captions_from: Option<PathBuf>,
+    /// Batch mode: the corpus split whose captions to animate.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Batch mode: take the split's clips from `DIR/<split>.txt` (e.g. a scenario dataset)
+    /// instead of the corpus's own split.
+    #[arg(long)]
+    pub splits: Option<PathBuf>,
+    /// Batch mode: texts (drawn by the seed) that get `--mm-samples` samples each, for
+    /// multimodality.
+    #[arg(long, default_value_t = 100)]
+    pub mm_texts: usize,
+    /// Batch mode: samples for each multimodality text.
+    #[arg(long, default_value_t = 10)]
+    pub mm_samples: usize,
+    /// Batch mode: sequences generated together.
+    #[arg(long, default_value_t = 32)]
+    pub batch: usize,
+    /// Output: with --text a file, .json (tokens), .npy (n × 263 HumanML3D features,
+    /// de-normalised) or .bvh (SMPL-22 hierarchy, 20 fps, centimetres: Blender's import
+    /// scale 0.01 gives metres); with --captions-from a folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// BERT-family text encoder folder (default: the one the model was trained with).
+    #[arg(long)]
+    pub encoder: Option<PathBuf>,
+    /// Softmax temperature (0: greedy).
+    #[arg(long, default_value_t = 1.0)]
+    pub temperature: f64,
+    /// Sample among the k most likely tokens (0: all).
+    #[arg(long, default_value_t = 50)]
+    pub top_k: usize,
+    /// Nucleus sampling threshold.
+    #[arg(long)]
+    pub top_p: Option<f64>,
+    /// Sampling seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Most motion tokens.
+    #[arg(long, default_value_t = 64)]
+    pub max_tokens: usize,
+    /// Fewest motion tokens: EOS cannot end a sequence before this many (a motion needs one).
+    #[arg(long, default_value_t = 1)]
+    pub min_tokens: usize,
+    /// Recompute the whole sequence every step instead of using the key/value cache.
+    #[arg(long)]
+    pub no_cache: bool,
+}
+
+/// The text encoder a run was trained with: `--encoder`, the fetched MiniLM, or the
+/// fallback table saved in the corpus; its id must match the run's.
+pub fn load_text_encoder(run: &RunConfig, dir: Option<&Path>) -> Result<Box<dyn TextEncoder>> {
+    let fallback_dir = run
+        .corpus
+        .join("text")
+        .join(&run.text_encoder)
+        .join("encoder");
+    let encoder: Box<dyn TextEncoder> = match dir {
+        Some(d) => Box::new(BertEncoder::load(d)?),
+        None if fallback_dir.is_dir() => Box::new(FallbackEncoder::load(&fallback_dir)?),
+        None => Box::new(BertEncoder::load(&text::default_encoder_dir())?),
+    };
+    if encoder.id() != run.text_encoder {
+        bail!(
+            "text encoder {} differs from the model's {} (pass --encoder DIR)",
+            encoder.id(),
+            run.text_encoder
+        );
+    }
+    Ok(encoder)
+}
+
+/// Decode `tokens` with the run's tokenizer and write HumanML3D features (.npy) or a BVH
+/// of the recovered joints.
+fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path) -> Result<()> {
+    let features = lm::train::run_tokenizer(run, dir)?.detokenize(tokens)?;
+    crate::tokenizer_cmd::write_motion(out, &features, false)
+}
+
+/// `motionscale generate`.
+pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
+    crate::memory::keep_freed_memory();
+    let (model, run) = lm::train::load_lm(&args.model)?;
+    let encoder = load_text_encoder(&run, args.encoder.as_deref())?;
+    let sampling = Sampling {
+        temperature: args.temperature,
+        top_k: (args.top_k > 0).then_some(args.top_k),
+        top_p: args.top_p,
+        seed: args.seed,
+        max_tokens: args.max_tokens,
+        allow_eos: true,
+        min_tokens: args.min_tokens,
+        kv_cache: !args.no_cache,
+    };
+    let Some(caption) = args.text.as_deref() else {
+        let options = lm::caption_set::CaptionSetOptions {
+            corpus: args.captions_from.clone().expect("batch mode"),
+            split: args.split.clone(),
+            splits: args.splits.clone(),
+            mm_texts: args.mm_texts,
+            mm_samples: args.mm_samples,
+            batch: args.batch,
+            sampling,
+        };
+        let tokenizer = lm::train::run_tokenizer(&run, args.tokenizer.as_deref())?;
+        return crate::generate_batch::generate_batch(
+            &options,
+            model.as_ref(),
+            &run,
+            &tokenizer,
+            encoder.as_ref(),
+            &args.out,
+        );
+    };
+    let text = encoder.encode(&[caption])?.remove(0);
+    let rows = text.len().min(run.train.max_text_tokens);
+    let prefix = &text.embeddings[..rows * text.dim];
+    let started = std::time::Instant::now();
+    let caption_model = model.for_caption(prefix)?;
+    let tokens = lm::generate::generate(&caption_model, &[prefix], &sampling)?.remove(0);
+    let seconds = started.elapsed().as_secs_f64();
+    let ext = args.out.extension().and_then(|e| e.to_str()).unwrap_or("");
+    match ext {
+        "json" => {
+            let value = serde_json::json!({
+                "text": caption,
+                "tokens": tokens,
+                "model": args.model,
+                "text_encoder": run.text_encoder,
+                "tokenizer": run.tokenizer,
+                "sampling": sampling,
+            });
+            motionscale_core::write_atomic(
+                &args.out,
+                serde_json::to_string_pretty(&value)?.as_bytes(),
+            )?;
+        }
+        "npy" | "bvh" => write_motion(&tokens, &run, args.tokenizer.as_deref(), &args.out)?,
+        _ => bail!("--out must end in .json, .npy or .bvh"),
+    }
+    println!(
+        "{} motion tokens in {:.2} s ({:.0} tokens/s) → {}",
+        tokens.len(),
+        seconds,
+        tokens.len() as f64 / seconds,
+        args.out.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
