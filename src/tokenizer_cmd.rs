@@ -296,24 +296,6 @@ pub struct DecodeArgs {
     pub joints: bool,
 }
 
-/// Write decoded features to `out` as features/joints `.npy` or BVH (by extension).
-pub fn write_motion(out: &Path, features: &[f32], joints: bool) -> Result<()> {
-    let frames = features.len() / ingest::hml263::FEATURE_DIM;
-    match out.extension().and_then(|e| e.to_str()) {
-        Some("bvh") => {
-            let poses = ingest::hml263::recover_joints(features);
-            ingest::export::bvh::write_bvh_file(out, &poses, 20.0)
-        }
-        Some("npy") if joints => {
-            let flat = ingest::hml263::recover_joints_f32(features);
-            ingest::npy::write_f32(out, &[frames, 22, 3], &flat)
-        }
-        Some("npy") => ingest::npy::write_f32(out, &[frames, 263], features),
-        _ => bail!("{}: the output must end in .npy or .bvh", out.display()),
-    }
-    .with_context(|| format!("writing {}", out.display()))
-}
-
 /// `motionscale tokenizer decode`: token ids → features, joints or BVH.
 pub fn decode_cmd(args: DecodeArgs) -> Result<ExitCode> {
     let tokenizer = MotionTokenizer::load(&args.tokenizer, &Device::Cpu)?;
@@ -353,7 +335,8 @@ pub fn decode_cmd(args: DecodeArgs) -> Result<ExitCode> {
         } else {
             args.out.clone()
         };
-        write_motion(&out, &features, args.joints)?;
+        ingest::export::motion::write_motion(&out, &features, args.joints)
+            .with_context(|| format!("writing {}", out.display()))?;
         if let Some(corpus) = &corpus {
             let index = corpus
                 .find(id)

@@ -500,9 +500,9 @@ pub fn run_continual(
             let mut train_config =
                 TrainConfig::new(&config.tokens, shape, config.tokens_budget, &train_dir);
             train_config.splits = Some(lists_dir.clone());
-            train_config.batch_size = config.batch_size;
-            train_config.lr = config.lr;
-            train_config.seed = config.seed;
+            train_config.hyper.batch_size = config.batch_size;
+            train_config.hyper.lr = config.lr;
+            train_config.hyper.seed = config.seed;
             let report = train(&train_config, &mut |_| {})?;
             let gate = report
                 .eval

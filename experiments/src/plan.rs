@@ -49,7 +49,7 @@ use ingest::corpus::manifest::Manifest;
 use ingest::corpus::Corpus;
 use lm::accounting;
 use lm::prefix_lm::{PrefixLmConfig, PRESETS};
-use lm::train::{ModelShape, TrainConfig};
+use lm::train::{Hyperparams, ModelShape, TrainConfig, HYPERPARAMS};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use tokenizer::model::{MotionTokenizer, TokenizerConfig};
@@ -87,47 +87,18 @@ pub struct IsoFlopPlan {
 /// Prefix-LM training settings shared by every point (the rest of `lm::train::TrainConfig`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainSettings {
-    /// Clips per batch.
-    pub batch_size: usize,
-    /// Peak learning rate.
-    pub lr: f64,
-    /// Final learning rate as a fraction of the peak.
-    pub final_lr_ratio: f64,
-    /// Warm-up as a fraction of all steps.
-    pub warmup_fraction: f64,
-    /// AdamW weight decay.
-    pub weight_decay: f64,
-    /// Global gradient-norm clip.
-    pub grad_clip: f64,
-    /// Seed of initial weights and batch order.
-    pub seed: u64,
-    /// Text tokens kept per caption.
-    pub max_text_tokens: usize,
-    /// Motion tokens kept per clip.
-    pub max_motion_tokens: usize,
+    /// The optimisation settings (`train`'s).
+    #[serde(flatten)]
+    pub hyper: Hyperparams,
     /// Checkpoint (and evaluate the test split) every this many steps, and at the end.
     pub checkpoint_every: u64,
 }
 
 impl Default for TrainSettings {
-    /// `lm::train::TrainConfig`'s defaults, checkpointing every 100 steps.
+    /// `lm::train`'s defaults, checkpointing every 100 steps.
     fn default() -> Self {
-        let c = TrainConfig::new(
-            Path::new(""),
-            ModelShape::Preset(String::new()),
-            0,
-            Path::new(""),
-        );
         Self {
-            batch_size: c.batch_size,
-            lr: c.lr,
-            final_lr_ratio: c.final_lr_ratio,
-            warmup_fraction: c.warmup_fraction,
-            weight_decay: c.weight_decay,
-            grad_clip: c.grad_clip,
-            seed: c.seed,
-            max_text_tokens: c.max_text_tokens,
-            max_motion_tokens: c.max_motion_tokens,
+            hyper: HYPERPARAMS,
             checkpoint_every: 100,
         }
     }
@@ -436,8 +407,12 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
     let mut vocabularies = Vec::new();
     for (codebook, source) in &request.vocabularies {
         let source = absolute_source(source)?;
-        let (codebook_size, targets) =
-            train_data(&source, *codebook, &corpus, settings.max_motion_tokens)?;
+        let (codebook_size, targets) = train_data(
+            &source,
+            *codebook,
+            &corpus,
+            settings.hyper.max_motion_tokens,
+        )?;
         vocabularies.push(Vocabulary {
             codebook: *codebook,
             codebook_size,
@@ -512,8 +487,8 @@ fn plan_point(
     let config: PrefixLmConfig = model_shape(name)?.resolve(vocab.codebook_size, text_dim)?;
     let params = accounting::param_count(&config);
     let tokens = accounting::tokens_for_budget(&config, budget).round() as u64;
-    let per_step =
-        settings.batch_size as f64 * vocab.train_tokens as f64 / vocab.train_clips.max(1) as f64;
+    let per_step = settings.hyper.batch_size as f64 * vocab.train_tokens as f64
+        / vocab.train_clips.max(1) as f64;
     let mut flags = Vec::new();
     if tokens > vocab.train_tokens {
         flags.push(PointFlag::ExceedsData);
@@ -637,15 +612,7 @@ impl IsoFlopPlan {
         let mut c = TrainConfig::new(tokens, model_shape(&point.model)?, point.tokens, out);
         c.corpus = Some(self.corpus.clone());
         c.text_encoder = Some(self.text_encoder.clone());
-        c.batch_size = s.batch_size;
-        c.lr = s.lr;
-        c.final_lr_ratio = s.final_lr_ratio;
-        c.warmup_fraction = s.warmup_fraction;
-        c.weight_decay = s.weight_decay;
-        c.grad_clip = s.grad_clip;
-        c.seed = s.seed;
-        c.max_text_tokens = s.max_text_tokens;
-        c.max_motion_tokens = s.max_motion_tokens;
+        c.hyper = s.hyper.clone();
         c.eval_every = Some(s.checkpoint_every);
         c.checkpoint_every = Some(s.checkpoint_every);
         Ok(c)

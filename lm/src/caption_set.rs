@@ -169,7 +169,7 @@ pub fn generate_caption_set(
                     )))
                 }
             };
-            let rows = text.len().min(run.train.max_text_tokens);
+            let rows = text.len().min(run.train.hyper.max_text_tokens);
             prefixes.push(text.embeddings[..rows * text.dim].to_vec());
         }
         let views: Vec<&[f32]> = prefixes.iter().map(Vec::as_slice).collect();

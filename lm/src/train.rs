@@ -150,6 +150,53 @@ impl ModelShape {
     }
 }
 
+/// The optimisation settings of a prefix-LM run, declared once: `train`'s flags, a sweep
+/// plan's `[train]` table (both flatten it) and a run's `config.json` spell them alike.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, clap::Args)]
+pub struct Hyperparams {
+    /// Clips per batch.
+    #[arg(long = "batch", default_value_t = HYPERPARAMS.batch_size)]
+    pub batch_size: usize,
+    /// Peak learning rate.
+    #[arg(long, default_value_t = HYPERPARAMS.lr)]
+    pub lr: f64,
+    /// Final learning rate as a fraction of the peak.
+    #[arg(long, default_value_t = HYPERPARAMS.final_lr_ratio)]
+    pub final_lr_ratio: f64,
+    /// Warm-up steps as a fraction of all steps (at least one step).
+    #[arg(long = "warmup", default_value_t = HYPERPARAMS.warmup_fraction)]
+    pub warmup_fraction: f64,
+    /// AdamW decoupled weight decay (all parameters, as the reference).
+    #[arg(long, default_value_t = HYPERPARAMS.weight_decay)]
+    pub weight_decay: f64,
+    /// Global gradient-norm clip.
+    #[arg(long, default_value_t = HYPERPARAMS.grad_clip)]
+    pub grad_clip: f64,
+    /// Seed of the initial weights and of the batch order.
+    #[arg(long, default_value_t = HYPERPARAMS.seed)]
+    pub seed: u64,
+    /// Text tokens kept per caption.
+    #[arg(long, default_value_t = HYPERPARAMS.max_text_tokens)]
+    pub max_text_tokens: usize,
+    /// Motion tokens kept per clip.
+    #[arg(long, default_value_t = HYPERPARAMS.max_motion_tokens)]
+    pub max_motion_tokens: usize,
+}
+
+/// The defaults: batch 32, lr 1e-3 → 1e-4 with 5% warm-up, weight decay 0.1, clip 1.0, seed 0,
+/// 64 text and 64 motion tokens.
+pub const HYPERPARAMS: Hyperparams = Hyperparams {
+    batch_size: 32,
+    lr: 1e-3,
+    final_lr_ratio: 0.1,
+    warmup_fraction: 0.05,
+    weight_decay: 0.1,
+    grad_clip: 1.0,
+    seed: 0,
+    max_text_tokens: 64,
+    max_motion_tokens: 64,
+};
+
 /// Everything a training run depends on.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrainConfig {
@@ -167,26 +214,11 @@ pub struct TrainConfig {
     pub model: ModelShape,
     /// Token budget D: motion loss positions to train on (rounded up to whole batches).
     pub tokens_budget: u64,
-    /// Clips per batch.
-    pub batch_size: usize,
-    /// Peak learning rate.
-    pub lr: f64,
-    /// Final learning rate as a fraction of the peak.
-    pub final_lr_ratio: f64,
-    /// Warm-up steps as a fraction of all steps (at least one step).
-    pub warmup_fraction: f64,
     /// AdamW (β1, β2).
     pub betas: (f64, f64),
-    /// AdamW decoupled weight decay (all parameters, as the reference).
-    pub weight_decay: f64,
-    /// Global gradient-norm clip.
-    pub grad_clip: f64,
-    /// Seed of the initial weights and of the batch order.
-    pub seed: u64,
-    /// Text tokens kept per caption.
-    pub max_text_tokens: usize,
-    /// Motion tokens kept per clip.
-    pub max_motion_tokens: usize,
+    /// The optimisation settings.
+    #[serde(flatten)]
+    pub hyper: Hyperparams,
     /// Evaluate every this many steps (default: ten times per run, and at the end).
     #[serde(skip)]
     pub eval_every: Option<u64>,
@@ -202,9 +234,8 @@ pub struct TrainConfig {
 }
 
 impl TrainConfig {
-    /// Defaults for everything but the token set, model, budget and output folder: batch 32,
-    /// lr 1e-3 → 1e-4 with 5% warm-up, AdamW (0.9, 0.95) with weight decay 0.1, clip 1.0,
-    /// seed 0, 64 text and 64 motion tokens, 10 evaluations and checkpoints per run.
+    /// Defaults for everything but the token set, model, budget and output folder:
+    /// [`HYPERPARAMS`], AdamW (0.9, 0.95), 10 evaluations and checkpoints per run.
     pub fn new(tokens: &Path, model: ModelShape, tokens_budget: u64, out: &Path) -> Self {
         Self {
             tokens: tokens.to_path_buf(),
@@ -213,16 +244,8 @@ impl TrainConfig {
             splits: None,
             model,
             tokens_budget,
-            batch_size: 32,
-            lr: 1e-3,
-            final_lr_ratio: 0.1,
-            warmup_fraction: 0.05,
             betas: (0.9, 0.95),
-            weight_decay: 0.1,
-            grad_clip: 1.0,
-            seed: 0,
-            max_text_tokens: 64,
-            max_motion_tokens: 64,
+            hyper: HYPERPARAMS,
             eval_every: None,
             checkpoint_every: None,
             stop_after: None,
@@ -488,8 +511,8 @@ impl Run {
             }
         };
         let limits = Limits {
-            text_tokens: config.max_text_tokens,
-            motion_tokens: config.max_motion_tokens,
+            text_tokens: config.hyper.max_text_tokens,
+            motion_tokens: config.hyper.max_motion_tokens,
         };
         let encoder = config.text_encoder.as_deref();
         let splits = ingest::corpus::split::SplitAssignment::from_dir(config.splits.as_deref())
@@ -497,11 +520,15 @@ impl Run {
         let data = LmData::load(&config.tokens, &corpus, encoder, limits, &splits)?;
         let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
         let total = data
-            .steps_for_tokens(config.tokens_budget, config.batch_size, config.seed)
+            .steps_for_tokens(
+                config.tokens_budget,
+                config.hyper.batch_size,
+                config.hyper.seed,
+            )
             .ok_or_else(|| LmError::Argument("no train clips with motion tokens".into()))?;
         let seq = SequenceShape {
-            prefix: config.max_text_tokens,
-            motion: config.max_motion_tokens + 1,
+            prefix: config.hyper.max_text_tokens,
+            motion: config.hyper.max_motion_tokens + 1,
         };
         let run = RunConfig {
             format: FORMAT.into(),
@@ -512,10 +539,10 @@ impl Run {
             text_encoder: data.encoder.clone(),
             tokenizer: data.tokens.tokenizer.clone(),
             schedule: LrSchedule {
-                peak: config.lr,
-                warmup: ((total as f64 * config.warmup_fraction).round() as u64).max(1),
+                peak: config.hyper.lr,
+                warmup: ((total as f64 * config.hyper.warmup_fraction).round() as u64).max(1),
                 total,
-                final_ratio: config.final_lr_ratio,
+                final_ratio: config.hyper.final_lr_ratio,
             },
         };
         std::fs::create_dir_all(&config.out).map_err(|e| LmError::io(&config.out, e))?;
@@ -530,7 +557,7 @@ impl Run {
                 distill_from,
                 distillation,
             } => {
-                let adapter = LoraAdapter::new(&run.model, *lora, expert, config.seed)
+                let adapter = LoraAdapter::new(&run.model, *lora, expert, config.hyper.seed)
                     .map_err(LmError::inference)?;
                 if let Some(file) = init {
                     adapter.load(file)?;
@@ -574,14 +601,14 @@ impl Run {
                     expert,
                     &clip_emotions(&run.corpus)?,
                     &train_texts,
-                    config.seed,
+                    config.hyper.seed,
                 )?;
                 let vars = trainer.vars();
                 (Trainee::Moe(Box::new(trainer)), vars)
             }
             ModelShape::Preset(_) | ModelShape::Custom { .. } => {
                 let (model, varmap) =
-                    init_model(&run.model, config.seed).map_err(LmError::inference)?;
+                    init_model(&run.model, config.hyper.seed).map_err(LmError::inference)?;
                 let vars = varmap.data().lock().expect("varmap lock").clone();
                 (Trainee::Model(model), vars)
             }
@@ -591,7 +618,7 @@ impl Run {
             beta1,
             beta2,
             eps: 1e-8,
-            weight_decay: config.weight_decay,
+            weight_decay: config.hyper.weight_decay,
         };
         let mut opt = AdamW::new(&vars, adamw);
         let paths = Paths::new(&config.out);
@@ -611,7 +638,9 @@ impl Run {
     /// One optimiser step on the next batch.
     fn step(&mut self) -> Result<TrainEvent, LmError> {
         let (c, started) = (&self.config.train, Instant::now());
-        let items = self.data.train_items(self.state.step, c.batch_size, c.seed);
+        let items = self
+            .data
+            .train_items(self.state.step, c.hyper.batch_size, c.hyper.seed);
         let batch = self.data.batch(&self.config.model, &items);
         let (loss, grads) = match &self.trainee {
             Trainee::Model(model) => model.loss_and_grads(&batch),
@@ -629,7 +658,7 @@ impl Run {
                 // Older experts are masked less and less as the step's schedule runs.
                 let progress = self.state.step as f64 / self.config.schedule.total as f64;
                 let p = t.moe.config.mask_probability * (1.0 - progress);
-                let mut rng = SplitMix64::stream(c.seed ^ MASK_STREAM, self.state.step);
+                let mut rng = SplitMix64::stream(c.hyper.seed ^ MASK_STREAM, self.state.step);
                 t.loss_and_grads(&examples, Some((&mut rng, p)))
                     .map(|(l, g)| (l.total(t.moe.config.emotion_weight), g))
             }
@@ -637,7 +666,7 @@ impl Run {
         .map_err(LmError::inference)?;
         let lr = self.config.schedule.at(self.state.step);
         self.opt
-            .step(&grads, lr, Some(c.grad_clip))
+            .step(&grads, lr, Some(c.hyper.grad_clip))
             .map_err(LmError::inference)?;
         let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
         let shape = SequenceShape {
@@ -647,9 +676,9 @@ impl Run {
         let s = &mut self.state;
         s.step += 1;
         s.tokens_seen += tokens;
-        s.data_position += c.batch_size as u64;
+        s.data_position += c.hyper.batch_size as u64;
         s.flops_exact +=
-            c.batch_size as f64 * accounting::train_flops_exact(&self.config.model, shape);
+            c.hyper.batch_size as f64 * accounting::train_flops_exact(&self.config.model, shape);
         Ok(TrainEvent::Step {
             step: s.step,
             loss,
@@ -671,7 +700,7 @@ impl Run {
             }
             Trainee::Moe(t) => (&t.moe, Some(self.expert_weights(&t.moe)?)),
         };
-        let test = evaluate(lm, &self.data, "test", self.config.train.batch_size)?;
+        let test = evaluate(lm, &self.data, "test", self.config.train.hyper.batch_size)?;
         let params = self.config.accounting.params;
         let record = EvalRecord {
             step: self.state.step,

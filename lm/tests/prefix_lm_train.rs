@@ -80,9 +80,9 @@ fn tiny_run(tokens: &Path, out: &Path, budget: u64) -> TrainConfig {
         budget,
         out,
     );
-    config.batch_size = 8;
-    config.lr = 3e-3;
-    config.weight_decay = 0.0;
+    config.hyper.batch_size = 8;
+    config.hyper.lr = 3e-3;
+    config.hyper.weight_decay = 0.0;
     config
 }
 
@@ -166,7 +166,7 @@ fn an_interrupted_run_resumes_to_the_same_weights() {
     }
     // A different configuration in the same folder is refused.
     let mut other = parts.clone();
-    other.seed = 1;
+    other.hyper.seed = 1;
     assert!(train(&other, &mut |_| {}).is_err());
 }
 

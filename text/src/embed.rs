@@ -631,30 +631,3 @@ impl Shard {
             .map_err(|e| TextError::invalid(&self.path, e))
     }
 }
-
-/// The text encoder whose embeddings to use: `wanted`, or the corpus's only one.
-pub fn resolve_encoder(corpus_dir: &Path, wanted: Option<&str>) -> Result<String, TextError> {
-    let manifest = Manifest::read(corpus_dir).map_err(TextError::Corpus)?;
-    let ids: Vec<&str> = manifest
-        .text_embeddings
-        .iter()
-        .map(|e| e.encoder.as_str())
-        .collect();
-    match (wanted, ids.as_slice()) {
-        (Some(id), _) if ids.contains(&id) => Ok(id.to_string()),
-        (Some(id), _) => Err(TextError::Corpus(format!(
-            "{}: no text embeddings by {id} (the manifest lists {ids:?})",
-            corpus_dir.display()
-        ))),
-        (None, [only]) => Ok(only.to_string()),
-        (None, []) => Err(TextError::Corpus(format!(
-            "{}: no caption embeddings; run `motionscale embed-text --corpus {}` first",
-            corpus_dir.display(),
-            corpus_dir.display()
-        ))),
-        (None, many) => Err(TextError::Corpus(format!(
-            "{}: several text encoders {many:?}; choose one with --text-emb",
-            corpus_dir.display()
-        ))),
-    }
-}

@@ -17,15 +17,15 @@ pub mod bert;
 pub mod embed;
 pub mod error;
 pub mod fallback;
+pub mod resolve;
 pub mod t5;
 mod transformer;
 
 pub use bert::BertEncoder;
-pub use embed::{
-    embed_corpus, embed_corpus_sharded, resolve_encoder, CaptionEmbeddings, EmbedReport,
-};
+pub use embed::{embed_corpus, embed_corpus_sharded, CaptionEmbeddings, EmbedReport};
 pub use error::TextError;
 pub use fallback::FallbackEncoder;
+pub use resolve::{encoder_for, resolve_encoder, EncoderChoice};
 pub use t5::T5Encoder;
 
 use sha2::{Digest, Sha256};
