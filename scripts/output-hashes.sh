@@ -9,9 +9,10 @@
 # what the commands computed.
 set -euo pipefail
 M=$(realpath "$1"); BANDAI=$(realpath "$2"); OUT=$3
+REPO=$(cd "$(dirname "$0")/.." && pwd)
 rm -rf "$OUT"; mkdir -p "$OUT"; cd "$OUT"
 export RAYON_NUM_THREADS=1
-run() { echo "+ motionscale $*" >&2; "$M" "$@" > /dev/null; }
+run() { echo "+ motionscale $*" >&2; "$M" "$@"; }
 
 # Exit status 2: some inputs were rejected (listed in corpus/rejects.jsonl, hashed below).
 run ingest --source "bvh:$BANDAI" --source synth:300:3 --mirror --out corpus || [ $? -eq 2 ]
@@ -26,8 +27,10 @@ run evaluator train --corpus corpus --out evaluator --hidden 16 --embed-dim 16 -
     --batch 16 --steps 200 --eval-every 100
 run generate --model lm --tokenizer tok --captions-from corpus --split test --out gen-test
 run eval --evaluator evaluator --motions gen-test --corpus corpus --repeats 2 --out eval.json
-run fit --results "$(dirname "$0")/../docs/results/scaling-sweep/results.csv" --bootstrap 20 \
+run fit --results "$REPO/docs/results/scaling-sweep/results.csv" --bootstrap 20 \
     --workers 1 --out fit
+run predict --fits fit/fits.json --budget 1e15 --json > predict-fits.json
+run predict --budget 1e18 --json > predict-scamo.json
 run scenarios --corpus corpus --split unseen --source synth --out scenarios
 run continual --scenarios scenarios --method seq-lora --base lm --tokens tokens \
     --evaluator evaluator --orders 1 --tokens-budget 400 --batch 8 --repeats 1 --pool 8 \
@@ -35,6 +38,12 @@ run continual --scenarios scenarios --method seq-lora --base lm --tokens tokens 
 run cl2gen --corpus corpus --evaluator evaluator --source synth --min-clips 10 --layers 1 \
     --hidden 8 --latent 4 --steps-per-task 20 --batch 4 --samples-per-class 4 --min-frames 12 \
     --max-frames 20 --repeats 1 --out cl2gen
+run cl2gen --corpus corpus --evaluator evaluator --source synth --min-clips 10 --layers 1 \
+    --hidden 8 --latent 4 --steps-per-task 20 --batch 4 --samples-per-class 4 --min-frames 12 \
+    --max-frames 20 --repeats 1 --replay 1/2 --out cl2gen-gen-replay
+run cl2gen --corpus corpus --evaluator evaluator --source synth --min-clips 10 --layers 1 \
+    --hidden 8 --latent 4 --steps-per-task 20 --batch 4 --samples-per-class 4 --min-frames 12 \
+    --max-frames 20 --repeats 1 --replay 1/2 --replay-source real --out cl2gen-real-replay
 
 # Fields that differ between two runs of the same binary on the same inputs.
 strip='walk(if type == "object" then del(.wall_s, .train_s, .elapsed_s, .seconds, .revision,

@@ -12,7 +12,7 @@
 //! motions, which source clips) form the split, in both sets.
 
 use crate::metrics::{self, Interval};
-use crate::model::{MotionPredictions, TrainedEvaluator};
+use crate::model::{EvaluatorConfig, MotionPredictions, TrainedEvaluator};
 use crate::train::{class_of, corpus_clips, LabelledClip};
 use crate::EvaluatorError;
 use ingest::corpus::schema::FEATURE_DIM;
@@ -320,15 +320,12 @@ pub fn caption_embeddings(
     Ok(table)
 }
 
-/// Evaluate `set` against the ground truth `reference` with `evaluator`.
-pub fn evaluate_motions(
-    evaluator: &TrainedEvaluator,
-    evaluator_dir: &Path,
-    reference: &MotionSet,
-    set: &MotionSet,
+/// The motions of `set` by text group (a group is one source clip's samples), refused when
+/// there are fewer groups than the R-precision pools need.
+fn text_groups<'a>(
+    set: &'a MotionSet,
     options: &EvalOptions,
-    encoder: Option<&dyn TextEncoder>,
-) -> Result<EvalReport, EvaluatorError> {
+) -> Result<BTreeMap<&'a str, Vec<usize>>, EvaluatorError> {
     let need = if options.halves { 2 } else { 1 } * options.pool;
     let mut groups: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
     for (i, m) in set.motions.iter().enumerate() {
@@ -343,6 +340,17 @@ pub fn evaluate_motions(
             options.pool
         )));
     }
+    Ok(groups)
+}
+
+/// Every caption of `set` in the evaluator's space, from the reference corpus's stored token
+/// embeddings (else `encoder`).
+fn caption_space(
+    evaluator: &TrainedEvaluator,
+    reference: &MotionSet,
+    set: &MotionSet,
+    encoder: Option<&dyn TextEncoder>,
+) -> Result<HashMap<String, Vec<f32>>, EvaluatorError> {
     let stored = CaptionEmbeddings::open(&reference.path, &evaluator.file.text_encoder)?;
     let mut captions: Vec<String> = set
         .motions
@@ -353,11 +361,87 @@ pub fn evaluate_motions(
     captions.dedup();
     let tokens = caption_embeddings(&captions, &stored, encoder)?;
     let rows: Vec<&[f32]> = captions.iter().map(|c| tokens[c].as_slice()).collect();
-    let text_embedding: HashMap<&str, Vec<f32>> = captions
-        .iter()
-        .map(String::as_str)
-        .zip(evaluator.embed_texts(&rows, 128)?)
-        .collect();
+    let embedded = evaluator.embed_texts(&rows, 128)?;
+    Ok(captions.into_iter().zip(embedded).collect())
+}
+
+/// The classifiers' weighted F1 on emotion and accuracy on action over the `picks` of `set`
+/// that carry a label the evaluator knows (None where none does).
+fn classifier_scores(
+    config: &EvaluatorConfig,
+    set: &MotionSet,
+    picks: &[usize],
+    predictions: &MotionPredictions,
+) -> (Option<f64>, Option<f64>) {
+    let scored = |classes: &[String],
+                  label: fn(&LabelledClip) -> &Option<String>,
+                  predicted: &[usize]| {
+        let (p, t): (Vec<usize>, Vec<usize>) = picks
+            .iter()
+            .filter_map(|&i| {
+                class_of(classes, label(&set.motions[i].clip)).map(|t| (predicted[i], t as usize))
+            })
+            .unzip();
+        (!t.is_empty()).then_some((p, t))
+    };
+    let emotion = scored(&config.emotions, |m| &m.emotion, &predictions.emotion)
+        .map(|(p, t)| metrics::weighted_f1(&p, &t));
+    let action = scored(&config.actions, |m| &m.action, &predictions.action)
+        .map(|(p, t)| metrics::accuracy(&p, &t));
+    (emotion, action)
+}
+
+/// The report of `set` against `reference`: each metric's values over the repeats as a mean
+/// and interval; `counts` are the text groups and the multimodality groups.
+fn report(
+    evaluator: &TrainedEvaluator,
+    evaluator_dir: &Path,
+    (reference, set): (&MotionSet, &MotionSet),
+    options: &EvalOptions,
+    mut values: BTreeMap<&str, Vec<f64>>,
+    (group_count, multimodality_groups): (usize, usize),
+) -> Result<EvalReport, EvaluatorError> {
+    let mut take = |name: &str| values.remove(name).map(Interval::of);
+    let required = |v: Option<Interval>| v.expect("computed every repeat");
+    Ok(EvalReport {
+        evaluator: evaluator_dir.to_path_buf(),
+        evaluator_id: evaluator.id.clone(),
+        corpus: reference.path.clone(),
+        corpus_id: crate::model::corpus_id(&reference.path)?,
+        motions_kind: set.kind.clone(),
+        motions: set.path.clone(),
+        motions_id: set.content_id(),
+        motion_count: set.motions.len(),
+        group_count,
+        reference_count: reference.motions.len(),
+        options: options.clone(),
+        fid: required(take("fid")),
+        r_precision: [
+            required(take("top1")),
+            required(take("top2")),
+            required(take("top3")),
+        ],
+        matching_score: required(take("matching")),
+        diversity: take("diversity"),
+        multimodality: take("multimodality"),
+        multimodality_groups,
+        emotion_weighted_f1: take("emotion_f1"),
+        action_accuracy: take("action_accuracy"),
+        r_precision_chance: 1.0 / options.pool as f64,
+    })
+}
+
+/// Evaluate `set` against the ground truth `reference` with `evaluator`.
+pub fn evaluate_motions(
+    evaluator: &TrainedEvaluator,
+    evaluator_dir: &Path,
+    reference: &MotionSet,
+    set: &MotionSet,
+    options: &EvalOptions,
+    encoder: Option<&dyn TextEncoder>,
+) -> Result<EvalReport, EvaluatorError> {
+    let groups = text_groups(set, options)?;
+    let text_embedding = caption_space(evaluator, reference, set, encoder)?;
     let reference_embeddings = match options.halves {
         true => Vec::new(),
         false => {
@@ -423,7 +507,7 @@ pub fn evaluate_motions(
         let motion_rows: Vec<Vec<f32>> = picks[..matched].iter().map(|&i| embedding(i)).collect();
         let text_rows: Vec<Vec<f32>> = texts[..matched]
             .iter()
-            .map(|t| text_embedding[t].clone())
+            .map(|t| text_embedding[*t].clone())
             .collect();
         let r = metrics::r_precision::<3>(&text_rows, &motion_rows, options.pool);
         push("top1", r[0]);
@@ -448,53 +532,23 @@ pub fn evaluate_motions(
         {
             push("multimodality", mm);
         }
-        let scored = |classes: &[String],
-                      label: fn(&LabelledClip) -> &Option<String>,
-                      predicted: &[usize]| {
-            let (p, t): (Vec<usize>, Vec<usize>) = picks
-                .iter()
-                .filter_map(|&i| {
-                    class_of(classes, label(&set.motions[i].clip))
-                        .map(|t| (predicted[i], t as usize))
-                })
-                .unzip();
-            (!t.is_empty()).then_some((p, t))
-        };
-        if let Some((p, t)) = scored(&config.emotions, |m| &m.emotion, &predictions.emotion) {
-            push("emotion_f1", metrics::weighted_f1(&p, &t));
+        let (emotion_f1, action_accuracy) = classifier_scores(config, set, &picks, predictions);
+        if let Some(v) = emotion_f1 {
+            push("emotion_f1", v);
         }
-        if let Some((p, t)) = scored(&config.actions, |m| &m.action, &predictions.action) {
-            push("action_accuracy", metrics::accuracy(&p, &t));
+        if let Some(v) = action_accuracy {
+            push("action_accuracy", v);
         }
     }
-    let mut take = |name: &str| values.remove(name).map(Interval::of);
-    let required = |v: Option<Interval>| v.expect("computed every repeat");
-    Ok(EvalReport {
-        evaluator: evaluator_dir.to_path_buf(),
-        evaluator_id: evaluator.id.clone(),
-        corpus: reference.path.clone(),
-        corpus_id: crate::model::corpus_id(&reference.path)?,
-        motions_kind: set.kind.clone(),
-        motions: set.path.clone(),
-        motions_id: set.content_id(),
-        motion_count: set.motions.len(),
-        group_count: groups.len(),
-        reference_count: reference.motions.len(),
-        options: options.clone(),
-        fid: required(take("fid")),
-        r_precision: [
-            required(take("top1")),
-            required(take("top2")),
-            required(take("top3")),
-        ],
-        matching_score: required(take("matching")),
-        diversity: take("diversity"),
-        multimodality: take("multimodality"),
-        multimodality_groups,
-        emotion_weighted_f1: take("emotion_f1"),
-        action_accuracy: take("action_accuracy"),
-        r_precision_chance: 1.0 / options.pool as f64,
-    })
+    let counts = (groups.len(), multimodality_groups);
+    report(
+        evaluator,
+        evaluator_dir,
+        (reference, set),
+        options,
+        values,
+        counts,
+    )
 }
 
 /// Every motion of a set in the evaluator's space, with the first caption's embedding and

@@ -170,6 +170,49 @@ struct TrainState {
 const MODEL_FILE: &str = "model.safetensors";
 const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 
+/// The configuration file of an evaluator trained by `config` on `train` (its emotion and
+/// action classes are the labels the train clips carry) over `text_dim`-wide caption
+/// embeddings of `encoder`.
+fn evaluator_file(
+    config: &EvaluatorTrainConfig,
+    train: &[LabelledClip],
+    text_dim: usize,
+    encoder: String,
+) -> Result<EvaluatorFile, EvaluatorError> {
+    let labels = |f: fn(&LabelledClip) -> &Option<String>| -> Vec<String> {
+        let set: BTreeSet<String> = train.iter().filter_map(|c| f(c).clone()).collect();
+        set.into_iter().collect()
+    };
+    Ok(EvaluatorFile {
+        format: FORMAT.into(),
+        config: EvaluatorConfig {
+            feature_dim: FEATURE_DIM,
+            text_dim,
+            hidden: config.hidden,
+            embed_dim: config.embed_dim,
+            max_frames: config.max_frames / UNIT * UNIT,
+            max_text_tokens: config.max_text_tokens,
+            temperature: config.temperature,
+            emotions: labels(|c| &c.emotion),
+            actions: labels(|c| &c.action),
+        },
+        corpus: config.corpus.clone(),
+        corpus_id: corpus_id(&config.corpus)?,
+        text_encoder: encoder,
+        train: serde_json::to_value(config).map_err(|e| EvaluatorError::invalid(&config.out, e))?,
+    })
+}
+
+/// Copy the corpus statistic `name` (`mean.npy`, `std.npy`) into the evaluator folder and
+/// return its values.
+fn copy_stats(config: &EvaluatorTrainConfig, name: &str) -> Result<Vec<f32>, EvaluatorError> {
+    let path = config.corpus.join("stats").join(name);
+    let array = ingest::npy::read(&path).map_err(|e| EvaluatorError::invalid(&path, e))?;
+    let dst = config.out.join(name);
+    std::fs::copy(&path, &dst).map_err(|e| EvaluatorError::io(&dst, e))?;
+    Ok(array.data.iter().map(|&v| v as f32).collect())
+}
+
 /// Train (or resume) an evaluator; returns the last validation.
 pub fn train_evaluator(
     config: &EvaluatorTrainConfig,
@@ -191,41 +234,16 @@ pub fn train_evaluator(
     }
     let all_captions = train.iter().chain(&val).flat_map(|c| c.captions.clone());
     let captions = caption_table(&embeddings, all_captions)?;
-    let labels = |f: fn(&LabelledClip) -> &Option<String>| -> Vec<String> {
-        let set: BTreeSet<String> = train.iter().filter_map(|c| f(c).clone()).collect();
-        set.into_iter().collect()
-    };
-    let net_config = EvaluatorConfig {
-        feature_dim: FEATURE_DIM,
-        text_dim: embeddings.dim(),
-        hidden: config.hidden,
-        embed_dim: config.embed_dim,
-        max_frames: config.max_frames / UNIT * UNIT,
-        max_text_tokens: config.max_text_tokens,
-        temperature: config.temperature,
-        emotions: labels(|c| &c.emotion),
-        actions: labels(|c| &c.action),
-    };
-    let file = EvaluatorFile {
-        format: FORMAT.into(),
-        config: net_config.clone(),
-        corpus: config.corpus.clone(),
-        corpus_id: corpus_id(&config.corpus)?,
-        text_encoder: encoder,
-        train: serde_json::to_value(config).map_err(|e| EvaluatorError::invalid(&config.out, e))?,
-    };
+    let file = evaluator_file(config, &train, embeddings.dim(), encoder)?;
+    let net_config = file.config.clone();
     let out = &config.out;
     std::fs::create_dir_all(out).map_err(|e| EvaluatorError::io(out, e))?;
-    let stats = |name: &str| -> Result<Vec<f32>, EvaluatorError> {
-        let path = config.corpus.join("stats").join(name);
-        let array = ingest::npy::read(&path).map_err(|e| EvaluatorError::invalid(&path, e))?;
-        let dst = out.join(name);
-        std::fs::copy(&path, &dst).map_err(|e| EvaluatorError::io(&dst, e))?;
-        Ok(array.data.iter().map(|&v| v as f32).collect())
-    };
-    let (mean, std) = (stats("mean.npy")?, stats("std.npy")?);
+    let (mean, std) = (
+        copy_stats(config, "mean.npy")?,
+        copy_stats(config, "std.npy")?,
+    );
 
-    let (net, varmap) = init_evaluator(net_config.clone(), config.seed, &nn::default_device())
+    let (net, varmap) = init_evaluator(net_config, config.seed, &nn::default_device())
         .map_err(EvaluatorError::inference)?;
     let vars = varmap.data().lock().expect("varmap lock").clone();
     let adamw = AdamWConfig {

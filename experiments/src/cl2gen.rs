@@ -357,13 +357,43 @@ fn denormalise(poses: &[f32], evaluator: &TrainedEvaluator) -> Vec<f32> {
         .collect()
 }
 
-/// Run (or resume) `config`; `log` receives one line per finished task.
-pub fn run_cl2gen(
-    config: &Cl2GenConfig,
-    mut log: impl FnMut(&str),
-) -> Result<Cl2GenReport, SweepError> {
-    std::fs::create_dir_all(&config.out).map_err(|e| SweepError::io(&config.out, e))?;
-    let evaluator = TrainedEvaluator::load(&config.evaluator)?;
+/// The labelled clips a CL2Gen run learns and is scored on, by class.
+struct Data {
+    train: Vec<LabelledClip>,
+    test: Vec<LabelledClip>,
+    /// The action classes with enough train clips, in order.
+    classes: Vec<String>,
+    /// The evaluator's action index of every class.
+    actions: Vec<u32>,
+    /// Indices into `train` / `test` of each class's clips.
+    train_of: Vec<Vec<usize>>,
+    test_of: Vec<Vec<usize>>,
+}
+
+impl Data {
+    /// The class index of `clip` (None for a class the run does not learn).
+    fn class_of(&self, clip: &LabelledClip) -> Option<u32> {
+        self.classes
+            .iter()
+            .position(|a| Some(a) == clip.action.as_ref())
+            .map(|i| i as u32)
+    }
+
+    /// Indices of `clips` by class.
+    fn by_class(&self, clips: &[LabelledClip]) -> Vec<Vec<usize>> {
+        let mut out = vec![Vec::new(); self.classes.len()];
+        for (i, c) in clips.iter().enumerate() {
+            if let Some(k) = self.class_of(c) {
+                out[k as usize].push(i);
+            }
+        }
+        out
+    }
+}
+
+/// The train and test clips of `config`'s source long enough for the evaluator, and the
+/// classes with at least `min_clips` train clips (two at least).
+fn load_data(config: &Cl2GenConfig, evaluator: &TrainedEvaluator) -> Result<Data, SweepError> {
     let dim = evaluator.file.config.feature_dim;
     let keep = |split: &'static str| {
         let source = config.source.clone();
@@ -390,13 +420,11 @@ pub fn run_cl2gen(
         .filter(|(_, &n)| n >= config.min_clips)
         .map(|(a, _)| a.to_string())
         .collect();
+    let known = &evaluator.file.config.actions;
     let actions: Vec<u32> = classes
         .iter()
         .map(|a| {
-            evaluator
-                .file
-                .config
-                .actions
+            known
                 .iter()
                 .position(|e| e == a)
                 .map(|i| i as u32)
@@ -413,6 +441,28 @@ pub fn run_cl2gen(
             config.min_clips
         )));
     }
+    let mut data = Data {
+        train,
+        test,
+        classes,
+        actions,
+        train_of: Vec::new(),
+        test_of: Vec::new(),
+    };
+    data.train_of = data.by_class(&data.train);
+    data.test_of = data.by_class(&data.test);
+    Ok(data)
+}
+
+/// Run (or resume) `config`; `log` receives one line per finished task.
+pub fn run_cl2gen(
+    config: &Cl2GenConfig,
+    mut log: impl FnMut(&str),
+) -> Result<Cl2GenReport, SweepError> {
+    std::fs::create_dir_all(&config.out).map_err(|e| SweepError::io(&config.out, e))?;
+    let evaluator = TrainedEvaluator::load(&config.evaluator)?;
+    let data = load_data(config, &evaluator)?;
+    let classes = &data.classes;
     let mut resolved = config.clone();
     resolved.model.classes = classes.clone();
     let config_path = config.out.join("config.json");
@@ -425,22 +475,6 @@ pub fn run_cl2gen(
     };
     check_same_run(&config_path, "a CL2Gen run", same_run)?;
     write_json(&config_path, &resolved)?;
-    let class_of = |c: &LabelledClip| {
-        classes
-            .iter()
-            .position(|a| Some(a) == c.action.as_ref())
-            .map(|i| i as u32)
-    };
-    let by_class = |clips: &[LabelledClip]| -> Vec<Vec<usize>> {
-        let mut out = vec![Vec::new(); classes.len()];
-        for (i, c) in clips.iter().enumerate() {
-            if let Some(k) = class_of(c) {
-                out[k as usize].push(i);
-            }
-        }
-        out
-    };
-    let (train_of, test_of) = (by_class(&train), by_class(&test));
     let per_task = if config.offline {
         classes.len()
     } else {
@@ -451,26 +485,24 @@ pub fn run_cl2gen(
         .chunks(per_task)
         .map(<[u32]>::to_vec)
         .collect();
-    let frames = config.window.0;
     let mut rng = SplitMix64::stream(config.seed, 0x7265_616c);
     let scorer = Scorer {
         evaluator: &evaluator,
-        actions: &actions,
+        actions: &data.actions,
         samples_per_class: config.samples_per_class,
-        frames,
+        frames: config.window.0,
     };
     // Real test windows of every class: the reference of FID and the ground-truth row.
-    let real = scorer.real_windows(&test, &test_of, &mut rng);
+    let real = scorer.real_windows(&data.test, &data.test_of, &mut rng);
     let all: Vec<u32> = (0..classes.len() as u32).collect();
     let ground_truth = scorer
         .ground_truth(&real, &mut rng)?
-        .task_eval(0, &all, &classes);
+        .task_eval(0, &all, classes);
     let model_config = resolved.model.clone();
     let mut trainer = CtvaeTrainer::new(model_config, config.weights, evaluator.std(), config.seed)
         .map_err(LmError::inference)?;
-    let aux = (config.weights.aux > 0.0).then_some((&evaluator, actions.as_slice()));
     let mut evals = Vec::new();
-    for (t, task) in tasks.iter().enumerate() {
+    for t in 0..tasks.len() {
         let dir = config.out.join(format!("task-{}", t + 1));
         let eval_path = dir.join("eval.json");
         if eval_path.is_file() && dir.join("model.safetensors").is_file() {
@@ -479,99 +511,41 @@ pub fn run_cl2gen(
             continue;
         }
         std::fs::create_dir_all(&dir).map_err(|e| SweepError::io(&dir, e))?;
-        let mut task_rng = SplitMix64::stream(config.seed, 1 + t as u64);
-        let new: Vec<&LabelledClip> = task
-            .iter()
-            .flat_map(|&k| train_of[k as usize].iter().map(|&i| &train[i]))
-            .collect();
-        // Replay: per earlier class, `replay` × the new task's clips, fixed-length.
-        let earlier: Vec<u32> = tasks[..t].iter().flatten().copied().collect();
-        let per_class = (config.replay * new.len() as f64).round() as usize;
-        let mut replay: Vec<Sample> = Vec::new();
-        for &k in &earlier {
-            match config.replay_source {
-                ReplaySource::Gen => {
-                    for poses in trainer
-                        .generate(k, per_class, frames, &mut task_rng)
-                        .map_err(LmError::inference)?
-                    {
-                        replay.push(Sample { class: k, poses });
-                    }
-                }
-                ReplaySource::Real => {
-                    let ids = &train_of[k as usize];
-                    for _ in 0..per_class {
-                        let clip = &train[ids[task_rng.index(ids.len())]];
-                        let poses = window(clip, &evaluator, (frames, frames), &mut task_rng);
-                        replay.push(Sample { class: k, poses });
-                    }
-                }
-            }
-        }
-        let pool = new.len() + replay.len();
-        let mut sums: BTreeMap<String, f64> = BTreeMap::new();
-        let tail = (config.steps_per_task / 10).max(1);
-        for step in 0..config.steps_per_task {
-            let batch: Vec<Sample> = (0..config.batch)
-                .map(|_| {
-                    let i = task_rng.index(pool);
-                    match new.get(i) {
-                        Some(clip) => Sample {
-                            class: class_of(clip).expect("a task class"),
-                            poses: window(clip, &evaluator, config.window, &mut task_rng),
-                        },
-                        None => replay[i - new.len()].clone(),
-                    }
-                })
-                .collect();
-            let refs: Vec<&Sample> = batch.iter().collect();
-            let loss = trainer
-                .step(&refs, config.lr, aux, &mut task_rng)
-                .map_err(LmError::inference)?;
-            if step + tail >= config.steps_per_task {
-                for (name, v) in [
-                    ("pose", loss.pose),
-                    ("joints", loss.joints),
-                    ("latent", loss.latent),
-                    ("aux", loss.aux),
-                ] {
-                    *sums.entry(name.to_string()).or_default() += f64::from(v) / tail as f64;
-                }
-            }
-        }
+        let (loss, replayed) = learn_task(config, &data, &tasks, t, &mut trainer, &evaluator)?;
         let seen: Vec<u32> = tasks[..=t].iter().flatten().copied().collect();
         let mut eval_rng = SplitMix64::stream(config.seed ^ 0x6576_616c, t as u64);
         let eval = TaskEval {
-            loss: sums,
-            replayed: replay.len(),
+            loss,
+            replayed,
             ..scorer
                 .generated(&trainer, &seen, &real, &mut eval_rng)?
-                .task_eval(t + 1, &seen, &classes)
+                .task_eval(t + 1, &seen, classes)
         };
         trainer.save(&dir)?;
         write_json(&eval_path, &eval)?;
+        let names: Vec<&str> = tasks[t]
+            .iter()
+            .map(|&k| classes[k as usize].as_str())
+            .collect();
         log(&format!(
             "task {}/{} ({}): accuracy {:.3}, FID {:.4}, {} replayed",
             t + 1,
             tasks.len(),
-            task.iter()
-                .map(|&k| classes[k as usize].as_str())
-                .collect::<Vec<_>>()
-                .join(", "),
+            names.join(", "),
             eval.accuracy,
             eval.fid,
             eval.replayed
         ));
         evals.push(eval);
     }
-    write_accuracy_plot(config, &classes, &evals)?;
+    write_accuracy_plot(config, classes, &evals)?;
     // The paper's ± (ACTOR's protocol): the final model, and the real test clips, scored over
     // fresh draws of generated motions and of windows.
     let (mut model_repeats, mut real_repeats) = (Vec::new(), Vec::new());
     for r in 0..config.repeats {
         let mut rng = SplitMix64::stream(config.seed ^ 0x7265_7065_6174, r as u64);
         model_repeats.push(scorer.generated(&trainer, &all, &real, &mut rng)?);
-        let windows = scorer.real_windows(&test, &test_of, &mut rng);
+        let windows = scorer.real_windows(&data.test, &data.test_of, &mut rng);
         real_repeats.push(scorer.ground_truth(&windows, &mut rng)?);
     }
     let report = Cl2GenReport {
@@ -589,6 +563,102 @@ pub fn run_cl2gen(
     };
     write_json(&config.out.join("summary.json"), &report)?;
     Ok(report)
+}
+
+/// Train task `t` of `tasks`: its classes' clips mixed with replayed samples of every earlier
+/// class. Returns the mean loss terms over the last tenth of the steps and the replay count.
+fn learn_task(
+    config: &Cl2GenConfig,
+    data: &Data,
+    tasks: &[Vec<u32>],
+    t: usize,
+    trainer: &mut CtvaeTrainer,
+    evaluator: &TrainedEvaluator,
+) -> Result<(BTreeMap<String, f64>, usize), SweepError> {
+    let mut rng = SplitMix64::stream(config.seed, 1 + t as u64);
+    let new: Vec<&LabelledClip> = tasks[t]
+        .iter()
+        .flat_map(|&k| data.train_of[k as usize].iter().map(|&i| &data.train[i]))
+        .collect();
+    let replay = replay_samples(
+        config,
+        data,
+        &tasks[..t],
+        new.len(),
+        trainer,
+        evaluator,
+        &mut rng,
+    )?;
+    let aux = (config.weights.aux > 0.0).then_some((evaluator, data.actions.as_slice()));
+    let pool = new.len() + replay.len();
+    let mut sums: BTreeMap<String, f64> = BTreeMap::new();
+    let tail = (config.steps_per_task / 10).max(1);
+    for step in 0..config.steps_per_task {
+        let batch: Vec<Sample> = (0..config.batch)
+            .map(|_| {
+                let i = rng.index(pool);
+                match new.get(i) {
+                    Some(clip) => Sample {
+                        class: data.class_of(clip).expect("a task class"),
+                        poses: window(clip, evaluator, config.window, &mut rng),
+                    },
+                    None => replay[i - new.len()].clone(),
+                }
+            })
+            .collect();
+        let refs: Vec<&Sample> = batch.iter().collect();
+        let loss = trainer
+            .step(&refs, config.lr, aux, &mut rng)
+            .map_err(LmError::inference)?;
+        if step + tail >= config.steps_per_task {
+            for (name, v) in [
+                ("pose", loss.pose),
+                ("joints", loss.joints),
+                ("latent", loss.latent),
+                ("aux", loss.aux),
+            ] {
+                *sums.entry(name.to_string()).or_default() += f64::from(v) / tail as f64;
+            }
+        }
+    }
+    Ok((sums, replay.len()))
+}
+
+/// Replay for a task of `new_clips` clips: per class of the `earlier` tasks, `replay` × that
+/// many fixed-length samples, generated by the model so far or drawn from real train clips.
+fn replay_samples(
+    config: &Cl2GenConfig,
+    data: &Data,
+    earlier: &[Vec<u32>],
+    new_clips: usize,
+    trainer: &CtvaeTrainer,
+    evaluator: &TrainedEvaluator,
+    rng: &mut SplitMix64,
+) -> Result<Vec<Sample>, SweepError> {
+    let frames = config.window.0;
+    let per_class = (config.replay * new_clips as f64).round() as usize;
+    let mut replay = Vec::new();
+    for &k in earlier.iter().flatten() {
+        match config.replay_source {
+            ReplaySource::Gen => {
+                for poses in trainer
+                    .generate(k, per_class, frames, rng)
+                    .map_err(LmError::inference)?
+                {
+                    replay.push(Sample { class: k, poses });
+                }
+            }
+            ReplaySource::Real => {
+                let ids = &data.train_of[k as usize];
+                for _ in 0..per_class {
+                    let clip = &data.train[ids[rng.index(ids.len())]];
+                    let poses = window(clip, evaluator, (frames, frames), rng);
+                    replay.push(Sample { class: k, poses });
+                }
+            }
+        }
+    }
+    Ok(replay)
 }
 
 /// Per-class accuracy of generated motions after each task (the paper's Fig. 2, bottom).

@@ -31,7 +31,10 @@
 use crate::error::SweepError;
 use crate::seeds;
 use evaluator::model::TrainedEvaluator;
-use evaluator::score::{corpus_split, evaluate_motions, hml3d_folder, EvalOptions, EvalReport};
+use evaluator::score::{
+    corpus_split, evaluate_motions, hml3d_folder, EvalOptions, EvalReport, MotionSet,
+};
+use evaluator::train::LabelledClip;
 use ingest::corpus::split::{read_ids, SplitAssignment, SPLITS};
 use ingest::scenarios::ScenarioDatasets;
 use lm::caption_set::{generate_caption_set, CaptionSetOptions};
@@ -44,6 +47,7 @@ use motionscale_core::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 use std::collections::{HashMap, HashSet};
 use std::path::{Path, PathBuf};
+use tokenizer::model::MotionTokenizer;
 
 /// A continual-learning method.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -353,6 +357,17 @@ fn check_backbone_held_out(
     Ok(())
 }
 
+/// What every step of a continual run reads: the datasets, the evaluator, the base run's
+/// corpus and tokenizer, each dataset's reference motions and the corpus clips' labels.
+struct Setup {
+    names: Vec<String>,
+    evaluator: TrainedEvaluator,
+    corpus: PathBuf,
+    tokenizer: MotionTokenizer,
+    references: HashMap<String, MotionSet>,
+    labels: HashMap<String, LabelledClip>,
+}
+
 /// Run (or resume) `config`; `log` receives one line per finished piece of work.
 pub fn run_continual(
     config: &ContinualConfig,
@@ -364,227 +379,14 @@ pub fn run_continual(
         old == *config
     })?;
     write_json(&config_path, config)?;
-    let sets: ScenarioDatasets = read_json(&config.scenarios.join("datasets.json"))?;
-    let names: Vec<String> = sets.datasets.iter().map(|d| d.name.clone()).collect();
-    let evaluator = TrainedEvaluator::load(&config.evaluator)?;
-    let (_, base_run) = load_model(&config.base)?;
-    check_backbone_held_out(&base_run, &config.scenarios, &names)?;
-    let corpus = base_run.corpus.clone();
-    let tokenizer = run_tokenizer(&base_run, None)?;
-    let eval_options = |dataset: &str| EvalOptions {
-        split: config.eval_split.clone(),
-        repeats: config.repeats,
-        seed: config.seed,
-        splits: Some(config.scenarios.join(dataset)),
-        pool: config.pool,
-        ..EvalOptions::default()
-    };
-    let mut references = HashMap::new();
-    for name in &names {
-        let reference = corpus_split(&corpus, &eval_options(name))?;
-        references.insert(name.clone(), reference);
-    }
-    let labels: HashMap<String, _> = evaluator::train::corpus_clips(&corpus, |_| true)?
-        .into_iter()
-        .map(|c| (c.motion_id.clone(), c))
-        .collect();
+    let setup = prepare(config)?;
     let mut results = Vec::new();
     for o in 0..config.orders {
-        let positions = order(names.len(), o);
-        let ordered: Vec<String> = positions.iter().map(|&p| names[p].clone()).collect();
-        let order_dir = config.out.join(format!("order-{o}"));
-        std::fs::create_dir_all(&order_dir).map_err(|e| SweepError::io(&order_dir, e))?;
-        write_json(&order_dir.join("order.json"), &ordered)?;
-        let steps = if config.method == Method::Mtl {
-            1
-        } else {
-            ordered.len()
-        };
-        let mut rows: Vec<Vec<EvalReport>> = Vec::new();
-        let mut previous: Option<PathBuf> = None;
-        let mut adapters: Vec<PathBuf> = Vec::new();
-        for k in 0..steps {
-            let step_dir = order_dir.join(format!("step-{}", k + 1));
-            let lists_dir = step_dir.join("lists");
-            std::fs::create_dir_all(&lists_dir).map_err(|e| SweepError::io(&lists_dir, e))?;
-            let mut lists = HashMap::new();
-            let learned: Vec<&String> = match config.method {
-                Method::Mtl => ordered.iter().collect(),
-                _ => vec![&ordered[k]],
-            };
-            for name in &learned {
-                for (split, ids) in dataset_lists(&config.scenarios.join(name))? {
-                    lists.entry(split).or_insert_with(Vec::new).extend(ids);
-                }
-            }
-            if config.method == Method::Replay {
-                for (i, earlier) in ordered[..k].iter().enumerate() {
-                    let mut train = dataset_lists(&config.scenarios.join(earlier))?
-                        .remove("train")
-                        .unwrap_or_default();
-                    let mut rng =
-                        SplitMix64::stream(config.seed ^ 0xbeef, (o * 1000 + k * 10 + i) as u64);
-                    rng.shuffle(&mut train);
-                    let keep = ((train.len() as f64 * config.replay_fraction).ceil() as usize)
-                        .min(train.len());
-                    lists
-                        .entry("train")
-                        .or_default()
-                        .extend(train.into_iter().take(keep));
-                }
-            }
-            write_lists(&lists_dir, &lists)?;
-            let train_dir = step_dir.join("train");
-            // O-LoRA: a new adapter on the model with every earlier one merged in.
-            let shape = match config.method {
-                Method::EsMoe => {
-                    let moe = EsMoeConfig {
-                        lora: config.lora,
-                        ..config.es_moe.unwrap_or_default()
-                    };
-                    if moe.mixture && ordered.len() > moe.max_experts {
-                        return Err(SweepError::Argument(format!(
-                            "{} datasets need {} ES-MoE experts; the gate has keys for {}",
-                            ordered.len(),
-                            ordered.len(),
-                            moe.max_experts
-                        )));
-                    }
-                    ModelShape::EsMoe {
-                        base: config.base.clone(),
-                        previous: previous
-                            .as_ref()
-                            .and_then(|p| p.parent())
-                            .map(Path::to_path_buf),
-                        expert: if moe.mixture {
-                            ordered[k].clone()
-                        } else {
-                            "shared".to_string()
-                        },
-                        moe,
-                    }
-                }
-                Method::OLora => ModelShape::Lora {
-                    base: previous
-                        .as_ref()
-                        .and_then(|p| p.parent())
-                        .map_or_else(|| config.base.clone(), Path::to_path_buf),
-                    lora: config.lora,
-                    expert: format!("{}-{}", config.method.name(), k + 1),
-                    init: None,
-                    orthogonal_to: adapters.clone(),
-                    orthogonality: config.orthogonality,
-                    distill_from: None,
-                    distillation: 0.0,
-                },
-                _ => ModelShape::Lora {
-                    base: config.base.clone(),
-                    lora: config.lora,
-                    expert: config.method.name().to_string(),
-                    init: previous.clone(),
-                    orthogonal_to: Vec::new(),
-                    orthogonality: 0.0,
-                    distill_from: match config.method {
-                        Method::LwfLora => previous
-                            .as_ref()
-                            .and_then(|p| p.parent())
-                            .map(Path::to_path_buf),
-                        _ => None,
-                    },
-                    distillation: match (config.method, &previous) {
-                        (Method::LwfLora, Some(_)) => config.distillation,
-                        _ => 0.0,
-                    },
-                },
-            };
-            let mut train_config =
-                TrainConfig::new(&config.tokens, shape, config.tokens_budget, &train_dir);
-            train_config.splits = Some(lists_dir.clone());
-            train_config.hyper.batch_size = config.batch_size;
-            train_config.hyper.lr = config.lr;
-            train_config.hyper.seed = config.seed;
-            let report = train(&train_config, &mut |_| {})?;
-            let gate = report
-                .eval
-                .expert_weights
-                .as_ref()
-                .map_or_else(String::new, |w| {
-                    let w: Vec<String> = w.iter().map(|v| format!("{v:.2}")).collect();
-                    format!(", gate weights on its test captions [{}]", w.join(", "))
-                });
-            log(&format!(
-                "order {o} step {}: trained on {} (test CE {:.3}{gate})",
-                k + 1,
-                learned
-                    .iter()
-                    .map(|s| s.as_str())
-                    .collect::<Vec<_>>()
-                    .join("+"),
-                report.eval.test.cross_entropy
-            ));
-            previous = Some(train_dir.join(lm::lora::ADAPTER_FILE));
-            adapters.extend(previous.clone());
-            let (model, run) = load_lm(&train_dir)?;
-            let mut row = Vec::new();
-            for name in &ordered {
-                let eval_path = step_dir.join(format!("eval-{name}.json"));
-                if let Ok(report) = read_json::<EvalReport>(&eval_path) {
-                    row.push(report);
-                    continue;
-                }
-                let gen_dir = step_dir.join(format!("gen-{name}"));
-                let options = CaptionSetOptions {
-                    corpus: corpus.clone(),
-                    split: config.eval_split.clone(),
-                    splits: Some(config.scenarios.join(name)),
-                    mm_texts: config.mm_texts,
-                    mm_samples: 10,
-                    batch: 32,
-                    sampling: Sampling {
-                        seed: config.seed,
-                        min_tokens: 1,
-                        ..Sampling::default()
-                    },
-                };
-                generate_caption_set(
-                    model.as_ref(),
-                    &run,
-                    &tokenizer,
-                    None,
-                    &options,
-                    &gen_dir,
-                    |_, _| {},
-                )?;
-                let set = hml3d_folder(&gen_dir, &eval_options(name), &labels)?;
-                let report = evaluate_motions(
-                    &evaluator,
-                    &config.evaluator,
-                    &references[name],
-                    &set,
-                    &eval_options(name),
-                    None,
-                )?;
-                write_json(&eval_path, &report)?;
-                if !config.keep_motions {
-                    std::fs::remove_dir_all(&gen_dir).map_err(|e| SweepError::io(&gen_dir, e))?;
-                }
-                log(&format!(
-                    "order {o} step {}: {name} FID {:.4}, R-precision@1 {:.3}",
-                    k + 1,
-                    report.fid.mean,
-                    report.r_precision[0].mean
-                ));
-                row.push(report);
-            }
-            rows.push(row);
-        }
-        let result = order_result(ordered, &rows);
-        write_heatmaps(&order_dir, o, &result)?;
-        results.push(result);
+        results.push(run_order(config, &setup, o, &mut log)?);
     }
     let report = ContinualReport {
         config: config.clone(),
-        evaluator_id: evaluator.id.clone(),
+        evaluator_id: setup.evaluator.id.clone(),
         mean: Summary::mean_of(&results.iter().map(|r| r.summary).collect::<Vec<_>>()),
         orders: results,
     };
@@ -593,6 +395,273 @@ pub fn run_continual(
     motionscale_core::write_atomic(&csv_path, summary_csv(&report).as_bytes())
         .map_err(|e| SweepError::io(&csv_path, e))?;
     Ok(report)
+}
+
+/// The evaluation options of `dataset`'s split.
+fn eval_options(config: &ContinualConfig, dataset: &str) -> EvalOptions {
+    EvalOptions {
+        split: config.eval_split.clone(),
+        repeats: config.repeats,
+        seed: config.seed,
+        splits: Some(config.scenarios.join(dataset)),
+        pool: config.pool,
+        ..EvalOptions::default()
+    }
+}
+
+/// Load what every step reads, refusing a backbone that trained on a held-out clip.
+fn prepare(config: &ContinualConfig) -> Result<Setup, SweepError> {
+    let sets: ScenarioDatasets = read_json(&config.scenarios.join("datasets.json"))?;
+    let names: Vec<String> = sets.datasets.iter().map(|d| d.name.clone()).collect();
+    let evaluator = TrainedEvaluator::load(&config.evaluator)?;
+    let (_, base_run) = load_model(&config.base)?;
+    check_backbone_held_out(&base_run, &config.scenarios, &names)?;
+    let corpus = base_run.corpus.clone();
+    let tokenizer = run_tokenizer(&base_run, None)?;
+    let mut references = HashMap::new();
+    for name in &names {
+        let reference = corpus_split(&corpus, &eval_options(config, name))?;
+        references.insert(name.clone(), reference);
+    }
+    let labels = evaluator::train::corpus_clips(&corpus, |_| true)?
+        .into_iter()
+        .map(|c| (c.motion_id.clone(), c))
+        .collect();
+    Ok(Setup {
+        names,
+        evaluator,
+        corpus,
+        tokenizer,
+        references,
+        labels,
+    })
+}
+
+/// Order `o`: every step trained and scored on every dataset, as matrices and heat maps.
+fn run_order(
+    config: &ContinualConfig,
+    setup: &Setup,
+    o: usize,
+    log: &mut impl FnMut(&str),
+) -> Result<OrderResult, SweepError> {
+    let positions = order(setup.names.len(), o);
+    let ordered: Vec<String> = positions.iter().map(|&p| setup.names[p].clone()).collect();
+    let order_dir = config.out.join(format!("order-{o}"));
+    std::fs::create_dir_all(&order_dir).map_err(|e| SweepError::io(&order_dir, e))?;
+    write_json(&order_dir.join("order.json"), &ordered)?;
+    let steps = if config.method == Method::Mtl {
+        1
+    } else {
+        ordered.len()
+    };
+    let mut rows: Vec<Vec<EvalReport>> = Vec::new();
+    let mut previous: Option<PathBuf> = None;
+    let mut adapters: Vec<PathBuf> = Vec::new();
+    for k in 0..steps {
+        let step_dir = order_dir.join(format!("step-{}", k + 1));
+        let lists_dir = step_dir.join("lists");
+        let learned = write_step_lists(config, &ordered, (o, k), &lists_dir)?;
+        let train_dir = step_dir.join("train");
+        let shape = step_shape(config, &ordered, k, previous.as_deref(), &adapters)?;
+        let mut train_config =
+            TrainConfig::new(&config.tokens, shape, config.tokens_budget, &train_dir);
+        train_config.splits = Some(lists_dir.clone());
+        train_config.hyper.batch_size = config.batch_size;
+        train_config.hyper.lr = config.lr;
+        train_config.hyper.seed = config.seed;
+        let report = train(&train_config, &mut |_| {})?;
+        let gate = report
+            .eval
+            .expert_weights
+            .as_ref()
+            .map_or_else(String::new, |w| {
+                let w: Vec<String> = w.iter().map(|v| format!("{v:.2}")).collect();
+                format!(", gate weights on its test captions [{}]", w.join(", "))
+            });
+        log(&format!(
+            "order {o} step {}: trained on {} (test CE {:.3}{gate})",
+            k + 1,
+            learned.join("+"),
+            report.eval.test.cross_entropy
+        ));
+        previous = Some(train_dir.join(lm::lora::ADAPTER_FILE));
+        adapters.extend(previous.clone());
+        let step = (o, k, step_dir.as_path());
+        rows.push(score_step(config, setup, &ordered, step, &train_dir, log)?);
+    }
+    let result = order_result(ordered, &rows);
+    write_heatmaps(&order_dir, o, &result)?;
+    Ok(result)
+}
+
+/// Write step `k`'s clip lists (of order `o`) into `lists_dir`: the datasets it learns (all of
+/// them for MTL) plus, for replay, a share of every earlier dataset's train clips. Returns the
+/// datasets it learns.
+fn write_step_lists(
+    config: &ContinualConfig,
+    ordered: &[String],
+    (o, k): (usize, usize),
+    lists_dir: &Path,
+) -> Result<Vec<String>, SweepError> {
+    std::fs::create_dir_all(lists_dir).map_err(|e| SweepError::io(lists_dir, e))?;
+    let mut lists = HashMap::new();
+    let learned: Vec<String> = match config.method {
+        Method::Mtl => ordered.to_vec(),
+        _ => vec![ordered[k].clone()],
+    };
+    for name in &learned {
+        for (split, ids) in dataset_lists(&config.scenarios.join(name))? {
+            lists.entry(split).or_insert_with(Vec::new).extend(ids);
+        }
+    }
+    if config.method == Method::Replay {
+        for (i, earlier) in ordered[..k].iter().enumerate() {
+            let mut train = dataset_lists(&config.scenarios.join(earlier))?
+                .remove("train")
+                .unwrap_or_default();
+            let mut rng = SplitMix64::stream(config.seed ^ 0xbeef, (o * 1000 + k * 10 + i) as u64);
+            rng.shuffle(&mut train);
+            let keep =
+                ((train.len() as f64 * config.replay_fraction).ceil() as usize).min(train.len());
+            lists
+                .entry("train")
+                .or_default()
+                .extend(train.into_iter().take(keep));
+        }
+    }
+    write_lists(lists_dir, &lists)?;
+    Ok(learned)
+}
+
+/// The model step `k` trains: a new ES-MoE expert; for O-LoRA a new adapter on the model with
+/// every earlier one merged in, kept orthogonal to them; otherwise one adapter continued from
+/// the `previous` step's (distilled towards that step's model for LwF).
+fn step_shape(
+    config: &ContinualConfig,
+    ordered: &[String],
+    k: usize,
+    previous: Option<&Path>,
+    adapters: &[PathBuf],
+) -> Result<ModelShape, SweepError> {
+    let previous_run = previous.and_then(Path::parent).map(Path::to_path_buf);
+    Ok(match config.method {
+        Method::EsMoe => {
+            let moe = EsMoeConfig {
+                lora: config.lora,
+                ..config.es_moe.unwrap_or_default()
+            };
+            if moe.mixture && ordered.len() > moe.max_experts {
+                return Err(SweepError::Argument(format!(
+                    "{} datasets need {} ES-MoE experts; the gate has keys for {}",
+                    ordered.len(),
+                    ordered.len(),
+                    moe.max_experts
+                )));
+            }
+            ModelShape::EsMoe {
+                base: config.base.clone(),
+                previous: previous_run,
+                expert: if moe.mixture {
+                    ordered[k].clone()
+                } else {
+                    "shared".to_string()
+                },
+                moe,
+            }
+        }
+        Method::OLora => ModelShape::Lora {
+            base: previous_run.unwrap_or_else(|| config.base.clone()),
+            lora: config.lora,
+            expert: format!("{}-{}", config.method.name(), k + 1),
+            init: None,
+            orthogonal_to: adapters.to_vec(),
+            orthogonality: config.orthogonality,
+            distill_from: None,
+            distillation: 0.0,
+        },
+        _ => ModelShape::Lora {
+            base: config.base.clone(),
+            lora: config.lora,
+            expert: config.method.name().to_string(),
+            init: previous.map(Path::to_path_buf),
+            orthogonal_to: Vec::new(),
+            orthogonality: 0.0,
+            distill_from: match config.method {
+                Method::LwfLora => previous_run,
+                _ => None,
+            },
+            distillation: match (config.method, previous) {
+                (Method::LwfLora, Some(_)) => config.distillation,
+                _ => 0.0,
+            },
+        },
+    })
+}
+
+/// Score the model step `k` trained (in `train_dir`) on every dataset of the order: its
+/// captions animated, then evaluated against the dataset's reference; finished datasets are
+/// read back, so a re-run resumes.
+fn score_step(
+    config: &ContinualConfig,
+    setup: &Setup,
+    ordered: &[String],
+    (o, k, step_dir): (usize, usize, &Path),
+    train_dir: &Path,
+    log: &mut impl FnMut(&str),
+) -> Result<Vec<EvalReport>, SweepError> {
+    let (model, run) = load_lm(train_dir)?;
+    let mut row = Vec::new();
+    for name in ordered {
+        let eval_path = step_dir.join(format!("eval-{name}.json"));
+        if let Ok(report) = read_json::<EvalReport>(&eval_path) {
+            row.push(report);
+            continue;
+        }
+        let gen_dir = step_dir.join(format!("gen-{name}"));
+        let options = CaptionSetOptions {
+            corpus: setup.corpus.clone(),
+            split: config.eval_split.clone(),
+            splits: Some(config.scenarios.join(name)),
+            mm_texts: config.mm_texts,
+            mm_samples: 10,
+            batch: 32,
+            sampling: Sampling {
+                seed: config.seed,
+                min_tokens: 1,
+                ..Sampling::default()
+            },
+        };
+        generate_caption_set(
+            model.as_ref(),
+            &run,
+            &setup.tokenizer,
+            None,
+            &options,
+            &gen_dir,
+            |_, _| {},
+        )?;
+        let set = hml3d_folder(&gen_dir, &eval_options(config, name), &setup.labels)?;
+        let report = evaluate_motions(
+            &setup.evaluator,
+            &config.evaluator,
+            &setup.references[name],
+            &set,
+            &eval_options(config, name),
+            None,
+        )?;
+        write_json(&eval_path, &report)?;
+        if !config.keep_motions {
+            std::fs::remove_dir_all(&gen_dir).map_err(|e| SweepError::io(&gen_dir, e))?;
+        }
+        log(&format!(
+            "order {o} step {}: {name} FID {:.4}, R-precision@1 {:.3}",
+            k + 1,
+            report.fid.mean,
+            report.r_precision[0].mean
+        ));
+        row.push(report);
+    }
+    Ok(row)
 }
 
 /// The FID and R-precision matrices of one order as heat maps (the paper's Figure 5):

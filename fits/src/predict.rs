@@ -299,7 +299,6 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         )));
     }
     let mut warnings = Vec::new();
-    let mut checks = Vec::new();
     let mut equations = Vec::new();
     for law in [&laws.n, &laws.nv, &laws.v, &laws.d, &laws.nv_vs_n]
         .into_iter()
@@ -338,33 +337,88 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
     let total = n_nv.map(|n| n.value + n_v.map_or(0.0, |v| v.value));
     let d_from_budget = total.map(|t| c / (6.0 * t));
 
-    let vocab = match (&n_v, &width) {
-        (Some(nv), Some(w)) => {
-            let exact = scale(nv, 1.0 / w.value);
-            let (k, levels) = fsq_for(exact.value);
-            let note = (exact.value < 2f64.powi(7) || exact.value > 2f64.powi(17)).then(|| {
-                format!(
-                    "V = {:.0} is outside the FSQ level sets (2^8..2^16); the nearest end is shown",
-                    exact.value
-                )
-            });
-            if let Some(n) = &note {
-                warnings.push(n.clone());
-            }
-            Some(Vocab {
-                exact,
-                nominal: 1u64 << k,
-                nominal_log2: k,
-                real: levels.iter().map(|&l| l as u64).product(),
-                levels: levels.to_vec(),
-                note,
-            })
-        }
-        _ => None,
+    let vocab = vocab_at(n_v.as_ref(), width.as_ref(), &mut warnings);
+    let mut prediction = Prediction {
+        source: laws.source.clone(),
+        budget: c,
+        equations,
+        n_nv,
+        n_v,
+        n_v_source,
+        n_v_from_n_nv_law,
+        d,
+        d_from_budget,
+        width,
+        vocab,
+        v_opt: laws.v.as_ref().map(|l| l.at(c)),
+        loss: laws.loss.as_ref().map(|l| l.at(c)),
+        parametric: laws.parametric.as_ref().map(|p| parametric_at(p, c)),
+        consistency: Vec::new(),
+        warnings,
     };
+    let mut checks = law_checks(laws, &prediction);
+    if laws.is_scamo {
+        let mut warnings = std::mem::take(&mut prediction.warnings);
+        let p = &prediction;
+        let (n_nv, n_v, from_law, d) = (&p.n_nv, &p.n_v, &p.n_v_from_n_nv_law, &p.d);
+        paper_checks(c, n_nv, n_v, from_law, d, &mut checks, &mut warnings);
+        prediction.warnings = warnings;
+    }
+    for ch in checks.iter().filter(|ch| !ch.ok) {
+        prediction.warnings.push(format!(
+            "inconsistent: {}: {} vs {} (ratio {:.3}; needs {}); {}",
+            ch.name,
+            crate::report::sig(ch.value),
+            crate::report::sig(ch.reference),
+            ch.ratio,
+            ch.rule,
+            ch.note
+        ));
+    }
+    if laws.loss.as_ref().is_some_and(|l| l.fit.slope.se.is_none()) {
+        prediction
+            .warnings
+            .push("the loss law carries no standard errors: no interval".into());
+    }
+    prediction.consistency = checks;
+    Ok(prediction)
+}
 
-    // Consistency between the laws.
-    if let (Some(t), Some(dd)) = (total, d) {
+/// The FSQ vocabulary of the vocabulary parameters `n_v` at `width` (V = N_v / d, rounded to
+/// the nearest level set); a V outside 2^8..2^16 adds a warning.
+fn vocab_at(
+    n_v: Option<&Estimate>,
+    width: Option<&Width>,
+    warnings: &mut Vec<String>,
+) -> Option<Vocab> {
+    let (nv, w) = (n_v?, width?);
+    let exact = scale(nv, 1.0 / w.value);
+    let (k, levels) = fsq_for(exact.value);
+    let note = (exact.value < 2f64.powi(7) || exact.value > 2f64.powi(17)).then(|| {
+        format!(
+            "V = {:.0} is outside the FSQ level sets (2^8..2^16); the nearest end is shown",
+            exact.value
+        )
+    });
+    if let Some(n) = &note {
+        warnings.push(n.clone());
+    }
+    Some(Vocab {
+        exact,
+        nominal: 1u64 << k,
+        nominal_log2: k,
+        real: levels.iter().map(|&l| l as u64).product(),
+        levels: levels.to_vec(),
+        note,
+    })
+}
+
+/// The consistency checks between the laws at the prediction `p`'s budget.
+fn law_checks(laws: &Laws, p: &Prediction) -> Vec<Check> {
+    let c = p.budget;
+    let mut checks = Vec::new();
+    let total = p.n_nv.map(|n| n.value + p.n_v.map_or(0.0, |v| v.value));
+    if let (Some(t), Some(dd)) = (total, p.d) {
         checks.push(Check::ratio(
             "compute: 6·(N_nv + N_v)·D vs C",
             6.0 * t * dd.value,
@@ -372,7 +426,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
             "N_nv, N_v and D each from their own law; C ≈ 6·N·D should hold".into(),
         ));
     }
-    if let (Some(a), Some(b)) = (&n_v, &n_v_from_n_nv_law) {
+    if let (Some(a), Some(b)) = (&p.n_v, &p.n_v_from_n_nv_law) {
         checks.push(Check::ratio(
             "N_v: C-law vs N_nv-law",
             a.value,
@@ -404,8 +458,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
             "the C-laws imply an N_v–N_nv exponent; the direct fit should agree".into(),
         ));
     }
-    let v_opt = laws.v.as_ref().map(|l| l.at(c));
-    if let (Some(v), Some(from_nv)) = (&v_opt, &vocab) {
+    if let (Some(v), Some(from_nv)) = (&p.v_opt, &p.vocab) {
         checks.push(Check::codebook(
             "V: V-law vs N_v / d",
             v.value,
@@ -413,8 +466,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
             "V_opt from its own C-law, against N_v (its C-law) over the width".into(),
         ));
     }
-    let parametric = laws.parametric.as_ref().map(|p| parametric_at(p, c));
-    if let (Some(n), Some(pp)) = (&n_nv, &parametric) {
+    if let (Some(n), Some(pp)) = (&p.n_nv, &p.parametric) {
         checks.push(Check::ratio(
             "N_opt: IsoFLOP law (approach 2) vs parametric (approach 3)",
             n.value,
@@ -422,49 +474,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
             "the two ways of fitting the same runs should place the optimum alike".into(),
         ));
     }
-    if laws.is_scamo {
-        paper_checks(
-            c,
-            &n_nv,
-            &n_v,
-            &n_v_from_n_nv_law,
-            &d,
-            &mut checks,
-            &mut warnings,
-        );
-    }
-    for ch in checks.iter().filter(|ch| !ch.ok) {
-        warnings.push(format!(
-            "inconsistent: {}: {} vs {} (ratio {:.3}; needs {}); {}",
-            ch.name,
-            crate::report::sig(ch.value),
-            crate::report::sig(ch.reference),
-            ch.ratio,
-            ch.rule,
-            ch.note
-        ));
-    }
-    if laws.loss.as_ref().is_some_and(|l| l.fit.slope.se.is_none()) {
-        warnings.push("the loss law carries no standard errors: no interval".into());
-    }
-    Ok(Prediction {
-        source: laws.source.clone(),
-        budget: c,
-        equations,
-        n_nv,
-        n_v,
-        n_v_source,
-        n_v_from_n_nv_law,
-        d,
-        d_from_budget,
-        width,
-        vocab,
-        v_opt,
-        loss: laws.loss.as_ref().map(|l| l.at(c)),
-        parametric,
-        consistency: checks,
-        warnings,
-    })
+    checks
 }
 
 /// The paper's own 1e18 run (ScaMo §5.5): a 3B model (24 layers × 3200), vocabulary 2^16,

@@ -88,21 +88,14 @@ fn io(path: &Path) -> impl Fn(std::io::Error) -> LmError + '_ {
     move |e| LmError::io(path, e)
 }
 
-/// Animate the captions `options` selects with `lm` (decoded by `tokenizer`) into `out`.
-/// Caption embeddings come from the corpus, else from `encoder`. `progress(done, total)`.
-/// An LM with a model per caption (ES-MoE) generates one sequence at a time.
-pub fn generate_caption_set(
-    lm: &dyn MotionLm,
-    run: &RunConfig,
-    tokenizer: &MotionTokenizer,
-    encoder: Option<&dyn TextEncoder>,
+/// One caption (drawn by the seed) of every captioned clip of the split `options` selects,
+/// and the motions to generate: one per clip, `mm_samples` for `mm_texts` clips (drawn too).
+/// Returns the clip count, the multimodality clip count and the motions.
+fn pick_jobs(
+    corpus: &Corpus,
     options: &CaptionSetOptions,
-    out: &Path,
-    mut progress: impl FnMut(usize, usize),
-) -> Result<CaptionSetReport, LmError> {
-    let started = std::time::Instant::now();
+) -> Result<(usize, usize, Vec<GeneratedEntry>), LmError> {
     let corpus_dir = &options.corpus;
-    let corpus = Corpus::open(corpus_dir).map_err(LmError::Corpus)?;
     let captions = text::embed::clip_captions(corpus_dir)?;
     let mut rng = SplitMix64::stream(options.sampling.seed, 0);
     let splits = split_assignment(options.splits.as_deref())?;
@@ -141,6 +134,39 @@ pub fn generate_caption_set(
             });
         }
     }
+    Ok((clips.len(), multi.len(), jobs))
+}
+
+/// Write one generated motion `id` into `out`: its features, the joints recovered from them
+/// and its caption, in the HumanML3D layout.
+fn write_generated(out: &Path, id: &str, caption: &str, features: &[f32]) -> Result<(), LmError> {
+    let frames = features.len() / ingest::hml263::FEATURE_DIM;
+    let joints = ingest::hml263::recover_joints_f32(features);
+    let path = |sub: &str, ext: &str| out.join(sub).join(format!("{id}.{ext}"));
+    let vecs = path("new_joint_vecs", "npy");
+    write_f32(&vecs, &[frames, 263], features).map_err(io(&vecs))?;
+    let joints_path = path("new_joints", "npy");
+    write_f32(&joints_path, &[frames, 22, 3], &joints).map_err(io(&joints_path))?;
+    let text_path = path("texts", "txt");
+    write_atomic(&text_path, caption_line(caption).as_bytes()).map_err(io(&text_path))
+}
+
+/// Animate the captions `options` selects with `lm` (decoded by `tokenizer`) into `out`.
+/// Caption embeddings come from the corpus, else from `encoder`. `progress(done, total)`.
+/// An LM with a model per caption (ES-MoE) generates one sequence at a time.
+pub fn generate_caption_set(
+    lm: &dyn MotionLm,
+    run: &RunConfig,
+    tokenizer: &MotionTokenizer,
+    encoder: Option<&dyn TextEncoder>,
+    options: &CaptionSetOptions,
+    out: &Path,
+    mut progress: impl FnMut(usize, usize),
+) -> Result<CaptionSetReport, LmError> {
+    let started = std::time::Instant::now();
+    let corpus_dir = &options.corpus;
+    let corpus = Corpus::open(corpus_dir).map_err(LmError::Corpus)?;
+    let (clips, mm_texts, jobs) = pick_jobs(&corpus, options)?;
     let stored = CaptionEmbeddings::open(corpus_dir, &run.text_encoder).ok();
     for sub in ["new_joint_vecs", "new_joints", "texts"] {
         std::fs::create_dir_all(out.join(sub)).map_err(io(&out.join(sub)))?;
@@ -190,16 +216,7 @@ pub fn generate_caption_set(
             }
             tokens_total += tokens.len();
             let features = tokenizer.detokenize(&tokens).map_err(LmError::inference)?;
-            let frames = features.len() / ingest::hml263::FEATURE_DIM;
-            let joints = ingest::hml263::recover_joints_f32(&features);
-            let path = |sub: &str, ext: &str| out.join(sub).join(format!("{}.{ext}", e.id));
-            let vecs = path("new_joint_vecs", "npy");
-            write_f32(&vecs, &[frames, 263], &features).map_err(io(&vecs))?;
-            let joints_path = path("new_joints", "npy");
-            write_f32(&joints_path, &[frames, 22, 3], &joints).map_err(io(&joints_path))?;
-            let text_path = path("texts", "txt");
-            write_atomic(&text_path, caption_line(&e.caption).as_bytes())
-                .map_err(io(&text_path))?;
+            write_generated(out, &e.id, &e.caption, &features)?;
             written.push(e.clone());
         }
         progress(((b + 1) * batch).min(jobs.len()), jobs.len());
@@ -217,8 +234,8 @@ pub fn generate_caption_set(
     let rejects_path = out.join("rejects.jsonl");
     write_atomic(&rejects_path, rejects.as_bytes()).map_err(io(&rejects_path))?;
     let report = CaptionSetReport {
-        clips: clips.len(),
-        mm_texts: multi.len(),
+        clips,
+        mm_texts,
         motions: written.len(),
         rejected: jobs.len() - written.len(),
         motion_tokens: tokens_total,

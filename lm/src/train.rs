@@ -497,6 +497,82 @@ struct Run {
     paths: Paths,
 }
 
+/// The variables a run trains and how: a new model, a LoRA adapter on a frozen base (with
+/// its orthogonality and distillation partners), or an ES-MoE expert and the gate.
+fn build_trainee(
+    config: &TrainConfig,
+    run: &RunConfig,
+    data: &LmData,
+) -> Result<(Trainee, HashMap<String, candle_core::Var>), LmError> {
+    Ok(match &config.model {
+        ModelShape::Lora {
+            base,
+            lora,
+            expert,
+            init,
+            orthogonal_to,
+            orthogonality,
+            distill_from,
+            distillation,
+        } => {
+            let adapter = LoraAdapter::new(&run.model, *lora, expert, config.hyper.seed)
+                .map_err(LmError::inference)?;
+            if let Some(file) = init {
+                adapter.load(file)?;
+            }
+            let mut previous = Vec::new();
+            for file in orthogonal_to {
+                previous.extend(adapter_a_matrices(file)?);
+            }
+            let teacher = match distill_from {
+                Some(dir) => Some(load_model(dir)?.0),
+                None => None,
+            };
+            let vars = adapter.vars();
+            let lora = LoraRun {
+                adapter,
+                base: base_weights(&base.join(MODEL_FILE))?,
+                previous,
+                orthogonality: *orthogonality,
+                teacher,
+                distillation: *distillation as f32,
+            };
+            (Trainee::Lora(lora), vars)
+        }
+        ModelShape::EsMoe {
+            base,
+            previous,
+            expert,
+            moe,
+        } => {
+            let train_texts: Vec<&[f32]> = data
+                .split("train")
+                .iter()
+                .flat_map(|e| &e.captions)
+                .map(|&c| data.text[c].as_slice())
+                .collect();
+            let trainer = EsMoeTrainer::new(
+                &run.model,
+                *moe,
+                &base.join(MODEL_FILE),
+                previous.as_deref(),
+                expert,
+                &clip_emotions(&run.corpus)?,
+                &train_texts,
+                config.hyper.seed,
+            )?;
+            let vars = trainer.vars();
+            (Trainee::Moe(Box::new(trainer)), vars)
+        }
+        ModelShape::Preset(_) | ModelShape::Custom { .. } => {
+            let (model, varmap) =
+                init_model(&run.model, config.hyper.seed).map_err(LmError::inference)?;
+            let vars = varmap.data().lock().expect("varmap lock").clone();
+            (Trainee::Model(model), vars)
+        }
+    })
+}
+
 impl Run {
     /// Load the data, resolve the run, build the model and optimiser, and restore the
     /// checkpoint in the output folder if there is one.
@@ -546,73 +622,7 @@ impl Run {
             },
         };
         std::fs::create_dir_all(&config.out).map_err(|e| LmError::io(&config.out, e))?;
-        let (trainee, vars) = match &config.model {
-            ModelShape::Lora {
-                base,
-                lora,
-                expert,
-                init,
-                orthogonal_to,
-                orthogonality,
-                distill_from,
-                distillation,
-            } => {
-                let adapter = LoraAdapter::new(&run.model, *lora, expert, config.hyper.seed)
-                    .map_err(LmError::inference)?;
-                if let Some(file) = init {
-                    adapter.load(file)?;
-                }
-                let mut previous = Vec::new();
-                for file in orthogonal_to {
-                    previous.extend(adapter_a_matrices(file)?);
-                }
-                let teacher = match distill_from {
-                    Some(dir) => Some(load_model(dir)?.0),
-                    None => None,
-                };
-                let vars = adapter.vars();
-                let lora = LoraRun {
-                    adapter,
-                    base: base_weights(&base.join(MODEL_FILE))?,
-                    previous,
-                    orthogonality: *orthogonality,
-                    teacher,
-                    distillation: *distillation as f32,
-                };
-                (Trainee::Lora(lora), vars)
-            }
-            ModelShape::EsMoe {
-                base,
-                previous,
-                expert,
-                moe,
-            } => {
-                let train_texts: Vec<&[f32]> = data
-                    .split("train")
-                    .iter()
-                    .flat_map(|e| &e.captions)
-                    .map(|&c| data.text[c].as_slice())
-                    .collect();
-                let trainer = EsMoeTrainer::new(
-                    &run.model,
-                    *moe,
-                    &base.join(MODEL_FILE),
-                    previous.as_deref(),
-                    expert,
-                    &clip_emotions(&run.corpus)?,
-                    &train_texts,
-                    config.hyper.seed,
-                )?;
-                let vars = trainer.vars();
-                (Trainee::Moe(Box::new(trainer)), vars)
-            }
-            ModelShape::Preset(_) | ModelShape::Custom { .. } => {
-                let (model, varmap) =
-                    init_model(&run.model, config.hyper.seed).map_err(LmError::inference)?;
-                let vars = varmap.data().lock().expect("varmap lock").clone();
-                (Trainee::Model(model), vars)
-            }
-        };
+        let (trainee, vars) = build_trainee(config, &run, &data)?;
         let (beta1, beta2) = config.betas;
         let adamw = AdamWConfig {
             beta1,

@@ -5,6 +5,7 @@ use super::manifest::Manifest;
 use super::reader::{records_from_batch, stats_problem, Corpus};
 use super::schema::{legacy_shard_schema, shard_schema, FEATURE_DIM, JOINT_FRAME_DIM};
 use super::split::SPLITS;
+use super::ClipRecord;
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use std::path::Path;
 
@@ -19,6 +20,41 @@ pub struct Verification {
     pub frames: u64,
     /// Problems, each naming the file and the clip.
     pub problems: Vec<String>,
+}
+
+/// What is wrong with one record on its own: array sizes, non-finite values, its split.
+fn record_problems(r: &ClipRecord) -> Vec<String> {
+    let mut problems = Vec::new();
+    let n = r.num_frames as usize;
+    if r.features.len() != n * FEATURE_DIM {
+        problems.push(format!(
+            "{} feature values, expected {n} × {FEATURE_DIM}",
+            r.features.len()
+        ));
+    }
+    if r.joints.len() != (n + 1) * JOINT_FRAME_DIM {
+        problems.push(format!(
+            "{} joint values, expected ({n} + 1) × 22 × 3",
+            r.joints.len()
+        ));
+    }
+    if let Some(i) = r.features.iter().position(|x| !x.is_finite()) {
+        problems.push(format!(
+            "non-finite feature at frame {}, dim {}",
+            i / FEATURE_DIM,
+            i % FEATURE_DIM
+        ));
+    }
+    if let Some(i) = r.joints.iter().position(|x| !x.is_finite()) {
+        problems.push(format!(
+            "non-finite joint value at frame {}",
+            i / JOINT_FRAME_DIM
+        ));
+    }
+    if !SPLITS.contains(&r.split.as_str()) {
+        problems.push(format!("unknown split {:?}", r.split));
+    }
+    problems
 }
 
 /// Verify a corpus folder.
@@ -85,35 +121,7 @@ pub fn verify(dir: &Path) -> Verification {
                 rows += 1;
                 frames += r.num_frames as u64;
                 let at = |what: String| format!("{}: clip {}: {what}", path.display(), r.motion_id);
-                let n = r.num_frames as usize;
-                if r.features.len() != n * FEATURE_DIM {
-                    v.problems.push(at(format!(
-                        "{} feature values, expected {n} × {FEATURE_DIM}",
-                        r.features.len()
-                    )));
-                }
-                if r.joints.len() != (n + 1) * JOINT_FRAME_DIM {
-                    v.problems.push(at(format!(
-                        "{} joint values, expected ({n} + 1) × 22 × 3",
-                        r.joints.len()
-                    )));
-                }
-                if let Some(i) = r.features.iter().position(|x| !x.is_finite()) {
-                    v.problems.push(at(format!(
-                        "non-finite feature at frame {}, dim {}",
-                        i / FEATURE_DIM,
-                        i % FEATURE_DIM
-                    )));
-                }
-                if let Some(i) = r.joints.iter().position(|x| !x.is_finite()) {
-                    v.problems.push(at(format!(
-                        "non-finite joint value at frame {}",
-                        i / JOINT_FRAME_DIM
-                    )));
-                }
-                if !SPLITS.contains(&r.split.as_str()) {
-                    v.problems.push(at(format!("unknown split {:?}", r.split)));
-                }
+                v.problems.extend(record_problems(&r).into_iter().map(at));
                 if last_id.as_ref().is_some_and(|prev| prev >= &r.motion_id) {
                     v.problems.push(at(
                         "ids are not strictly increasing (duplicate or unsorted)".into(),
