@@ -351,6 +351,35 @@ fn segments(rows: usize, max_rows: usize) -> Vec<(usize, usize)> {
     (0..n).map(|k| (k * rows / n, (k + 1) * rows / n)).collect()
 }
 
+/// `raw`'s poses checked (finite, within the input budgets, plausible) and resampled to the
+/// corpus rate, or why the clip is rejected (including too few frames).
+fn checked_and_resampled(raw: &RawClip, opts: &IngestOptions) -> Result<Vec<Pose>, Reject> {
+    if let Some((t, j)) = first_non_finite(&raw.poses) {
+        return Err(Reject::new(
+            "validate",
+            format!("non-finite joint position at frame {t}, joint {j}"),
+        ));
+    }
+    crate::budget::check_resampled(raw.poses.len(), raw.fps, opts.fps)
+        .map_err(|e| Reject::new("budget", e))?;
+    crate::budget::check_plausible(&raw.poses).map_err(|e| Reject::new("validate", e))?;
+    let poses = resample(&raw.poses, raw.fps, opts.fps);
+    let rows = poses.len().saturating_sub(1);
+    if rows < opts.min_frames.max(1) {
+        return Err(Reject::new(
+            "filter",
+            format!(
+                "too short: {rows} frames at {} fps after resampling from {} source frames at {:.2} fps (minimum {})",
+                opts.fps,
+                raw.poses.len(),
+                raw.fps,
+                opts.min_frames
+            ),
+        ));
+    }
+    Ok(poses)
+}
+
 fn clip_records(
     raw: &RawClip,
     opts: &IngestOptions,
@@ -364,39 +393,14 @@ fn clip_records(
         stage: r.stage,
         reason: r.reason,
     };
-    if let Some((t, j)) = first_non_finite(&raw.poses) {
-        let r = Reject::new(
-            "validate",
-            format!("non-finite joint position at frame {t}, joint {j}"),
-        );
-        out.rejects.push(reject(&raw.clip_id, r));
-        return;
-    }
-    let checked = crate::budget::check_resampled(raw.poses.len(), raw.fps, opts.fps)
-        .map_err(|e| Reject::new("budget", e))
-        .and_then(|()| {
-            crate::budget::check_plausible(&raw.poses).map_err(|e| Reject::new("validate", e))
-        });
-    if let Err(r) = checked {
-        out.rejects.push(reject(&raw.clip_id, r));
-        return;
-    }
-    let poses = resample(&raw.poses, raw.fps, opts.fps);
+    let poses = match checked_and_resampled(raw, opts) {
+        Ok(poses) => poses,
+        Err(r) => {
+            out.rejects.push(reject(&raw.clip_id, r));
+            return;
+        }
+    };
     let rows = poses.len().saturating_sub(1);
-    if rows < opts.min_frames.max(1) {
-        let r = Reject::new(
-            "filter",
-            format!(
-                "too short: {rows} frames at {} fps after resampling from {} source frames at {:.2} fps (minimum {})",
-                opts.fps,
-                raw.poses.len(),
-                raw.fps,
-                opts.min_frames
-            ),
-        );
-        out.rejects.push(reject(&raw.clip_id, r));
-        return;
-    }
     let max_rows = (opts.max_seconds * opts.fps).round() as usize;
     let parts = segments(rows, max_rows);
     let split = raw

@@ -468,21 +468,172 @@ fn check_size(frames: usize, channels: usize, joints: usize) -> Result<(), Strin
     Ok(())
 }
 
+/// The joints of a BVH hierarchy as it is read: the blocks still open, the names seen and
+/// the channels so far.
+#[derive(Default)]
+struct Hierarchy {
+    joints: Vec<BvhJoint>,
+    stack: Vec<Open>,
+    // A set, so a header with very many joints stays linear to check.
+    names: HashSet<String>,
+    channels: usize,
+}
+
+impl Hierarchy {
+    /// `ROOT name {` or `JOINT name {` (`is_root`) on `line`.
+    fn open_joint(&mut self, lx: &mut Lexer, line: usize, is_root: bool) -> Result<(), BvhError> {
+        let parent = match (is_root, self.stack.last()) {
+            (true, None) => None,
+            (false, Some(open)) if !self.joints[open.joint].end_site => Some(open.joint),
+            (true, Some(_)) => return err(line, "ROOT inside another joint"),
+            (false, _) => return err(line, "JOINT outside a ROOT or inside an End Site"),
+        };
+        let (name, nline) = lx.expect_any("a joint name")?;
+        if name == b"{" || name == b"}" {
+            return err(nline, "missing joint name");
+        }
+        if self.stack.len() >= budget::MAX_DEPTH {
+            return err(
+                nline,
+                format!(
+                    "joints nested deeper than the {}-level budget",
+                    budget::MAX_DEPTH
+                ),
+            );
+        }
+        let name = String::from_utf8_lossy(name).into_owned();
+        if !self.names.insert(name.clone()) {
+            return err(nline, format!("duplicate joint name '{name}'"));
+        }
+        let open_line = lx.expect("{")?;
+        self.joints.push(BvhJoint {
+            name,
+            parent,
+            offset: [0.0; 3],
+            channels: Vec::new(),
+            first_channel: self.channels,
+            end_site: false,
+        });
+        self.stack.push(Open {
+            joint: self.joints.len() - 1,
+            line: open_line,
+            has_offset: false,
+            has_end_site: false,
+        });
+        Ok(())
+    }
+
+    /// `End Site {` on `line`.
+    fn open_end_site(&mut self, lx: &mut Lexer, line: usize) -> Result<(), BvhError> {
+        lx.expect("Site")?;
+        let Some(open) = self.stack.last_mut() else {
+            return err(line, "End Site outside a joint");
+        };
+        let parent = open.joint;
+        if self.joints[parent].end_site || open.has_end_site {
+            return err(
+                line,
+                format!("second End Site in '{}'", self.joints[parent].name),
+            );
+        }
+        open.has_end_site = true;
+        let name = format!("{}_End", self.joints[parent].name);
+        if !self.names.insert(name.clone()) {
+            return err(line, format!("duplicate joint name '{name}'"));
+        }
+        let open_line = lx.expect("{")?;
+        self.joints.push(BvhJoint {
+            name,
+            parent: Some(parent),
+            offset: [0.0; 3],
+            channels: Vec::new(),
+            first_channel: self.channels,
+            end_site: true,
+        });
+        self.stack.push(Open {
+            joint: self.joints.len() - 1,
+            line: open_line,
+            has_offset: false,
+            has_end_site: false,
+        });
+        Ok(())
+    }
+
+    /// `CHANNELS n name…` on `line`.
+    fn read_channels(&mut self, lx: &mut Lexer, line: usize) -> Result<(), BvhError> {
+        let Some(open) = self.stack.last() else {
+            return err(line, "CHANNELS outside a joint");
+        };
+        let joint = &mut self.joints[open.joint];
+        if joint.end_site {
+            return err(line, "CHANNELS in an End Site");
+        }
+        if !joint.channels.is_empty() {
+            return err(line, format!("second CHANNELS in '{}'", joint.name));
+        }
+        let (ntok, nline) = lx.expect_any("a channel count")?;
+        let n: usize = match std::str::from_utf8(ntok).ok().and_then(|s| s.parse().ok()) {
+            Some(n) if (1..=MAX_CHANNELS).contains(&n) => n,
+            _ => {
+                return err(
+                    nline,
+                    format!(
+                        "wrong channel count '{}' for '{}': expected 1 to {MAX_CHANNELS}",
+                        show(ntok),
+                        joint.name
+                    ),
+                )
+            }
+        };
+        for k in 0..n {
+            let (ctok, cline) = lx.expect_any("a channel name")?;
+            let Some(ch) = Channel::from_name(ctok) else {
+                return err(
+                    cline,
+                    format!(
+                        "wrong channel count or unknown channel name: CHANNELS {n} for '{}' \
+                         has '{}' where channel {} of {n} should be",
+                        joint.name,
+                        show(ctok),
+                        k + 1
+                    ),
+                );
+            };
+            if joint.channels.contains(&ch) {
+                return err(
+                    cline,
+                    format!("channel {ch:?} repeated in '{}'", joint.name),
+                );
+            }
+            joint.channels.push(ch);
+        }
+        joint.first_channel = self.channels;
+        self.channels += n;
+        if self.channels > budget::MAX_CHANNELS {
+            return err(
+                nline,
+                format!(
+                    "{} channels per frame, over the {}-channel budget",
+                    self.channels,
+                    budget::MAX_CHANNELS
+                ),
+            );
+        }
+        Ok(())
+    }
+}
+
 fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
     lx.expect("HIERARCHY")?;
-    let mut joints: Vec<BvhJoint> = Vec::new();
-    let mut stack: Vec<Open> = Vec::new();
-    // A set, so a header with very many joints stays linear to check.
-    let mut names: HashSet<String> = HashSet::new();
-    let mut channels = 0usize;
+    let mut h = Hierarchy::default();
     loop {
         let Some((tok, line)) = lx.next() else {
-            return match stack.last() {
+            return match h.stack.last() {
                 Some(open) => err(
                     lx.line,
                     format!(
                         "unbalanced braces: '{}' opened on line {} is never closed",
-                        joints[open.joint].name, open.line
+                        h.joints[open.joint].name, open.line
                     ),
                 ),
                 None => err(lx.line, "missing MOTION section"),
@@ -490,88 +641,16 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
         };
         let upper = tok.to_ascii_uppercase();
         match upper.as_slice() {
-            b"ROOT" | b"JOINT" => {
-                let is_root = upper == b"ROOT";
-                let parent = match (is_root, stack.last()) {
-                    (true, None) => None,
-                    (false, Some(open)) if !joints[open.joint].end_site => Some(open.joint),
-                    (true, Some(_)) => return err(line, "ROOT inside another joint"),
-                    (false, _) => return err(line, "JOINT outside a ROOT or inside an End Site"),
-                };
-                let (name, nline) = lx.expect_any("a joint name")?;
-                if name == b"{" || name == b"}" {
-                    return err(nline, "missing joint name");
-                }
-                if stack.len() >= budget::MAX_DEPTH {
-                    return err(
-                        nline,
-                        format!(
-                            "joints nested deeper than the {}-level budget",
-                            budget::MAX_DEPTH
-                        ),
-                    );
-                }
-                let name = String::from_utf8_lossy(name).into_owned();
-                if !names.insert(name.clone()) {
-                    return err(nline, format!("duplicate joint name '{name}'"));
-                }
-                let open_line = lx.expect("{")?;
-                joints.push(BvhJoint {
-                    name,
-                    parent,
-                    offset: [0.0; 3],
-                    channels: Vec::new(),
-                    first_channel: channels,
-                    end_site: false,
-                });
-                stack.push(Open {
-                    joint: joints.len() - 1,
-                    line: open_line,
-                    has_offset: false,
-                    has_end_site: false,
-                });
-            }
-            b"END" => {
-                lx.expect("Site")?;
-                let Some(open) = stack.last_mut() else {
-                    return err(line, "End Site outside a joint");
-                };
-                let parent = open.joint;
-                if joints[parent].end_site || open.has_end_site {
-                    return err(
-                        line,
-                        format!("second End Site in '{}'", joints[parent].name),
-                    );
-                }
-                open.has_end_site = true;
-                let name = format!("{}_End", joints[parent].name);
-                if !names.insert(name.clone()) {
-                    return err(line, format!("duplicate joint name '{name}'"));
-                }
-                let open_line = lx.expect("{")?;
-                joints.push(BvhJoint {
-                    name,
-                    parent: Some(parent),
-                    offset: [0.0; 3],
-                    channels: Vec::new(),
-                    first_channel: channels,
-                    end_site: true,
-                });
-                stack.push(Open {
-                    joint: joints.len() - 1,
-                    line: open_line,
-                    has_offset: false,
-                    has_end_site: false,
-                });
-            }
+            b"ROOT" | b"JOINT" => h.open_joint(lx, line, upper == b"ROOT")?,
+            b"END" => h.open_end_site(lx, line)?,
             b"OFFSET" => {
-                let Some(open) = stack.last_mut() else {
+                let Some(open) = h.stack.last_mut() else {
                     return err(line, "OFFSET outside a joint");
                 };
                 if open.has_offset {
                     return err(
                         line,
-                        format!("second OFFSET in '{}'", joints[open.joint].name),
+                        format!("second OFFSET in '{}'", h.joints[open.joint].name),
                     );
                 }
                 open.has_offset = true;
@@ -579,72 +658,14 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
                 for v in offset.iter_mut() {
                     *v = lx.number("OFFSET value")?;
                 }
-                joints[open.joint].offset = offset;
+                h.joints[open.joint].offset = offset;
             }
-            b"CHANNELS" => {
-                let Some(open) = stack.last() else {
-                    return err(line, "CHANNELS outside a joint");
-                };
-                let joint = &mut joints[open.joint];
-                if joint.end_site {
-                    return err(line, "CHANNELS in an End Site");
-                }
-                if !joint.channels.is_empty() {
-                    return err(line, format!("second CHANNELS in '{}'", joint.name));
-                }
-                let (ntok, nline) = lx.expect_any("a channel count")?;
-                let n: usize = match std::str::from_utf8(ntok).ok().and_then(|s| s.parse().ok()) {
-                    Some(n) if (1..=MAX_CHANNELS).contains(&n) => n,
-                    _ => {
-                        return err(
-                            nline,
-                            format!(
-                                "wrong channel count '{}' for '{}': expected 1 to {MAX_CHANNELS}",
-                                show(ntok),
-                                joint.name
-                            ),
-                        )
-                    }
-                };
-                for k in 0..n {
-                    let (ctok, cline) = lx.expect_any("a channel name")?;
-                    let Some(ch) = Channel::from_name(ctok) else {
-                        return err(
-                            cline,
-                            format!(
-                                "wrong channel count or unknown channel name: CHANNELS {n} for '{}' \
-                                 has '{}' where channel {} of {n} should be",
-                                joint.name,
-                                show(ctok),
-                                k + 1
-                            ),
-                        );
-                    };
-                    if joint.channels.contains(&ch) {
-                        return err(
-                            cline,
-                            format!("channel {ch:?} repeated in '{}'", joint.name),
-                        );
-                    }
-                    joint.channels.push(ch);
-                }
-                joint.first_channel = channels;
-                channels += n;
-                if channels > budget::MAX_CHANNELS {
-                    return err(
-                        nline,
-                        format!(
-                            "{channels} channels per frame, over the {}-channel budget",
-                            budget::MAX_CHANNELS
-                        ),
-                    );
-                }
-            }
+            b"CHANNELS" => h.read_channels(lx, line)?,
             b"}" => {
-                let Some(open) = stack.pop() else {
+                let Some(open) = h.stack.pop() else {
                     return err(line, "unbalanced braces: '}' without a matching '{'");
                 };
-                let joint = &joints[open.joint];
+                let joint = &h.joints[open.joint];
                 if !open.has_offset {
                     return err(line, format!("'{}' has no OFFSET", joint.name));
                 }
@@ -653,19 +674,19 @@ fn parse_hierarchy(lx: &mut Lexer) -> Result<Vec<BvhJoint>, BvhError> {
                 }
             }
             b"MOTION" => {
-                if let Some(open) = stack.last() {
+                if let Some(open) = h.stack.last() {
                     return err(
                         line,
                         format!(
                             "unbalanced braces: MOTION while '{}' opened on line {} is still open",
-                            joints[open.joint].name, open.line
+                            h.joints[open.joint].name, open.line
                         ),
                     );
                 }
-                if joints.is_empty() {
+                if h.joints.is_empty() {
                     return err(line, "MOTION before any ROOT");
                 }
-                return Ok(joints);
+                return Ok(h.joints);
             }
             _ if Channel::from_name(tok).is_some() => {
                 return err(
