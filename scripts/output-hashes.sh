@@ -30,7 +30,7 @@ run eval --evaluator evaluator --motions gen-test --corpus corpus --repeats 2 --
 run fit --results "$REPO/docs/results/scaling-sweep/results.csv" --bootstrap 20 \
     --workers 1 --out fit
 run predict --fits fit/fits.json --budget 1e15 --json > predict-fits.json
-run predict --budget 1e18 --json > predict-scamo.json
+run predict --preset scamo --budget 1e18 --json > predict-scamo.json
 run scenarios --corpus corpus --split unseen --source synth --out scenarios
 run continual --scenarios scenarios --method seq-lora --base lm --tokens tokens \
     --evaluator evaluator --orders 1 --tokens-budget 400 --batch 8 --repeats 1 --pool 8 \

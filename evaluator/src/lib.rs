@@ -8,10 +8,7 @@
 //! - [`score`]: `motionscale eval`, the metrics of a motion set (a corpus split or a
 //!   HumanML3D-layout folder) against a corpus split, with intervals over repeats.
 
-pub mod error;
 pub mod metrics;
 pub mod model;
 pub mod score;
 pub mod train;
-
-pub use error::EvaluatorError;

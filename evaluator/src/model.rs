@@ -7,12 +7,12 @@
 //! `TextEncoderBiGRUCo`); parameter names are PyTorch's (`nn.Conv1d`, `nn.GRU` with
 //! `bidirectional=True`, `nn.Linear`), so `model.safetensors` loads into the same modules.
 
-use crate::EvaluatorError;
 use candle_core::{DType, Device, Module, Result, Tensor, D};
 use candle_nn::{Conv1d, Conv1dConfig, Linear, VarBuilder};
 use motionscale_core::rng::SplitMix64;
 use nn::conv_op::ConvGeometry;
 use nn::gru::{per_step, BiGru};
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
@@ -321,9 +321,9 @@ pub const FORMAT: &str = "motionscale-evaluator-v1";
 pub const CONTENT_FILES: [&str; 4] = ["config.json", "model.safetensors", "mean.npy", "std.npy"];
 
 /// Short sha256 of a corpus manifest: names the exact corpus (shard hashes included).
-pub fn corpus_id(corpus_dir: &Path) -> std::result::Result<String, EvaluatorError> {
+pub fn corpus_id(corpus_dir: &Path) -> std::result::Result<String, ModelError> {
     let path = corpus_dir.join("manifest.json");
-    let bytes = std::fs::read(&path).map_err(|e| EvaluatorError::io(&path, e))?;
+    let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
     Ok(motionscale_core::hex(&Sha256::digest(&bytes)[..6]))
 }
 
@@ -339,10 +339,10 @@ pub struct TrainedEvaluator {
     std: Vec<f32>,
 }
 
-fn read_stats(path: &Path, dim: usize) -> std::result::Result<Vec<f32>, EvaluatorError> {
-    let array = ingest::npy::read(path).map_err(|e| EvaluatorError::invalid(path, e))?;
+fn read_stats(path: &Path, dim: usize) -> std::result::Result<Vec<f32>, ModelError> {
+    let array = ingest::npy::read(path).map_err(|e| ModelError::invalid(path, e))?;
     if array.data.len() != dim {
-        return Err(EvaluatorError::invalid(
+        return Err(ModelError::invalid(
             path,
             format!("{} values, expected {dim}", array.data.len()),
         ));
@@ -352,10 +352,10 @@ fn read_stats(path: &Path, dim: usize) -> std::result::Result<Vec<f32>, Evaluato
 
 impl TrainedEvaluator {
     /// Load the evaluator in `dir`.
-    pub fn load(dir: &Path) -> std::result::Result<Self, EvaluatorError> {
+    pub fn load(dir: &Path) -> std::result::Result<Self, ModelError> {
         let file: EvaluatorFile = motionscale_core::read_json(&dir.join("config.json"))?;
         if file.format != FORMAT {
-            return Err(EvaluatorError::invalid(
+            return Err(ModelError::invalid(
                 &dir.join("config.json"),
                 format!("format {:?}, expected {FORMAT:?}", file.format),
             ));
@@ -363,16 +363,16 @@ impl TrainedEvaluator {
         let mut hasher = Sha256::new();
         for name in CONTENT_FILES {
             let path = dir.join(name);
-            hasher.update(std::fs::read(&path).map_err(|e| EvaluatorError::io(&path, e))?);
+            hasher.update(std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?);
         }
         let weights = dir.join("model.safetensors");
         // SAFETY: the checkpoint is only read; it must not change while the model lives.
         let vb = unsafe {
             VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, &nn::default_device())
         }
-        .map_err(|e| EvaluatorError::invalid(&weights, e))?;
+        .map_err(|e| ModelError::invalid(&weights, e))?;
         let net = Evaluator::new(file.config.clone(), vb)
-            .map_err(|e| EvaluatorError::invalid(&weights, e))?;
+            .map_err(|e| ModelError::invalid(&weights, e))?;
         let dim = file.config.feature_dim;
         Ok(Self {
             mean: read_stats(&dir.join("mean.npy"), dim)?,
@@ -430,7 +430,7 @@ impl TrainedEvaluator {
         &self,
         motions: &[&[f32]],
         batch: usize,
-    ) -> std::result::Result<MotionPredictions, EvaluatorError> {
+    ) -> std::result::Result<MotionPredictions, ModelError> {
         let mut out = MotionPredictions::default();
         let device = nn::default_device();
         for chunk in motions.chunks(batch.max(1)) {
@@ -451,7 +451,7 @@ impl TrainedEvaluator {
                 out.action.extend(classes(&o.action)?);
                 Ok(())
             };
-            run().map_err(EvaluatorError::inference)?;
+            run().map_err(ModelError::inference)?;
         }
         Ok(out)
     }
@@ -462,7 +462,7 @@ impl TrainedEvaluator {
         &self,
         texts: &[&[f32]],
         batch: usize,
-    ) -> std::result::Result<Vec<Vec<f32>>, EvaluatorError> {
+    ) -> std::result::Result<Vec<Vec<f32>>, ModelError> {
         let c = &self.file.config;
         let device = nn::default_device();
         let mut out = Vec::with_capacity(texts.len());
@@ -475,7 +475,7 @@ impl TrainedEvaluator {
                 let padded = Padded::new(&rows, c.text_dim, &device)?;
                 self.net.encode_text(&padded)?.to_vec2()
             };
-            out.extend(run().map_err(EvaluatorError::inference)?);
+            out.extend(run().map_err(ModelError::inference)?);
         }
         Ok(out)
     }

@@ -14,10 +14,10 @@
 use crate::metrics::{self, Interval};
 use crate::model::{EvaluatorConfig, MotionPredictions, TrainedEvaluator};
 use crate::train::{class_of, corpus_clips, LabelledClip};
-use crate::EvaluatorError;
 use ingest::corpus::schema::FEATURE_DIM;
 use lm::caption_set::{split_assignment, GeneratedEntry};
 use motionscale_core::rng::SplitMix64;
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::{BTreeMap, HashMap};
@@ -117,7 +117,7 @@ fn from_clip(clip: LabelledClip) -> EvalMotion {
 }
 
 /// The ground-truth clips of `split` in the corpus at `dir` (those with a caption).
-pub fn corpus_split(dir: &Path, options: &EvalOptions) -> Result<MotionSet, EvaluatorError> {
+pub fn corpus_split(dir: &Path, options: &EvalOptions) -> Result<MotionSet, ModelError> {
     let source = options.source.as_deref();
     let splits = split_assignment(options.splits.as_deref())?;
     let clips = corpus_clips(dir, |m| {
@@ -140,10 +140,10 @@ pub fn hml3d_folder(
     dir: &Path,
     options: &EvalOptions,
     labels: &HashMap<String, LabelledClip>,
-) -> Result<MotionSet, EvaluatorError> {
+) -> Result<MotionSet, ModelError> {
     let vecs = dir.join("new_joint_vecs");
     if !vecs.is_dir() {
-        return Err(EvaluatorError::Missing {
+        return Err(ModelError::Missing {
             path: vecs,
             what: "HumanML3D features folder (or pass a corpus folder)",
         });
@@ -151,14 +151,14 @@ pub fn hml3d_folder(
     let splits = split_assignment(options.splits.as_deref())?;
     let split_file = dir.join(format!("{}.txt", options.split));
     let listed = ingest::corpus::split::read_ids(&split_file)
-        .map_err(|e| EvaluatorError::invalid(&split_file, e))?;
+        .map_err(|e| ModelError::invalid(&split_file, e))?;
     let mut ids: Vec<String> = if let Some(ids) = listed {
         ids
     } else {
-        let entries = std::fs::read_dir(&vecs).map_err(|e| EvaluatorError::io(&vecs, e))?;
+        let entries = std::fs::read_dir(&vecs).map_err(|e| ModelError::io(&vecs, e))?;
         let mut ids = Vec::new();
         for entry in entries {
-            let path = entry.map_err(|e| EvaluatorError::io(&vecs, e))?.path();
+            let path = entry.map_err(|e| ModelError::io(&vecs, e))?.path();
             if path.extension().is_some_and(|e| e == "npy") {
                 if let Some(stem) = path.file_stem() {
                     ids.push(stem.to_string_lossy().into_owned());
@@ -171,24 +171,23 @@ pub fn hml3d_folder(
     let sidecar = dir.join("generated.jsonl");
     let mut generated = HashMap::new();
     if sidecar.is_file() {
-        let text =
-            std::fs::read_to_string(&sidecar).map_err(|e| EvaluatorError::io(&sidecar, e))?;
+        let text = std::fs::read_to_string(&sidecar).map_err(|e| ModelError::io(&sidecar, e))?;
         for (n, line) in text
             .lines()
             .enumerate()
             .filter(|(_, l)| !l.trim().is_empty())
         {
             let entry: GeneratedEntry = serde_json::from_str(line)
-                .map_err(|e| EvaluatorError::invalid(&sidecar, format!("line {}: {e}", n + 1)))?;
+                .map_err(|e| ModelError::invalid(&sidecar, format!("line {}: {e}", n + 1)))?;
             generated.insert(entry.id.clone(), entry);
         }
     }
     let mut motions = Vec::with_capacity(ids.len());
     for id in ids {
         let path = vecs.join(format!("{id}.npy"));
-        let array = ingest::npy::read(&path).map_err(|e| EvaluatorError::invalid(&path, e))?;
+        let array = ingest::npy::read(&path).map_err(|e| ModelError::invalid(&path, e))?;
         if array.shape.len() != 2 || array.shape[1] != FEATURE_DIM || array.shape[0] == 0 {
-            return Err(EvaluatorError::invalid(
+            return Err(ModelError::invalid(
                 &path,
                 format!(
                     "shape {:?}, expected (frames ≥ 1, {FEATURE_DIM})",
@@ -202,9 +201,9 @@ pub fn hml3d_folder(
             None => {
                 let texts = dir.join("texts").join(format!("{id}.txt"));
                 let text =
-                    std::fs::read_to_string(&texts).map_err(|e| EvaluatorError::io(&texts, e))?;
+                    std::fs::read_to_string(&texts).map_err(|e| ModelError::io(&texts, e))?;
                 let lines = ingest::source::hml3d::parse_texts(&text)
-                    .map_err(|e| EvaluatorError::invalid(&texts, e))?;
+                    .map_err(|e| ModelError::invalid(&texts, e))?;
                 (id.clone(), lines.into_iter().map(|l| l.caption).collect())
             }
         };
@@ -289,7 +288,7 @@ pub fn caption_embeddings(
     captions: &[String],
     stored: &CaptionEmbeddings,
     encoder: Option<&dyn TextEncoder>,
-) -> Result<HashMap<String, Vec<f32>>, EvaluatorError> {
+) -> Result<HashMap<String, Vec<f32>>, ModelError> {
     let mut table = HashMap::new();
     let mut missing = Vec::new();
     for caption in captions {
@@ -304,7 +303,7 @@ pub fn caption_embeddings(
         return Ok(table);
     }
     let encoder = encoder.ok_or_else(|| {
-        EvaluatorError::Argument(format!(
+        ModelError::Argument(format!(
             "{} captions (e.g. {:?}) are not embedded in the corpus; pass the text encoder \
              ({}) with --encoder",
             missing.len(),
@@ -325,14 +324,14 @@ pub fn caption_embeddings(
 fn text_groups<'a>(
     set: &'a MotionSet,
     options: &EvalOptions,
-) -> Result<BTreeMap<&'a str, Vec<usize>>, EvaluatorError> {
+) -> Result<BTreeMap<&'a str, Vec<usize>>, ModelError> {
     let need = if options.halves { 2 } else { 1 } * options.pool;
     let mut groups: BTreeMap<&str, Vec<usize>> = BTreeMap::new();
     for (i, m) in set.motions.iter().enumerate() {
         groups.entry(m.group.as_str()).or_default().push(i);
     }
     if groups.len() < need {
-        return Err(EvaluatorError::Argument(format!(
+        return Err(ModelError::Argument(format!(
             "{}: {} texts in split {:?}, fewer than {need} (R-precision pools of {})",
             set.path.display(),
             groups.len(),
@@ -350,7 +349,7 @@ fn caption_space(
     reference: &MotionSet,
     set: &MotionSet,
     encoder: Option<&dyn TextEncoder>,
-) -> Result<HashMap<String, Vec<f32>>, EvaluatorError> {
+) -> Result<HashMap<String, Vec<f32>>, ModelError> {
     let stored = CaptionEmbeddings::open(&reference.path, &evaluator.file.text_encoder)?;
     let mut captions: Vec<String> = set
         .motions
@@ -400,7 +399,7 @@ fn report(
     options: &EvalOptions,
     mut values: BTreeMap<&str, Vec<f64>>,
     (group_count, multimodality_groups): (usize, usize),
-) -> Result<EvalReport, EvaluatorError> {
+) -> Result<EvalReport, ModelError> {
     let mut take = |name: &str| values.remove(name).map(Interval::of);
     let required = |v: Option<Interval>| v.expect("computed every repeat");
     Ok(EvalReport {
@@ -439,7 +438,7 @@ pub fn evaluate_motions(
     set: &MotionSet,
     options: &EvalOptions,
     encoder: Option<&dyn TextEncoder>,
-) -> Result<EvalReport, EvaluatorError> {
+) -> Result<EvalReport, ModelError> {
     let groups = text_groups(set, options)?;
     let text_embedding = caption_space(evaluator, reference, set, encoder)?;
     let reference_embeddings = match options.halves {
@@ -567,7 +566,7 @@ pub fn embed_set(
     reference: &Path,
     set: &MotionSet,
     encoder: Option<&dyn TextEncoder>,
-) -> Result<SetEmbeddings, EvaluatorError> {
+) -> Result<SetEmbeddings, ModelError> {
     let stored = CaptionEmbeddings::open(reference, &evaluator.file.text_encoder)?;
     let first: Vec<String> = set
         .motions

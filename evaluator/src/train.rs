@@ -16,7 +16,6 @@ use crate::model::{
     corpus_id, init_evaluator, labelled_cross_entropy, EvaluatorConfig, EvaluatorFile, Padded,
     TrainedEvaluator, FORMAT, UNIT,
 };
-use crate::EvaluatorError;
 use candle_core::Tensor;
 use candle_nn::VarMap;
 use ingest::corpus::reader::{ClipMeta, Corpus};
@@ -25,6 +24,7 @@ use motionscale_core::files::{append_json_line, check_same_run, read_json, write
 use motionscale_core::rng::SplitMix64;
 use nn::checkpoint::{save_safetensors, ResumeFiles};
 use nn::optim::{AdamW, AdamWConfig, LrSchedule};
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
@@ -88,13 +88,13 @@ pub struct LabelledClip {
 pub fn corpus_clips(
     corpus_dir: &Path,
     keep: impl Fn(&ClipMeta) -> bool,
-) -> Result<Vec<LabelledClip>, EvaluatorError> {
-    let corpus = Corpus::open(corpus_dir).map_err(EvaluatorError::Corpus)?;
-    let meta = corpus.clip_metadata().map_err(EvaluatorError::Corpus)?;
+) -> Result<Vec<LabelledClip>, ModelError> {
+    let corpus = Corpus::open(corpus_dir).map_err(ModelError::Corpus)?;
+    let meta = corpus.clip_metadata().map_err(ModelError::Corpus)?;
     let mut captions = clip_captions(corpus_dir)?;
     let features = corpus
         .features_where(|i| keep(&meta[i]))
-        .map_err(EvaluatorError::Corpus)?;
+        .map_err(ModelError::Corpus)?;
     Ok(features
         .into_iter()
         .map(|(i, features)| {
@@ -116,14 +116,14 @@ pub fn corpus_clips(
 pub fn caption_table(
     embeddings: &CaptionEmbeddings,
     captions: impl IntoIterator<Item = String>,
-) -> Result<HashMap<String, Vec<f32>>, EvaluatorError> {
+) -> Result<HashMap<String, Vec<f32>>, ModelError> {
     let mut table = HashMap::new();
     for caption in captions {
         if table.contains_key(&caption) {
             continue;
         }
         let tokens = embeddings.get(&caption)?.ok_or_else(|| {
-            EvaluatorError::Argument(format!(
+            ModelError::Argument(format!(
                 "caption {caption:?} has no embedding by {}; run `motionscale embed-text` on the corpus",
                 embeddings.encoder()
             ))
@@ -178,7 +178,7 @@ fn evaluator_file(
     train: &[LabelledClip],
     text_dim: usize,
     encoder: String,
-) -> Result<EvaluatorFile, EvaluatorError> {
+) -> Result<EvaluatorFile, ModelError> {
     let labels = |f: fn(&LabelledClip) -> &Option<String>| -> Vec<String> {
         let set: BTreeSet<String> = train.iter().filter_map(|c| f(c).clone()).collect();
         set.into_iter().collect()
@@ -199,17 +199,17 @@ fn evaluator_file(
         corpus: config.corpus.clone(),
         corpus_id: corpus_id(&config.corpus)?,
         text_encoder: encoder,
-        train: serde_json::to_value(config).map_err(|e| EvaluatorError::invalid(&config.out, e))?,
+        train: serde_json::to_value(config).map_err(|e| ModelError::invalid(&config.out, e))?,
     })
 }
 
 /// Copy the corpus statistic `name` (`mean.npy`, `std.npy`) into the evaluator folder and
 /// return its values.
-fn copy_stats(config: &EvaluatorTrainConfig, name: &str) -> Result<Vec<f32>, EvaluatorError> {
+fn copy_stats(config: &EvaluatorTrainConfig, name: &str) -> Result<Vec<f32>, ModelError> {
     let path = config.corpus.join("stats").join(name);
-    let array = ingest::npy::read(&path).map_err(|e| EvaluatorError::invalid(&path, e))?;
+    let array = ingest::npy::read(&path).map_err(|e| ModelError::invalid(&path, e))?;
     let dst = config.out.join(name);
-    std::fs::copy(&path, &dst).map_err(|e| EvaluatorError::io(&dst, e))?;
+    std::fs::copy(&path, &dst).map_err(|e| ModelError::io(&dst, e))?;
     Ok(array.data.iter().map(|&v| v as f32).collect())
 }
 
@@ -217,7 +217,7 @@ fn copy_stats(config: &EvaluatorTrainConfig, name: &str) -> Result<Vec<f32>, Eva
 pub fn train_evaluator(
     config: &EvaluatorTrainConfig,
     on_event: &mut dyn FnMut(EvaluatorEvent),
-) -> Result<Validation, EvaluatorError> {
+) -> Result<Validation, ModelError> {
     let encoder = resolve_encoder(&config.corpus, config.text_encoder.as_deref())?;
     let embeddings = CaptionEmbeddings::open(&config.corpus, &encoder)?;
     let mut train = corpus_clips(&config.corpus, |m| m.split == "train")?;
@@ -225,7 +225,7 @@ pub fn train_evaluator(
     train.retain(|c| !c.captions.is_empty());
     let val = corpus_clips(&config.corpus, |m| m.split == "val")?;
     if train.len() < config.batch {
-        return Err(EvaluatorError::Argument(format!(
+        return Err(ModelError::Argument(format!(
             "{}: {} train clips, fewer than one batch of {}",
             config.corpus.display(),
             train.len(),
@@ -237,14 +237,14 @@ pub fn train_evaluator(
     let file = evaluator_file(config, &train, embeddings.dim(), encoder)?;
     let net_config = file.config.clone();
     let out = &config.out;
-    std::fs::create_dir_all(out).map_err(|e| EvaluatorError::io(out, e))?;
+    std::fs::create_dir_all(out).map_err(|e| ModelError::io(out, e))?;
     let (mean, std) = (
         copy_stats(config, "mean.npy")?,
         copy_stats(config, "std.npy")?,
     );
 
     let (net, varmap) = init_evaluator(net_config, config.seed, &nn::default_device())
-        .map_err(EvaluatorError::inference)?;
+        .map_err(ModelError::inference)?;
     let vars = varmap.data().lock().expect("varmap lock").clone();
     let adamw = AdamWConfig {
         weight_decay: 0.0,
@@ -267,9 +267,9 @@ pub fn train_evaluator(
         varmap
             .clone()
             .load(&weights)
-            .map_err(|e| EvaluatorError::invalid(&weights, e))?;
+            .map_err(|e| ModelError::invalid(&weights, e))?;
         opt.load(&moments)
-            .map_err(|e| EvaluatorError::invalid(&moments, e))?;
+            .map_err(|e| ModelError::invalid(&moments, e))?;
         drop_lines_after(&log, state.step)?;
     }
     write_json(&config_path, &file)?;
@@ -287,13 +287,13 @@ pub fn train_evaluator(
         .map_or(config.steps, |s| s.min(config.steps));
     while state.step < end {
         let loss = train_step(&evaluator, &train, &captions, config, state.step)
-            .map_err(EvaluatorError::inference)?;
+            .map_err(ModelError::inference)?;
         let (value, grads) = (
-            loss.to_scalar::<f32>().map_err(EvaluatorError::inference)?,
-            loss.backward().map_err(EvaluatorError::inference)?,
+            loss.to_scalar::<f32>().map_err(ModelError::inference)?,
+            loss.backward().map_err(ModelError::inference)?,
         );
         opt.step(&grads, schedule.at(state.step), Some(1.0))
-            .map_err(|e| EvaluatorError::invalid(out, e))?;
+            .map_err(|e| ModelError::invalid(out, e))?;
         state.step += 1;
         (loss_sum, loss_steps) = (loss_sum + f64::from(value), loss_steps + 1);
         on_event(EvaluatorEvent::Step(state.step, config.steps, value));
@@ -311,9 +311,9 @@ pub fn train_evaluator(
     match last {
         Some(v) => Ok(v),
         None => {
-            let text = std::fs::read_to_string(&log).map_err(|e| EvaluatorError::io(&log, e))?;
+            let text = std::fs::read_to_string(&log).map_err(|e| ModelError::io(&log, e))?;
             let line = text.lines().last().unwrap_or_default();
-            serde_json::from_str(line).map_err(|e| EvaluatorError::invalid(&log, e))
+            serde_json::from_str(line).map_err(|e| ModelError::invalid(&log, e))
         }
     }
 }
@@ -373,7 +373,7 @@ fn validate(
     evaluator: &TrainedEvaluator,
     val: &[LabelledClip],
     captions: &HashMap<String, Vec<f32>>,
-) -> Result<Validation, EvaluatorError> {
+) -> Result<Validation, ModelError> {
     let usable: Vec<&LabelledClip> = val.iter().filter(|c| !c.captions.is_empty()).collect();
     let motions: Vec<&[f32]> = usable.iter().map(|c| c.features.as_slice()).collect();
     let predicted = evaluator.embed_motions(&motions, 64)?;
@@ -409,11 +409,11 @@ fn checkpoint(
     resume: &ResumeFiles,
     out: &Path,
     state: TrainState,
-) -> Result<(), EvaluatorError> {
+) -> Result<(), ModelError> {
     let weights = nn::checkpoint::var_tensors(&varmap.data().lock().expect("varmap lock"));
     let model = out.join(MODEL_FILE);
-    save_safetensors(&weights, &model).map_err(|e| EvaluatorError::invalid(&model, e))?;
-    let invalid = |e: &dyn std::fmt::Display| EvaluatorError::invalid(resume.state_path(), e);
+    save_safetensors(&weights, &model).map_err(|e| ModelError::invalid(&model, e))?;
+    let invalid = |e: &dyn std::fmt::Display| ModelError::invalid(resume.state_path(), e);
     let stage = resume.stage().map_err(|e| invalid(&e))?;
     save_safetensors(&weights, &stage.join(MODEL_FILE)).map_err(|e| invalid(&e))?;
     opt.save(&stage.join(OPTIMIZER_FILE))
@@ -423,15 +423,15 @@ fn checkpoint(
 
 /// Drop validations logged after the committed step (a kill between the log line and the
 /// commit leaves one; it will be redone).
-fn drop_lines_after(log: &Path, step: u64) -> Result<(), EvaluatorError> {
+fn drop_lines_after(log: &Path, step: u64) -> Result<(), ModelError> {
     if !log.is_file() {
         return Ok(());
     }
-    let text = std::fs::read_to_string(log).map_err(|e| EvaluatorError::io(log, e))?;
+    let text = std::fs::read_to_string(log).map_err(|e| ModelError::io(log, e))?;
     let kept: String = text
         .lines()
         .filter(|l| serde_json::from_str::<Validation>(l).is_ok_and(|v| v.step <= step))
         .map(|l| format!("{l}\n"))
         .collect();
-    motionscale_core::write_atomic(log, kept.as_bytes()).map_err(|e| EvaluatorError::io(log, e))
+    motionscale_core::write_atomic(log, kept.as_bytes()).map_err(|e| ModelError::io(log, e))
 }

@@ -22,9 +22,9 @@ use crate::seeds;
 use evaluator::metrics::{accuracy, diversity, fid, multimodality, Interval};
 use evaluator::model::{TrainedEvaluator, UNIT};
 use evaluator::train::{corpus_clips, LabelledClip};
-use lm::LmError;
 use motionscale_core::files::{check_same_run, read_json, write_json};
 use motionscale_core::rng::SplitMix64;
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -287,7 +287,7 @@ impl Scorer<'_> {
         for k in 0..self.actions.len() as u32 {
             for poses in trainer
                 .generate(k, self.samples_per_class, self.frames, rng)
-                .map_err(LmError::inference)?
+                .map_err(ModelError::inference)?
             {
                 motions.push((k, denormalise(&poses, self.evaluator)));
             }
@@ -500,7 +500,7 @@ pub fn run_cl2gen(
         .task_eval(0, &all, classes);
     let model_config = resolved.model.clone();
     let mut trainer = CtvaeTrainer::new(model_config, config.weights, evaluator.std(), config.seed)
-        .map_err(LmError::inference)?;
+        .map_err(ModelError::inference)?;
     let mut evals = Vec::new();
     for t in 0..tasks.len() {
         let dir = config.out.join(format!("task-{}", t + 1));
@@ -609,7 +609,7 @@ fn learn_task(
         let refs: Vec<&Sample> = batch.iter().collect();
         let loss = trainer
             .step(&refs, config.lr, aux, &mut rng)
-            .map_err(LmError::inference)?;
+            .map_err(ModelError::inference)?;
         if step + tail >= config.steps_per_task {
             for (name, v) in [
                 ("pose", loss.pose),
@@ -643,7 +643,7 @@ fn replay_samples(
             ReplaySource::Gen => {
                 for poses in trainer
                     .generate(k, per_class, frames, rng)
-                    .map_err(LmError::inference)?
+                    .map_err(ModelError::inference)?
                 {
                     replay.push(Sample { class: k, poses });
                 }

@@ -17,9 +17,9 @@ use crate::prepare::prepare_vocabulary;
 use crate::results::{self, read_row, run_dir, RunRow};
 use crate::SweepError;
 use lm::train::{train, TrainEvent, TrainReport};
-use lm::LmError;
 use motionscale_core::lock::FileLock;
 use motionscale_core::{write_json, FileError};
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::sync::OnceLock;
@@ -156,7 +156,9 @@ fn train_point(
     };
     let report = match train(&config, &mut on_event) {
         Ok(report) => report,
-        Err(LmError::File(e @ FileError::Invalid { .. })) if e.path().starts_with(&train_dir) => {
+        Err(ModelError::File(e @ FileError::Invalid { .. }))
+            if e.path().starts_with(&train_dir) =>
+        {
             log(&format!(
                 "{}: cannot resume ({e}); training again from the start",
                 point.run_id

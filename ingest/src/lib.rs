@@ -2,6 +2,7 @@
 //! a Parquet corpus with manifest, statistics, splits and a rejects list.
 
 pub mod budget;
+#[doc(hidden)]
 pub mod bvh_fuzzing;
 pub mod corpus;
 pub mod demo;

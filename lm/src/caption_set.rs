@@ -17,13 +17,14 @@
 
 use crate::generate::{generate, Sampling};
 use crate::train::RunConfig;
-use crate::{LmError, MotionLm};
+use crate::MotionLm;
 use ingest::corpus::reader::Corpus;
 use ingest::corpus::split::SplitAssignment;
 use ingest::export::hml3d::caption_line;
 use ingest::npy::write_f32;
 use motionscale_core::rng::SplitMix64;
 use motionscale_core::write_atomic;
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use text::{CaptionEmbeddings, TextEncoder};
@@ -31,8 +32,9 @@ use tokenizer::model::MotionTokenizer;
 
 /// The split assignment of the `{train,val,test}.txt` lists in `dir` (the clips' own splits
 /// without one).
-pub fn split_assignment(dir: Option<&Path>) -> Result<SplitAssignment, LmError> {
-    SplitAssignment::from_dir(dir).map_err(|e| LmError::invalid(dir.unwrap_or(Path::new(".")), e))
+pub fn split_assignment(dir: Option<&Path>) -> Result<SplitAssignment, ModelError> {
+    SplitAssignment::from_dir(dir)
+        .map_err(|e| ModelError::invalid(dir.unwrap_or(Path::new(".")), e))
 }
 
 /// A line of `generated.jsonl`.
@@ -84,8 +86,8 @@ pub struct CaptionSetReport {
     pub seconds: f64,
 }
 
-fn io(path: &Path) -> impl Fn(std::io::Error) -> LmError + '_ {
-    move |e| LmError::io(path, e)
+fn io(path: &Path) -> impl Fn(std::io::Error) -> ModelError + '_ {
+    move |e| ModelError::io(path, e)
 }
 
 /// One caption (drawn by the seed) of every captioned clip of the split `options` selects,
@@ -94,7 +96,7 @@ fn io(path: &Path) -> impl Fn(std::io::Error) -> LmError + '_ {
 fn pick_jobs(
     corpus: &Corpus,
     options: &CaptionSetOptions,
-) -> Result<(usize, usize, Vec<GeneratedEntry>), LmError> {
+) -> Result<(usize, usize, Vec<GeneratedEntry>), ModelError> {
     let corpus_dir = &options.corpus;
     let captions = text::embed::clip_captions(corpus_dir)?;
     let mut rng = SplitMix64::stream(options.sampling.seed, 0);
@@ -109,7 +111,7 @@ fn pick_jobs(
         })
         .collect();
     if clips.is_empty() {
-        return Err(LmError::Argument(format!(
+        return Err(ModelError::Argument(format!(
             "{}: no captioned clips in split {:?}",
             corpus_dir.display(),
             options.split
@@ -139,7 +141,12 @@ fn pick_jobs(
 
 /// Write one generated motion `id` into `out`: its features, the joints recovered from them
 /// and its caption, in the HumanML3D layout.
-fn write_generated(out: &Path, id: &str, caption: &str, features: &[f32]) -> Result<(), LmError> {
+fn write_generated(
+    out: &Path,
+    id: &str,
+    caption: &str,
+    features: &[f32],
+) -> Result<(), ModelError> {
     let frames = features.len() / ingest::hml263::FEATURE_DIM;
     let joints = ingest::hml263::recover_joints_f32(features);
     let path = |sub: &str, ext: &str| out.join(sub).join(format!("{id}.{ext}"));
@@ -162,10 +169,10 @@ pub fn generate_caption_set(
     options: &CaptionSetOptions,
     out: &Path,
     mut progress: impl FnMut(usize, usize),
-) -> Result<CaptionSetReport, LmError> {
+) -> Result<CaptionSetReport, ModelError> {
     let started = std::time::Instant::now();
     let corpus_dir = &options.corpus;
-    let corpus = Corpus::open(corpus_dir).map_err(LmError::Corpus)?;
+    let corpus = Corpus::open(corpus_dir).map_err(ModelError::Corpus)?;
     let (clips, mm_texts, jobs) = pick_jobs(&corpus, options)?;
     let stored = CaptionEmbeddings::open(corpus_dir, &run.text_encoder).ok();
     for sub in ["new_joint_vecs", "new_joints", "texts"] {
@@ -189,7 +196,7 @@ pub fn generate_caption_set(
                 (Some(t), _) => t,
                 (None, Some(e)) => e.encode(&[caption.as_str()])?.remove(0),
                 (None, None) => {
-                    return Err(LmError::Argument(format!(
+                    return Err(ModelError::Argument(format!(
                         "caption {caption:?} is not embedded in {} and no text encoder was given",
                         corpus_dir.display()
                     )))
@@ -206,7 +213,7 @@ pub fn generate_caption_set(
         let sequences = lm
             .for_caption(views[0])
             .and_then(|model| generate(&model, &views, &chunk_sampling))
-            .map_err(LmError::inference)?;
+            .map_err(ModelError::inference)?;
         for (e, tokens) in chunk.iter().zip(sequences) {
             if tokens.is_empty() {
                 let reject = serde_json::json!({"id": e.id, "caption": e.caption,
@@ -215,7 +222,9 @@ pub fn generate_caption_set(
                 continue;
             }
             tokens_total += tokens.len();
-            let features = tokenizer.detokenize(&tokens).map_err(LmError::inference)?;
+            let features = tokenizer
+                .detokenize(&tokens)
+                .map_err(ModelError::inference)?;
             write_generated(out, &e.id, &e.caption, &features)?;
             written.push(e.clone());
         }
@@ -228,7 +237,7 @@ pub fn generate_caption_set(
         .iter()
         .map(|e| serde_json::to_string(e).map(|l| l + "\n"))
         .collect::<Result<_, _>>()
-        .map_err(|e| LmError::invalid(out, e))?;
+        .map_err(|e| ModelError::invalid(out, e))?;
     let sidecar = out.join("generated.jsonl");
     write_atomic(&sidecar, lines.as_bytes()).map_err(io(&sidecar))?;
     let rejects_path = out.join("rejects.jsonl");
@@ -252,7 +261,7 @@ pub fn generate_caption_set(
         "report": report,
     });
     let summary_path = out.join("generate.json");
-    let text = serde_json::to_string_pretty(&summary).map_err(|e| LmError::invalid(out, e))?;
+    let text = serde_json::to_string_pretty(&summary).map_err(|e| ModelError::invalid(out, e))?;
     write_atomic(&summary_path, text.as_bytes()).map_err(io(&summary_path))?;
     Ok(report)
 }

@@ -30,7 +30,7 @@
 
 use crate::lora::{add_deltas, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
 use crate::prefix_lm::{LmBatch, PrefixLm, PrefixLmConfig};
-use crate::{LmError, MotionLm};
+use crate::MotionLm;
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var, D};
 use candle_nn::{Init, Linear, Module, VarBuilder, VarMap};
@@ -38,6 +38,7 @@ use motionscale_core::rng::SplitMix64;
 use motionscale_core::{read_json, write_json};
 use nn::checkpoint::var_tensors;
 use nn::kmeans::kmeans;
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 use std::borrow::Cow;
 use std::collections::HashMap;
@@ -364,7 +365,7 @@ impl EsMoe {
         base_file: &Path,
         model: &PrefixLmConfig,
         config: EsMoeConfig,
-    ) -> std::result::Result<Self, LmError> {
+    ) -> std::result::Result<Self, ModelError> {
         let manifest: MoeManifest = read_json(&dir.join(MANIFEST_FILE))?;
         let mut moe = Self::build(
             model,
@@ -385,9 +386,9 @@ impl EsMoe {
         base: HashMap<String, Tensor>,
         emotions: Vec<String>,
         seed: u64,
-    ) -> std::result::Result<Self, LmError> {
+    ) -> std::result::Result<Self, ModelError> {
         let gate = Gate::new(&config, model.text_dim, emotions.len(), seed)
-            .map_err(|e| LmError::Argument(format!("ES-MoE gate: {e}")))?;
+            .map_err(|e| ModelError::Argument(format!("ES-MoE gate: {e}")))?;
         Ok(Self {
             config,
             manifest: MoeManifest {
@@ -402,11 +403,11 @@ impl EsMoe {
     }
 
     /// Load the experts `names` and the gate from a run folder.
-    fn load_parts(&mut self, dir: &Path, names: &[String]) -> std::result::Result<(), LmError> {
+    fn load_parts(&mut self, dir: &Path, names: &[String]) -> std::result::Result<(), ModelError> {
         let adapters = dir.join(ADAPTER_FILE);
         for name in names {
             let expert = LoraAdapter::new(&self.model, self.config.lora, name, 0)
-                .map_err(LmError::inference)?;
+                .map_err(ModelError::inference)?;
             expert.load(&adapters)?;
             self.experts.push(expert);
         }
@@ -415,17 +416,17 @@ impl EsMoe {
         self.gate
             .varmap
             .load(&gate)
-            .map_err(|e| LmError::invalid(&gate, e))
+            .map_err(|e| ModelError::invalid(&gate, e))
     }
 
     /// Save the experts, the gate and the manifest into `dir`.
-    pub fn save(&self, dir: &Path) -> std::result::Result<(), LmError> {
+    pub fn save(&self, dir: &Path) -> std::result::Result<(), ModelError> {
         let mut adapters = HashMap::new();
         for expert in &self.experts {
             adapters.extend(var_tensors(&expert.vars()));
         }
         let save = |t: &HashMap<String, Tensor>, path: &Path| {
-            nn::checkpoint::save_safetensors(t, path).map_err(|e| LmError::invalid(path, e))
+            nn::checkpoint::save_safetensors(t, path).map_err(|e| ModelError::invalid(path, e))
         };
         save(&adapters, &dir.join(ADAPTER_FILE))?;
         save(&var_tensors(&self.gate.vars()), &dir.join(GATE_FILE))?;
@@ -586,7 +587,7 @@ impl EsMoeTrainer {
         emotions: &HashMap<String, String>,
         train_texts: &[&[f32]],
         seed: u64,
-    ) -> std::result::Result<Self, LmError> {
+    ) -> std::result::Result<Self, ModelError> {
         let mut moe = match previous {
             Some(dir) => EsMoe::load(dir, base_file, model, config)?,
             None => {
@@ -596,7 +597,7 @@ impl EsMoeTrainer {
                 let moe = EsMoe::build(model, config, base_weights(base_file)?, classes, seed)?;
                 if config.cged {
                     moe.fit_dictionary(train_texts, seed)
-                        .map_err(LmError::inference)?;
+                        .map_err(ModelError::inference)?;
                 }
                 moe
             }
@@ -611,14 +612,14 @@ impl EsMoeTrainer {
             }
             None => {
                 if config.mixture && moe.experts.len() >= config.max_experts {
-                    return Err(LmError::Argument(format!(
+                    return Err(ModelError::Argument(format!(
                         "ES-MoE has keys for {} experts; raise max_experts",
                         config.max_experts
                     )));
                 }
                 let index = moe.experts.len() as u64;
                 let adapter = LoraAdapter::new(model, config.lora, expert, seed ^ (index << 32))
-                    .map_err(LmError::inference)?;
+                    .map_err(ModelError::inference)?;
                 moe.experts.push(adapter);
                 moe.manifest.experts.push(expert.to_string());
             }

@@ -5,7 +5,6 @@
 
 pub mod accounting;
 pub mod caption_set;
-pub mod error;
 pub mod es_moe;
 pub mod generate;
 pub mod lm_data;
@@ -14,7 +13,6 @@ pub mod prefix_lm;
 pub mod test_loss;
 pub mod train;
 
-pub use error::LmError;
 pub use prefix_lm::{LmBatch, PrefixLm, PrefixLmConfig};
 
 /// A trained motion LM as generation and evaluation use it: one [`PrefixLm`] for every

@@ -8,7 +8,7 @@
 //! in motion-id order with its first caption.
 
 use crate::prefix_lm::{LmBatch, PrefixLmConfig};
-use crate::LmError;
+use nn::ModelError;
 use text::embed::{clip_captions, CaptionEmbeddings};
 
 use ingest::corpus::split::SplitAssignment;
@@ -79,8 +79,8 @@ impl LmData {
         encoder: Option<&str>,
         limits: Limits,
         splits: &SplitAssignment,
-    ) -> Result<Self, LmError> {
-        let set = TokenSet::open(tokens_dir).map_err(|e| LmError::invalid(tokens_dir, e))?;
+    ) -> Result<Self, ModelError> {
+        let set = TokenSet::open(tokens_dir).map_err(|e| ModelError::invalid(tokens_dir, e))?;
         let encoder = text::resolve_encoder(corpus_dir, encoder)?;
         let embeddings = CaptionEmbeddings::open(corpus_dir, &encoder)?;
         let captions = clip_captions(corpus_dir)?;
@@ -92,7 +92,7 @@ impl LmData {
                 continue;
             };
             let clip_captions = captions.get(&clip.motion_id).ok_or_else(|| {
-                LmError::Corpus(format!(
+                ModelError::Corpus(format!(
                     "{}: clip {} of the token set is not in the corpus",
                     corpus_dir.display(),
                     clip.motion_id
@@ -105,7 +105,7 @@ impl LmData {
                     continue;
                 }
                 let emb = embeddings.get(caption)?.ok_or_else(|| {
-                    LmError::Corpus(format!(
+                    ModelError::Corpus(format!(
                         "{}: caption {caption:?} has no {encoder} embedding; rerun embed-text",
                         corpus_dir.display()
                     ))

@@ -11,11 +11,11 @@
 
 use crate::prefix_lm::PrefixLm;
 use crate::prefix_lm::PrefixLmConfig;
-use crate::LmError;
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var};
 use candle_nn::VarBuilder;
 use motionscale_core::rng::SplitMix64;
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::Path;
@@ -175,14 +175,14 @@ impl LoraAdapter {
     }
 
     /// Load this expert's A and B from an adapter file.
-    pub fn load(&self, path: &Path) -> std::result::Result<(), LmError> {
+    pub fn load(&self, path: &Path) -> std::result::Result<(), ModelError> {
         let tensors = candle_core::safetensors::load(path, &Device::Cpu)
-            .map_err(|e| LmError::invalid(path, e))?;
+            .map_err(|e| ModelError::invalid(path, e))?;
         for (key, var) in self.vars() {
             let t = tensors
                 .get(&key)
-                .ok_or_else(|| LmError::invalid(path, format!("no tensor {key}")))?;
-            var.set(t).map_err(|e| LmError::invalid(path, e))?;
+                .ok_or_else(|| ModelError::invalid(path, format!("no tensor {key}")))?;
+            var.set(t).map_err(|e| ModelError::invalid(path, e))?;
         }
         Ok(())
     }
@@ -218,7 +218,7 @@ pub fn add_deltas(
 /// (`blocks.<i>.<projection>.weight`): the subspaces an O-LoRA adapter keeps orthogonal to.
 pub fn adapter_a_matrices(
     path: &Path,
-) -> std::result::Result<Vec<HashMap<String, Tensor>>, LmError> {
+) -> std::result::Result<Vec<HashMap<String, Tensor>>, ModelError> {
     let tensors = base_weights(path)?;
     let mut by_expert: std::collections::BTreeMap<String, HashMap<String, Tensor>> =
         std::collections::BTreeMap::new();
@@ -269,8 +269,8 @@ impl LoraAdapter {
 }
 
 /// Every weight of a model file, by name.
-pub fn base_weights(path: &Path) -> std::result::Result<HashMap<String, Tensor>, LmError> {
-    candle_core::safetensors::load(path, &Device::Cpu).map_err(|e| LmError::invalid(path, e))
+pub fn base_weights(path: &Path) -> std::result::Result<HashMap<String, Tensor>, ModelError> {
+    candle_core::safetensors::load(path, &Device::Cpu).map_err(|e| ModelError::invalid(path, e))
 }
 
 #[cfg(test)]

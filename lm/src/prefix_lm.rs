@@ -24,13 +24,13 @@
 //! ([`PrefixLm::loss_and_grads`] returns a `GradStore` as `loss.backward()` would), which is
 //! checked against candle's autograd of the same model written with composite ops.
 
-use crate::LmError;
 use candle_core::backprop::GradStore;
 use candle_core::{CpuStorage, DType, Device, Layout, Result, Storage, Tensor, Var};
 use candle_nn::{Init, VarBuilder, VarMap};
 use motionscale_core::rng::SplitMix64;
 use nn::lm_kernels::{self, LayerCache, Rope};
 use nn::seq_layout::SeqLayout;
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 
 /// Special tokens appended to the motion codebook: BOS, EOS, PAD.
@@ -127,8 +127,8 @@ impl PrefixLmConfig {
     }
 
     /// Check that the shape is buildable.
-    pub fn validate(&self) -> std::result::Result<(), LmError> {
-        let bad = |m: String| Err(LmError::Argument(m));
+    pub fn validate(&self) -> std::result::Result<(), ModelError> {
+        let bad = |m: String| Err(ModelError::Argument(m));
         if self.d_model == 0 || self.n_layers == 0 || self.n_heads == 0 || self.ffn_hidden == 0 {
             return bad(format!("empty model shape {self:?}"));
         }

@@ -9,8 +9,9 @@
 //! cross-entropy of the context-free unigram model on the same targets.
 
 use crate::lm_data::LmData;
-use crate::{LmError, MotionLm};
+use crate::MotionLm;
 use nn::lm_kernels::{target_log_probs, IGNORE};
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 
 /// Losses of a model on one split.
@@ -60,10 +61,10 @@ pub fn evaluate(
     data: &LmData,
     split: &str,
     batch: usize,
-) -> Result<SplitLoss, LmError> {
+) -> Result<SplitLoss, ModelError> {
     let items = data.eval_items(split);
     if items.is_empty() {
-        return Err(LmError::Argument(format!(
+        return Err(ModelError::Argument(format!(
             "the token set has no {split} clips to evaluate"
         )));
     }
@@ -77,7 +78,7 @@ pub fn evaluate(
             .for_caption(data.text_of(&chunk[0]))
             .and_then(|model| model.forward(&b))
             .and_then(|l| l.flatten_all()?.to_vec1::<f32>())
-            .map_err(LmError::inference)?;
+            .map_err(ModelError::inference)?;
         let lp = target_log_probs(&logits, lm.config().vocab_size(), &b.targets);
         for (&t, &l) in b.targets.iter().zip(&lp) {
             if t == IGNORE {

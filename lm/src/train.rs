@@ -22,13 +22,14 @@ use crate::lm_data::{Limits, LmData};
 use crate::lora::{adapter_a_matrices, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
 use crate::prefix_lm::{init_model, LmBatch, PrefixLm, PrefixLmConfig};
 use crate::test_loss::{evaluate, SplitLoss};
-use crate::{LmError, MotionLm};
+use crate::MotionLm;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use motionscale_core::files::{append_json_line, check_same_run, read_json, write_json};
 use motionscale_core::rng::SplitMix64;
 use motionscale_core::write_atomic;
 use nn::checkpoint::{save_safetensors, ResumeFiles};
+use nn::ModelError;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -117,12 +118,12 @@ impl ModelShape {
         &self,
         codebook_size: usize,
         text_dim: usize,
-    ) -> Result<PrefixLmConfig, LmError> {
+    ) -> Result<PrefixLmConfig, ModelError> {
         let config = match self {
             Self::Lora { base, .. } | Self::EsMoe { base, .. } => {
                 let run: RunConfig = read_json(&base.join("config.json"))?;
                 if (run.model.codebook_size, run.model.text_dim) != (codebook_size, text_dim) {
-                    return Err(LmError::Argument(format!(
+                    return Err(ModelError::Argument(format!(
                         "{}: the base model has {} codes and {}-d text, the data {codebook_size} and {text_dim}",
                         base.display(),
                         run.model.codebook_size,
@@ -132,7 +133,7 @@ impl ModelShape {
                 run.model
             }
             Self::Preset(name) => PrefixLmConfig::preset(name, codebook_size, text_dim)
-                .ok_or_else(|| LmError::Argument(format!("no model preset {name:?}")))?,
+                .ok_or_else(|| ModelError::Argument(format!("no model preset {name:?}")))?,
             Self::Custom {
                 d_model,
                 n_layers,
@@ -364,10 +365,10 @@ pub struct TrainReport {
 }
 
 /// The trained model in `dir` (`model.safetensors`, memory-mapped) and its run config.
-pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), LmError> {
+pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), ModelError> {
     let run: RunConfig = read_json(&dir.join("config.json"))?;
     if matches!(run.train.model, ModelShape::EsMoe { .. }) {
-        return Err(LmError::invalid(
+        return Err(ModelError::invalid(
             dir,
             "an ES-MoE run has a model per caption, not one model file (load it with load_lm)",
         ));
@@ -375,14 +376,14 @@ pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), LmError> {
     let weights = dir.join(MODEL_FILE);
     // SAFETY: the checkpoint is only read; it must not change while the model lives.
     let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, &Device::Cpu) }
-        .map_err(|e| LmError::invalid(&weights, e))?;
-    let model = PrefixLm::new(&run.model, vb).map_err(|e| LmError::invalid(&weights, e))?;
+        .map_err(|e| ModelError::invalid(&weights, e))?;
+    let model = PrefixLm::new(&run.model, vb).map_err(|e| ModelError::invalid(&weights, e))?;
     Ok((model, run))
 }
 
 /// The trained LM in `dir` as generation and evaluation use it (one model, or ES-MoE's
 /// experts and gate on their base) and its run config.
-pub fn load_lm(dir: &Path) -> Result<(Box<dyn MotionLm>, RunConfig), LmError> {
+pub fn load_lm(dir: &Path) -> Result<(Box<dyn MotionLm>, RunConfig), ModelError> {
     let run: RunConfig = read_json(&dir.join("config.json"))?;
     if let ModelShape::EsMoe { base, moe, .. } = &run.train.model {
         let lm = EsMoe::load(dir, &base.join(MODEL_FILE), &run.model, *moe)?;
@@ -393,11 +394,11 @@ pub fn load_lm(dir: &Path) -> Result<(Box<dyn MotionLm>, RunConfig), LmError> {
 }
 
 /// The emotion label of every labelled clip of a corpus, by motion id.
-fn clip_emotions(corpus_dir: &Path) -> Result<HashMap<String, String>, LmError> {
-    let corpus = ingest::corpus::reader::Corpus::open(corpus_dir).map_err(LmError::Corpus)?;
+fn clip_emotions(corpus_dir: &Path) -> Result<HashMap<String, String>, ModelError> {
+    let corpus = ingest::corpus::reader::Corpus::open(corpus_dir).map_err(ModelError::Corpus)?;
     Ok(corpus
         .clip_metadata()
-        .map_err(LmError::Corpus)?
+        .map_err(ModelError::Corpus)?
         .into_iter()
         .filter_map(|m| Some((m.motion_id, m.labels.emotion?)))
         .collect())
@@ -408,12 +409,12 @@ fn clip_emotions(corpus_dir: &Path) -> Result<HashMap<String, String>, LmError> 
 pub fn run_tokenizer(
     run: &RunConfig,
     dir: Option<&Path>,
-) -> Result<tokenizer::model::MotionTokenizer, LmError> {
+) -> Result<tokenizer::model::MotionTokenizer, ModelError> {
     use tokenizer::model::MotionTokenizer;
     let dir = dir.unwrap_or(&run.tokenizer.dir);
-    let id = MotionTokenizer::content_id(dir).map_err(|e| LmError::invalid(dir, e))?;
+    let id = MotionTokenizer::content_id(dir).map_err(|e| ModelError::invalid(dir, e))?;
     if id != run.tokenizer.id {
-        return Err(LmError::invalid(
+        return Err(ModelError::invalid(
             dir,
             format!(
                 "tokenizer {id} is not the model's {} (pass --tokenizer DIR)",
@@ -421,14 +422,14 @@ pub fn run_tokenizer(
             ),
         ));
     }
-    MotionTokenizer::load(dir, &Device::Cpu).map_err(|e| LmError::invalid(dir, e))
+    MotionTokenizer::load(dir, &Device::Cpu).map_err(|e| ModelError::invalid(dir, e))
 }
 
 /// Train (or resume) the run `config` describes, calling `on_event` as it goes.
 pub fn train(
     config: &TrainConfig,
     on_event: &mut dyn FnMut(&TrainEvent),
-) -> Result<TrainReport, LmError> {
+) -> Result<TrainReport, ModelError> {
     let mut run = Run::start(config)?;
     let total = run.config.schedule.total;
     on_event(&TrainEvent::Started {
@@ -503,7 +504,7 @@ fn build_trainee(
     config: &TrainConfig,
     run: &RunConfig,
     data: &LmData,
-) -> Result<(Trainee, HashMap<String, candle_core::Var>), LmError> {
+) -> Result<(Trainee, HashMap<String, candle_core::Var>), ModelError> {
     Ok(match &config.model {
         ModelShape::Lora {
             base,
@@ -516,7 +517,7 @@ fn build_trainee(
             distillation,
         } => {
             let adapter = LoraAdapter::new(&run.model, *lora, expert, config.hyper.seed)
-                .map_err(LmError::inference)?;
+                .map_err(ModelError::inference)?;
             if let Some(file) = init {
                 adapter.load(file)?;
             }
@@ -566,7 +567,7 @@ fn build_trainee(
         }
         ModelShape::Preset(_) | ModelShape::Custom { .. } => {
             let (model, varmap) =
-                init_model(&run.model, config.hyper.seed).map_err(LmError::inference)?;
+                init_model(&run.model, config.hyper.seed).map_err(ModelError::inference)?;
             let vars = varmap.data().lock().expect("varmap lock").clone();
             (Trainee::Model(model), vars)
         }
@@ -576,12 +577,12 @@ fn build_trainee(
 impl Run {
     /// Load the data, resolve the run, build the model and optimiser, and restore the
     /// checkpoint in the output folder if there is one.
-    fn start(config: &TrainConfig) -> Result<Self, LmError> {
+    fn start(config: &TrainConfig) -> Result<Self, ModelError> {
         let corpus = match &config.corpus {
             Some(c) => c.clone(),
             None => {
                 tokenizer::TokenSet::open(&config.tokens)
-                    .map_err(|e| LmError::invalid(&config.tokens, e))?
+                    .map_err(|e| ModelError::invalid(&config.tokens, e))?
                     .manifest
                     .corpus
             }
@@ -592,7 +593,7 @@ impl Run {
         };
         let encoder = config.text_encoder.as_deref();
         let splits = ingest::corpus::split::SplitAssignment::from_dir(config.splits.as_deref())
-            .map_err(LmError::Argument)?;
+            .map_err(ModelError::Argument)?;
         let data = LmData::load(&config.tokens, &corpus, encoder, limits, &splits)?;
         let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
         let total = data
@@ -601,7 +602,7 @@ impl Run {
                 config.hyper.batch_size,
                 config.hyper.seed,
             )
-            .ok_or_else(|| LmError::Argument("no train clips with motion tokens".into()))?;
+            .ok_or_else(|| ModelError::Argument("no train clips with motion tokens".into()))?;
         let seq = SequenceShape {
             prefix: config.hyper.max_text_tokens,
             motion: config.hyper.max_motion_tokens + 1,
@@ -621,7 +622,7 @@ impl Run {
                 final_ratio: config.hyper.final_lr_ratio,
             },
         };
-        std::fs::create_dir_all(&config.out).map_err(|e| LmError::io(&config.out, e))?;
+        std::fs::create_dir_all(&config.out).map_err(|e| ModelError::io(&config.out, e))?;
         let (trainee, vars) = build_trainee(config, &run, &data)?;
         let (beta1, beta2) = config.betas;
         let adamw = AdamWConfig {
@@ -646,7 +647,7 @@ impl Run {
     }
 
     /// One optimiser step on the next batch.
-    fn step(&mut self) -> Result<TrainEvent, LmError> {
+    fn step(&mut self) -> Result<TrainEvent, ModelError> {
         let (c, started) = (&self.config.train, Instant::now());
         let items = self
             .data
@@ -673,11 +674,11 @@ impl Run {
                     .map(|(l, g)| (l.total(t.moe.config.emotion_weight), g))
             }
         }
-        .map_err(LmError::inference)?;
+        .map_err(ModelError::inference)?;
         let lr = self.config.schedule.at(self.state.step);
         self.opt
             .step(&grads, lr, Some(c.hyper.grad_clip))
-            .map_err(LmError::inference)?;
+            .map_err(ModelError::inference)?;
         let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
         let shape = SequenceShape {
             prefix: batch.layout.prefix_slots,
@@ -699,13 +700,16 @@ impl Run {
     }
 
     /// Evaluate the test split and record it in `eval.json` and `evals.jsonl`.
-    fn evaluate(&self, train_loss: f64) -> Result<EvalRecord, LmError> {
+    fn evaluate(&self, train_loss: f64) -> Result<EvalRecord, ModelError> {
         // A LoRA run evaluates the base with the adapter as it now stands merged in.
         let merged;
         let (lm, expert_weights): (&dyn MotionLm, _) = match &self.trainee {
             Trainee::Model(model) => (model, None),
             Trainee::Lora(l) => {
-                merged = l.model(&self.config.model).map_err(LmError::inference)?.0;
+                merged = l
+                    .model(&self.config.model)
+                    .map_err(ModelError::inference)?
+                    .0;
                 (&merged, None)
             }
             Trainee::Moe(t) => (&t.moe, Some(self.expert_weights(&t.moe)?)),
@@ -730,28 +734,33 @@ impl Run {
     }
 
     /// The gate's mean weight of each expert over the test clips' first captions.
-    fn expert_weights(&self, moe: &EsMoe) -> Result<Vec<f64>, LmError> {
+    fn expert_weights(&self, moe: &EsMoe) -> Result<Vec<f64>, ModelError> {
         let items = self.data.eval_items("test");
         let mut sum = vec![0f64; moe.experts()];
         for item in &items {
             let w = moe
                 .weights(self.data.text_of(item))
-                .map_err(LmError::inference)?;
+                .map_err(ModelError::inference)?;
             sum.iter_mut().zip(w).for_each(|(s, w)| *s += f64::from(w));
         }
         Ok(sum.iter().map(|s| s / items.len().max(1) as f64).collect())
     }
 
     /// Write the weights others load, then the resume files, committed by `state.json`.
-    fn checkpoint(&mut self) -> Result<(), LmError> {
+    fn checkpoint(&mut self) -> Result<(), ModelError> {
         let paths = &self.paths;
         let weights = nn::checkpoint::var_tensors(&self.vars);
         let model = match &self.trainee {
             Trainee::Model(_) => Some(weights.clone()),
             Trainee::Lora(l) => {
                 let adapter = self.config.train.out.join(ADAPTER_FILE);
-                save_safetensors(&weights, &adapter).map_err(|e| LmError::invalid(&adapter, e))?;
-                Some(l.model(&self.config.model).map_err(LmError::inference)?.1)
+                save_safetensors(&weights, &adapter)
+                    .map_err(|e| ModelError::invalid(&adapter, e))?;
+                Some(
+                    l.model(&self.config.model)
+                        .map_err(ModelError::inference)?
+                        .1,
+                )
             }
             Trainee::Moe(t) => {
                 t.moe.save(&self.config.train.out)?;
@@ -760,9 +769,9 @@ impl Run {
         };
         if let Some(model) = model {
             save_safetensors(&model, &paths.model)
-                .map_err(|e| LmError::invalid(&paths.model, e))?;
+                .map_err(|e| ModelError::invalid(&paths.model, e))?;
         }
-        let invalid = |e: &dyn std::fmt::Display| LmError::invalid(paths.resume.state_path(), e);
+        let invalid = |e: &dyn std::fmt::Display| ModelError::invalid(paths.resume.state_path(), e);
         let stage = paths.resume.stage().map_err(|e| invalid(&e))?;
         save_safetensors(&weights, &stage.join(MODEL_FILE)).map_err(|e| invalid(&e))?;
         self.opt
@@ -859,7 +868,7 @@ fn resume(
     run: &RunConfig,
     vars: &HashMap<String, candle_core::Var>,
     opt: &mut AdamW,
-) -> Result<TrainState, LmError> {
+) -> Result<TrainState, ModelError> {
     let fresh = TrainState {
         step: 0,
         tokens_seen: 0,
@@ -883,20 +892,20 @@ fn resume(
     for (name, var) in vars {
         let t = saved
             .get(name)
-            .ok_or_else(|| LmError::invalid(&weights, format!("no tensor {name}")))?;
-        var.set(t).map_err(|e| LmError::invalid(&weights, e))?;
+            .ok_or_else(|| ModelError::invalid(&weights, format!("no tensor {name}")))?;
+        var.set(t).map_err(|e| ModelError::invalid(&weights, e))?;
     }
     opt.load(&moments)
-        .map_err(|e| LmError::invalid(&moments, e))?;
+        .map_err(|e| ModelError::invalid(&moments, e))?;
     if paths.evals.is_file() {
         let text =
-            std::fs::read_to_string(&paths.evals).map_err(|e| LmError::io(&paths.evals, e))?;
+            std::fs::read_to_string(&paths.evals).map_err(|e| ModelError::io(&paths.evals, e))?;
         let kept: String = text
             .lines()
             .filter(|l| serde_json::from_str::<EvalRecord>(l).is_ok_and(|r| r.step <= state.step))
             .map(|l| format!("{l}\n"))
             .collect();
-        write_atomic(&paths.evals, kept.as_bytes()).map_err(|e| LmError::io(&paths.evals, e))?;
+        write_atomic(&paths.evals, kept.as_bytes()).map_err(|e| ModelError::io(&paths.evals, e))?;
     }
     Ok(state)
 }

@@ -24,10 +24,12 @@ pub mod gru_kernel;
 pub mod kmeans;
 pub mod lm_kernels;
 pub mod matmul;
+pub mod model_error;
 pub mod optim;
 pub mod seq_layout;
 
 pub use error::NnError;
+pub use model_error::ModelError;
 
 /// The device models load onto: the first CUDA GPU when built with `cuda` and one is
 /// present, else the CPU.

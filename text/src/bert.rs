@@ -1,10 +1,10 @@
 //! BERT-family sentence encoders (the default: sentence-transformers' all-MiniLM-L6-v2).
 
-use crate::error::TextError;
 use crate::transformer::{self, CONFIG, TOKENIZER};
 use crate::{TextEncoder, TokenEmbeddings};
 use candle_core::{Device, Tensor};
 use candle_transformers::models::bert::{BertModel, Config};
+use nn::ModelError;
 use std::path::Path;
 use tokenizers::{Encoding, Tokenizer};
 
@@ -22,16 +22,16 @@ pub struct BertEncoder {
 impl BertEncoder {
     /// Load the encoder in `dir` onto [`nn::default_device`]. Its id is the folder name
     /// plus a hash of the three files.
-    pub fn load(dir: &Path) -> Result<Self, TextError> {
+    pub fn load(dir: &Path) -> Result<Self, ModelError> {
         Self::load_on(dir, &nn::default_device())
     }
 
     /// Load the encoder in `dir` onto `device`.
-    pub fn load_on(dir: &Path, device: &Device) -> Result<Self, TextError> {
+    pub fn load_on(dir: &Path, device: &Device) -> Result<Self, ModelError> {
         let config: Config = transformer::read_config(dir)?;
         let tokenizer = transformer::read_tokenizer(dir, config.pad_token_id as u32)?;
         let (vb, weights) = transformer::read_weights(dir, device)?;
-        let model = BertModel::load(vb, &config).map_err(|e| TextError::invalid(&weights, e))?;
+        let model = BertModel::load(vb, &config).map_err(|e| ModelError::invalid(&weights, e))?;
         let id = crate::encoder_id(
             &crate::dir_name(dir),
             &[&dir.join(CONFIG), &dir.join(TOKENIZER), &weights],
@@ -56,7 +56,7 @@ impl TextEncoder for BertEncoder {
     }
 
     /// One forward pass for the whole batch, padded to its longest text and masked.
-    fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, TextError> {
+    fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, ModelError> {
         if texts.is_empty() {
             return Ok(Vec::new());
         }
@@ -64,11 +64,11 @@ impl TextEncoder for BertEncoder {
         let refs: Vec<&Encoding> = encodings.iter().collect();
         let ids = transformer::stack(&refs, Encoding::get_ids, &self.device)?;
         let mask = transformer::stack(&refs, Encoding::get_attention_mask, &self.device)?;
-        let type_ids = Tensor::zeros_like(&ids).map_err(TextError::inference)?;
+        let type_ids = Tensor::zeros_like(&ids).map_err(ModelError::inference)?;
         let hidden = self
             .model
             .forward(&ids, &type_ids, Some(&mask))
-            .map_err(TextError::inference)?;
+            .map_err(ModelError::inference)?;
         transformer::real_tokens(&hidden, &refs)
     }
 }

@@ -5,7 +5,6 @@
 //! recomputes exactly the shards that are missing: `index.json`, rewritten after every shard,
 //! records each finished shard's sha256, and a shard whose file no longer matches is redone.
 
-use crate::error::TextError;
 use crate::{TextEncoder, TokenEmbeddings};
 use arrow_array::builder::{Float32Builder, ListBuilder, StringBuilder, UInt32Builder};
 use arrow_array::cast::AsArray;
@@ -16,6 +15,7 @@ use bytes::Bytes;
 use ingest::corpus::manifest::{Manifest, TextEmbeddingEntry};
 use ingest::corpus::schema::{col as corpus_col, list_item};
 use motionscale_core::write_json;
+use nn::ModelError;
 use parquet::arrow::arrow_reader::{
     ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection,
     RowSelector,
@@ -124,21 +124,21 @@ fn sha256_hex(bytes: &[u8]) -> String {
 }
 
 /// The distinct captions of a corpus, sorted.
-pub fn corpus_captions(corpus_dir: &Path) -> Result<Vec<String>, TextError> {
+pub fn corpus_captions(corpus_dir: &Path) -> Result<Vec<String>, ModelError> {
     let captions: BTreeSet<String> = clip_captions(corpus_dir)?.into_values().flatten().collect();
     Ok(captions.into_iter().collect())
 }
 
 /// Every clip's captions by motion id (only the `motion_id` and `captions` columns are
 /// decoded).
-pub fn clip_captions(corpus_dir: &Path) -> Result<HashMap<String, Vec<String>>, TextError> {
-    let manifest = Manifest::read_checked(corpus_dir).map_err(TextError::Corpus)?;
+pub fn clip_captions(corpus_dir: &Path) -> Result<HashMap<String, Vec<String>>, ModelError> {
+    let manifest = Manifest::read_checked(corpus_dir).map_err(ModelError::Corpus)?;
     let mut out = HashMap::new();
     for shard in &manifest.shards {
         let path = corpus_dir.join(&shard.file);
-        let file = std::fs::File::open(&path).map_err(|e| TextError::io(&path, e))?;
+        let file = std::fs::File::open(&path).map_err(|e| ModelError::io(&path, e))?;
         let builder = ParquetRecordBatchReaderBuilder::try_new(file)
-            .map_err(|e| TextError::invalid(&path, e))?;
+            .map_err(|e| ModelError::invalid(&path, e))?;
         let mask = projection(
             builder.parquet_schema(),
             builder.schema(),
@@ -147,23 +147,23 @@ pub fn clip_captions(corpus_dir: &Path) -> Result<HashMap<String, Vec<String>>, 
         let reader = builder
             .with_projection(mask)
             .build()
-            .map_err(|e| TextError::invalid(&path, e))?;
+            .map_err(|e| ModelError::invalid(&path, e))?;
         for batch in reader {
-            let batch = batch.map_err(|e| TextError::invalid(&path, e))?;
+            let batch = batch.map_err(|e| ModelError::invalid(&path, e))?;
             let ids = batch
                 .column_by_name(corpus_col::MOTION_ID)
                 .and_then(|c| c.as_string_opt::<i32>())
-                .ok_or_else(|| TextError::invalid(&path, "motion_id column is not utf8"))?;
+                .ok_or_else(|| ModelError::invalid(&path, "motion_id column is not utf8"))?;
             let lists = batch
                 .column_by_name(corpus_col::CAPTIONS)
                 .and_then(|c| c.as_list_opt::<i32>())
-                .ok_or_else(|| TextError::invalid(&path, "captions column is not a list"))?;
+                .ok_or_else(|| ModelError::invalid(&path, "captions column is not a list"))?;
             for (row, id) in ids.iter().enumerate() {
-                let id = id.ok_or_else(|| TextError::invalid(&path, "null motion_id"))?;
+                let id = id.ok_or_else(|| ModelError::invalid(&path, "null motion_id"))?;
                 let list = lists.value(row);
                 let values = list
                     .as_string_opt::<i32>()
-                    .ok_or_else(|| TextError::invalid(&path, "captions are not utf8"))?;
+                    .ok_or_else(|| ModelError::invalid(&path, "captions are not utf8"))?;
                 let captions = values.iter().flatten().map(str::to_string).collect();
                 out.insert(id.to_string(), captions);
             }
@@ -188,7 +188,7 @@ pub fn embed_corpus(
     encoder: &dyn TextEncoder,
     batch: usize,
     progress: &dyn Fn(u64, u64),
-) -> Result<EmbedReport, TextError> {
+) -> Result<EmbedReport, ModelError> {
     embed_corpus_sharded(corpus_dir, encoder, batch, SHARD_CAPTIONS, progress)
 }
 
@@ -200,9 +200,9 @@ pub fn embed_corpus_sharded(
     batch: usize,
     shard_captions: usize,
     progress: &dyn Fn(u64, u64),
-) -> Result<EmbedReport, TextError> {
+) -> Result<EmbedReport, ModelError> {
     if batch == 0 || shard_captions == 0 {
-        return Err(TextError::Argument(format!(
+        return Err(ModelError::Argument(format!(
             "batch size ({batch}) and captions per shard ({shard_captions}) must be positive"
         )));
     }
@@ -272,7 +272,7 @@ pub fn embed_corpus_sharded(
         let bytes = encode_shard(&id, dim, slice, &embeddings)?;
         let file = format!("shard-{k:05}.parquet");
         let path = out_dir.join(&file);
-        motionscale_core::write_atomic(&path, &bytes).map_err(|e| TextError::io(&path, e))?;
+        motionscale_core::write_atomic(&path, &bytes).map_err(|e| ModelError::io(&path, e))?;
         finished[k] = Some(IndexShard {
             file,
             first: (k * shard_captions) as u64,
@@ -291,7 +291,7 @@ pub fn embed_corpus_sharded(
         write_json(&index_path, &fresh)?;
     }
     remove_stale_shards(&out_dir, &finished)?;
-    let mut manifest = Manifest::read(corpus_dir).map_err(TextError::Corpus)?;
+    let mut manifest = Manifest::read(corpus_dir).map_err(ModelError::Corpus)?;
     manifest.text_embeddings.retain(|e| e.encoder != id);
     manifest.text_embeddings.push(TextEmbeddingEntry {
         encoder: id,
@@ -299,31 +299,31 @@ pub fn embed_corpus_sharded(
         dim,
         captions: total,
     });
-    manifest.write(corpus_dir).map_err(TextError::Corpus)?;
+    manifest.write(corpus_dir).map_err(ModelError::Corpus)?;
     Ok(report)
 }
 
 /// Delete shard files an earlier run (of another caption list or shard size) left behind.
-fn remove_stale_shards(dir: &Path, keep: &[Option<IndexShard>]) -> Result<(), TextError> {
+fn remove_stale_shards(dir: &Path, keep: &[Option<IndexShard>]) -> Result<(), ModelError> {
     let keep: BTreeSet<&str> = keep.iter().flatten().map(|s| s.file.as_str()).collect();
-    for entry in std::fs::read_dir(dir).map_err(|e| TextError::io(dir, e))? {
-        let path = entry.map_err(|e| TextError::io(dir, e))?.path();
+    for entry in std::fs::read_dir(dir).map_err(|e| ModelError::io(dir, e))? {
+        let path = entry.map_err(|e| ModelError::io(dir, e))?.path();
         let name = path
             .file_name()
             .and_then(|n| n.to_str())
             .unwrap_or_default();
         if name.starts_with("shard-") && name.ends_with(".parquet") && !keep.contains(name) {
-            std::fs::remove_file(&path).map_err(|e| TextError::io(&path, e))?;
+            std::fs::remove_file(&path).map_err(|e| ModelError::io(&path, e))?;
         }
     }
     Ok(())
 }
 
-fn read_index(path: &Path) -> Result<Option<Index>, TextError> {
+fn read_index(path: &Path) -> Result<Option<Index>, ModelError> {
     match std::fs::read_to_string(path) {
         Ok(text) => Ok(serde_json::from_str(&text).ok()),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-        Err(e) => Err(TextError::io(path, e)),
+        Err(e) => Err(ModelError::io(path, e)),
     }
 }
 
@@ -333,7 +333,7 @@ fn embed_slice(
     texts: &[String],
     batch: usize,
     progress: &dyn Fn(u64),
-) -> Result<Vec<TokenEmbeddings>, TextError> {
+) -> Result<Vec<TokenEmbeddings>, ModelError> {
     let mut order: Vec<usize> = (0..texts.len()).collect();
     order.sort_by_key(|&i| texts[i].len());
     let mut out: Vec<Option<TokenEmbeddings>> = vec![None; texts.len()];
@@ -342,7 +342,7 @@ fn embed_slice(
         let batch_texts: Vec<&str> = chunk.iter().map(|&i| texts[i].as_str()).collect();
         let embedded = encoder.encode(&batch_texts)?;
         if embedded.len() != chunk.len() {
-            return Err(TextError::inference(format!(
+            return Err(ModelError::inference(format!(
                 "encoder {} returned {} results for {} texts",
                 encoder.id(),
                 embedded.len(),
@@ -351,7 +351,7 @@ fn embed_slice(
         }
         for (&i, e) in chunk.iter().zip(embedded) {
             if e.dim != encoder.dim() || e.embeddings.len() != e.tokens.len() * e.dim {
-                return Err(TextError::inference(format!(
+                return Err(ModelError::inference(format!(
                     "encoder {} returned {} values for {} tokens of width {} (declared {}) for {:?}",
                     encoder.id(),
                     e.embeddings.len(),
@@ -388,10 +388,10 @@ fn encode_shard(
     dim: usize,
     captions: &[String],
     embeddings: &[TokenEmbeddings],
-) -> Result<Vec<u8>, TextError> {
+) -> Result<Vec<u8>, ModelError> {
     let schema = shard_schema(encoder, dim);
     let mut out = Vec::new();
-    let failed = |e: &dyn std::fmt::Display| TextError::inference(format!("encoding shard: {e}"));
+    let failed = |e: &dyn std::fmt::Display| ModelError::inference(format!("encoding shard: {e}"));
     let mut writer = ArrowWriter::try_new(&mut out, schema.clone(), Some(properties()))
         .map_err(|e| failed(&e))?;
     for (texts, embs) in captions
@@ -445,27 +445,27 @@ pub struct CaptionEmbeddings {
 impl CaptionEmbeddings {
     /// Open the embeddings that `encoder_id` made for the corpus in `corpus_dir` (as listed
     /// in its manifest); only the caption column is decoded here.
-    pub fn open(corpus_dir: &Path, encoder_id: &str) -> Result<Self, TextError> {
-        let manifest = Manifest::read(corpus_dir).map_err(TextError::Corpus)?;
+    pub fn open(corpus_dir: &Path, encoder_id: &str) -> Result<Self, ModelError> {
+        let manifest = Manifest::read(corpus_dir).map_err(ModelError::Corpus)?;
         let entry = manifest
             .text_embeddings
             .iter()
             .find(|e| e.encoder == encoder_id)
             .ok_or_else(|| {
-                TextError::Corpus(format!(
+                ModelError::Corpus(format!(
                     "{}: no text embeddings by encoder {encoder_id} in manifest.json",
                     corpus_dir.display()
                 ))
             })?;
         let dir = corpus_dir.join(&entry.dir);
         let index_path = dir.join(INDEX_FILE);
-        let index = read_index(&index_path)?.ok_or_else(|| TextError::Missing {
+        let index = read_index(&index_path)?.ok_or_else(|| ModelError::Missing {
             path: index_path.clone(),
             what: "caption embedding index",
         })?;
         let rows: u64 = index.shards.iter().map(|s| s.rows).sum();
         if index.encoder != encoder_id || index.dim != entry.dim || rows != entry.captions {
-            return Err(TextError::invalid(
+            return Err(ModelError::invalid(
                 &index_path,
                 format!(
                     "holds {rows} captions by {} (dim {}), manifest says {} by {encoder_id} (dim {}): rerun embed-text",
@@ -477,17 +477,17 @@ impl CaptionEmbeddings {
         let mut by_caption = HashMap::with_capacity(rows as usize);
         for (s, shard) in index.shards.iter().enumerate() {
             let path = dir.join(&shard.file);
-            let file = std::fs::File::open(&path).map_err(|e| TextError::io(&path, e))?;
+            let file = std::fs::File::open(&path).map_err(|e| ModelError::io(&path, e))?;
             // SAFETY: shards are written once (temp + rename) and never modified in place.
-            let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|e| TextError::io(&path, e))?;
+            let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|e| ModelError::io(&path, e))?;
             let bytes = Bytes::from_owner(map);
             let metadata = ArrowReaderMetadata::load(&bytes, ArrowReaderOptions::new())
-                .map_err(|e| TextError::invalid(&path, e))?;
+                .map_err(|e| ModelError::invalid(&path, e))?;
             let meta = metadata.schema().metadata();
             if meta.get(META_ENCODER).map(String::as_str) != Some(encoder_id)
                 || meta.get(META_DIM) != Some(&index.dim.to_string())
             {
-                return Err(TextError::invalid(
+                return Err(ModelError::invalid(
                     &path,
                     format!(
                         "schema metadata {meta:?} is not encoder {encoder_id}, dim {}",
@@ -508,17 +508,17 @@ impl CaptionEmbeddings {
                 .enumerate()
                 .flat_map(|(g, rg)| (0..rg.num_rows() as usize).map(move |r| (g, r)));
             for batch in shard.reader(&[col::CAPTION], None)? {
-                let batch = batch.map_err(|e| TextError::invalid(&shard.path, e))?;
+                let batch = batch.map_err(|e| ModelError::invalid(&shard.path, e))?;
                 let texts = batch
                     .column(0)
                     .as_string_opt::<i32>()
-                    .ok_or_else(|| TextError::invalid(&shard.path, "caption is not utf8"))?;
+                    .ok_or_else(|| ModelError::invalid(&shard.path, "caption is not utf8"))?;
                 for text in texts.iter() {
                     let (g, r) = group_rows.next().ok_or_else(|| {
-                        TextError::invalid(&shard.path, "more rows than its metadata lists")
+                        ModelError::invalid(&shard.path, "more rows than its metadata lists")
                     })?;
                     let text =
-                        text.ok_or_else(|| TextError::invalid(&shard.path, "null caption"))?;
+                        text.ok_or_else(|| ModelError::invalid(&shard.path, "null caption"))?;
                     by_caption.insert(text.to_string(), (s, g, r));
                 }
             }
@@ -553,12 +553,12 @@ impl CaptionEmbeddings {
     }
 
     /// The token embeddings of `caption`, or `None` when it was not embedded.
-    pub fn get(&self, caption: &str) -> Result<Option<TokenEmbeddings>, TextError> {
+    pub fn get(&self, caption: &str) -> Result<Option<TokenEmbeddings>, ModelError> {
         let Some(&(s, group, row)) = self.index.get(caption) else {
             return Ok(None);
         };
         let shard = &self.shards[s];
-        let bad = |e: &dyn std::fmt::Display| TextError::invalid(&shard.path, e);
+        let bad = |e: &dyn std::fmt::Display| ModelError::invalid(&shard.path, e);
         let batch = shard
             .reader(&[col::TOKENS, col::EMBEDDINGS], Some((group, row)))?
             .next()
@@ -607,7 +607,7 @@ impl Shard {
         &self,
         columns: &[&str],
         row: Option<(usize, usize)>,
-    ) -> Result<parquet::arrow::arrow_reader::ParquetRecordBatchReader, TextError> {
+    ) -> Result<parquet::arrow::arrow_reader::ParquetRecordBatchReader, ModelError> {
         let mask = projection(
             self.metadata.parquet_schema(),
             self.metadata.schema(),
@@ -628,6 +628,6 @@ impl Shard {
         }
         builder
             .build()
-            .map_err(|e| TextError::invalid(&self.path, e))
+            .map_err(|e| ModelError::invalid(&self.path, e))
     }
 }

@@ -3,9 +3,9 @@
 //! can run where no pretrained encoder is available, and must be learned downstream. Its id
 //! starts with `fallback-untrained-` so every output that uses it says so.
 
-use crate::error::TextError;
 use crate::{TextEncoder, TokenEmbeddings};
 use motionscale_core::rng::SplitMix64;
+use nn::ModelError;
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use sha2::{Digest, Sha256};
 use std::collections::{BTreeSet, HashMap};
@@ -46,9 +46,9 @@ impl FallbackEncoder {
         captions: impl IntoIterator<Item = &'a str>,
         dim: usize,
         seed: u64,
-    ) -> Result<Self, TextError> {
+    ) -> Result<Self, ModelError> {
         if dim == 0 {
-            return Err(TextError::Argument(
+            return Err(ModelError::Argument(
                 "fallback encoder width must be positive".into(),
             ));
         }
@@ -61,35 +61,36 @@ impl FallbackEncoder {
         let table = (0..vocab.len() * dim)
             .map(|_| (rng.normal() * std) as f32)
             .collect();
-        Self::from_parts(vocab, table, dim).map_err(TextError::Argument)
+        Self::from_parts(vocab, table, dim).map_err(ModelError::Argument)
     }
 
     /// [`Self::build`] over the distinct captions of the corpus in `corpus_dir`.
-    pub fn for_corpus(corpus_dir: &Path, dim: usize, seed: u64) -> Result<Self, TextError> {
+    pub fn for_corpus(corpus_dir: &Path, dim: usize, seed: u64) -> Result<Self, ModelError> {
         let captions = crate::embed::corpus_captions(corpus_dir)?;
         Self::build(captions.iter().map(String::as_str), dim, seed)
     }
 
     /// Load `vocab.json` and `model.safetensors` (key `embeddings`, vocab × dim f32) from `dir`.
-    pub fn load(dir: &Path) -> Result<Self, TextError> {
+    pub fn load(dir: &Path) -> Result<Self, ModelError> {
         let vocab_path = crate::transformer::required(dir, VOCAB_FILE, "fallback vocabulary")?;
         let text =
-            std::fs::read_to_string(&vocab_path).map_err(|e| TextError::io(&vocab_path, e))?;
+            std::fs::read_to_string(&vocab_path).map_err(|e| ModelError::io(&vocab_path, e))?;
         let vocab: Vec<String> =
-            serde_json::from_str(&text).map_err(|e| TextError::invalid(&vocab_path, e))?;
+            serde_json::from_str(&text).map_err(|e| ModelError::invalid(&vocab_path, e))?;
         let path = crate::transformer::required(dir, WEIGHTS_FILE, "fallback embedding table")?;
-        let bytes = std::fs::read(&path).map_err(|e| TextError::io(&path, e))?;
-        let tensors = SafeTensors::deserialize(&bytes).map_err(|e| TextError::invalid(&path, e))?;
+        let bytes = std::fs::read(&path).map_err(|e| ModelError::io(&path, e))?;
+        let tensors =
+            SafeTensors::deserialize(&bytes).map_err(|e| ModelError::invalid(&path, e))?;
         let view = tensors
             .tensor(EMBEDDINGS_KEY)
-            .map_err(|e| TextError::invalid(&path, e))?;
+            .map_err(|e| ModelError::invalid(&path, e))?;
         let shape = view.shape();
         if view.dtype() != Dtype::F32
             || shape.len() != 2
             || shape[0] != vocab.len()
             || shape[1] == 0
         {
-            return Err(TextError::invalid(
+            return Err(ModelError::invalid(
                 &path,
                 format!(
                     "{EMBEDDINGS_KEY} is {:?} {shape:?}, expected F32 [{}, dim] for the {} words of {VOCAB_FILE}",
@@ -104,15 +105,15 @@ impl FallbackEncoder {
             .chunks_exact(4)
             .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
             .collect();
-        Self::from_parts(vocab, table, shape[1]).map_err(|e| TextError::invalid(&vocab_path, e))
+        Self::from_parts(vocab, table, shape[1]).map_err(|e| ModelError::invalid(&vocab_path, e))
     }
 
     /// Write `vocab.json` and `model.safetensors` into `dir` (atomically each).
-    pub fn save(&self, dir: &Path) -> Result<(), TextError> {
+    pub fn save(&self, dir: &Path) -> Result<(), ModelError> {
         let (vocab, weights) = serialize(&self.vocab, &self.table, self.dim)?;
         for (name, bytes) in [(VOCAB_FILE, vocab), (WEIGHTS_FILE, weights)] {
             let path = dir.join(name);
-            motionscale_core::write_atomic(&path, &bytes).map_err(|e| TextError::io(&path, e))?;
+            motionscale_core::write_atomic(&path, &bytes).map_err(|e| ModelError::io(&path, e))?;
         }
         Ok(())
     }
@@ -162,13 +163,17 @@ impl FallbackEncoder {
 
 /// The bytes of `vocab.json` and `model.safetensors`; the id hashes exactly these, so a built
 /// encoder and its saved-then-loaded copy share an id.
-fn serialize(vocab: &[String], table: &[f32], dim: usize) -> Result<(Vec<u8>, Vec<u8>), TextError> {
-    let vocab_bytes = serde_json::to_vec(vocab).map_err(TextError::inference)?;
+fn serialize(
+    vocab: &[String],
+    table: &[f32],
+    dim: usize,
+) -> Result<(Vec<u8>, Vec<u8>), ModelError> {
+    let vocab_bytes = serde_json::to_vec(vocab).map_err(ModelError::inference)?;
     let data: Vec<u8> = table.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let view =
-        TensorView::new(Dtype::F32, vec![vocab.len(), dim], &data).map_err(TextError::inference)?;
+    let view = TensorView::new(Dtype::F32, vec![vocab.len(), dim], &data)
+        .map_err(ModelError::inference)?;
     let weights =
-        safetensors::serialize([(EMBEDDINGS_KEY, view)], None).map_err(TextError::inference)?;
+        safetensors::serialize([(EMBEDDINGS_KEY, view)], None).map_err(ModelError::inference)?;
     Ok((vocab_bytes, weights))
 }
 
@@ -182,7 +187,7 @@ impl TextEncoder for FallbackEncoder {
     }
 
     /// Each word's table row; the token strings are vocabulary entries (`<unk>` for unknown words).
-    fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, TextError> {
+    fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, ModelError> {
         Ok(texts
             .iter()
             .map(|text| {

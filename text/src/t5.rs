@@ -1,10 +1,10 @@
 //! T5 encoders (the text side of T5 / Flan-T5 checkpoints).
 
-use crate::error::TextError;
 use crate::transformer::{self, CONFIG, TOKENIZER};
 use crate::{TextEncoder, TokenEmbeddings};
 use candle_core::Device;
 use candle_transformers::models::t5::{Config, T5EncoderModel};
+use nn::ModelError;
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::Mutex;
@@ -25,17 +25,17 @@ pub struct T5Encoder {
 impl T5Encoder {
     /// Load the encoder in `dir` onto [`nn::default_device`]. Its id is the folder name
     /// plus a hash of the three files.
-    pub fn load(dir: &Path) -> Result<Self, TextError> {
+    pub fn load(dir: &Path) -> Result<Self, ModelError> {
         Self::load_on(dir, &nn::default_device())
     }
 
     /// Load the encoder in `dir` onto `device`.
-    pub fn load_on(dir: &Path, device: &Device) -> Result<Self, TextError> {
+    pub fn load_on(dir: &Path, device: &Device) -> Result<Self, ModelError> {
         let config: Config = transformer::read_config(dir)?;
         let tokenizer = transformer::read_tokenizer(dir, config.pad_token_id as u32)?;
         let (vb, weights) = transformer::read_weights(dir, device)?;
         let model =
-            T5EncoderModel::load(vb, &config).map_err(|e| TextError::invalid(&weights, e))?;
+            T5EncoderModel::load(vb, &config).map_err(|e| ModelError::invalid(&weights, e))?;
         let id = crate::encoder_id(
             &crate::dir_name(dir),
             &[&dir.join(CONFIG), &dir.join(TOKENIZER), &weights],
@@ -61,7 +61,7 @@ impl TextEncoder for T5Encoder {
 
     /// candle's T5 encoder takes no attention mask, so padding would leak into the
     /// attention: texts are grouped by token count and each group runs unpadded.
-    fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, TextError> {
+    fn encode(&self, texts: &[&str]) -> Result<Vec<TokenEmbeddings>, ModelError> {
         let encodings: Vec<Encoding> = texts
             .iter()
             .map(|t| transformer::tokenize(&self.tokenizer, &[t]).map(|mut e| e.remove(0)))
@@ -73,12 +73,12 @@ impl TextEncoder for T5Encoder {
         let mut model = self
             .model
             .lock()
-            .map_err(|_| TextError::inference("T5 model lock poisoned"))?;
+            .map_err(|_| ModelError::inference("T5 model lock poisoned"))?;
         let mut out: Vec<Option<TokenEmbeddings>> = vec![None; texts.len()];
         for members in groups.values() {
             let refs: Vec<&Encoding> = members.iter().map(|&i| &encodings[i]).collect();
             let ids = transformer::stack(&refs, Encoding::get_ids, &self.device)?;
-            let hidden = model.forward(&ids).map_err(TextError::inference)?;
+            let hidden = model.forward(&ids).map_err(ModelError::inference)?;
             for (&i, emb) in members
                 .iter()
                 .zip(transformer::real_tokens(&hidden, &refs)?)

@@ -1,8 +1,9 @@
 //! The MiniLM encoder against the Python `transformers` reference
 //! (`fixtures/minilm_reference.json`, made by `fixtures/make_minilm_reference.py`).
 
+use nn::ModelError;
 use serde::Deserialize;
-use text::{BertEncoder, TextEncoder, TextError};
+use text::{BertEncoder, TextEncoder};
 
 mod common;
 
@@ -85,7 +86,7 @@ fn missing_files_are_named() {
     let err = BertEncoder::load(tmp.path())
         .err()
         .expect("empty folder fails");
-    assert!(matches!(err, TextError::Missing { .. }), "{err}");
+    assert!(matches!(err, ModelError::Missing { .. }), "{err}");
     assert!(err.to_string().contains("config.json"), "{err}");
     let Some(dir) = common::minilm_dir() else {
         return;

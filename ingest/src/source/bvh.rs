@@ -7,8 +7,6 @@ use crate::quat::{self, Quat, Vec3};
 use std::collections::HashSet;
 use std::fmt;
 
-#[doc(hidden)]
-
 /// Channels a joint may have per line of motion data.
 const MAX_CHANNELS: usize = 6;
 
@@ -502,8 +500,19 @@ impl Hierarchy {
             );
         }
         let name = String::from_utf8_lossy(name).into_owned();
+        self.open_block(lx, (name, nline), parent, false)
+    }
+
+    /// A new joint block `name` (read on `line`) under `parent`, up to its `{`.
+    fn open_block(
+        &mut self,
+        lx: &mut Lexer,
+        (name, line): (String, usize),
+        parent: Option<usize>,
+        end_site: bool,
+    ) -> Result<(), BvhError> {
         if !self.names.insert(name.clone()) {
-            return err(nline, format!("duplicate joint name '{name}'"));
+            return err(line, format!("duplicate joint name '{name}'"));
         }
         let open_line = lx.expect("{")?;
         self.joints.push(BvhJoint {
@@ -512,7 +521,7 @@ impl Hierarchy {
             offset: [0.0; 3],
             channels: Vec::new(),
             first_channel: self.channels,
-            end_site: false,
+            end_site,
         });
         self.stack.push(Open {
             joint: self.joints.len() - 1,
@@ -538,25 +547,7 @@ impl Hierarchy {
         }
         open.has_end_site = true;
         let name = format!("{}_End", self.joints[parent].name);
-        if !self.names.insert(name.clone()) {
-            return err(line, format!("duplicate joint name '{name}'"));
-        }
-        let open_line = lx.expect("{")?;
-        self.joints.push(BvhJoint {
-            name,
-            parent: Some(parent),
-            offset: [0.0; 3],
-            channels: Vec::new(),
-            first_channel: self.channels,
-            end_site: true,
-        });
-        self.stack.push(Open {
-            joint: self.joints.len() - 1,
-            line: open_line,
-            has_offset: false,
-            has_end_site: false,
-        });
-        Ok(())
+        self.open_block(lx, (name, line), Some(parent), true)
     }
 
     /// `CHANNELS n name…` on `line`.

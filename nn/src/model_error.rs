@@ -1,4 +1,5 @@
-//! The error type of every fallible operation of this crate.
+//! The error of every model stage (text encoders, the LM, the evaluator): a missing or
+//! unusable file, named, a failed model run, a bad argument, or an unreadable corpus.
 
 use motionscale_core::FileError;
 use std::path::{Path, PathBuf};
@@ -6,7 +7,7 @@ use thiserror::Error;
 
 /// What went wrong, naming the file involved.
 #[derive(Debug, Error)]
-pub enum LmError {
+pub enum ModelError {
     /// A required file is absent.
     #[error("{}: missing ({what})", path.display())]
     Missing {
@@ -18,7 +19,7 @@ pub enum LmError {
     /// A file could not be read or written, or holds something unusable.
     #[error(transparent)]
     File(#[from] FileError),
-    /// Running the model failed.
+    /// Running a model failed.
     #[error("encoding failed: {0}")]
     Inference(String),
     /// A caller passed an unusable argument.
@@ -27,12 +28,9 @@ pub enum LmError {
     /// The corpus could not be read or updated.
     #[error("corpus: {0}")]
     Corpus(String),
-    /// A text encoder or the caption embeddings failed.
-    #[error(transparent)]
-    Text(#[from] text::TextError),
 }
 
-impl LmError {
+impl ModelError {
     /// An I/O error on `path`.
     pub fn io(path: &Path, source: std::io::Error) -> Self {
         Self::File(FileError::io(path, source))
