@@ -2,7 +2,7 @@
 //! sweep's results table, predictions at a compute budget, and the timing of a full fit.
 
 use anyhow::{bail, Context, Result};
-use fits::analysis::{ColumnChoice, ColumnSpec, FitOptions};
+use fits::fitted::{ColumnChoice, ColumnSpec, FitOptions};
 use fits::parametric::StartGrid;
 use fits::report::{estimate_text, sig};
 use fits::{Laws, PredictOptions, Prediction, Table};

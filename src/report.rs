@@ -2,11 +2,9 @@
 //! IsoFLOP sweep folder, a fit) and write one self-contained HTML page of it
 //! ([`crate::report_page`] draws the page).
 
-use crate::commands::{corpus_stats, CorpusStats};
+use crate::commands::corpus_stats;
+use crate::report_page::{Study, Sweep};
 use anyhow::{bail, Context, Result};
-use experiments::plan::IsoFlopPlan;
-use experiments::results::RunRow;
-use experiments::status::PointStatus;
 use fits::{Fits, Laws, PredictOptions, Prediction};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -35,34 +33,6 @@ pub struct ReportArgs {
     /// largest budget of the fit].
     #[arg(long, value_delimiter = ',', value_name = "C,…")]
     pub budgets: Vec<f64>,
-}
-
-/// An IsoFLOP sweep as its folder holds it.
-pub struct Sweep {
-    /// The sweep folder.
-    pub dir: PathBuf,
-    /// Its plan.
-    pub plan: IsoFlopPlan,
-    /// Where each point stands, from its run folder.
-    pub points: Vec<PointStatus>,
-    /// The rows of `results.csv` (empty when the folder has none).
-    pub rows: Vec<RunRow>,
-}
-
-/// Everything the page shows, each part present when an input provided it.
-pub struct Study {
-    /// The inputs as given.
-    pub inputs: Vec<PathBuf>,
-    /// A corpus folder and its statistics.
-    pub corpus: Option<(PathBuf, CorpusStats)>,
-    /// Tokenizer evaluations, each with the file it came from.
-    pub tokenizers: Vec<(PathBuf, EvalReport)>,
-    /// A sweep folder.
-    pub sweep: Option<Sweep>,
-    /// A fit and its `fits.json`.
-    pub fits: Option<(PathBuf, Fits)>,
-    /// A prediction (or why there is none) at each budget.
-    pub predictions: Vec<(f64, Result<Prediction, String>)>,
 }
 
 /// `motionscale report`.

@@ -2,13 +2,17 @@
 //! fit's own charts from `fits::report::charts`, as SVG), no scripts and no external
 //! resources, laid out to read at 1280 px.
 
-use crate::report::{Study, Sweep};
+use crate::commands::CorpusStats;
 use anyhow::Result;
-use experiments::status::PointState;
+use experiments::plan::IsoFlopPlan;
+use experiments::results::RunRow;
+use experiments::status::{PointState, PointStatus};
 use fits::laws::Estimate;
 use fits::report::{estimate_text, sig};
 use fits::{Fits, Prediction};
 use std::fmt::Write as _;
+use std::path::PathBuf;
+use tokenizer::evaluate::EvalReport;
 
 const STYLE: &str = "body{font-family:'DejaVu Sans',system-ui,sans-serif;font-size:16px;\
 line-height:1.45;color:#1b1b1b;max-width:1200px;margin:0 auto;padding:8px 24px 48px}\
@@ -30,6 +34,34 @@ const SECTIONS: [(&str, &str); 6] = [
     ("laws", "Scaling laws"),
     ("predictions", "Predictions"),
 ];
+
+/// An IsoFLOP sweep as its folder holds it.
+pub struct Sweep {
+    /// The sweep folder.
+    pub dir: PathBuf,
+    /// Its plan.
+    pub plan: IsoFlopPlan,
+    /// Where each point stands, from its run folder.
+    pub points: Vec<PointStatus>,
+    /// The rows of `results.csv` (empty when the folder has none).
+    pub rows: Vec<RunRow>,
+}
+
+/// Everything the page shows, each part present when an input provided it.
+pub struct Study {
+    /// The inputs as given.
+    pub inputs: Vec<PathBuf>,
+    /// A corpus folder and its statistics.
+    pub corpus: Option<(PathBuf, CorpusStats)>,
+    /// Tokenizer evaluations, each with the file it came from.
+    pub tokenizers: Vec<(PathBuf, EvalReport)>,
+    /// A sweep folder.
+    pub sweep: Option<Sweep>,
+    /// A fit and its `fits.json`.
+    pub fits: Option<(PathBuf, Fits)>,
+    /// A prediction (or why there is none) at each budget.
+    pub predictions: Vec<(f64, Result<Prediction, String>)>,
+}
 
 /// The whole page.
 pub fn page(study: &Study) -> Result<String> {

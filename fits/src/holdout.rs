@@ -1,47 +1,12 @@
 //! A budget held out of the fit and predicted: the laws fitted on the other budgets predict
 //! its N_opt and loss (with their 95% intervals), and its own runs say what training found.
 
-use crate::analysis::{Fits, Parametric};
-use crate::isoflop::{self, IsoMinimum};
+use crate::fitted::{Fits, Holdout, HoldoutCheck, Parametric};
+use crate::isoflop::{self};
 use crate::laws::Estimate;
 use crate::predict::parametric_at;
 use crate::runs::Runs;
 use crate::FitError;
-use serde::{Deserialize, Serialize};
-
-/// One predicted quantity against the held-out runs.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct HoldoutCheck {
-    /// What is compared.
-    pub quantity: String,
-    /// The prediction from the other budgets, with its 95% interval.
-    pub predicted: Estimate,
-    /// What the held-out runs give.
-    pub trained: f64,
-    /// predicted / trained.
-    pub ratio: f64,
-    /// Whether `trained` lies inside the predicted interval (`None` without an interval).
-    pub inside: Option<bool>,
-    /// Where each number comes from.
-    pub note: String,
-}
-
-/// The held-out budget's record in `fits.json`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Holdout {
-    /// The budget held out (the group's C).
-    pub budget: f64,
-    /// Its runs.
-    pub runs: usize,
-    /// The parabola over its own runs (what the IsoFLOP fit would have found there).
-    pub trained: IsoMinimum,
-    /// (N, loss) of its lowest-loss run.
-    pub best_run: [f64; 2],
-    /// Predictions against the runs.
-    pub checks: Vec<HoldoutCheck>,
-    /// Predictions that could not be made, and why.
-    pub missing: Vec<String>,
-}
 
 /// Row indices of `runs` outside and inside the budget group at `c` (within `tol_dex`, at
 /// least 0.05 dex); an error names the budgets there are.

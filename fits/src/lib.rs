@@ -5,6 +5,7 @@
 pub mod analysis;
 mod error;
 mod fastmath;
+pub mod fitted;
 pub mod holdout;
 pub mod isoflop;
 pub mod laws;
@@ -19,7 +20,8 @@ pub mod runs;
 pub mod synth;
 pub mod table;
 
-pub use analysis::{fit_table, ColumnChoice, ColumnSpec, FitOptions, Fits};
+pub use analysis::fit_table;
 pub use error::FitError;
+pub use fitted::{ColumnChoice, ColumnSpec, FitOptions, Fits};
 pub use predict::{predict, Laws, PredictOptions, Prediction};
 pub use table::Table;

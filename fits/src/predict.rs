@@ -1,7 +1,7 @@
 //! Predictions at a compute budget from fitted (or published) laws, with intervals, an FSQ
 //! codebook choice, and explicit consistency checks between the laws.
 
-use crate::analysis::{Fits, Parametric};
+use crate::fitted::{Fits, Parametric};
 use crate::laws::{Estimate, LogLaw, PowerLaw};
 use crate::parametric::with_draws;
 use crate::FitError;

@@ -5,15 +5,14 @@
 //! other five parameters (Huber on log residuals, L-BFGS, bootstrap intervals), and both this
 //! fit and the plain one are scored on each budget left out in turn.
 
-use crate::analysis::{FitOptions, Fits, LawEstimates};
+use crate::fitted::{FitOptions, Fits, HeldOutError, LawEstimates, RepeatedData};
 use crate::isoflop;
 use crate::laws::Estimate;
-use crate::lbfgs::{minimize, Minimum, Termination};
+use crate::lbfgs::{minimize, Minimum};
 use crate::parametric::{self, huber, lse3, LogRuns, StartGrid};
 use crate::runs::Runs;
 use motionscale_core::rng::SplitMix64;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
 /// Runs for the data-constrained fit.
 #[derive(Debug, Clone, PartialEq)]
@@ -109,46 +108,6 @@ pub fn objective(runs: &DataRuns, delta: f64, theta: &[f64; 6], grad: &mut [f64;
         grad[5] -= dh * w[1] * beta * dln_dp;
     }
     total
-}
-
-/// Leave-one-budget-out error of the plain and the data-constrained fits, in ln L.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct HeldOutError {
-    /// Budgets left out in turn.
-    pub folds: usize,
-    /// RMS log residual of the plain L(N, D) on the left-out budgets.
-    pub plain_rms: f64,
-    /// RMS log residual of L(N, D') on the left-out budgets.
-    pub repeated_rms: f64,
-    /// `plain` or `repeated`: the lower held-out error.
-    pub better: String,
-}
-
-/// The data-constrained fit as recorded in `fits.json`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RepeatedData {
-    /// The law's parameters.
-    #[serde(flatten)]
-    pub law: LawEstimates,
-    /// R*.
-    pub r_star: Estimate,
-    /// Runs fitted.
-    pub n_runs: usize,
-    /// Runs that saw some token more than once (epochs > 1).
-    pub repeated_runs: usize,
-    /// The most epochs of any run.
-    pub max_epochs: f64,
-    /// Σ Huber at the optimum.
-    pub objective: f64,
-    /// Why the best start stopped.
-    pub termination: Termination,
-    /// Bootstrap resamples drawn and those that refitted to finite values.
-    pub bootstrap: [usize; 2],
-    /// The plain and data-constrained fits on budgets they did not see.
-    pub held_out: Option<HeldOutError>,
-    /// How to read R* (set when it is far beyond the repetitions the runs have).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub note: Option<String>,
 }
 
 /// Starts: the plain fit's optimum and the coarse grid, each with several R*.

@@ -2,30 +2,10 @@
 //! minima are taken, because the lowest of several seeds is biased low. Their spread is the
 //! run-to-run noise that the minima must be judged against.
 
+use crate::fitted::SeedNoise;
 use crate::isoflop::{self, BudgetMinimum};
 use crate::runs::Runs;
-use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-
-/// The loss over training seeds at one (budget, N, V).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SeedNoise {
-    /// The budget group's C.
-    pub budget: f64,
-    /// N.
-    pub n: f64,
-    /// V, when the table has a vocabulary column.
-    pub v: Option<f64>,
-    /// The seeds.
-    pub seeds: Vec<f64>,
-    /// Mean loss (the loss column).
-    pub mean: f64,
-    /// Sample standard deviation over the seeds.
-    pub sd: f64,
-    /// The budget's parabola rise one sampled size step (the median gap in log10 N) from its
-    /// vertex: the loss difference that separates the minimum from its neighbours.
-    pub resolved_gap: Option<f64>,
-}
 
 /// `runs` with the rows that share a budget group, N and V but not the seed averaged into one
 /// (the loss columns; the rest from the first such row), and the spread of each such set.

@@ -1,6 +1,6 @@
 //! Writing a fit: `fits.json`, the plots (SVG + PNG) and a short text summary.
 
-use crate::analysis::Fits;
+use crate::fitted::Fits;
 use crate::laws::{Estimate, PowerLaw};
 use crate::FitError;
 use plot::ticks::format_tick;

@@ -1,7 +1,7 @@
 //! The runs a fit reads: the results table's columns, checked and row-aligned, with the
 //! derived ones (C without a compute column, width without a width column).
 
-use crate::analysis::{ColumnChoice, FitOptions};
+use crate::fitted::{ColumnChoice, FitOptions};
 use crate::table::Table;
 use crate::FitError;
 use std::collections::BTreeMap;

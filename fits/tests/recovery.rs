@@ -1,7 +1,7 @@
 //! The fitters recover known laws from synthetic, noisy IsoFLOP tables, read from CSV and
 //! Parquet exactly as `motionscale fit` reads them.
 
-use fits::analysis::{ColumnChoice, ColumnSpec, FitOptions};
+use fits::fitted::{ColumnChoice, ColumnSpec, FitOptions};
 use fits::lbfgs::LbfgsOptions;
 use fits::parametric::{self, LogRuns, StartGrid};
 use fits::synth::{self, CHINCHILLA, VOCAB_LAW};

@@ -4,7 +4,7 @@
 //! BI-CTVAE's stacked encoder and decoder.
 //!
 //! Each layer projects every step's input in one matmul and runs the recurrence through the
-//! fused scan of [`crate::gru_kernel`]; [`scan_reference`] is the same recurrence as plain
+//! fused scan of [`crate::gru_kernel`]; [`crate::gru_kernel::scan_reference`] is the same recurrence as plain
 //! candle ops (other devices, and the tests' yardstick).
 
 use crate::conv_op::{conv1d, ConvGeometry};
@@ -148,68 +148,11 @@ impl StackedGru {
     }
 }
 
-/// Each sequence of `x` reversed within its own length (padding stays in place).
-pub fn reverse_within(x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
-    let (batch, steps, width) = x.dims3()?;
-    let order: Vec<u32> = lengths
-        .iter()
-        .enumerate()
-        .flat_map(|(b, &len)| {
-            (0..steps).map(move |t| (b * steps + if t < len { len - 1 - t } else { t }) as u32)
-        })
-        .collect();
-    x.reshape((batch * steps, width))?
-        .index_select(&Tensor::new(order, x.device())?, 0)?
-        .reshape((batch, steps, width))
-}
-
-/// The recurrence of [`crate::gru_kernel::gru_scan`] as candle ops, one step at a time over
-/// the whole batch (a reversed direction runs on each sequence reversed within its length),
-/// states zeroed past each length.
-pub fn scan_reference(
-    gi: &Tensor,
-    w_hh: &Tensor,
-    b_hh: &Tensor,
-    lengths: &[usize],
-    reverse: bool,
-) -> Result<Tensor> {
-    let (batch, steps, h3) = gi.dims3()?;
-    let hidden = h3 / 3;
-    let gi = if reverse {
-        reverse_within(gi, lengths)?
-    } else {
-        gi.clone()
-    };
-    let mut h = Tensor::zeros((batch, hidden), gi.dtype(), gi.device())?;
-    let mut states = Vec::with_capacity(steps);
-    for t in 0..steps {
-        let gi = gi.narrow(1, t, 1)?.squeeze(1)?;
-        let gh = h.matmul(&w_hh.t()?)?.broadcast_add(b_hh)?;
-        let part = |g: &Tensor, k: usize| g.narrow(1, k * hidden, hidden);
-        let r = candle_nn::ops::sigmoid(&(part(&gi, 0)? + part(&gh, 0)?)?)?;
-        let z = candle_nn::ops::sigmoid(&(part(&gi, 1)? + part(&gh, 1)?)?)?;
-        let n = (part(&gi, 2)? + (r * part(&gh, 2)?)?)?.tanh()?;
-        // h' = (1 − z)·n + z·h
-        h = ((&z * &h)? + ((1.0 - &z)? * n)?)?;
-        states.push(h.clone());
-    }
-    let mask: Vec<f32> = lengths
-        .iter()
-        .flat_map(|&l| (0..steps).map(move |t| if t < l { 1.0 } else { 0.0 }))
-        .collect();
-    let mask = Tensor::from_vec(mask, (batch, steps, 1), gi.device())?;
-    let states = Tensor::stack(&states, 1)?.broadcast_mul(&mask)?;
-    if reverse {
-        reverse_within(&states, lengths)
-    } else {
-        Ok(states)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::gradcheck::numeric_gradient;
+    use crate::gru_kernel::{reverse_within, scan_reference};
     use candle_core::{Device, Var};
     use motionscale_core::rng::SplitMix64;
 

@@ -378,7 +378,7 @@ impl CustomOp3 for GruScan {
 /// `gi = x·W_ihᵀ + b_ih` `(batch, steps, 3h)`, recurrent weight `w_hh` `(3h, h)` and bias
 /// `b_hh` `(3h)`; sequence b runs over its first `lengths[b]` steps (backwards when
 /// `reverse`), zero past them. f32 CPU tensors take the fused op, anything else
-/// [`crate::gru::scan_reference`].
+/// [`scan_reference`].
 pub fn gru_scan(
     gi: &Tensor,
     w_hh: &Tensor,
@@ -391,7 +391,7 @@ pub fn gru_scan(
         candle_core::bail!("gru scan: lengths {lengths:?} for {batch} sequences of {steps} steps");
     }
     if !(gi.device().is_cpu() && gi.dtype() == DType::F32) {
-        return crate::gru::scan_reference(gi, w_hh, b_hh, lengths, reverse);
+        return scan_reference(gi, w_hh, b_hh, lengths, reverse);
     }
     let op = GruScan {
         lengths: lengths.to_vec(),
@@ -400,4 +400,61 @@ pub fn gru_scan(
     };
     gi.contiguous()?
         .apply_op3(&w_hh.contiguous()?, &b_hh.contiguous()?, op)
+}
+/// Each sequence of `x` reversed within its own length (padding stays in place).
+pub fn reverse_within(x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
+    let (batch, steps, width) = x.dims3()?;
+    let order: Vec<u32> = lengths
+        .iter()
+        .enumerate()
+        .flat_map(|(b, &len)| {
+            (0..steps).map(move |t| (b * steps + if t < len { len - 1 - t } else { t }) as u32)
+        })
+        .collect();
+    x.reshape((batch * steps, width))?
+        .index_select(&Tensor::new(order, x.device())?, 0)?
+        .reshape((batch, steps, width))
+}
+
+/// The recurrence of [`gru_scan`] as candle ops, one step at a time over
+/// the whole batch (a reversed direction runs on each sequence reversed within its length),
+/// states zeroed past each length.
+pub fn scan_reference(
+    gi: &Tensor,
+    w_hh: &Tensor,
+    b_hh: &Tensor,
+    lengths: &[usize],
+    reverse: bool,
+) -> Result<Tensor> {
+    let (batch, steps, h3) = gi.dims3()?;
+    let hidden = h3 / 3;
+    let gi = if reverse {
+        reverse_within(gi, lengths)?
+    } else {
+        gi.clone()
+    };
+    let mut h = Tensor::zeros((batch, hidden), gi.dtype(), gi.device())?;
+    let mut states = Vec::with_capacity(steps);
+    for t in 0..steps {
+        let gi = gi.narrow(1, t, 1)?.squeeze(1)?;
+        let gh = h.matmul(&w_hh.t()?)?.broadcast_add(b_hh)?;
+        let part = |g: &Tensor, k: usize| g.narrow(1, k * hidden, hidden);
+        let r = candle_nn::ops::sigmoid(&(part(&gi, 0)? + part(&gh, 0)?)?)?;
+        let z = candle_nn::ops::sigmoid(&(part(&gi, 1)? + part(&gh, 1)?)?)?;
+        let n = (part(&gi, 2)? + (r * part(&gh, 2)?)?)?.tanh()?;
+        // h' = (1 − z)·n + z·h
+        h = ((&z * &h)? + ((1.0 - &z)? * n)?)?;
+        states.push(h.clone());
+    }
+    let mask: Vec<f32> = lengths
+        .iter()
+        .flat_map(|&l| (0..steps).map(move |t| if t < l { 1.0 } else { 0.0 }))
+        .collect();
+    let mask = Tensor::from_vec(mask, (batch, steps, 1), gi.device())?;
+    let states = Tensor::stack(&states, 1)?.broadcast_mul(&mask)?;
+    if reverse {
+        reverse_within(&states, lengths)
+    } else {
+        Ok(states)
+    }
 }

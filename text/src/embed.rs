@@ -132,7 +132,8 @@ pub fn corpus_captions(corpus_dir: &Path) -> Result<Vec<String>, ModelError> {
 /// Every clip's captions by motion id (only the `motion_id` and `captions` columns are
 /// decoded).
 pub fn clip_captions(corpus_dir: &Path) -> Result<HashMap<String, Vec<String>>, ModelError> {
-    let manifest = Manifest::read_checked(corpus_dir).map_err(ModelError::Corpus)?;
+    let manifest =
+        ingest::corpus::integrity::read_checked(corpus_dir).map_err(ModelError::Corpus)?;
     let mut out = HashMap::new();
     for shard in &manifest.shards {
         let path = corpus_dir.join(&shard.file);

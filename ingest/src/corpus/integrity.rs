@@ -1,6 +1,6 @@
 //! Does a corpus folder hold exactly the files its manifest describes? Every command that
 //! reads a corpus runs [`check`] when it opens one (through [`super::Corpus::open`] or
-//! [`super::Manifest::read_checked`]), so a flipped byte, a swapped or extra shard, a changed
+//! [`read_checked`]), so a flipped byte, a swapped or extra shard, a changed
 //! statistics file or a manifest whose totals do not add up is refused with the file named
 //! instead of being read as if it were fine. Hashing every shard costs one sequential read
 //! of the corpus (README "Corpus integrity" gives the measured cost).
@@ -124,4 +124,11 @@ pub fn check(dir: &Path, manifest: &Manifest) -> Result<(), String> {
             rest.len()
         )),
     }
+}
+/// Read `manifest.json` and refuse the corpus unless its files match it ([`check`]): what
+/// every reader of a corpus opens it with.
+pub fn read_checked(dir: &Path) -> Result<Manifest, String> {
+    let manifest = Manifest::read(dir)?;
+    check(dir, &manifest)?;
+    Ok(manifest)
 }

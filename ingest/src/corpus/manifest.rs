@@ -134,14 +134,6 @@ impl Manifest {
         Ok(manifest)
     }
 
-    /// Read `manifest.json` and refuse the corpus unless its files match it
-    /// ([`super::integrity::check`]): what every reader of a corpus opens it with.
-    pub fn read_checked(dir: &Path) -> Result<Self, String> {
-        let manifest = Self::read(dir)?;
-        super::integrity::check(dir, &manifest)?;
-        Ok(manifest)
-    }
-
     /// Write `manifest.json` into a corpus folder atomically.
     pub fn write(&self, dir: &Path) -> Result<(), String> {
         let path = dir.join("manifest.json");

@@ -14,6 +14,7 @@ pub mod writer;
 pub use manifest::Manifest;
 pub use reader::Corpus;
 
+pub use crate::source::CaptionSpan;
 use crate::source::Labels;
 
 /// One clip of the corpus: a row of a shard.
@@ -50,15 +51,6 @@ pub struct ClipRecord {
     /// For a clip cut from a captioned time span of another clip (HumanML3D `#start#end`
     /// captions): that clip and each caption's span.
     pub span: Option<CaptionSpan>,
-}
-
-/// Where a clip cut from a captioned time span sits in the clip it was cut from.
-#[derive(Debug, Clone, PartialEq)]
-pub struct CaptionSpan {
-    /// Motion id (or, before ingest, source clip id) of the clip the span was cut from.
-    pub of: String,
-    /// Start and end in seconds of each caption's span, in caption order.
-    pub seconds: Vec<(f64, f64)>,
 }
 
 impl ClipRecord {

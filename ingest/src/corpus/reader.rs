@@ -207,7 +207,7 @@ impl Corpus {
     /// Open a corpus folder: read the manifest, refuse the corpus unless its files match it
     /// ([`super::integrity::check`]), map every shard, index clips from the small columns.
     pub fn open(dir: &Path) -> Result<Self, String> {
-        let manifest = Manifest::read_checked(dir)?;
+        let manifest = super::integrity::read_checked(dir)?;
         let mut shards = Vec::with_capacity(manifest.shards.len());
         let mut clips = Vec::new();
         for (shard_idx, entry) in manifest.shards.iter().enumerate() {

@@ -4,7 +4,7 @@
 //! (`ingest/tests/captions/tune.txt`), so it follows spaCy's habits — errors included — on the
 //! narrow vocabulary of motion captions without Python or model files.
 
-use super::text_process::Token;
+use super::token::Token;
 use motionscale_core::rng::SplitMix64;
 use std::collections::{HashMap, HashSet};
 use std::sync::OnceLock;

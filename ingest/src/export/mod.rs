@@ -7,3 +7,4 @@ pub mod hml3d;
 pub mod motion;
 pub mod spacy;
 pub mod text_process;
+pub mod token;

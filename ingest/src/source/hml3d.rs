@@ -8,8 +8,8 @@
 //! as a `#start#end` line of the whole clip.
 
 use super::joints::poses_of;
+use super::CaptionSpan;
 use super::{RawClip, Reject};
-use crate::corpus::CaptionSpan;
 use crate::npy;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};

@@ -13,6 +13,15 @@ use crate::skeleton::Pose;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
+/// Where a clip cut from a captioned time span sits in the clip it was cut from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CaptionSpan {
+    /// Motion id (or, before ingest, source clip id) of the clip the span was cut from.
+    pub of: String,
+    /// Start and end in seconds of each caption's span, in caption order.
+    pub seconds: Vec<(f64, f64)>,
+}
+
 /// Labels attached to a clip (any may be absent).
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Labels {
@@ -48,7 +57,7 @@ pub struct RawClip {
     /// Split fixed by the source (HumanML3D split files); otherwise chosen by hash of `clip_id`.
     pub split: Option<String>,
     /// For a clip cut from a captioned time span of another clip: that clip's id and the spans.
-    pub span: Option<crate::corpus::CaptionSpan>,
+    pub span: Option<CaptionSpan>,
 }
 
 /// Why an input was not ingested: the stage that refused it and a human-readable reason.

@@ -1,0 +1,440 @@
+//! What a fit writes (`fits.json`) and the options that steer it: the column choices, the
+//! fitted laws and parametric L(N, D), the agreement of the two approaches, the seed noise,
+//! the data-constrained fit and the held-out budget's check. The computations live in
+//! [`crate::analysis`], [`crate::holdout`], [`crate::repeated`] and [`crate::replicates`].
+
+use crate::isoflop::{BudgetMinimum, IsoMinimum};
+use crate::laws::{Estimate, LogLaw, PowerLaw};
+use crate::lbfgs::{LbfgsOptions, Termination};
+use crate::parametric::StartGrid;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// A column choice: its name and whether the user named it. A missing column the user named
+/// is an error; a missing default disables only what needs it (recorded under `skipped`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ColumnChoice {
+    /// Column name.
+    pub name: String,
+    /// True when given on the command line.
+    pub explicit: bool,
+}
+
+impl ColumnChoice {
+    /// The default `name`, not named by the user.
+    pub fn default_name(name: &str) -> Self {
+        Self {
+            name: name.into(),
+            explicit: false,
+        }
+    }
+
+    /// `Some(name)` from the user, else the default.
+    pub fn or_default(given: Option<String>, default: &str) -> Self {
+        match given {
+            Some(name) => Self {
+                name,
+                explicit: true,
+            },
+            None => Self::default_name(default),
+        }
+    }
+}
+
+/// Which columns hold what. Defaults follow the sweep's results table (scaling-laws.md).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ColumnSpec {
+    /// Model size N (default `n_nv`, non-vocabulary parameters).
+    pub n: ColumnChoice,
+    /// Training tokens D (default `tokens`).
+    pub d: ColumnChoice,
+    /// Compute C (default `budget`; if absent, C = 6·(N + N_v)·D).
+    pub c: ColumnChoice,
+    /// Loss for minima, power laws and the log law (default `norm_test_loss`).
+    pub loss: ColumnChoice,
+    /// Loss for the parametric L(N, D) (default `test_loss`, else the loss column); must be > 0.
+    pub param_loss: ColumnChoice,
+    /// Vocabulary size V (default `vocab`).
+    pub v: ColumnChoice,
+    /// Vocabulary parameters N_v (default `n_v`).
+    pub nv: ColumnChoice,
+    /// Model width d (default `d_model`; if absent, N_v / V).
+    pub width: ColumnChoice,
+    /// Budget group (default `budget`; if absent, C values within `group_tol_dex` are grouped).
+    pub group: ColumnChoice,
+    /// Epochs over the unique training tokens (default `epochs`; the data-constrained fit).
+    pub epochs: ColumnChoice,
+    /// Training seed (default `seed`): rows differing only in it are averaged for the minima.
+    pub seed: ColumnChoice,
+}
+
+impl Default for ColumnSpec {
+    fn default() -> Self {
+        let d = ColumnChoice::default_name;
+        Self {
+            n: d("n_nv"),
+            d: d("tokens"),
+            c: d("budget"),
+            loss: d("norm_test_loss"),
+            param_loss: d("test_loss"),
+            v: d("vocab"),
+            nv: d("n_v"),
+            width: d("d_model"),
+            group: d("budget"),
+            epochs: d("epochs"),
+            seed: d("seed"),
+        }
+    }
+}
+
+/// Fit settings.
+#[derive(Debug, Clone)]
+pub struct FitOptions {
+    /// Column mapping.
+    pub columns: ColumnSpec,
+    /// Without a group column, C values this close in log10 form one budget.
+    pub group_tol_dex: f64,
+    /// L-BFGS starts for the parametric fit.
+    pub grid: StartGrid,
+    /// The grid's name or spec, for the record.
+    pub grid_name: String,
+    /// Bootstrap resamples (0: none).
+    pub bootstrap: usize,
+    /// Starts per bootstrap refit: the k best distinct local optima of the full-data grid, or
+    /// `None` for the whole grid.
+    pub bootstrap_starts: Option<usize>,
+    /// Seed of the bootstrap.
+    pub seed: u64,
+    /// Huber threshold δ.
+    pub huber_delta: f64,
+    /// L-BFGS settings.
+    pub lbfgs: LbfgsOptions,
+    /// Fit without the runs of this budget group and score the prediction on them.
+    pub holdout_budget: Option<f64>,
+    /// Also fit the data-constrained L(N, D') of Muennighoff et al. (needs an epochs column).
+    pub repeated_data: bool,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        Self {
+            columns: ColumnSpec::default(),
+            group_tol_dex: 0.05,
+            grid: StartGrid::epoch(),
+            grid_name: "epoch".into(),
+            bootstrap: 500,
+            bootstrap_starts: Some(16),
+            seed: 0,
+            huber_delta: 1e-3,
+            lbfgs: LbfgsOptions::default(),
+            holdout_budget: None,
+            repeated_data: false,
+        }
+    }
+}
+
+/// Where the data came from and how columns were mapped.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Input {
+    /// Results file.
+    pub file: String,
+    /// Data rows.
+    pub rows: usize,
+    /// Role → column used (`null`: not used).
+    pub columns: BTreeMap<String, Option<String>>,
+    /// How budgets were formed.
+    pub grouping: String,
+    /// Budget groups.
+    pub groups: usize,
+    /// Notes on defaults that were substituted or computed.
+    pub notes: Vec<String>,
+}
+
+/// L-BFGS settings as recorded.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LbfgsRecord {
+    /// Correction pairs.
+    pub memory: usize,
+    /// Iteration cap.
+    pub max_iter: usize,
+    /// Gradient tolerance (max-norm, absolute).
+    pub gtol: f64,
+}
+
+/// The settings a fit ran with.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Settings {
+    /// Bootstrap seed.
+    pub seed: u64,
+    /// Huber δ.
+    pub huber_delta: f64,
+    /// Number of L-BFGS starts.
+    pub starts: usize,
+    /// Grid name or spec.
+    pub starts_grid: String,
+    /// The grid's values.
+    pub grid: StartGrid,
+    /// Bootstrap resamples requested.
+    pub bootstrap: usize,
+    /// Starts per bootstrap refit (`full`, or the best K distinct local optima).
+    pub bootstrap_starts: String,
+    /// L-BFGS settings.
+    pub lbfgs: LbfgsRecord,
+    /// Grouping tolerance in log10 C (used without a group column).
+    pub group_tol_dex: f64,
+}
+
+impl Settings {
+    /// The settings of `opts`, as recorded.
+    pub(crate) fn of(opts: &FitOptions) -> Self {
+        Self {
+            seed: opts.seed,
+            huber_delta: opts.huber_delta,
+            starts: opts.grid.len(),
+            starts_grid: opts.grid_name.clone(),
+            grid: opts.grid.clone(),
+            bootstrap: opts.bootstrap,
+            bootstrap_starts: match opts.bootstrap_starts {
+                Some(k) => {
+                    format!("the best (up to {k}) distinct local optima of the full-data grid")
+                }
+                None => "full".into(),
+            },
+            lbfgs: LbfgsRecord {
+                memory: opts.lbfgs.memory,
+                max_iter: opts.lbfgs.max_iter,
+                gtol: opts.lbfgs.gtol,
+            },
+            group_tol_dex: opts.group_tol_dex,
+        }
+    }
+}
+
+/// One exponent from approach 2 (IsoFLOP minima, OLS interval) beside approach 3 (parametric,
+/// bootstrap interval).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Agreement {
+    /// `N_opt` or `D_opt` (∝ C^exponent).
+    pub quantity: String,
+    /// The IsoFLOP power law's exponent.
+    pub isoflop: Estimate,
+    /// The parametric fit's exponent.
+    pub parametric: Estimate,
+    /// Whether the two 95% intervals overlap (`None` when one has no interval).
+    pub overlap: Option<bool>,
+}
+
+/// Bootstrap draws of the parametric fit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Bootstrap {
+    /// Resamples drawn.
+    pub resamples: usize,
+    /// Resamples whose refit gave a finite objective and finite parameters.
+    pub succeeded: usize,
+    /// Seed (resample i uses stream i).
+    pub seed: u64,
+    /// Starts per refit.
+    pub starts_per_resample: usize,
+    /// Each successful draw as [E, A, B, alpha, beta].
+    pub samples: Vec<[f64; 5]>,
+}
+
+/// E, A, B, α and β of L(N, D) = E + A/N^α + B/D^β, each with its bootstrap 95% percentile
+/// interval.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LawEstimates {
+    /// E with bootstrap 95% percentile interval.
+    #[serde(rename = "E")]
+    pub e: Estimate,
+    /// A.
+    #[serde(rename = "A")]
+    pub a: Estimate,
+    /// B.
+    #[serde(rename = "B")]
+    pub b: Estimate,
+    /// α.
+    pub alpha: Estimate,
+    /// β.
+    pub beta: Estimate,
+}
+
+impl LawEstimates {
+    /// The five parameters from `est(k)`, k = 0..5 in the order E, A, B, α, β.
+    pub fn from_fn(est: impl Fn(usize) -> Estimate) -> Self {
+        Self {
+            e: est(0),
+            a: est(1),
+            b: est(2),
+            alpha: est(3),
+            beta: est(4),
+        }
+    }
+}
+
+/// The parametric fit L(N, D) = E + A/N^α + B/D^β.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Parametric {
+    /// The law's parameters.
+    #[serde(flatten)]
+    pub law: LawEstimates,
+    /// Compute-optimal N ∝ C^(β/(α+β)).
+    pub n_opt_exponent: Estimate,
+    /// Compute-optimal D ∝ C^(α/(α+β)).
+    pub d_opt_exponent: Estimate,
+    /// Runs fitted.
+    pub n_runs: usize,
+    /// Loss column fitted.
+    pub loss_column: String,
+    /// Σ Huber at the optimum.
+    pub objective: f64,
+    /// Optimum in the fitted parametrisation [a, b, e, alpha, beta].
+    pub theta: [f64; 5],
+    /// R² of log L.
+    pub r2_log: Option<f64>,
+    /// Residuals in ln L (prediction − observation), in row order.
+    pub residuals_log: Vec<f64>,
+    /// Starts run.
+    pub starts: usize,
+    /// Starts that ended within 1e-6 (relative) of the best objective.
+    pub starts_at_optimum: usize,
+    /// Why each start stopped (counts).
+    pub terminations: BTreeMap<String, usize>,
+    /// Objective evaluations over all starts.
+    pub evaluations: usize,
+    /// Bootstrap draws.
+    pub bootstrap: Bootstrap,
+}
+
+/// Everything `motionscale fit` computes: the content of `fits.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Fits {
+    /// Input file and column mapping.
+    pub input: Input,
+    /// Settings.
+    pub settings: Settings,
+    /// IsoFLOP minimum over N at each budget.
+    pub budgets: Vec<BudgetMinimum>,
+    /// IsoFLOP minima over V at each (budget, N).
+    pub vocab_minima: Vec<IsoMinimum>,
+    /// Power laws by name: `n_opt_vs_c`, `d_opt_vs_c`, `v_opt_vs_c`, `nv_opt_vs_c`, `nv_vs_n`.
+    pub power_laws: BTreeMap<String, PowerLaw>,
+    /// L_opt = α·log10 C + β over the interior budget minima.
+    pub log_law: Option<LogLaw>,
+    /// The parametric fit.
+    pub parametric: Option<Parametric>,
+    /// Approaches 2 and 3 side by side on the N_opt and D_opt exponents.
+    #[serde(default)]
+    pub agreement: Vec<Agreement>,
+    /// The loss over training seeds where runs were repeated (averaged for the minima).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub seed_noise: Vec<SeedNoise>,
+    /// Fits not done, and why.
+    pub skipped: Vec<String>,
+    /// Things to look at before trusting the numbers.
+    pub warnings: Vec<String>,
+    /// Plot files written (stems; each has .svg and .png).
+    pub plots: Vec<String>,
+    /// The same fit with N counted as every parameter (N + N_v), beside this one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub total_n: Option<Box<Fits>>,
+    /// The data-constrained parametric fit (`--repeated-data`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub repeated_data: Option<RepeatedData>,
+    /// The held-out budget's prediction against its runs (`--holdout-budget`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub holdout: Option<Holdout>,
+}
+
+/// The loss over training seeds at one (budget, N, V).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SeedNoise {
+    /// The budget group's C.
+    pub budget: f64,
+    /// N.
+    pub n: f64,
+    /// V, when the table has a vocabulary column.
+    pub v: Option<f64>,
+    /// The seeds.
+    pub seeds: Vec<f64>,
+    /// Mean loss (the loss column).
+    pub mean: f64,
+    /// Sample standard deviation over the seeds.
+    pub sd: f64,
+    /// The budget's parabola rise one sampled size step (the median gap in log10 N) from its
+    /// vertex: the loss difference that separates the minimum from its neighbours.
+    pub resolved_gap: Option<f64>,
+}
+
+/// Leave-one-budget-out error of the plain and the data-constrained fits, in ln L.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HeldOutError {
+    /// Budgets left out in turn.
+    pub folds: usize,
+    /// RMS log residual of the plain L(N, D) on the left-out budgets.
+    pub plain_rms: f64,
+    /// RMS log residual of L(N, D') on the left-out budgets.
+    pub repeated_rms: f64,
+    /// `plain` or `repeated`: the lower held-out error.
+    pub better: String,
+}
+
+/// The data-constrained fit as recorded in `fits.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RepeatedData {
+    /// The law's parameters.
+    #[serde(flatten)]
+    pub law: LawEstimates,
+    /// R*.
+    pub r_star: Estimate,
+    /// Runs fitted.
+    pub n_runs: usize,
+    /// Runs that saw some token more than once (epochs > 1).
+    pub repeated_runs: usize,
+    /// The most epochs of any run.
+    pub max_epochs: f64,
+    /// Σ Huber at the optimum.
+    pub objective: f64,
+    /// Why the best start stopped.
+    pub termination: Termination,
+    /// Bootstrap resamples drawn and those that refitted to finite values.
+    pub bootstrap: [usize; 2],
+    /// The plain and data-constrained fits on budgets they did not see.
+    pub held_out: Option<HeldOutError>,
+    /// How to read R* (set when it is far beyond the repetitions the runs have).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub note: Option<String>,
+}
+
+/// One predicted quantity against the held-out runs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HoldoutCheck {
+    /// What is compared.
+    pub quantity: String,
+    /// The prediction from the other budgets, with its 95% interval.
+    pub predicted: Estimate,
+    /// What the held-out runs give.
+    pub trained: f64,
+    /// predicted / trained.
+    pub ratio: f64,
+    /// Whether `trained` lies inside the predicted interval (`None` without an interval).
+    pub inside: Option<bool>,
+    /// Where each number comes from.
+    pub note: String,
+}
+
+/// The held-out budget's record in `fits.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Holdout {
+    /// The budget held out (the group's C).
+    pub budget: f64,
+    /// Its runs.
+    pub runs: usize,
+    /// The parabola over its own runs (what the IsoFLOP fit would have found there).
+    pub trained: IsoMinimum,
+    /// (N, loss) of its lowest-loss run.
+    pub best_run: [f64; 2],
+    /// Predictions against the runs.
+    pub checks: Vec<HoldoutCheck>,
+    /// Predictions that could not be made, and why.
+    pub missing: Vec<String>,
+}
