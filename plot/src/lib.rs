@@ -168,12 +168,24 @@ fn with_suffix(stem: &Path, ext: &str) -> PathBuf {
     PathBuf::from(name)
 }
 
-/// Writes `bytes` to `path` atomically.
+/// Writes `bytes` to `path` atomically, into a folder that exists (a mistyped folder is an
+/// error, not created).
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), PlotError> {
-    motionscale_core::write_atomic(path, bytes).map_err(|source| PlotError::Io {
+    let io = |source| PlotError::Io {
         path: path.to_path_buf(),
         source,
-    })
+    };
+    if let Some(dir) = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty() && !d.is_dir())
+    {
+        let missing = format!("the folder {} does not exist", dir.display());
+        return Err(io(std::io::Error::new(
+            std::io::ErrorKind::NotFound,
+            missing,
+        )));
+    }
+    motionscale_core::write_atomic(path, bytes).map_err(io)
 }
 
 #[cfg(test)]
