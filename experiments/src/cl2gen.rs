@@ -373,22 +373,27 @@ struct Data {
 impl Data {
     /// The class index of `clip` (None for a class the run does not learn).
     fn class_of(&self, clip: &LabelledClip) -> Option<u32> {
-        self.classes
-            .iter()
-            .position(|a| Some(a) == clip.action.as_ref())
-            .map(|i| i as u32)
+        class_index(&self.classes, clip)
     }
+}
 
-    /// Indices of `clips` by class.
-    fn by_class(&self, clips: &[LabelledClip]) -> Vec<Vec<usize>> {
-        let mut out = vec![Vec::new(); self.classes.len()];
-        for (i, c) in clips.iter().enumerate() {
-            if let Some(k) = self.class_of(c) {
-                out[k as usize].push(i);
-            }
+/// The index in `classes` of `clip`'s action.
+fn class_index(classes: &[String], clip: &LabelledClip) -> Option<u32> {
+    classes
+        .iter()
+        .position(|a| Some(a) == clip.action.as_ref())
+        .map(|i| i as u32)
+}
+
+/// Indices of `clips` by class.
+fn by_class(classes: &[String], clips: &[LabelledClip]) -> Vec<Vec<usize>> {
+    let mut out = vec![Vec::new(); classes.len()];
+    for (i, c) in clips.iter().enumerate() {
+        if let Some(k) = class_index(classes, c) {
+            out[k as usize].push(i);
         }
-        out
     }
+    out
 }
 
 /// The train and test clips of `config`'s source long enough for the evaluator, and the
@@ -441,17 +446,14 @@ fn load_data(config: &Cl2GenConfig, evaluator: &TrainedEvaluator) -> Result<Data
             config.min_clips
         )));
     }
-    let mut data = Data {
+    Ok(Data {
+        train_of: by_class(&classes, &train),
+        test_of: by_class(&classes, &test),
         train,
         test,
         classes,
         actions,
-        train_of: Vec::new(),
-        test_of: Vec::new(),
-    };
-    data.train_of = data.by_class(&data.train);
-    data.test_of = data.by_class(&data.test);
-    Ok(data)
+    })
 }
 
 /// Run (or resume) `config`; `log` receives one line per finished task.

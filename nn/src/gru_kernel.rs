@@ -401,6 +401,7 @@ pub fn gru_scan(
     gi.contiguous()?
         .apply_op3(&w_hh.contiguous()?, &b_hh.contiguous()?, op)
 }
+
 /// Each sequence of `x` reversed within its own length (padding stays in place).
 pub fn reverse_within(x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
     let (batch, steps, width) = x.dims3()?;
