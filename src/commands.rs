@@ -425,3 +425,19 @@ pub fn demo(out: &Path) -> Result<ExitCode> {
     );
     Ok(ExitCode::SUCCESS)
 }
+
+/// Extract the `.tar.zst` archive `archive` into the folder `into` (with tar).
+pub fn extract(archive: &Path, into: &Path) -> Result<()> {
+    let status = std::process::Command::new("tar")
+        .arg("--zstd")
+        .arg("-xf")
+        .arg(archive)
+        .arg("-C")
+        .arg(into)
+        .status()
+        .with_context(|| format!("running tar on {}", archive.display()))?;
+    if !status.success() {
+        bail!("tar failed on {} ({status})", archive.display());
+    }
+    Ok(())
+}

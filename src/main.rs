@@ -2,15 +2,12 @@
 //! print results and choose exit codes (0 ok, 1 failure, 2 partial: some inputs rejected).
 
 mod bench;
-mod bench_gru;
-mod bench_tokenizer;
 mod cl2gen_cmd;
 mod commands;
 mod continual_cmd;
 mod eval_cmd;
 mod fit;
 mod generate_batch;
-mod lm_bench;
 mod lm_cmd;
 mod memory;
 mod quickstart;
@@ -74,7 +71,7 @@ enum Command {
     Predict(fit::PredictArgs),
     /// Measure throughput against the reference figures.
     #[command(subcommand)]
-    Bench(BenchCommand),
+    Bench(bench::BenchCommand),
     /// Inspect prefix-LM shapes: parameters and FLOPs.
     #[command(subcommand)]
     Model(ModelCommand),
@@ -192,24 +189,6 @@ enum TokenizerCommand {
     Decode(tokenizer_cmd::DecodeArgs),
 }
 
-#[derive(Subcommand)]
-enum BenchCommand {
-    /// Ingest both Bandai Namco archives and time joints → 263 features on fixture (a).
-    Ingest(bench::BenchIngestArgs),
-    /// Time synthetic corpus building: generation + features, and the whole ingest.
-    Synth(bench::BenchSynthArgs),
-    /// Prefix-LM training step and generation: tokens/s, GFLOP/s, MFU, PyTorch ratio.
-    Train(lm_bench::BenchTrainArgs),
-    /// Time tokenizer training steps (FSQ, VQ) at the T2M-GPT shape; --reference runs PyTorch too.
-    Tokenizer(bench_tokenizer::BenchTokenizerArgs),
-    /// Time the whole `fit` command (4,500 starts + bootstrap) on a Chinchilla-like stand-in.
-    Fit(fit::BenchFitArgs),
-    /// Time the evaluator's training step (batch 64, hidden 256); --reference runs PyTorch too.
-    Evaluator(bench_gru::BenchEvaluatorArgs),
-    /// Time BI-CTVAE training steps at cl2gen's shapes; --reference runs PyTorch too.
-    Ctvae(bench_gru::BenchCtvaeArgs),
-}
-
 fn main() -> ExitCode {
     memory::end_quietly_on_closed_pipe();
     tracing_subscriber::fmt()
@@ -251,9 +230,7 @@ fn main() -> ExitCode {
         Command::Tokenizer(TokenizerCommand::Decode(args)) => tokenizer_cmd::decode_cmd(args),
         Command::Tokenizer(TokenizerCommand::Sweep(args)) => tokenizer_cmd::sweep_cmd(args),
         Command::Tokenize(args) => tokenizer_cmd::tokenize_cmd(args),
-        Command::Bench(BenchCommand::Ingest(args)) => bench::ingest(args),
-        Command::Bench(BenchCommand::Synth(args)) => bench::synth(args),
-        Command::Bench(BenchCommand::Train(args)) => lm_bench::train(args),
+        Command::Bench(command) => bench::run(command),
         Command::Model(ModelCommand::Info(args)) => lm_cmd::info(*args),
         Command::Model(ModelCommand::Presets(args)) => lm_cmd::presets(args),
         Command::Model(ModelCommand::Logits(args)) => lm_cmd::logits(args),
@@ -264,12 +241,8 @@ fn main() -> ExitCode {
         Command::Eval(args) => eval_cmd::eval(args),
         Command::Cl2gen(args) => cl2gen_cmd::cl2gen(*args),
         Command::Continual(args) => continual_cmd::continual(*args),
-        Command::Bench(BenchCommand::Tokenizer(args)) => bench_tokenizer::bench_tokenizer(args),
         Command::Fit(args) => fit::fit(args),
         Command::Predict(args) => fit::predict(args),
-        Command::Bench(BenchCommand::Fit(args)) => fit::bench(args),
-        Command::Bench(BenchCommand::Evaluator(args)) => bench_gru::evaluator(args),
-        Command::Bench(BenchCommand::Ctvae(args)) => bench_gru::ctvae(args),
         Command::Sweep(SweepCommand::Plan(args)) => sweep_cmd::plan_cmd(*args),
         Command::Sweep(SweepCommand::Run(args)) => sweep_cmd::run_cmd(args),
         Command::Sweep(SweepCommand::Status(args)) => sweep_cmd::status_cmd(args),

@@ -172,7 +172,7 @@ fn corpus_steps(steps: &mut Steps, args: &QuickstartArgs, out: &Path, corpus: &P
             std::fs::remove_dir_all(&dir).with_context(|| format!("removing {}", dir.display()))?;
         }
         std::fs::create_dir_all(&dir)?;
-        crate::bench::extract(&bandai, &dir)?;
+        crate::commands::extract(&bandai, &dir)?;
         // One source per folder of the archive, as `bench ingest` does, in name order.
         let mut folders = Vec::new();
         for entry in std::fs::read_dir(&dir)? {

@@ -4,7 +4,7 @@
 use anyhow::{bail, Context, Result};
 use ingest::hml263::{Hml263, Hml263Extractor, Hml263Options};
 use ingest::pipeline::{IngestOptions, SourceKind, SourceSpec};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -31,22 +31,6 @@ fn peak_rss_mib() -> Option<f64> {
     let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
     let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib / 1024.0)
-}
-
-/// Extract the `.tar.zst` archive `archive` into the folder `into` (with tar).
-pub fn extract(archive: &Path, into: &Path) -> Result<()> {
-    let status = std::process::Command::new("tar")
-        .arg("--zstd")
-        .arg("-xf")
-        .arg(archive)
-        .arg("-C")
-        .arg(into)
-        .status()
-        .with_context(|| format!("running tar on {}", archive.display()))?;
-    if !status.success() {
-        bail!("tar failed on {} ({status})", archive.display());
-    }
-    Ok(())
 }
 
 /// Arguments of `motionscale bench synth`.
@@ -125,7 +109,7 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
     let work = tempfile::tempdir().context("creating a temporary folder")?;
     let t0 = Instant::now();
     for a in &archives {
-        extract(a, work.path())?;
+        crate::commands::extract(a, work.path())?;
     }
     println!(
         "extract: {:.2} s (tar --zstd, not part of the ingest figures)",
@@ -191,32 +175,4 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
         fps / REFERENCE_FRAMES_PER_SEC,
     );
     Ok(ExitCode::SUCCESS)
-}
-
-/// A number of a reference script's JSON output.
-pub fn number(json: &serde_json::Value, key: &str) -> Result<f64> {
-    json[key]
-        .as_f64()
-        .with_context(|| format!("the reference's output has no number {key:?}"))
-}
-
-/// Run the PyTorch reference `script` with `args` plus `--out FILE` and read the JSON it wrote.
-pub fn run_reference(script: &Path, args: &[&str]) -> Result<serde_json::Value> {
-    let out = tempfile::NamedTempFile::new()?;
-    let status = std::process::Command::new("python3")
-        .arg(script)
-        .args(args)
-        .arg("--out")
-        .arg(out.path())
-        .stdout(std::process::Stdio::null())
-        .status()
-        .with_context(|| format!("running python3 {}", script.display()))?;
-    if !status.success() {
-        bail!(
-            "{} failed ({status}); is torch installed?",
-            script.display()
-        );
-    }
-    serde_json::from_slice(&std::fs::read(out.path())?)
-        .with_context(|| format!("reading the output of {}", script.display()))
 }

@@ -9,6 +9,7 @@ use lm::accounting::{self, SequenceShape};
 use lm::generate::Sampling;
 use lm::prefix_lm::{init_model, LmBatch, PrefixLmConfig};
 use nn::optim::{AdamW, AdamWConfig};
+use super::time;
 use serde_json::{json, Value};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -55,71 +56,6 @@ pub struct BenchTrainArgs {
     /// Write all figures as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
-}
-
-/// CPU jiffies so far: (idle of all cores, total of all cores, this process).
-fn cpu_snapshot() -> Option<(u64, u64, u64)> {
-    let stat = std::fs::read_to_string("/proc/stat").ok()?;
-    let all: Vec<u64> = stat
-        .lines()
-        .next()?
-        .split_whitespace()
-        .skip(1)
-        .filter_map(|v| v.parse().ok())
-        .collect();
-    let own = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // Fields after the command name: state is field 3, utime 14, stime 15.
-    let fields: Vec<&str> = own.rsplit_once(')')?.1.split_whitespace().collect();
-    let utime: u64 = fields.get(11)?.parse().ok()?;
-    let stime: u64 = fields.get(12)?.parse().ok()?;
-    Some((all.get(3)? + all.get(4)?, all.iter().sum(), utime + stime))
-}
-
-/// Share of all cores' time between two snapshots that other processes used (0: a quiet
-/// machine; 0.5 on 2 cores: one whole core was busy elsewhere), as `pytorch_prefix_lm.py`'s
-/// `foreign_cpu_fraction`.
-fn foreign_load(a: Option<(u64, u64, u64)>, b: Option<(u64, u64, u64)>) -> Option<f64> {
-    let ((idle0, total0, own0), (idle1, total1, own1)) = (a?, b?);
-    let total = total1.checked_sub(total0).filter(|&t| t > 0)? as f64;
-    let busy = total - (idle1 - idle0) as f64;
-    Some(((busy - (own1 - own0) as f64) / total).max(0.0))
-}
-
-/// Median, min and max of `f`'s wall time after `warmup` calls, over at least `reps` calls
-/// and `min_time` seconds, with the foreign CPU load meanwhile.
-pub fn time<F: FnMut() -> Result<()>>(
-    warmup: usize,
-    reps: usize,
-    min_time: f64,
-    mut f: F,
-) -> Result<Value> {
-    for _ in 0..warmup {
-        f()?;
-    }
-    let before = cpu_snapshot();
-    let mut samples = Vec::new();
-    let mut total = 0.0;
-    while samples.len() < reps || total < min_time {
-        let t = Instant::now();
-        f()?;
-        samples.push(t.elapsed().as_secs_f64());
-        total += samples.last().expect("pushed");
-        if samples.len() >= 200 {
-            break;
-        }
-    }
-    let after = cpu_snapshot();
-    let foreign = foreign_load(before, after);
-    // /proc reports jiffies of 1/100 s.
-    let own_cpu = before.zip(after).map(|(a, b)| (b.2 - a.2) as f64 / 100.0);
-    let calls = samples.len() as f64;
-    samples.sort_by(f64::total_cmp);
-    Ok(
-        json!({"median_s": samples[samples.len() / 2], "min_s": samples[0],
-              "max_s": samples[samples.len() - 1], "n": samples.len(),
-              "foreign_cpu_fraction": foreign,
-              "own_cpu_s_per_call": own_cpu.map(|c| c / calls)}),
-    )
 }
 
 fn parse_size(s: &str) -> Result<(usize, usize)> {
@@ -233,7 +169,7 @@ fn bench_generate(args: &BenchTrainArgs) -> Result<Value> {
 }
 
 fn run_reference(args: &BenchTrainArgs, mode: &str, d: usize, layers: usize) -> Result<Value> {
-    crate::bench::run_reference(
+    super::run_reference(
         &args.reference_script,
         &[
             "--mode",

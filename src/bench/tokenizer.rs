@@ -92,7 +92,7 @@ fn time_ours(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> Result
 }
 
 fn time_reference(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> Result<Timing> {
-    let json = crate::bench::run_reference(
+    let json = super::run_reference(
         &args.bench_dir.join("pytorch_vqvae.py"),
         &[
             "--quant",
@@ -108,8 +108,8 @@ fn time_reference(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> R
         ],
     )?;
     Ok(Timing {
-        steps_per_s: crate::bench::number(&json, "steps_per_s")?,
-        flops_per_step: crate::bench::number(&json, "model_flops_per_step")?,
+        steps_per_s: super::number(&json, "steps_per_s")?,
+        flops_per_step: super::number(&json, "model_flops_per_step")?,
     })
 }
 

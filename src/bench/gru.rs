@@ -142,7 +142,7 @@ fn time_evaluator(args: &BenchEvaluatorArgs, frames: &[usize], tokens: &[usize])
         .collect();
     let distinct = vec![vec![false; frames.len()]; frames.len()];
     let (motion_rows, text_rows) = (slices(&motions), slices(&texts));
-    let timing = crate::lm_bench::time(args.warmup, args.reps, 0.0, || {
+    let timing = super::time(args.warmup, args.reps, 0.0, || {
         let motion = net.encode_motion(&Padded::new(
             &motion_rows,
             config.feature_dim,
@@ -155,7 +155,7 @@ fn time_evaluator(args: &BenchEvaluatorArgs, frames: &[usize], tokens: &[usize])
         opt.step(&loss.backward()?, 1e-3, None)?;
         Ok(())
     })?;
-    crate::bench::number(&timing, "median_s")
+    super::number(&timing, "median_s")
 }
 
 /// `motionscale bench evaluator`.
@@ -222,11 +222,11 @@ fn time_ctvae(args: &BenchCtvaeArgs, shape: &str) -> Result<f64> {
         })
         .collect();
     let batch: Vec<&Sample> = samples.iter().collect();
-    let timing = crate::lm_bench::time(args.warmup, args.reps, 0.0, || {
+    let timing = super::time(args.warmup, args.reps, 0.0, || {
         trainer.step(&batch, 1e-3, None, &mut rng)?;
         Ok(())
     })?;
-    crate::bench::number(&timing, "median_s")
+    super::number(&timing, "median_s")
 }
 
 /// `motionscale bench ctvae`.
@@ -276,8 +276,8 @@ fn add_reference(
     let (warmup, reps) = (warmup.to_string(), reps.to_string());
     let mut all = flags.to_vec();
     all.extend(["--threads", "2", "--warmup", &warmup, "--reps", &reps]);
-    let reference = crate::bench::run_reference(script, &all)?;
-    let theirs = crate::bench::number(&reference, "median_step_s")?;
+    let reference = super::run_reference(script, &all)?;
+    let theirs = super::number(&reference, "median_step_s")?;
     line.push_str(&format!(
         "; PyTorch {theirs:.3} s ({:.2} steps/s) → ratio {:.2}×",
         1.0 / theirs,
