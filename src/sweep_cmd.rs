@@ -21,14 +21,14 @@ pub struct PlanArgs {
     #[arg(long)]
     pub corpus: PathBuf,
     /// Compute budgets C in FLOPs (6·N·D convention), comma-separated.
-    #[arg(long, value_delimiter = ',', required = true)]
+    #[arg(long, value_delimiter = ',', required_unless_present = "extend")]
     pub budgets: Vec<f64>,
     /// Models, comma-separated: presets, `cpu` (the CPU ladder), `scamo` (ScaMo's six sizes)
     /// or WIDTHxLAYERS[xHEADS] shapes (heads of width 64 by default).
-    #[arg(long, value_delimiter = ',', required = true)]
+    #[arg(long, value_delimiter = ',', required_unless_present = "extend")]
     pub models: Vec<String>,
     /// Nominal codebook sizes, comma-separated.
-    #[arg(long, value_delimiter = ',', required = true)]
+    #[arg(long, value_delimiter = ',', required_unless_present = "extend")]
     pub vocabs: Vec<usize>,
     /// Trained tokenizers to use: `V=DIR,…` (tokenized into RUNS/tokens/V).
     #[arg(long, value_delimiter = ',')]
@@ -66,6 +66,17 @@ pub struct PlanArgs {
     /// Drop the points above --max-epochs instead of flagging them (listed as warnings).
     #[arg(long, requires = "max_epochs")]
     pub drop_above_max_epochs: bool,
+    /// An earlier plan to extend: its points come first, unchanged, and a sweep folder that
+    /// ran it adopts the new plan (give the same corpus, settings and vocabulary folders).
+    #[arg(long, value_name = "PLAN")]
+    pub extend: Option<PathBuf>,
+    /// Run ids to repeat with each of --seeds (new points `<run_id>-s<seed>`), e.g. each
+    /// budget's best point, for the run-to-run noise.
+    #[arg(long, value_delimiter = ',', requires = "seeds")]
+    pub repeat: Vec<String>,
+    /// Training seeds of the --repeat points, comma-separated.
+    #[arg(long, value_delimiter = ',', requires = "repeat")]
+    pub seeds: Vec<u64>,
     /// Output plan file (.toml).
     #[arg(long)]
     pub out: PathBuf,
@@ -155,6 +166,9 @@ impl PlanArgs {
                 epochs,
                 drop: self.drop_above_max_epochs,
             }),
+            extend: self.extend.as_deref().map(IsoFlopPlan::read).transpose()?,
+            repeat: self.repeat.clone(),
+            repeat_seeds: self.seeds.clone(),
         })
     }
 }

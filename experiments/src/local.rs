@@ -44,17 +44,22 @@ pub struct Summary {
 }
 
 /// Create the sweep folder `runs` (made absolute) and give it `plan`: write `runs/plan.toml`,
-/// or check that the one there is the same plan.
+/// or check that the one there is the same plan, or one that `plan` extends (then `plan`
+/// replaces it: its first points are the ones already run).
 pub fn adopt_plan(plan: &IsoFlopPlan, runs: &Path) -> Result<PathBuf, SweepError> {
     std::fs::create_dir_all(runs).map_err(|e| SweepError::io(runs, e))?;
     let runs = std::fs::canonicalize(runs).map_err(|e| SweepError::io(runs, e))?;
     let path = runs.join(PLAN_FILE);
     if path.exists() {
-        if IsoFlopPlan::read(&path)? != *plan {
-            return Err(SweepError::invalid(
-                &path,
-                "this sweep folder holds a different plan; use another --out",
-            ));
+        let adopted = IsoFlopPlan::read(&path)?;
+        if adopted != *plan {
+            if !plan.extends(&adopted) {
+                return Err(SweepError::invalid(
+                    &path,
+                    "this sweep folder holds a different plan (not one this plan extends); use another --out",
+                ));
+            }
+            plan.write(&path)?;
         }
     } else {
         plan.write(&path)?;

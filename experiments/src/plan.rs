@@ -36,7 +36,12 @@
 //! tokens = 5361254                    # D
 //! epochs = 23.2                       # D / train_tokens
 //! flags = ["exceeds-data"]            # or "below-one-step" (not run)
+//! seed = 1                            # only on a repeat (`--repeat`): its training seed
 //! ```
+//!
+//! A plan grows by `--extend`: the earlier plan's points come first, unchanged, so a sweep
+//! folder that ran it adopts the longer plan and trains only the new points (repeats over
+//! seeds, a forward budget), and the final plan file reproduces every run.
 //!
 //! A vocabulary is trained (`kind = "train"`) into `RUNS/tokenizers/<codebook>/` and
 //! tokenized into `RUNS/tokens/<codebook>/` by the first stage of `sweep run`, a given
@@ -205,6 +210,9 @@ pub struct PlanPoint {
     pub epochs: f64,
     /// Marks (data repetition, too small to run).
     pub flags: Vec<PointFlag>,
+    /// Training seed of a repeat (`run_id` ends in `-s<seed>`); `[train]`'s seed otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub seed: Option<u64>,
 }
 
 impl PointFlag {
@@ -222,6 +230,11 @@ impl PlanPoint {
     /// Whether the point is trained (not below one step).
     pub fn runnable(&self) -> bool {
         !self.flags.contains(&PointFlag::BelowOneStep)
+    }
+
+    /// The seed this point trains with, in `plan`.
+    pub fn seed(&self, plan: &IsoFlopPlan) -> u64 {
+        self.seed.unwrap_or(plan.train.hyper.seed)
     }
 }
 
@@ -244,6 +257,12 @@ pub struct PlanRequest {
     pub centring: Option<Centring>,
     /// The most epochs of the train split a point may take.
     pub max_epochs: Option<EpochLimit>,
+    /// An earlier plan whose points come first, unchanged (its settings must be the same).
+    pub extend: Option<IsoFlopPlan>,
+    /// Points (by run id) to repeat with each of `repeat_seeds`.
+    pub repeat: Vec<String>,
+    /// Training seeds of the repeats.
+    pub repeat_seeds: Vec<u64>,
 }
 
 /// Sizes per budget, taken from the model list around an earlier fit's N_opt.
@@ -378,9 +397,12 @@ pub fn run_id(budget: f64, model: &str, codebook: usize) -> String {
 
 /// Plan every (budget, model, vocabulary) point of `request`.
 pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
-    if request.budgets.is_empty() || request.models.is_empty() || request.vocabularies.is_empty() {
+    let grid = !request.budgets.is_empty();
+    if (grid || request.extend.is_none())
+        && (!grid || request.models.is_empty() || request.vocabularies.is_empty())
+    {
         return Err(SweepError::Argument(
-            "a plan needs at least one budget, model and vocabulary".into(),
+            "a plan needs at least one budget, model and vocabulary (or --extend)".into(),
         ));
     }
     if let Some(b) = request
@@ -426,8 +448,8 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
     let mut points = Vec::new();
     // N_nv does not depend on the vocabulary: the sizes of the first one serve every budget.
     let sized = match &request.centring {
-        Some(_) => sized_models(&models, &vocabularies[0], text_dim)?,
-        None => Vec::new(),
+        Some(_) if grid => sized_models(&models, &vocabularies[0], text_dim)?,
+        _ => Vec::new(),
     };
     for &budget in &request.budgets {
         let names = match &request.centring {
@@ -461,7 +483,7 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
             }
         }
     }
-    let plan = IsoFlopPlan {
+    let new = IsoFlopPlan {
         format: FORMAT.into(),
         corpus,
         text_encoder,
@@ -472,6 +494,11 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
         points,
         centres,
     };
+    let mut plan = match &request.extend {
+        None => new,
+        Some(base) => base.extended_by(new)?,
+    };
+    plan.add_repeats(&request.repeat, &request.repeat_seeds)?;
     plan.validate(Path::new("plan"))?;
     Ok(plan)
 }
@@ -510,6 +537,7 @@ fn plan_point(
         tokens,
         epochs: tokens as f64 / vocab.train_tokens.max(1) as f64,
         flags,
+        seed: None,
     })
 }
 
@@ -568,6 +596,93 @@ impl IsoFlopPlan {
         motionscale_core::write_atomic(path, text.as_bytes()).map_err(|e| SweepError::io(path, e))
     }
 
+    /// This plan followed by the points of `new` it lacks (by run id), `new`'s vocabularies it
+    /// lacks, and `new`'s warnings and centres; corpus, encoder and settings must match.
+    fn extended_by(&self, new: IsoFlopPlan) -> Result<IsoFlopPlan, SweepError> {
+        let differs = |what: String| {
+            Err(SweepError::Argument(format!(
+                "--extend: {what} not as in the extended plan (give the same flags)"
+            )))
+        };
+        if new.corpus != self.corpus || new.text_encoder != self.text_encoder {
+            return differs("the corpus or its text encoder".into());
+        }
+        if new.train != self.train {
+            return differs("the training settings".into());
+        }
+        let mut plan = self.clone();
+        for vocab in new.vocabularies {
+            match plan.vocabulary(vocab.codebook) {
+                Some(old) if *old != vocab => {
+                    return differs(format!("vocabulary {} (its source)", vocab.codebook))
+                }
+                Some(_) => {}
+                None => plan.vocabularies.push(vocab),
+            }
+        }
+        plan.warnings.extend(new.warnings);
+        plan.centres.extend(new.centres);
+        for mut point in new.points {
+            if plan.points.iter().all(|p| p.run_id != point.run_id) {
+                point.index = plan.points.len();
+                plan.points.push(point);
+            }
+        }
+        Ok(plan)
+    }
+
+    /// Append a copy of each point in `run_ids` per seed of `seeds` (run id `<id>-s<seed>`),
+    /// skipping copies the plan already has.
+    fn add_repeats(&mut self, run_ids: &[String], seeds: &[u64]) -> Result<(), SweepError> {
+        if run_ids.is_empty() != seeds.is_empty() {
+            return Err(SweepError::Argument(
+                "--repeat and --seeds go together".into(),
+            ));
+        }
+        for id in run_ids {
+            let Some(point) = self.points.iter().find(|p| p.run_id == *id).cloned() else {
+                return Err(SweepError::Argument(format!(
+                    "--repeat {id}: the plan has no such point"
+                )));
+            };
+            if point.seed.is_some() {
+                return Err(SweepError::Argument(format!(
+                    "--repeat {id}: that point is itself a repeat"
+                )));
+            }
+            for &seed in seeds {
+                if seed == self.train.hyper.seed {
+                    return Err(SweepError::Argument(format!(
+                        "--seeds {seed}: that is the plan's own seed ([train] seed)"
+                    )));
+                }
+                let run_id = format!("{id}-s{seed}");
+                if self.points.iter().any(|p| p.run_id == run_id) {
+                    continue;
+                }
+                self.points.push(PlanPoint {
+                    index: self.points.len(),
+                    run_id,
+                    seed: Some(seed),
+                    ..point.clone()
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Whether this plan is `base` with points (and vocabularies) appended: a sweep folder
+    /// that holds `base` may adopt it.
+    pub fn extends(&self, base: &IsoFlopPlan) -> bool {
+        self.format == base.format
+            && self.corpus == base.corpus
+            && self.text_encoder == base.text_encoder
+            && self.text_dim == base.text_dim
+            && self.train == base.train
+            && self.vocabularies.starts_with(&base.vocabularies)
+            && self.points.starts_with(&base.points)
+    }
+
     /// The vocabulary with nominal size `codebook`.
     pub fn vocabulary(&self, codebook: usize) -> Option<&Vocabulary> {
         self.vocabularies.iter().find(|v| v.codebook == codebook)
@@ -613,6 +728,7 @@ impl IsoFlopPlan {
         c.corpus = Some(self.corpus.clone());
         c.text_encoder = Some(self.text_encoder.clone());
         c.hyper = s.hyper.clone();
+        c.hyper.seed = point.seed(self);
         c.eval_every = Some(s.checkpoint_every);
         c.checkpoint_every = Some(s.checkpoint_every);
         Ok(c)
@@ -682,6 +798,7 @@ mod tests {
             tokens: 1_587_000,
             epochs: 5290.0,
             flags,
+            seed: None,
         };
         IsoFlopPlan {
             format: FORMAT.into(),
@@ -774,6 +891,71 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("no vocabulary 4096"));
+    }
+
+    #[test]
+    fn a_plan_grows_by_new_points_and_seed_repeats_and_its_folder_adopts_it() {
+        let base = small_plan();
+        let forward = PlanPoint {
+            run_id: run_id(3e12, "cpu-50K", 256),
+            budget: 3e12,
+            ..base.points[0].clone()
+        };
+        let mut new = small_plan();
+        new.points = vec![forward, base.points[1].clone()];
+        new.warnings = vec!["a new warning".into()];
+        let mut plan = base.extended_by(new.clone()).unwrap();
+        assert!(
+            plan.points.starts_with(&base.points),
+            "earlier points first, unchanged"
+        );
+        assert_eq!(
+            plan.points.len(),
+            3,
+            "a point the base has is not planned twice"
+        );
+        assert_eq!((plan.points[2].index, plan.points[2].budget), (2, 3e12));
+        assert_eq!(plan.warnings.len(), 2);
+
+        plan.add_repeats(&["c1e12-cpu-50K-v256".into()], &[1, 2])
+            .unwrap();
+        let ids: Vec<&str> = plan.points[3..].iter().map(|p| p.run_id.as_str()).collect();
+        assert_eq!(ids, ["c1e12-cpu-50K-v256-s1", "c1e12-cpu-50K-v256-s2"]);
+        assert_eq!((plan.points[3].index, plan.points[4].seed(&plan)), (3, 2));
+        assert_eq!(plan.points[0].seed(&plan), plan.train.hyper.seed);
+        let config = plan
+            .train_config(&plan.points[3], Path::new("/t"), Path::new("/o"))
+            .unwrap();
+        assert_eq!(config.hyper.seed, 1, "a repeat trains with its own seed");
+        assert!(plan.extends(&base) && !base.extends(&plan));
+
+        let refused = |plan: Result<IsoFlopPlan, SweepError>, why: &str| {
+            let e = plan.unwrap_err().to_string();
+            assert!(e.contains(why), "{e}");
+        };
+        let mut other = new.clone();
+        other.train.checkpoint_every += 1;
+        refused(base.extended_by(other), "training settings");
+        let mut other = new;
+        other.vocabularies[1].source = VocabSource::TokenSet {
+            dir: "/elsewhere".into(),
+        };
+        refused(base.extended_by(other), "vocabulary 1024");
+        let repeat = |ids: &[&str], seeds: &[u64]| {
+            let ids: Vec<String> = ids.iter().map(|s| s.to_string()).collect();
+            plan.clone().add_repeats(&ids, seeds).map(|()| plan.clone())
+        };
+        refused(repeat(&["c9e99-x-v1"], &[1]), "no such point");
+        refused(repeat(&["c1e12-cpu-50K-v256"], &[0]), "own seed");
+        refused(repeat(&["c1e12-cpu-50K-v256-s1"], &[3]), "itself a repeat");
+        refused(repeat(&["c1e12-cpu-50K-v256"], &[]), "go together");
+
+        let dir = tempfile::tempdir().unwrap();
+        crate::local::adopt_plan(&base, dir.path()).unwrap();
+        crate::local::adopt_plan(&plan, dir.path()).unwrap();
+        assert_eq!(crate::local::read_adopted_plan(dir.path()).unwrap(), plan);
+        let e = crate::local::adopt_plan(&base, dir.path()).unwrap_err();
+        assert!(e.to_string().contains("different plan"), "{e}");
     }
 
     #[test]

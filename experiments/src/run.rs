@@ -192,7 +192,7 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
         norm_test_loss: e.test.normalized_loss,
         wall_s,
         flops: e.flops_exact,
-        seed: plan.train.hyper.seed,
+        seed: point.seed(plan),
         git_revision: git_revision().to_string(),
         hostname: hostname().to_string(),
         index: point.index as u64,

@@ -4,12 +4,12 @@
 //! 64 motion positions, 1024 codes + 3 specials); `--reference` runs that script in the same
 //! session and prints the ratios.
 
+use super::time;
 use anyhow::{Context, Result};
 use lm::accounting::{self, SequenceShape};
 use lm::generate::Sampling;
 use lm::prefix_lm::{init_model, LmBatch, PrefixLmConfig};
 use nn::optim::{AdamW, AdamWConfig};
-use super::time;
 use serde_json::{json, Value};
 use std::path::PathBuf;
 use std::process::ExitCode;
