@@ -211,28 +211,10 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
     }
 }
 
-/// `git describe --always --dirty` of the source tree this binary was built from, or
-/// `unknown` (no git, or not a checkout).
+/// `git describe --always --dirty` of the source tree this binary was built from (recorded by
+/// `build.rs`), or `unknown` (built without git, or not from a checkout).
 pub fn git_revision() -> &'static str {
-    static REVISION: OnceLock<String> = OnceLock::new();
-    REVISION.get_or_init(|| {
-        std::process::Command::new("git")
-            .args([
-                "-C",
-                env!("CARGO_MANIFEST_DIR"),
-                "describe",
-                "--always",
-                "--dirty",
-                "--abbrev=12",
-            ])
-            .output()
-            .ok()
-            .filter(|o| o.status.success())
-            .and_then(|o| String::from_utf8(o.stdout).ok())
-            .map(|s| s.trim().to_string())
-            .filter(|s| !s.is_empty())
-            .unwrap_or_else(|| "unknown".into())
-    })
+    env!("MOTIONSCALE_GIT_REVISION")
 }
 
 /// This machine's host name (`unknown` if the system does not say).
