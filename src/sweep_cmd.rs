@@ -54,7 +54,8 @@ pub struct PlanArgs {
     pub checkpoint_every: u64,
     /// An earlier fit (`fit`'s fits.json, e.g. of a pilot sweep): each budget then gets the
     /// --sizes-per-budget models of --models nearest its predicted N_opt (the fit's parabola at
-    /// that budget, else its N_opt ∝ C^b law), with a warning where they do not bracket it.
+    /// that budget, else its N_opt ∝ C^b law, else its parametric L(N, D)), with a warning where
+    /// they do not bracket it.
     #[arg(long, value_name = "FITS_JSON")]
     pub fits: Option<PathBuf>,
     /// Models per budget when centring on --fits.

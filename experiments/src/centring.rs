@@ -17,12 +17,15 @@ pub struct Centre {
     pub source: String,
 }
 
-/// Predicted N_opt at `budget` from an earlier fit's budget minima and N_opt ∝ C^b law: the
-/// vertex of its parabola at the same budget (within 0.05 dex) when it is convex, even outside
-/// the sizes it sampled (the best guess after a pilot whose minimum sat at an edge), else the law.
+/// Predicted N_opt at `budget` from an earlier fit: the vertex of its parabola at the same
+/// budget (within 0.05 dex) when it is convex, even outside the sizes it sampled (the best guess
+/// after a pilot whose minimum sat at an edge); else its N_opt ∝ C^b law; else
+/// `parametric_n_opt`, the compute-optimal N of its parametric L(N, D) at `budget` (a pilot with
+/// fewer than three interior minima has no law).
 pub fn centre(
     budgets: &[BudgetMinimum],
     law: Option<&PowerLaw>,
+    parametric_n_opt: Option<f64>,
     budget: f64,
 ) -> Result<Centre, String> {
     let same = budgets
@@ -45,16 +48,21 @@ pub fn centre(
             });
         }
     }
-    let law = law.ok_or_else(|| {
-        format!(
-            "budget {budget:.3e}: the fit has neither a convex parabola at this budget nor an N_opt ∝ C^b law"
-        )
-    })?;
-    Ok(Centre {
-        budget,
-        n_opt: law.at(budget).value,
-        source: format!("the fit's law {}", law.equation()),
-    })
+    match (law, parametric_n_opt) {
+        (Some(law), _) => Ok(Centre {
+            budget,
+            n_opt: law.at(budget).value,
+            source: format!("the fit's law {}", law.equation()),
+        }),
+        (None, Some(n_opt)) => Ok(Centre {
+            budget,
+            n_opt,
+            source: "the compute-optimal N of the fit's parametric L(N, D)".into(),
+        }),
+        (None, None) => Err(format!(
+            "budget {budget:.3e}: the fit has no convex parabola at this budget, no N_opt ∝ C^b law and no parametric L(N, D)"
+        )),
+    }
 }
 
 /// The `k` consecutive sizes of the sorted `sizes` centred on `n_opt` in log10, as a range of
@@ -144,19 +152,23 @@ mod tests {
             nv_reason: None,
             v_opt: None,
         }];
-        let c = centre(&budgets, None, 1e12).unwrap();
+        let c = centre(&budgets, None, Some(1e9), 1e12).unwrap();
         assert!((c.n_opt.log10() - 6.3).abs() < 1e-9, "{c:?}");
         assert!(c.source.contains("outside its sizes"), "{}", c.source);
         // Re-planned on the same small ladder the optimum is still past the edge: warned.
         let r = window(&n, c.n_opt, 4);
         let w = bracket_warning(&n[r], c.n_opt, 1e12).unwrap();
         assert!(w.contains("add larger models"), "{w}");
-        // No parabola at another budget and no law: the error says why.
-        let err = centre(&budgets, None, 1e13).unwrap_err();
-        assert!(err.contains("neither"), "{err}");
-        // With a law, another budget is centred on it.
+        // No parabola at another budget, no law and no parametric fit: the error says why.
+        let err = centre(&budgets, None, None, 1e13).unwrap_err();
+        assert!(err.contains("no convex parabola"), "{err}");
+        // Without a law, the parametric fit's optimum centres it.
+        let c = centre(&budgets, None, Some(2.5e6), 1e13).unwrap();
+        assert_eq!(c.n_opt, 2.5e6);
+        assert!(c.source.contains("parametric"), "{}", c.source);
+        // With a law, another budget is centred on it (before the parametric fit).
         let law = PowerLaw::exact("C", "N_opt", -0.52, 0.57);
-        let c = centre(&budgets, Some(&law), 1e13).unwrap();
+        let c = centre(&budgets, Some(&law), Some(2.5e6), 1e13).unwrap();
         assert!((c.n_opt / 10f64.powf(-0.52 + 0.57 * 13.0) - 1.0).abs() < 1e-12);
     }
 }
