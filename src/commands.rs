@@ -79,7 +79,7 @@ pub fn progress_bar(step: &str, unit: &str) -> ProgressBar {
 /// Build the ingest options from the command line.
 pub fn ingest_options(args: &IngestArgs) -> Result<IngestOptions> {
     let map = match &args.map {
-        Some(p) => Some(RigMap::load(p).map_err(anyhow::Error::msg)?),
+        Some(p) => Some(RigMap::load(p)?),
         None => None,
     };
     Ok(IngestOptions {
@@ -183,7 +183,7 @@ pub fn ingest(args: IngestArgs) -> Result<ExitCode> {
         })
     });
     bar.finish_and_clear();
-    let report = report.map_err(anyhow::Error::msg)?;
+    let report = report?;
     let secs = started.elapsed().as_secs_f64();
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -230,8 +230,8 @@ pub struct CorpusStats {
 
 /// Count the clips and hours of the corpus in `dir` by source, split, label and mirroring.
 pub fn corpus_stats(dir: &Path) -> Result<CorpusStats> {
-    let corpus = Corpus::open(dir).map_err(anyhow::Error::msg)?;
-    let meta = corpus.clip_metadata().map_err(anyhow::Error::msg)?;
+    let corpus = Corpus::open(dir)?;
+    let meta = corpus.clip_metadata()?;
     let mut by: BTreeMap<&str, BTreeMap<String, Bucket>> = BTreeMap::new();
     let mut total_hours = 0.0;
     for m in &meta {
@@ -314,11 +314,11 @@ pub fn verify(dir: &Path, json: bool) -> Result<ExitCode> {
 
 /// `motionscale export hml3d`: the summary as JSON on stdout, its warnings also on stderr.
 pub fn export_hml3d(dir: &Path, out: &Path, tagger: PosTagger) -> Result<ExitCode> {
-    let corpus = Corpus::open(dir).map_err(anyhow::Error::msg)?;
+    let corpus = Corpus::open(dir)?;
     let mut writer = ingest::export::hml3d::Hml3dWriter::new(out, tagger)
         .with_context(|| format!("creating {}", out.display()))?;
     for shard in 0..corpus.manifest().shards.len() {
-        for clip in corpus.shard_records(shard).map_err(anyhow::Error::msg)? {
+        for clip in corpus.shard_records(shard)? {
             writer
                 .add(&clip)
                 .with_context(|| format!("writing clip {} to {}", clip.motion_id, out.display()))?;
@@ -336,11 +336,11 @@ pub fn export_hml3d(dir: &Path, out: &Path, tagger: PosTagger) -> Result<ExitCod
 
 /// `motionscale export bvh`.
 pub fn export_bvh(dir: &Path, motion_id: &str, out: &Path) -> Result<ExitCode> {
-    let corpus = Corpus::open(dir).map_err(anyhow::Error::msg)?;
+    let corpus = Corpus::open(dir)?;
     let Some(index) = corpus.find(motion_id) else {
         bail!("{}: no clip with motion_id {motion_id:?}", dir.display());
     };
-    let clip = corpus.clip(index).map_err(anyhow::Error::msg)?;
+    let clip = corpus.clip(index)?;
     let poses = clip.poses();
     ingest::export::bvh::write_bvh_file(out, &poses, clip.fps as f64)
         .with_context(|| format!("writing {}", out.display()))?;
@@ -384,15 +384,14 @@ pub fn scenarios(args: ScenariosArgs) -> Result<ExitCode> {
             args.primary_fraction
         );
     }
-    let corpus = Corpus::open(&args.corpus).map_err(anyhow::Error::msg)?;
+    let corpus = Corpus::open(&args.corpus)?;
     let sets = ingest::scenarios::build(
         &corpus,
         args.split,
         args.seed,
         args.primary_fraction,
         args.source.as_deref(),
-    )
-    .map_err(anyhow::Error::msg)?;
+    )?;
     for d in &sets.datasets {
         for split in ["train", "test"] {
             if d.clips.get(split).is_none_or(Vec::is_empty) {
@@ -403,7 +402,7 @@ pub fn scenarios(args: ScenariosArgs) -> Result<ExitCode> {
             }
         }
     }
-    ingest::scenarios::write(&args.out, &sets).map_err(anyhow::Error::msg)?;
+    ingest::scenarios::write(&args.out, &sets)?;
     print!("{}", ingest::scenarios::table(&sets));
     println!(
         "{} datasets written to {} ({} clips without a scenario label left out)",

@@ -204,7 +204,7 @@ pub struct EvalArgs {
 }
 
 fn open_corpus(dir: &Path) -> Result<Corpus> {
-    Corpus::open(dir).map_err(anyhow::Error::msg)
+    Ok(Corpus::open(dir)?)
 }
 
 fn eval_report(tokenizer_dir: &Path, corpus: &Corpus, split: &str) -> Result<EvalReport> {
@@ -341,7 +341,7 @@ pub fn decode_cmd(args: DecodeArgs) -> Result<ExitCode> {
             let index = corpus
                 .find(id)
                 .with_context(|| format!("{id} is not in the corpus"))?;
-            let original = corpus.features(index).map_err(anyhow::Error::msg)?;
+            let original = corpus.features(index)?;
             let error = mpjpe(&original[..features.len()], &features);
             global_sum += error.global * error.frames as f64;
             aligned_sum += error.root_aligned * error.frames as f64;

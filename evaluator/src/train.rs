@@ -89,12 +89,14 @@ pub fn corpus_clips(
     corpus_dir: &Path,
     keep: impl Fn(&ClipMeta) -> bool,
 ) -> Result<Vec<LabelledClip>, ModelError> {
-    let corpus = Corpus::open(corpus_dir).map_err(ModelError::Corpus)?;
-    let meta = corpus.clip_metadata().map_err(ModelError::Corpus)?;
+    let corpus = Corpus::open(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
+    let meta = corpus
+        .clip_metadata()
+        .map_err(|e| ModelError::Corpus(e.to_string()))?;
     let mut captions = clip_captions(corpus_dir)?;
     let features = corpus
         .features_where(|i| keep(&meta[i]))
-        .map_err(ModelError::Corpus)?;
+        .map_err(|e| ModelError::Corpus(e.to_string()))?;
     Ok(features
         .into_iter()
         .map(|(i, features)| {

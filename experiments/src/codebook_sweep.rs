@@ -125,9 +125,9 @@ pub fn sweep(
     device: &Device,
     mut on_event: impl FnMut(SweepEvent),
 ) -> Result<Vec<SweepRow>, TokenizerError> {
-    let corpus = Corpus::open(corpus_dir).map_err(|message| TokenizerError::File {
+    let corpus = Corpus::open(corpus_dir).map_err(|e| TokenizerError::File {
         path: corpus_dir.to_path_buf(),
-        message,
+        message: e.to_string(),
     })?;
     let mut rows = Vec::new();
     for quantizer in &plan.quantizers {

@@ -323,8 +323,8 @@ fn check_backbone_held_out(
     scenarios: &Path,
     names: &[String],
 ) -> Result<(), SweepError> {
-    let assignment =
-        SplitAssignment::from_dir(base.train.splits.as_deref()).map_err(SweepError::Argument)?;
+    let assignment = SplitAssignment::from_dir(base.train.splits.as_deref())
+        .map_err(|e| SweepError::Argument(e.to_string()))?;
     let tokens = &base.train.tokens;
     let set = tokenizer::TokenSet::open(tokens).map_err(|e| SweepError::invalid(tokens, e))?;
     let trained: HashSet<&str> = set

@@ -4,6 +4,7 @@
 //! and frame instead of being ingested. README "Input budgets" states why each bound is
 //! safe for real motion capture.
 
+use crate::error::IngestError;
 use crate::skeleton::{Pose, JOINT_NAMES, NUM_JOINTS, PARENTS};
 
 /// Shortest frame time accepted, in seconds (10 kHz; optical systems top out near 2 kHz).
@@ -44,31 +45,31 @@ pub fn human_duration(seconds: f64) -> String {
 }
 
 /// Check a source frame time (seconds per frame) and the duration of `frames` frames at it.
-pub fn check_timing(frames: usize, frame_time: f64) -> Result<(), String> {
+pub fn check_timing(frames: usize, frame_time: f64) -> Result<(), IngestError> {
     let seconds = frames.saturating_sub(1) as f64 * frame_time;
     if !(MIN_FRAME_TIME..=MAX_FRAME_TIME).contains(&frame_time) {
         return Err(format!(
             "frame time {frame_time} s is outside {MIN_FRAME_TIME}..{MAX_FRAME_TIME} s \
              (1 to 10,000 fps): {frames} frames would last {}",
             human_duration(seconds)
-        ));
+        )
+        .into());
     }
     if seconds > MAX_SECONDS {
         return Err(format!(
             "{frames} frames at {frame_time} s last {}, over the {MAX_SECONDS} s budget",
             human_duration(seconds)
-        ));
+        )
+        .into());
     }
     Ok(())
 }
 
 /// Check that `frames` source frames at `src_fps` resample to at most
 /// [`MAX_RESAMPLED_FRAMES`] frames at `dst_fps` (before resampling allocates them).
-pub fn check_resampled(frames: usize, src_fps: f64, dst_fps: f64) -> Result<(), String> {
+pub fn check_resampled(frames: usize, src_fps: f64, dst_fps: f64) -> Result<(), IngestError> {
     if !(src_fps.is_finite() && src_fps > 0.0) {
-        return Err(format!(
-            "source frame rate {src_fps} is not a positive number"
-        ));
+        return Err(format!("source frame rate {src_fps} is not a positive number").into());
     }
     check_timing(frames, 1.0 / src_fps)?;
     let rows = frames.saturating_sub(1) as f64 * dst_fps / src_fps;
@@ -76,14 +77,15 @@ pub fn check_resampled(frames: usize, src_fps: f64, dst_fps: f64) -> Result<(), 
         return Err(format!(
             "{frames} frames at {src_fps:.3} fps resample to {rows:.0} frames at {dst_fps} fps, \
              over the {MAX_RESAMPLED_FRAMES}-frame budget"
-        ));
+        )
+        .into());
     }
     Ok(())
 }
 
 /// Reject poses with a coordinate beyond [`MAX_POSITION`] or a bone whose length changes
 /// along the clip: the message names the frame, the joint or bone, and the values.
-pub fn check_plausible(poses: &[Pose]) -> Result<(), String> {
+pub fn check_plausible(poses: &[Pose]) -> Result<(), IngestError> {
     for (t, pose) in poses.iter().enumerate() {
         if let Some((j, p)) = pose
             .iter()
@@ -94,7 +96,8 @@ pub fn check_plausible(poses: &[Pose]) -> Result<(), String> {
                 "implausible position at frame {t}: {} at ({:.4e}, {:.4e}, {:.4e}) m, beyond \
                  ±{MAX_POSITION} m",
                 JOINT_NAMES[j], p[0], p[1], p[2]
-            ));
+            )
+            .into());
         }
     }
     if poses.is_empty() {
@@ -115,7 +118,8 @@ pub fn check_plausible(poses: &[Pose]) -> Result<(), String> {
                 "bone {}–{} changes length: {:.4} m at frame {t}, {median:.4} m over most of \
                  the clip (allowed ±{allowed:.3} m)",
                 JOINT_NAMES[parent], JOINT_NAMES[j], lengths[t]
-            ));
+            )
+            .into());
         }
     }
     Ok(())
@@ -136,15 +140,17 @@ mod tests {
 
     #[test]
     fn absurd_frame_times_name_the_duration() {
-        let e = check_timing(187, 100_000.0).unwrap_err();
+        let e = check_timing(187, 100_000.0).unwrap_err().to_string();
         assert!(
             e.contains("frame time 100000 s") && e.contains("215 days"),
             "{e}"
         );
-        let e = check_timing(2_000_000, 0.01).unwrap_err();
+        let e = check_timing(2_000_000, 0.01).unwrap_err().to_string();
         assert!(e.contains("5.6 h") && e.contains("budget"), "{e}");
         assert!(check_timing(187, 1.0 / 30.0).is_ok());
-        let e = check_resampled(187, 1.0 / 1000.0, 20.0).unwrap_err();
+        let e = check_resampled(187, 1.0 / 1000.0, 20.0)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("frame time 1000 s"), "{e}");
         assert!(check_resampled(187, 30.0, 20.0).is_ok());
         assert!(check_resampled(187, f64::NAN, 20.0).is_err());
@@ -156,11 +162,11 @@ mod tests {
         assert!(check_plausible(&clip).is_ok());
         let mut far = clip.clone();
         far[3][0][1] = 4e23;
-        let e = check_plausible(&far).unwrap_err();
+        let e = check_plausible(&far).unwrap_err().to_string();
         assert!(e.contains("frame 3") && e.contains("pelvis"), "{e}");
         let mut stretched = clip.clone();
         stretched[7][20][1] -= 0.3;
-        let e = check_plausible(&stretched).unwrap_err();
+        let e = check_plausible(&stretched).unwrap_err().to_string();
         assert!(
             e.contains("l_elbow–l_wrist") && e.contains("frame 7"),
             "{e}"

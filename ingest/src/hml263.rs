@@ -10,6 +10,7 @@
 //! Where the reference divides 0 by 0 (a bone or the facing exactly opposite its target
 //! direction) this port uses the limiting half-turn instead of producing NaN.
 
+use crate::error::IngestError;
 use crate::quat::{self, Quat, Vec3};
 use crate::skeleton::{
     Pose, CHAINS, FACE_JOINTS, FEET_LEFT, FEET_RIGHT, JOINT_NAMES, NUM_JOINTS, PARENTS,
@@ -258,7 +259,7 @@ fn bone_error(t: usize, p: usize, c: usize) -> String {
 
 /// Steps 1–2: validate, retarget to the target skeleton (bones rescaled along their
 /// directions, root × leg-length ratio) and lift the floor to y = 0.
-fn retarget(poses: &[Pose], out: &mut Vec<Pose>) -> Result<(), String> {
+fn retarget(poses: &[Pose], out: &mut Vec<Pose>) -> Result<(), IngestError> {
     let first = &poses[0];
     let src_leg: f64 = LEG_JOINTS
         .iter()
@@ -274,7 +275,8 @@ fn retarget(poses: &[Pose], out: &mut Vec<Pose>) -> Result<(), String> {
                 return Err(format!(
                     "frame {t}, joint {j} ({}): non-finite coordinate {x}",
                     JOINT_NAMES[j]
-                ));
+                )
+                .into());
             }
         }
         let mut dst = [[0.0; 3]; NUM_JOINTS];
@@ -289,7 +291,7 @@ fn retarget(poses: &[Pose], out: &mut Vec<Pose>) -> Result<(), String> {
         }
         for ((b, &f), &(p, c, _)) in bone.iter().zip(&factor).zip(&BONES) {
             if f.is_infinite() {
-                return Err(bone_error(t, p, c));
+                return Err(bone_error(t, p, c).into());
             }
             dst[c] = quat::add(dst[p], quat::scale(*b, f));
         }
@@ -305,7 +307,7 @@ fn retarget(poses: &[Pose], out: &mut Vec<Pose>) -> Result<(), String> {
 /// Compute the HumanML3D 263-d features of a clip (T × 22 joint positions, metres, Y up).
 /// Errors: fewer than 2 frames, non-finite input (names the frame/joint), a zero-length bone,
 /// degenerate facing (zero across vector).
-pub fn process(poses: &[Pose], opts: &Hml263Options) -> Result<Hml263, String> {
+pub fn process(poses: &[Pose], opts: &Hml263Options) -> Result<Hml263, IngestError> {
     let mut out = Hml263 {
         features: Vec::new(),
         joints: Vec::new(),
@@ -334,10 +336,10 @@ impl Hml263Extractor {
         poses: &[Pose],
         opts: &Hml263Options,
         out: &mut Hml263,
-    ) -> Result<(), String> {
+    ) -> Result<(), IngestError> {
         let frames = poses.len();
         if frames < 2 {
-            return Err(format!("need at least 2 frames, got {frames}"));
+            return Err(format!("need at least 2 frames, got {frames}").into());
         }
         let joints = &mut out.joints;
         retarget(poses, joints)?;
@@ -848,14 +850,15 @@ mod tests {
         let opts = Hml263Options::default();
         assert!(process(&clip(1), &opts)
             .unwrap_err()
+            .to_string()
             .contains("at least 2 frames"));
         let mut poses = clip(4);
         poses[2][7][1] = f64::NAN;
-        let e = process(&poses, &opts).unwrap_err();
+        let e = process(&poses, &opts).unwrap_err().to_string();
         assert!(e.contains("frame 2") && e.contains("l_ankle"), "{e}");
         let mut poses = clip(4);
         poses[3][10] = poses[3][7];
-        let e = process(&poses, &opts).unwrap_err();
+        let e = process(&poses, &opts).unwrap_err().to_string();
         assert!(e.contains("frame 3") && e.contains("l_foot"), "{e}");
         // Hips and collars vertical, shoulders hanging: the across vector points along Y.
         let mut o = TARGET_OFFSETS;
@@ -864,7 +867,7 @@ mod tests {
         o[13] = [0.0, TARGET_LENGTHS[13], 0.0];
         o[14] = [0.0, TARGET_LENGTHS[14], 0.0];
         let poses = vec![build(&o); 3];
-        let e = process(&poses, &opts).unwrap_err();
+        let e = process(&poses, &opts).unwrap_err().to_string();
         assert!(e.contains("degenerate facing"), "{e}");
     }
 }

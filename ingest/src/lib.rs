@@ -6,6 +6,7 @@ pub mod budget;
 pub mod bvh_fuzzing;
 pub mod corpus;
 pub mod demo;
+pub mod error;
 pub mod export;
 pub mod hml263;
 pub mod npy;
@@ -15,3 +16,5 @@ pub mod resample;
 pub mod scenarios;
 pub mod skeleton;
 pub mod source;
+
+pub use error::IngestError;

@@ -1,6 +1,7 @@
 //! Minimal NumPy `.npy` reader and writer for the float arrays motion data uses
 //! (little-endian f32/f64, C order), so joints, features and stats interchange with numpy.
 
+use crate::error::IngestError;
 use std::path::Path;
 
 /// A dense float array read from a `.npy` file, widened to f64.
@@ -131,9 +132,9 @@ fn parse_with(bytes: &[u8], integers: bool) -> Result<NpyArray, NpyError> {
 }
 
 /// Read a `.npy` file; the error names the file.
-pub fn read(path: &Path) -> Result<NpyArray, String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    parse(&bytes).map_err(|e| format!("{}: {e}", path.display()))
+pub fn read(path: &Path) -> Result<NpyArray, IngestError> {
+    let bytes = std::fs::read(path).map_err(|e| IngestError::io(&path, e))?;
+    parse(&bytes).map_err(IngestError::at(&path))
 }
 
 /// Encode f32 values with the given shape as `.npy` (version 1.0) bytes.

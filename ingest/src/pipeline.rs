@@ -8,6 +8,7 @@ use crate::corpus::runs::RunSet;
 use crate::corpus::split::{split_of, SPLITS};
 use crate::corpus::stats::FeatureStats;
 use crate::corpus::{CaptionSpan, ClipRecord};
+use crate::error::IngestError;
 use crate::hml263::{Hml263, Hml263Extractor, Hml263Options, FEATURE_DIM};
 use crate::resample::resample;
 use crate::skeleton::{mirror_pose, Pose};
@@ -233,7 +234,7 @@ struct Unit {
     item: Item,
 }
 
-fn discover(spec: &SourceSpec, reader: &Reader) -> Result<Vec<Item>, String> {
+fn discover(spec: &SourceSpec, reader: &Reader) -> Result<Vec<Item>, IngestError> {
     match reader {
         Reader::Hml3d(folder) => {
             return Ok(folder.discover()?.into_iter().map(Item::File).collect())
@@ -245,18 +246,17 @@ fn discover(spec: &SourceSpec, reader: &Reader) -> Result<Vec<Item>, String> {
         return Ok(vec![Item::File(spec.path.clone())]);
     }
     if !spec.path.is_dir() {
-        return Err(format!(
-            "{}: no such file or folder for source {}",
-            spec.path.display(),
-            spec.kind.name()
+        return Err(IngestError::file(
+            &spec.path,
+            format!("no such file or folder for source {}", spec.kind.name()),
         ));
     }
     let mut out = Vec::new();
     let mut stack = vec![spec.path.clone()];
     while let Some(dir) = stack.pop() {
-        let entries = std::fs::read_dir(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        let entries = std::fs::read_dir(&dir).map_err(|e| IngestError::io(&dir, e))?;
         for entry in entries {
-            let path = entry.map_err(|e| format!("{}: {e}", dir.display()))?.path();
+            let path = entry.map_err(|e| IngestError::io(&dir, e))?.path();
             let matches = path
                 .extension()
                 .and_then(|e| e.to_str())
@@ -600,7 +600,7 @@ pub fn ingest(
     out_dir: &Path,
     opts: &IngestOptions,
     progress: &(dyn Fn(u64, u64) + Sync),
-) -> Result<IngestReport, String> {
+) -> Result<IngestReport, IngestError> {
     let staging = crate::corpus::staging::Staging::begin(out_dir)?;
     let report = build(sources, staging.dir(), opts, progress)?;
     staging.commit()?;
@@ -613,7 +613,7 @@ fn build(
     out_dir: &Path,
     opts: &IngestOptions,
     progress: &(dyn Fn(u64, u64) + Sync),
-) -> Result<IngestReport, String> {
+) -> Result<IngestReport, IngestError> {
     let body_model = match (
         &opts.body_model,
         sources.iter().any(|s| s.kind == SourceKind::Amass),
@@ -633,7 +633,7 @@ fn build(
                 SourceKind::Synth => Reader::Synth(s.path.to_string_lossy().parse()?),
             })
         })
-        .collect::<Result<_, String>>()?;
+        .collect::<Result<_, IngestError>>()?;
     let mut units = Vec::new();
     let mut entries: Vec<SourceEntry> = Vec::new();
     for (i, spec) in sources.iter().enumerate() {
@@ -729,9 +729,9 @@ fn write_corpus(
     rejects: &[RejectRecord],
     opts: &IngestOptions,
     sources: Vec<SourceEntry>,
-) -> Result<(), String> {
+) -> Result<(), IngestError> {
     let shard_dir = out_dir.join("shards");
-    std::fs::create_dir_all(&shard_dir).map_err(|e| format!("{}: {e}", shard_dir.display()))?;
+    std::fs::create_dir_all(&shard_dir).map_err(|e| IngestError::io(&shard_dir, e))?;
     let stats = &totals.stats;
     let (mean, std, degenerate) = stats.finish();
     let stats_json = serde_json::json!({
@@ -767,8 +767,7 @@ fn write_corpus(
     let mut file_sha256 = BTreeMap::new();
     for (rel, bytes) in files {
         let path = out_dir.join(rel);
-        motionscale_core::write_atomic(&path, &bytes)
-            .map_err(|e| format!("{}: {e}", path.display()))?;
+        motionscale_core::write_atomic(&path, &bytes).map_err(|e| IngestError::io(&path, e))?;
         let sha = motionscale_core::hex(&sha2::Sha256::digest(&bytes));
         file_sha256.insert(rel.to_string(), sha);
     }

@@ -10,6 +10,7 @@
 use crate::corpus::reader::ClipMeta;
 use crate::corpus::split::SPLITS;
 use crate::corpus::Corpus;
+use crate::error::IngestError;
 use motionscale_core::rng::SplitMix64;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -164,7 +165,7 @@ pub fn build(
     seed: u64,
     primary_fraction: f64,
     source: Option<&str>,
-) -> Result<ScenarioDatasets, String> {
+) -> Result<ScenarioDatasets, IngestError> {
     let mut meta = corpus.clip_metadata()?;
     if let Some(kind) = source {
         meta.retain(|m| m.source == kind);
@@ -172,10 +173,12 @@ pub fn build(
     let (groups, unlabelled) = groups(&meta);
     let by_scenario = pools(&groups);
     if by_scenario.len() < 2 {
-        return Err(format!(
-            "{}: {} scenario label(s) in the corpus; scenario datasets need at least 2",
-            corpus.dir().display(),
-            by_scenario.len()
+        return Err(IngestError::file(
+            &corpus.dir(),
+            format!(
+                "{} scenario label(s) in the corpus; scenario datasets need at least 2",
+                by_scenario.len()
+            ),
         ));
     }
     let datasets = match split {
@@ -253,18 +256,18 @@ fn mixed<'a>(
 }
 
 /// Write `datasets.json` and `D??_name/{train,val,test}.txt` under `out`, atomically.
-pub fn write(out: &Path, sets: &ScenarioDatasets) -> Result<(), String> {
-    let io = |p: &Path, e: std::io::Error| format!("{}: {e}", p.display());
+pub fn write(out: &Path, sets: &ScenarioDatasets) -> Result<(), IngestError> {
     for d in &sets.datasets {
         for (split, ids) in &d.clips {
             let path = out.join(&d.name).join(format!("{split}.txt"));
             let text: String = ids.iter().map(|id| format!("{id}\n")).collect();
-            motionscale_core::write_atomic(&path, text.as_bytes()).map_err(|e| io(&path, e))?;
+            motionscale_core::write_atomic(&path, text.as_bytes())
+                .map_err(|e| IngestError::io(&path, e))?;
         }
     }
     let path = out.join("datasets.json");
     let text = serde_json::to_string_pretty(sets).map_err(|e| e.to_string())?;
-    motionscale_core::write_atomic(&path, text.as_bytes()).map_err(|e| io(&path, e))
+    motionscale_core::write_atomic(&path, text.as_bytes()).map_err(|e| IngestError::io(&path, e))
 }
 
 /// A table like the L²-EMG paper's Table 1: clips per dataset and split, then per emotion.

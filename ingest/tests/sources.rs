@@ -7,6 +7,7 @@ use ingest::npy;
 use ingest::quat;
 use ingest::skeleton::{Pose, NUM_JOINTS, PARENTS, TARGET_OFFSETS};
 use ingest::source::{amass, hml3d, joints};
+use ingest::IngestError;
 use std::io::Write;
 use std::path::Path;
 
@@ -190,6 +191,11 @@ fn hml3d_folder_yields_whole_clips_and_captioned_segments() {
 fn hml3d_folder_errors_name_the_problem() {
     let dir = tempfile::tempdir().unwrap();
     let err = hml3d::Hml3dFolder::open(dir.path()).unwrap_err();
+    match &err {
+        IngestError::File(e) => assert_eq!(e.path(), dir.path(), "the error names the folder"),
+        other => panic!("expected a file error, got {other:?}"),
+    }
+    let err = err.to_string();
     assert!(err.contains("no new_joints/"), "{err}");
     assert!(err.contains(&dir.path().display().to_string()), "{err}");
 
@@ -219,7 +225,9 @@ fn hml3d_folder_errors_name_the_problem() {
 
     std::fs::write(dir.path().join("train.txt"), "a\n").unwrap();
     std::fs::write(dir.path().join("val.txt"), "a\n").unwrap();
-    let err = hml3d::Hml3dFolder::open(dir.path()).unwrap_err();
+    let err = hml3d::Hml3dFolder::open(dir.path())
+        .unwrap_err()
+        .to_string();
     assert!(
         err.contains("a is listed in train.txt and val.txt"),
         "{err}"
@@ -524,10 +532,12 @@ fn amass_rejects_name_what_is_missing() {
 
     let bad_tree = dir.path().join("bad_tree.npz");
     write_model(&bad_tree, Some(7), None);
-    let err = amass::BodyModel::load(&bad_tree).unwrap_err();
+    let err = amass::BodyModel::load(&bad_tree).unwrap_err().to_string();
     assert!(err.contains("joint 5 has parent 7"), "{err}");
     let no_regressor = dir.path().join("no_regressor.npz");
     write_model(&no_regressor, None, Some("J_regressor"));
-    let err = amass::BodyModel::load(&no_regressor).unwrap_err();
+    let err = amass::BodyModel::load(&no_regressor)
+        .unwrap_err()
+        .to_string();
     assert!(err.contains("no `J_regressor` array"), "{err}");
 }

@@ -172,7 +172,7 @@ pub fn generate_caption_set(
 ) -> Result<CaptionSetReport, ModelError> {
     let started = std::time::Instant::now();
     let corpus_dir = &options.corpus;
-    let corpus = Corpus::open(corpus_dir).map_err(ModelError::Corpus)?;
+    let corpus = Corpus::open(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
     let (clips, mm_texts, jobs) = pick_jobs(&corpus, options)?;
     let stored = CaptionEmbeddings::open(corpus_dir, &run.text_encoder).ok();
     for sub in ["new_joint_vecs", "new_joints", "texts"] {

@@ -395,10 +395,11 @@ pub fn load_lm(dir: &Path) -> Result<(Box<dyn MotionLm>, RunConfig), ModelError>
 
 /// The emotion label of every labelled clip of a corpus, by motion id.
 fn clip_emotions(corpus_dir: &Path) -> Result<HashMap<String, String>, ModelError> {
-    let corpus = ingest::corpus::reader::Corpus::open(corpus_dir).map_err(ModelError::Corpus)?;
+    let corpus = ingest::corpus::reader::Corpus::open(corpus_dir)
+        .map_err(|e| ModelError::Corpus(e.to_string()))?;
     Ok(corpus
         .clip_metadata()
-        .map_err(ModelError::Corpus)?
+        .map_err(|e| ModelError::Corpus(e.to_string()))?
         .into_iter()
         .filter_map(|m| Some((m.motion_id, m.labels.emotion?)))
         .collect())
@@ -593,7 +594,7 @@ impl Run {
         };
         let encoder = config.text_encoder.as_deref();
         let splits = ingest::corpus::split::SplitAssignment::from_dir(config.splits.as_deref())
-            .map_err(ModelError::Argument)?;
+            .map_err(|e| ModelError::Argument(e.to_string()))?;
         let data = LmData::load(&config.tokens, &corpus, encoder, limits, &splits)?;
         let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
         let total = data

@@ -50,23 +50,21 @@ pub fn synth(args: BenchSynthArgs) -> Result<ExitCode> {
     let pool = crate::commands::thread_pool(args.workers)?;
     let threads = pool.current_num_threads();
     let t0 = Instant::now();
-    let frames: usize = pool
-        .install(|| {
-            use rayon::prelude::*;
-            (0..args.clips)
-                .into_par_iter()
-                .map_init(Hml263Extractor::default, |ex, i| {
-                    let clip = ingest::source::synth::generate(0, i);
-                    let mut out = Hml263 {
-                        features: Vec::new(),
-                        joints: Vec::new(),
-                    };
-                    ex.process_into(&clip.poses, &Hml263Options::default(), &mut out)
-                        .map(|()| clip.poses.len())
-                })
-                .sum::<Result<usize, String>>()
-        })
-        .map_err(anyhow::Error::msg)?;
+    let frames: usize = pool.install(|| {
+        use rayon::prelude::*;
+        (0..args.clips)
+            .into_par_iter()
+            .map_init(Hml263Extractor::default, |ex, i| {
+                let clip = ingest::source::synth::generate(0, i);
+                let mut out = Hml263 {
+                    features: Vec::new(),
+                    joints: Vec::new(),
+                };
+                ex.process_into(&clip.poses, &Hml263Options::default(), &mut out)
+                    .map(|()| clip.poses.len())
+            })
+            .sum::<Result<usize, ingest::IngestError>>()
+    })?;
     let gen_secs = t0.elapsed().as_secs_f64();
     println!(
         "generate + features: {} clips ({frames} frames) in {gen_secs:.2} s on {threads} threads = {:.0} clips/min (target ≥ 10,000 clips/min on 2 cores)",
@@ -78,16 +76,14 @@ pub fn synth(args: BenchSynthArgs) -> Result<ExitCode> {
         .parse::<SourceSpec>()
         .map_err(anyhow::Error::msg)?];
     let t1 = Instant::now();
-    let report = pool
-        .install(|| {
-            ingest::pipeline::ingest(
-                &sources,
-                &work.path().join("corpus"),
-                &IngestOptions::default(),
-                &|_, _| {},
-            )
-        })
-        .map_err(anyhow::Error::msg)?;
+    let report = pool.install(|| {
+        ingest::pipeline::ingest(
+            &sources,
+            &work.path().join("corpus"),
+            &IngestOptions::default(),
+            &|_, _| {},
+        )
+    })?;
     let secs = t1.elapsed().as_secs_f64();
     println!(
         "whole ingest (features, stats, zstd shards): {} clips in {secs:.2} s = {:.0} clips/min, {:.0} frames/s, peak memory {:.0} MiB",
@@ -131,9 +127,9 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
     let pool = crate::commands::thread_pool(args.workers)?;
     let threads = pool.current_num_threads();
     let t1 = Instant::now();
-    let report = pool
-        .install(|| ingest::pipeline::ingest(&sources, &out, &IngestOptions::default(), &|_, _| {}))
-        .map_err(anyhow::Error::msg)?;
+    let report = pool.install(|| {
+        ingest::pipeline::ingest(&sources, &out, &IngestOptions::default(), &|_, _| {})
+    })?;
     let secs = t1.elapsed().as_secs_f64();
     println!(
         "ingest: {} inputs → {} clips, {} rejects, {} shards in {secs:.2} s on {threads} threads (target ≤ 20 s on 2 cores)",
@@ -150,8 +146,8 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
     );
 
     let fixture = args.data.join("humanml3d-fixtures/a_asis_joints.npy");
-    let arr = ingest::npy::read(&fixture).map_err(anyhow::Error::msg)?;
-    let poses = ingest::source::joints::poses_of(&arr).map_err(anyhow::Error::msg)?;
+    let arr = ingest::npy::read(&fixture)?;
+    let poses = ingest::source::joints::poses_of(&arr)?;
     let opts = Hml263Options::default();
     let mut extractor = Hml263Extractor::default();
     let mut out = Hml263 {
@@ -161,9 +157,7 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
     let t2 = Instant::now();
     let mut calls = 0u64;
     while t2.elapsed().as_secs_f64() < args.feature_seconds {
-        extractor
-            .process_into(std::hint::black_box(&poses), &opts, &mut out)
-            .map_err(anyhow::Error::msg)?;
+        extractor.process_into(std::hint::black_box(&poses), &opts, &mut out)?;
         std::hint::black_box(&out);
         calls += 1;
     }

@@ -132,8 +132,8 @@ pub fn corpus_captions(corpus_dir: &Path) -> Result<Vec<String>, ModelError> {
 /// Every clip's captions by motion id (only the `motion_id` and `captions` columns are
 /// decoded).
 pub fn clip_captions(corpus_dir: &Path) -> Result<HashMap<String, Vec<String>>, ModelError> {
-    let manifest =
-        ingest::corpus::integrity::read_checked(corpus_dir).map_err(ModelError::Corpus)?;
+    let manifest = ingest::corpus::integrity::read_checked(corpus_dir)
+        .map_err(|e| ModelError::Corpus(e.to_string()))?;
     let mut out = HashMap::new();
     for shard in &manifest.shards {
         let path = corpus_dir.join(&shard.file);
@@ -292,7 +292,7 @@ pub fn embed_corpus_sharded(
         write_json(&index_path, &fresh)?;
     }
     remove_stale_shards(&out_dir, &finished)?;
-    let mut manifest = Manifest::read(corpus_dir).map_err(ModelError::Corpus)?;
+    let mut manifest = Manifest::read(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
     manifest.text_embeddings.retain(|e| e.encoder != id);
     manifest.text_embeddings.push(TextEmbeddingEntry {
         encoder: id,
@@ -300,7 +300,9 @@ pub fn embed_corpus_sharded(
         dim,
         captions: total,
     });
-    manifest.write(corpus_dir).map_err(ModelError::Corpus)?;
+    manifest
+        .write(corpus_dir)
+        .map_err(|e| ModelError::Corpus(e.to_string()))?;
     Ok(report)
 }
 
@@ -447,7 +449,7 @@ impl CaptionEmbeddings {
     /// Open the embeddings that `encoder_id` made for the corpus in `corpus_dir` (as listed
     /// in its manifest); only the caption column is decoded here.
     pub fn open(corpus_dir: &Path, encoder_id: &str) -> Result<Self, ModelError> {
-        let manifest = Manifest::read(corpus_dir).map_err(ModelError::Corpus)?;
+        let manifest = Manifest::read(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
         let entry = manifest
             .text_embeddings
             .iter()

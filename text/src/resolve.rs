@@ -83,7 +83,7 @@ pub fn encoder_for(
 
 /// The text encoder whose embeddings to use: `wanted`, or the corpus's only one.
 pub fn resolve_encoder(corpus_dir: &Path, wanted: Option<&str>) -> Result<String, ModelError> {
-    let manifest = Manifest::read(corpus_dir).map_err(ModelError::Corpus)?;
+    let manifest = Manifest::read(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
     let ids: Vec<&str> = manifest
         .text_embeddings
         .iter()

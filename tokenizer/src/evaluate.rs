@@ -116,10 +116,10 @@ pub fn write_token_set(
     TokenSet::write(out, info, corpus.dir(), clips)
 }
 
-fn corpus_error(corpus: &Corpus, message: String) -> TokenizerError {
+fn corpus_error(corpus: &Corpus, message: impl std::fmt::Display) -> TokenizerError {
     TokenizerError::File {
         path: corpus.dir().to_path_buf(),
-        message,
+        message: message.to_string(),
     }
 }
 

@@ -434,7 +434,7 @@ impl MotionTokenizer {
             let path = dir.join(name);
             let array = ingest::npy::read(&path).map_err(|message| TokenizerError::File {
                 path: path.clone(),
-                message,
+                message: message.to_string(),
             })?;
             Ok(array.data.iter().map(|&v| v as f32).collect())
         };

@@ -145,10 +145,10 @@ fn batch_seed(seed: u64, step: u64) -> u64 {
     SplitMix64(seed ^ step.wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64()
 }
 
-fn corpus_error(path: &Path, message: String) -> TokenizerError {
+fn corpus_error(path: &Path, message: impl std::fmt::Display) -> TokenizerError {
     TokenizerError::File {
         path: path.to_path_buf(),
-        message,
+        message: message.to_string(),
     }
 }
 
@@ -325,7 +325,7 @@ fn validation_batches(
         .map(|_| {
             let (w, _) = sampler
                 .sample(config.batch)
-                .map_err(TokenizerError::Argument)?;
+                .map_err(|e| TokenizerError::Argument(e.to_string()))?;
             Ok(Tensor::from_vec(
                 w,
                 (config.batch, config.window, FEATURES),

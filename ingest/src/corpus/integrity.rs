@@ -6,6 +6,7 @@
 //! of the corpus (README "Corpus integrity" gives the measured cost).
 
 use super::manifest::Manifest;
+use crate::error::IngestError;
 use motionscale_core::hex;
 use rayon::prelude::*;
 use sha2::{Digest, Sha256};
@@ -14,14 +15,12 @@ use std::io::Read;
 use std::path::Path;
 
 /// sha256 of a file, hex, read in 1 MiB blocks (shards are never loaded whole for this).
-pub fn file_sha256(path: &Path) -> Result<String, String> {
-    let mut file = std::fs::File::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+pub fn file_sha256(path: &Path) -> Result<String, IngestError> {
+    let mut file = std::fs::File::open(path).map_err(|e| IngestError::io(&path, e))?;
     let mut hasher = Sha256::new();
     let mut buf = vec![0u8; 1 << 20];
     loop {
-        let n = file
-            .read(&mut buf)
-            .map_err(|e| format!("{}: {e}", path.display()))?;
+        let n = file.read(&mut buf).map_err(|e| IngestError::io(&path, e))?;
         if n == 0 {
             return Ok(hex(&hasher.finalize()));
         }
@@ -98,7 +97,7 @@ pub fn checksum_mismatches(dir: &Path, manifest: &Manifest) -> Vec<String> {
                      or replaced after ingest)",
                     path.display()
                 )),
-                Err(e) => Some(e),
+                Err(e) => Some(e.to_string()),
             }
         })
         .collect()
@@ -114,20 +113,21 @@ pub fn problems(dir: &Path, manifest: &Manifest) -> Vec<String> {
 
 /// Refuse a corpus folder whose files do not match its manifest, naming the first problem
 /// (and how many more there are).
-pub fn check(dir: &Path, manifest: &Manifest) -> Result<(), String> {
+pub fn check(dir: &Path, manifest: &Manifest) -> Result<(), IngestError> {
     let problems = problems(dir, manifest);
     match problems.as_slice() {
         [] => Ok(()),
-        [only] => Err(format!("corpus refused: {only}")),
+        [only] => Err(format!("corpus refused: {only}").into()),
         [first, rest @ ..] => Err(format!(
             "corpus refused: {first} (and {} more; `corpus verify` lists them)",
             rest.len()
-        )),
+        )
+        .into()),
     }
 }
 /// Read `manifest.json` and refuse the corpus unless its files match it ([`check`]): what
 /// every reader of a corpus opens it with.
-pub fn read_checked(dir: &Path) -> Result<Manifest, String> {
+pub fn read_checked(dir: &Path) -> Result<Manifest, IngestError> {
     let manifest = Manifest::read(dir)?;
     check(dir, &manifest)?;
     Ok(manifest)

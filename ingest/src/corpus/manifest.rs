@@ -1,5 +1,6 @@
 //! `manifest.json`: what a corpus holds, how it was made, and the checksums that `verify` checks.
 
+use crate::error::IngestError;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -117,29 +118,28 @@ pub struct Manifest {
 
 impl Manifest {
     /// Read `manifest.json` from a corpus folder.
-    pub fn read(dir: &Path) -> Result<Self, String> {
+    pub fn read(dir: &Path) -> Result<Self, IngestError> {
         let path = dir.join("manifest.json");
-        let text =
-            std::fs::read_to_string(&path).map_err(|e| format!("{}: {e}", path.display()))?;
-        let manifest: Manifest =
-            serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+        let text = std::fs::read_to_string(&path).map_err(|e| IngestError::io(&path, e))?;
+        let manifest: Manifest = serde_json::from_str(&text).map_err(IngestError::at(&path))?;
         if manifest.format != FORMAT || manifest.format_version != FORMAT_VERSION {
-            return Err(format!(
-                "{}: format {} v{} is not {FORMAT} v{FORMAT_VERSION}",
-                path.display(),
-                manifest.format,
-                manifest.format_version
+            return Err(IngestError::file(
+                &path,
+                format!(
+                    "format {} v{} is not {FORMAT} v{FORMAT_VERSION}",
+                    manifest.format, manifest.format_version
+                ),
             ));
         }
         Ok(manifest)
     }
 
     /// Write `manifest.json` into a corpus folder atomically.
-    pub fn write(&self, dir: &Path) -> Result<(), String> {
+    pub fn write(&self, dir: &Path) -> Result<(), IngestError> {
         let path = dir.join("manifest.json");
         let text = serde_json::to_string_pretty(self).map_err(|e| e.to_string())?;
         motionscale_core::write_atomic(&path, text.as_bytes())
-            .map_err(|e| format!("{}: {e}", path.display()))
+            .map_err(|e| IngestError::io(&path, e))
     }
 
     /// Total number of clips.

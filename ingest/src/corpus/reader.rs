@@ -4,6 +4,7 @@
 use super::manifest::Manifest;
 use super::schema::{col, FEATURE_DIM};
 use super::{CaptionSpan, ClipRecord};
+use crate::error::IngestError;
 use crate::source::Labels;
 use arrow_array::cast::AsArray;
 use arrow_array::types::{Float32Type, Float64Type, UInt32Type};
@@ -70,29 +71,29 @@ pub struct Corpus {
     std: Vec<f32>,
 }
 
-fn ctx<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> String + '_ {
-    move |e| format!("{}: {e}", path.display())
+fn ctx<E: std::fmt::Display>(path: &Path) -> impl Fn(E) -> IngestError + '_ {
+    IngestError::at(path)
 }
 
-fn column<'a>(batch: &'a RecordBatch, name: &str) -> Result<&'a dyn Array, String> {
+fn column<'a>(batch: &'a RecordBatch, name: &str) -> Result<&'a dyn Array, IngestError> {
     batch
         .column_by_name(name)
         .map(|c| c.as_ref())
-        .ok_or_else(|| format!("column {name} missing"))
+        .ok_or_else(|| IngestError::from(format!("column {name} missing")))
 }
 
-fn strings(batch: &RecordBatch, name: &str) -> Result<Vec<Option<String>>, String> {
+fn strings(batch: &RecordBatch, name: &str) -> Result<Vec<Option<String>>, IngestError> {
     let arr = column(batch, name)?
         .as_string_opt::<i32>()
         .ok_or_else(|| format!("column {name} is not utf8"))?;
     Ok(arr.iter().map(|v| v.map(str::to_string)).collect())
 }
 
-fn required(v: Option<String>, name: &str) -> Result<String, String> {
-    v.ok_or_else(|| format!("null in required column {name}"))
+fn required(v: Option<String>, name: &str) -> Result<String, IngestError> {
+    v.ok_or_else(|| IngestError::from(format!("null in required column {name}")))
 }
 
-fn float_lists(batch: &RecordBatch, name: &str) -> Result<Vec<Vec<f32>>, String> {
+fn float_lists(batch: &RecordBatch, name: &str) -> Result<Vec<Vec<f32>>, IngestError> {
     let list = column(batch, name)?
         .as_list_opt::<i32>()
         .ok_or_else(|| format!("column {name} is not a list"))?;
@@ -101,13 +102,13 @@ fn float_lists(batch: &RecordBatch, name: &str) -> Result<Vec<Vec<f32>>, String>
             let v = list.value(i);
             v.as_primitive_opt::<Float32Type>()
                 .map(|p| p.values().to_vec())
-                .ok_or_else(|| format!("column {name} does not hold f32"))
+                .ok_or_else(|| IngestError::from(format!("column {name} does not hold f32")))
         })
         .collect()
 }
 
 /// The caption spans of every row: `None` where `span_of` is null or the shard predates it.
-fn caption_spans(batch: &RecordBatch) -> Result<Vec<Option<CaptionSpan>>, String> {
+fn caption_spans(batch: &RecordBatch) -> Result<Vec<Option<CaptionSpan>>, IngestError> {
     let rows = batch.num_rows();
     if batch.column_by_name(col::SPAN_OF).is_none() {
         return Ok(vec![None; rows]);
@@ -136,19 +137,19 @@ fn caption_spans(batch: &RecordBatch) -> Result<Vec<Option<CaptionSpan>>, String
 }
 
 /// Decode a record batch of the shard schema (with or without its optional columns) into clips.
-pub fn records_from_batch(batch: &RecordBatch) -> Result<Vec<ClipRecord>, String> {
+pub fn records_from_batch(batch: &RecordBatch) -> Result<Vec<ClipRecord>, IngestError> {
     let ids = strings(batch, col::MOTION_ID)?;
     let sources = strings(batch, col::SOURCE)?;
     let paths = strings(batch, col::SOURCE_PATH)?;
     let source_clips = strings(batch, col::SOURCE_CLIP)?;
-    let u32s = |name| -> Result<Vec<u32>, String> {
+    let u32s = |name| -> Result<Vec<u32>, IngestError> {
         Ok(column(batch, name)?
             .as_primitive_opt::<UInt32Type>()
             .ok_or_else(|| format!("column {name} is not u32"))?
             .values()
             .to_vec())
     };
-    let f32s = |name| -> Result<Vec<f32>, String> {
+    let f32s = |name| -> Result<Vec<f32>, IngestError> {
         Ok(column(batch, name)?
             .as_primitive_opt::<Float32Type>()
             .ok_or_else(|| format!("column {name} is not f32"))?
@@ -206,7 +207,7 @@ pub fn records_from_batch(batch: &RecordBatch) -> Result<Vec<ClipRecord>, String
 impl Corpus {
     /// Open a corpus folder: read the manifest, refuse the corpus unless its files match it
     /// ([`super::integrity::check`]), map every shard, index clips from the small columns.
-    pub fn open(dir: &Path) -> Result<Self, String> {
+    pub fn open(dir: &Path) -> Result<Self, IngestError> {
         let manifest = super::integrity::read_checked(dir)?;
         let mut shards = Vec::with_capacity(manifest.shards.len());
         let mut clips = Vec::new();
@@ -244,11 +245,11 @@ impl Corpus {
                 let frames = column(&batch, col::NUM_FRAMES)
                     .map_err(ctx(&path))?
                     .as_primitive_opt::<UInt32Type>()
-                    .ok_or_else(|| format!("{}: num_frames is not u32", path.display()))?;
+                    .ok_or_else(|| IngestError::file(&path, "num_frames is not u32"))?;
                 for ((id, split), &n) in ids.into_iter().zip(splits).zip(frames.values()) {
                     let (row_group, row) = locations
                         .next()
-                        .ok_or_else(|| format!("{}: more rows than metadata", path.display()))?;
+                        .ok_or_else(|| IngestError::file(&path, "more rows than metadata"))?;
                     clips.push(ClipEntry {
                         motion_id: required(id, col::MOTION_ID).map_err(ctx(&path))?,
                         split: required(split, col::SPLIT).map_err(ctx(&path))?,
@@ -271,14 +272,17 @@ impl Corpus {
                     file(i).display(),
                     c.motion_id,
                     file(first).display()
-                ));
+                )
+                .into());
             }
         }
-        let read_stat = |name: &str| -> Result<Vec<f32>, String> {
+        let read_stat = |name: &str| -> Result<Vec<f32>, IngestError> {
             let path = dir.join("stats").join(name);
             let arr = crate::npy::read(&path)?;
             match stats_problem(name, &arr) {
-                Some(problem) => Err(format!("corpus refused: {}: {problem}", path.display())),
+                Some(problem) => {
+                    Err(format!("corpus refused: {}: {problem}", path.display()).into())
+                }
                 None => Ok(arr.data.iter().map(|&v| v as f32).collect()),
             }
         };
@@ -324,19 +328,19 @@ impl Corpus {
     }
 
     /// Decode one whole clip.
-    pub fn clip(&self, index: usize) -> Result<ClipRecord, String> {
+    pub fn clip(&self, index: usize) -> Result<ClipRecord, IngestError> {
         let batch = self.read_row(index, None)?;
         records_from_batch(&batch)?
             .pop()
-            .ok_or_else(|| format!("clip {index} not found in its shard"))
+            .ok_or_else(|| IngestError::from(format!("clip {index} not found in its shard")))
     }
 
     /// Decode only the (num_frames × 263) features of one clip.
-    pub fn features(&self, index: usize) -> Result<Vec<f32>, String> {
+    pub fn features(&self, index: usize) -> Result<Vec<f32>, IngestError> {
         let batch = self.read_row(index, Some(&[col::FEATURES]))?;
         float_lists(&batch, col::FEATURES)?
             .pop()
-            .ok_or_else(|| format!("clip {index} not found in its shard"))
+            .ok_or_else(|| IngestError::from(format!("clip {index} not found in its shard")))
     }
 
     /// Decode the features of every clip whose index `keep` accepts, a whole shard at a time
@@ -345,7 +349,7 @@ impl Corpus {
     pub fn features_where(
         &self,
         keep: impl Fn(usize) -> bool,
-    ) -> Result<Vec<(usize, Vec<f32>)>, String> {
+    ) -> Result<Vec<(usize, Vec<f32>)>, IngestError> {
         let mut out = Vec::new();
         let mut first = 0;
         for (i, shard) in self.shards.iter().enumerate() {
@@ -375,7 +379,7 @@ impl Corpus {
     }
 
     /// Decode every clip of one shard, in order (for export, stats and verification).
-    pub fn shard_records(&self, shard: usize) -> Result<Vec<ClipRecord>, String> {
+    pub fn shard_records(&self, shard: usize) -> Result<Vec<ClipRecord>, IngestError> {
         let s = &self.shards[shard];
         let path = self.dir.join(&self.manifest.shards[shard].file);
         let reader = s.builder().build().map_err(ctx(&path))?;
@@ -387,7 +391,7 @@ impl Corpus {
     }
 
     /// Ids, labels and sizes of every clip, decoding only the small columns.
-    pub fn clip_metadata(&self) -> Result<Vec<ClipMeta>, String> {
+    pub fn clip_metadata(&self) -> Result<Vec<ClipMeta>, IngestError> {
         let mut out = Vec::with_capacity(self.clips.len());
         for (i, shard) in self.shards.iter().enumerate() {
             let path = self.dir.join(&self.manifest.shards[i].file);
@@ -448,7 +452,7 @@ impl Corpus {
         Ok(out)
     }
 
-    fn read_row(&self, index: usize, columns: Option<&[&str]>) -> Result<RecordBatch, String> {
+    fn read_row(&self, index: usize, columns: Option<&[&str]>) -> Result<RecordBatch, IngestError> {
         let entry = self
             .clips
             .get(index)
@@ -468,7 +472,7 @@ impl Corpus {
         let mut reader = builder.build().map_err(ctx(&path))?;
         reader
             .next()
-            .ok_or_else(|| format!("{}: row {} missing", path.display(), entry.row))?
+            .ok_or_else(|| IngestError::file(&path, format!("row {} missing", entry.row)))?
             .map_err(ctx(&path))
     }
 
@@ -559,7 +563,7 @@ impl WindowSampler<'_> {
 
     /// Decode and normalise every eligible clip once, into memory, so that [`Self::sample`]
     /// decodes nothing (training loops draw thousands of batches).
-    pub fn preload(mut self) -> Result<Self, String> {
+    pub fn preload(mut self) -> Result<Self, IngestError> {
         let eligible: HashMap<usize, usize> = self
             .eligible
             .iter()
@@ -588,7 +592,7 @@ impl WindowSampler<'_> {
 
     /// Draw `batch` windows: returns (batch × window × 263) normalised features and their origins.
     /// Each distinct clip in the batch is decoded once (not at all when preloaded).
-    pub fn sample(&mut self, batch: usize) -> Result<(Vec<f32>, Vec<WindowOrigin>), String> {
+    pub fn sample(&mut self, batch: usize) -> Result<(Vec<f32>, Vec<WindowOrigin>), IngestError> {
         let total = *self
             .cumulative
             .last()

@@ -6,6 +6,7 @@ use super::manifest::ShardEntry;
 use super::reader::records_from_batch;
 use super::writer::{encode_run, write_shard, ROW_GROUP_ROWS};
 use super::ClipRecord;
+use crate::error::IngestError;
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
 use rayon::prelude::*;
 use std::cmp::Reverse;
@@ -34,7 +35,7 @@ enum Cursor {
 }
 
 impl Cursor {
-    fn next(&mut self) -> Result<Option<ClipRecord>, String> {
+    fn next(&mut self) -> Result<Option<ClipRecord>, IngestError> {
         match self {
             Cursor::Memory(it) => Ok(it.next()),
             Cursor::File {
@@ -44,7 +45,7 @@ impl Cursor {
             } => {
                 if buffered.is_empty() {
                     if let Some(batch) = reader.next() {
-                        let batch = batch.map_err(|e| format!("{}: {e}", path.display()))?;
+                        let batch = batch.map_err(IngestError::at(&path))?;
                         buffered.extend(records_from_batch(&batch)?);
                     }
                 }
@@ -65,7 +66,7 @@ impl RunSet {
     }
 
     /// Add a chunk of clips (any order).
-    pub fn push(&mut self, mut records: Vec<ClipRecord>) -> Result<(), String> {
+    pub fn push(&mut self, mut records: Vec<ClipRecord>) -> Result<(), IngestError> {
         records.sort_by(|a, b| a.motion_id.cmp(&b.motion_id));
         if !self.spill {
             self.runs.push(Run::Memory(records));
@@ -73,8 +74,7 @@ impl RunSet {
         }
         let path = self.dir.join(format!("run-{:05}.parquet", self.runs.len()));
         let bytes = encode_run(&records)?;
-        motionscale_core::write_atomic(&path, &bytes)
-            .map_err(|e| format!("{}: {e}", path.display()))?;
+        motionscale_core::write_atomic(&path, &bytes).map_err(|e| IngestError::io(&path, e))?;
         self.runs.push(Run::File(path));
         Ok(())
     }
@@ -86,17 +86,16 @@ impl RunSet {
         self,
         out_dir: &Path,
         rows_per_shard: usize,
-    ) -> Result<Vec<ShardEntry>, String> {
+    ) -> Result<Vec<ShardEntry>, IngestError> {
         let mut cursors = Vec::with_capacity(self.runs.len());
         for run in self.runs {
             cursors.push(match run {
                 Run::Memory(v) => Cursor::Memory(v.into_iter()),
                 Run::File(path) => {
-                    let file = std::fs::File::open(&path)
-                        .map_err(|e| format!("{}: {e}", path.display()))?;
+                    let file = std::fs::File::open(&path).map_err(|e| IngestError::io(&path, e))?;
                     let reader = ParquetRecordBatchReaderBuilder::try_new(file)
                         .and_then(|b| b.with_batch_size(ROW_GROUP_ROWS).build())
-                        .map_err(|e| format!("{}: {e}", path.display()))?;
+                        .map_err(IngestError::at(&path))?;
                     Cursor::File {
                         path,
                         reader,
@@ -121,7 +120,7 @@ impl RunSet {
         let mut current = Vec::with_capacity(rows_per_shard);
         let flush = |pending: &mut Vec<Vec<ClipRecord>>,
                      shards: &mut Vec<ShardEntry>|
-         -> Result<(), String> {
+         -> Result<(), IngestError> {
             let first = shards.len();
             let written: Vec<ShardEntry> = pending
                 .par_iter()
@@ -160,8 +159,7 @@ impl RunSet {
         }
         flush(&mut pending, &mut shards)?;
         if self.spill && self.dir.is_dir() {
-            std::fs::remove_dir_all(&self.dir)
-                .map_err(|e| format!("{}: {e}", self.dir.display()))?;
+            std::fs::remove_dir_all(&self.dir).map_err(|e| IngestError::io(&self.dir, e))?;
         }
         Ok(shards)
     }

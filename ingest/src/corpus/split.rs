@@ -1,6 +1,7 @@
 //! Deterministic train/val/test assignment by hash of the source clip id (80/5/15), so a
 //! clip, its segments and its mirrored copy always share a split.
 
+use crate::error::IngestError;
 use sha2::{Digest, Sha256};
 use std::collections::HashMap;
 use std::path::Path;
@@ -29,7 +30,7 @@ pub struct SplitAssignment {
 
 impl SplitAssignment {
     /// The lists of `dir`, or the clips' own splits when there is none.
-    pub fn from_dir(dir: Option<&Path>) -> Result<Self, String> {
+    pub fn from_dir(dir: Option<&Path>) -> Result<Self, IngestError> {
         Ok(Self {
             lists: dir.map(read_split_lists).transpose()?,
         })
@@ -46,11 +47,11 @@ impl SplitAssignment {
 
 /// The lines of `path`, trimmed, blank ones dropped (ids of a split list, captions of a
 /// sidecar); `None` when it is absent.
-pub fn read_ids(path: &Path) -> Result<Option<Vec<String>>, String> {
+pub fn read_ids(path: &Path) -> Result<Option<Vec<String>>, IngestError> {
     if !path.exists() {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let text = std::fs::read_to_string(path).map_err(|e| IngestError::io(&path, e))?;
     Ok(Some(
         text.lines()
             .map(str::trim)
@@ -63,9 +64,9 @@ pub fn read_ids(path: &Path) -> Result<Option<Vec<String>>, String> {
 /// The split of every clip listed in `DIR/{train,val,test}.txt` (a scenario dataset's or a
 /// HumanML3D folder's layout; a missing file is an empty split). An id listed in two files,
 /// or a `dir` that is not a folder, is an error.
-pub fn read_split_lists(dir: &Path) -> Result<HashMap<String, String>, String> {
+pub fn read_split_lists(dir: &Path) -> Result<HashMap<String, String>, IngestError> {
     if !dir.is_dir() {
-        return Err(format!("{}: not a folder of split lists", dir.display()));
+        return Err(IngestError::file(dir, "not a folder of split lists"));
     }
     let mut splits = HashMap::new();
     for split in SPLITS {
@@ -73,9 +74,9 @@ pub fn read_split_lists(dir: &Path) -> Result<HashMap<String, String>, String> {
         for id in read_ids(&path)?.unwrap_or_default() {
             if let Some(other) = splits.insert(id.clone(), split.to_string()) {
                 if other != split {
-                    return Err(format!(
-                        "{}: {id} is listed in {other}.txt and {split}.txt",
-                        dir.display()
+                    return Err(IngestError::file(
+                        dir,
+                        format!("{id} is listed in {other}.txt and {split}.txt"),
                     ));
                 }
             }
@@ -112,7 +113,7 @@ mod tests {
         assert_eq!(lists["b"], "train");
         assert_eq!(lists["c"], "test");
         std::fs::write(dir.path().join("val.txt"), "a\n").unwrap();
-        let err = read_split_lists(dir.path()).unwrap_err();
+        let err = read_split_lists(dir.path()).unwrap_err().to_string();
         assert!(
             err.contains("a is listed in train.txt and val.txt"),
             "{err}"

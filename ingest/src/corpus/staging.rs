@@ -7,6 +7,7 @@
 //! For output `DIR/name`: the lock is `DIR/.name.lock`, the staging folder
 //! `DIR/.name.ingest-new` and the previous corpus, during the swap, `DIR/.name.ingest-old`.
 
+use crate::error::IngestError;
 use std::fs::File;
 use std::io::{Read, Seek, Write};
 use std::os::unix::fs::MetadataExt;
@@ -22,15 +23,15 @@ pub struct Staging {
     _lock: File,
 }
 
-fn io(p: &Path) -> impl Fn(std::io::Error) -> String + '_ {
-    move |e| format!("{}: {e}", p.display())
+fn io(p: &Path) -> impl Fn(std::io::Error) -> IngestError + '_ {
+    move |e| IngestError::io(p, e)
 }
 
 /// `DIR/.name<suffix>` beside the output folder `DIR/name`.
-fn sibling(out: &Path, suffix: &str) -> Result<PathBuf, String> {
+fn sibling(out: &Path, suffix: &str) -> Result<PathBuf, IngestError> {
     let name = out
         .file_name()
-        .ok_or_else(|| format!("{}: the output must name a folder", out.display()))?;
+        .ok_or_else(|| IngestError::file(out, "the output must name a folder"))?;
     let parent = out
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
@@ -39,7 +40,7 @@ fn sibling(out: &Path, suffix: &str) -> Result<PathBuf, String> {
 }
 
 /// Take the lock file's exclusive lock without waiting; on failure, say who holds it.
-fn lock(path: &Path, out: &Path) -> Result<File, String> {
+fn lock(path: &Path, out: &Path) -> Result<File, IngestError> {
     loop {
         let mut file = std::fs::OpenOptions::new()
             .read(true)
@@ -52,12 +53,7 @@ fn lock(path: &Path, out: &Path) -> Result<File, String> {
         if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
             let mut holder = String::new();
             let _ = file.read_to_string(&mut holder);
-            return Err(format!(
-                "{}: another ingest is writing this corpus: {} (lock file {}); wait for it to finish",
-                out.display(),
-                holder.trim(),
-                path.display()
-            ));
+            return Err(IngestError::file(&out, format!("another ingest is writing this corpus: {} (lock file {}); wait for it to finish", holder.trim(), path.display())));
         }
         // The holder removes the lock file when it finishes: a lock taken on a file that is
         // no longer at `path` guards nothing, so open the current one again.
@@ -79,7 +75,7 @@ fn lock(path: &Path, out: &Path) -> Result<File, String> {
 
 /// Move every entry of `from` that `to` lacks into `to` (files a user or `embed-text` kept
 /// in the corpus folder survive a re-ingest), then remove `from`.
-fn carry_over(from: &Path, to: &Path) -> Result<(), String> {
+fn carry_over(from: &Path, to: &Path) -> Result<(), IngestError> {
     for entry in std::fs::read_dir(from).map_err(io(from))? {
         let entry = entry.map_err(io(from))?;
         let target = to.join(entry.file_name());
@@ -94,7 +90,7 @@ impl Staging {
     /// Lock the output folder `out` and prepare an empty staging folder, first finishing or
     /// removing whatever a killed earlier run left. Refuses an existing `out` that is not a
     /// corpus (no `manifest.json`) and not empty, rather than replace someone's folder.
-    pub fn begin(out: &Path) -> Result<Self, String> {
+    pub fn begin(out: &Path) -> Result<Self, IngestError> {
         let lock_path = sibling(out, ".lock")?;
         if let Some(parent) = lock_path.parent() {
             std::fs::create_dir_all(parent).map_err(io(parent))?;
@@ -112,9 +108,9 @@ impl Staging {
             && !out.join("manifest.json").is_file()
             && std::fs::read_dir(out).map_err(io(out))?.next().is_some();
         if foreign {
-            return Err(format!(
-                "{}: exists and is not a corpus (no manifest.json); choose an empty or new folder",
-                out.display()
+            return Err(IngestError::file(
+                &out,
+                "exists and is not a corpus (no manifest.json); choose an empty or new folder",
             ));
         }
         std::fs::create_dir_all(&staging.staged).map_err(io(&staging.staged))?;
@@ -123,7 +119,7 @@ impl Staging {
 
     /// Undo a swap a kill interrupted (put the old corpus back, or finish carrying its extra
     /// files over) and remove an unfinished staging folder.
-    fn recover(&self) -> Result<(), String> {
+    fn recover(&self) -> Result<(), IngestError> {
         if self.old.is_dir() {
             if self.out.exists() {
                 carry_over(&self.old, &self.out)?;
@@ -144,7 +140,7 @@ impl Staging {
 
     /// Swap the complete staged corpus in for the old one (two renames), carry over the old
     /// folder's other files and remove it; dropping `self` then releases the lock.
-    pub fn commit(self) -> Result<(), String> {
+    pub fn commit(self) -> Result<(), IngestError> {
         if self.out.exists() {
             std::fs::rename(&self.out, &self.old).map_err(io(&self.out))?;
         }
@@ -185,7 +181,7 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         let out = tmp.path().join("corpus");
         let first = Staging::begin(&out).unwrap();
-        let e = Staging::begin(&out).err().unwrap();
+        let e = Staging::begin(&out).err().unwrap().to_string();
         let pid = format!("pid {}", std::process::id());
         assert!(
             e.contains("another ingest is writing this corpus") && e.contains(&pid),
@@ -248,7 +244,7 @@ mod tests {
     fn a_folder_that_is_not_a_corpus_is_not_replaced() {
         let tmp = tempfile::tempdir().unwrap();
         std::fs::write(tmp.path().join("notes.txt"), "mine").unwrap();
-        let e = Staging::begin(tmp.path()).err().unwrap();
+        let e = Staging::begin(tmp.path()).err().unwrap().to_string();
         assert!(e.contains("is not a corpus"), "{e}");
         assert_eq!(names(tmp.path()), ["notes.txt"]);
     }

@@ -63,7 +63,7 @@ pub fn verify(dir: &Path) -> Verification {
     let manifest = match Manifest::read(dir) {
         Ok(m) => m,
         Err(e) => {
-            v.problems.push(e);
+            v.problems.push(e.to_string());
             return v;
         }
     };
@@ -109,7 +109,7 @@ pub fn verify(dir: &Path) -> Verification {
         for batch in reader {
             let records = match batch
                 .map_err(|e| e.to_string())
-                .and_then(|b| records_from_batch(&b))
+                .and_then(|b| records_from_batch(&b).map_err(String::from))
             {
                 Ok(r) => r,
                 Err(e) => {
@@ -147,12 +147,12 @@ pub fn verify(dir: &Path) -> Verification {
             Ok(a) => v
                 .problems
                 .extend(stats_problem(name, &a).map(|p| format!("{}: {p}", path.display()))),
-            Err(e) => v.problems.push(e),
+            Err(e) => v.problems.push(e.to_string()),
         }
     }
     if v.problems.is_empty() {
         if let Err(e) = Corpus::open(dir) {
-            v.problems.push(e);
+            v.problems.push(e.to_string());
         }
     }
     v

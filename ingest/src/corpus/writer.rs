@@ -3,6 +3,7 @@
 use super::schema::{col, list_item, shard_schema};
 use super::ClipRecord;
 use crate::corpus::manifest::ShardEntry;
+use crate::error::IngestError;
 use arrow_array::builder::{
     BooleanBuilder, Float32Builder, Float64Builder, ListBuilder, StringBuilder, UInt32Builder,
 };
@@ -34,7 +35,7 @@ fn properties(compression: Compression) -> WriterProperties {
     props.build()
 }
 
-fn batch(clips: &[ClipRecord]) -> Result<RecordBatch, String> {
+fn batch(clips: &[ClipRecord]) -> Result<RecordBatch, IngestError> {
     let n = clips.len();
     let strings = |f: &dyn Fn(&ClipRecord) -> Option<&str>| {
         let mut b = StringBuilder::with_capacity(n, n * 16);
@@ -104,11 +105,11 @@ fn batch(clips: &[ClipRecord]) -> Result<RecordBatch, String> {
         strings(&|c| c.span.as_ref().map(|s| s.of.as_str())),
         Arc::new(spans.finish()),
     ];
-    RecordBatch::try_new(shard_schema(), columns).map_err(|e| e.to_string())
+    RecordBatch::try_new(shard_schema(), columns).map_err(|e| IngestError::from(e.to_string()))
 }
 
 /// Encode clips as one zstd Parquet file in memory.
-pub fn encode_shard(clips: &[ClipRecord]) -> Result<Vec<u8>, String> {
+pub fn encode_shard(clips: &[ClipRecord]) -> Result<Vec<u8>, IngestError> {
     encode(
         clips,
         Compression::ZSTD(ZstdLevel::try_new(3).expect("valid level")),
@@ -116,11 +117,11 @@ pub fn encode_shard(clips: &[ClipRecord]) -> Result<Vec<u8>, String> {
 }
 
 /// Encode clips as an uncompressed Parquet file (temporary runs, read back once).
-pub fn encode_run(clips: &[ClipRecord]) -> Result<Vec<u8>, String> {
+pub fn encode_run(clips: &[ClipRecord]) -> Result<Vec<u8>, IngestError> {
     encode(clips, Compression::UNCOMPRESSED)
 }
 
-fn encode(clips: &[ClipRecord], compression: Compression) -> Result<Vec<u8>, String> {
+fn encode(clips: &[ClipRecord], compression: Compression) -> Result<Vec<u8>, IngestError> {
     let mut out = Vec::new();
     let mut writer = ArrowWriter::try_new(&mut out, shard_schema(), Some(properties(compression)))
         .map_err(|e| e.to_string())?;
@@ -136,11 +137,10 @@ pub fn write_shard(
     corpus_dir: &Path,
     rel_file: &str,
     clips: &[ClipRecord],
-) -> Result<ShardEntry, String> {
+) -> Result<ShardEntry, IngestError> {
     let bytes = encode_shard(clips)?;
     let path = corpus_dir.join(rel_file);
-    motionscale_core::write_atomic(&path, &bytes)
-        .map_err(|e| format!("{}: {e}", path.display()))?;
+    motionscale_core::write_atomic(&path, &bytes).map_err(|e| IngestError::io(&path, e))?;
     Ok(ShardEntry {
         file: rel_file.to_string(),
         rows: clips.len() as u64,

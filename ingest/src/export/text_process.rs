@@ -6,6 +6,7 @@
 pub use super::spacy::SPACY_PACKAGES;
 pub use super::token::Token;
 use super::{builtin_tagger, spacy};
+use crate::error::IngestError;
 use std::collections::HashMap;
 
 /// Which tagger writes the `word/POS` tokens of HumanML3D texts.
@@ -35,7 +36,7 @@ impl std::str::FromStr for PosTagger {
 
 impl PosTagger {
     /// The alphabetic tokens of each caption, analysed by this tagger.
-    pub fn analyse(self, captions: &[&str]) -> Result<Vec<Vec<Token>>, String> {
+    pub fn analyse(self, captions: &[&str]) -> Result<Vec<Vec<Token>>, IngestError> {
         match self {
             Self::BuiltIn => Ok(captions
                 .iter()
@@ -70,7 +71,7 @@ impl TaggedCaptions {
     pub fn new<'a>(
         tagger: PosTagger,
         captions: impl IntoIterator<Item = &'a str>,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, IngestError> {
         let mut distinct: Vec<&str> = captions.into_iter().collect();
         distinct.sort_unstable();
         distinct.dedup();

@@ -8,6 +8,7 @@
 //! rotations along the kinematic tree, rotating about the root joint, plus `trans`.
 
 use super::{clip_id_of, RawClip, Reject};
+use crate::error::IngestError;
 use crate::npy::{self, NpyArray};
 use crate::quat::{self, Quat, Vec3};
 use crate::skeleton::{Pose, NUM_JOINTS};
@@ -36,45 +37,45 @@ pub struct BodyModel {
 /// Read `.npz` entries (`<key>.npy`) from an open archive.
 struct Npz {
     archive: zip::ZipArchive<File>,
-    path: String,
+    path: std::path::PathBuf,
 }
 
 impl Npz {
-    fn open(path: &Path) -> Result<Self, String> {
-        let file = File::open(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    fn open(path: &Path) -> Result<Self, IngestError> {
+        let file = File::open(path).map_err(|e| IngestError::io(path, e))?;
         let archive = zip::ZipArchive::new(file)
-            .map_err(|e| format!("{}: not an .npz (zip) archive: {e}", path.display()))?;
+            .map_err(|e| IngestError::file(path, format!("not an .npz (zip) archive: {e}")))?;
         Ok(Self {
             archive,
-            path: path.display().to_string(),
+            path: path.to_path_buf(),
         })
     }
 
     /// The array stored under `key`, or `None` when the archive has no such entry.
-    fn get(&mut self, key: &str) -> Result<Option<NpyArray>, String> {
+    fn get(&mut self, key: &str) -> Result<Option<NpyArray>, IngestError> {
         let mut entry = match self.archive.by_name(&format!("{key}.npy")) {
             Ok(entry) => entry,
             Err(zip::result::ZipError::FileNotFound) => return Ok(None),
-            Err(e) => return Err(format!("{}: entry {key}: {e}", self.path)),
+            Err(e) => return Err(IngestError::file(&self.path, format!("entry {key}: {e}"))),
         };
         let mut bytes = Vec::new();
         entry
             .read_to_end(&mut bytes)
-            .map_err(|e| format!("{}: entry {key}: {e}", self.path))?;
+            .map_err(|e| IngestError::file(&self.path, format!("entry {key}: {e}")))?;
         npy::parse_numeric(&bytes)
             .map(Some)
-            .map_err(|e| format!("{}: entry {key}: {e}", self.path))
+            .map_err(|e| IngestError::file(&self.path, format!("entry {key}: {e}")))
     }
 
-    fn require(&mut self, key: &str) -> Result<NpyArray, String> {
+    fn require(&mut self, key: &str) -> Result<NpyArray, IngestError> {
         self.get(key)?
-            .ok_or_else(|| format!("{}: no `{key}` array", self.path))
+            .ok_or_else(|| IngestError::file(&self.path, format!("no `{key}` array")))
     }
 }
 
 impl BodyModel {
     /// Load a body model `.npz` (SMPL, SMPL+H or SMPL-X; any gender).
-    pub fn load(path: &Path) -> Result<Self, String> {
+    pub fn load(path: &Path) -> Result<Self, IngestError> {
         let mut npz = Npz::open(path)?;
         let where_ = path.display();
         let v_template = npz.require("v_template")?;
@@ -85,40 +86,46 @@ impl BodyModel {
             return Err(format!(
                 "{where_}: v_template shape {:?} is not V×3",
                 v_template.shape
-            ));
+            )
+            .into());
         };
         let &[sv, 3, num_betas] = shapedirs.shape.as_slice() else {
             return Err(format!(
                 "{where_}: shapedirs shape {:?} is not V×3×B",
                 shapedirs.shape
-            ));
+            )
+            .into());
         };
         let &[joints, rv] = regressor.shape.as_slice() else {
             return Err(format!(
                 "{where_}: J_regressor shape {:?} is not J×V (a dense array is needed)",
                 regressor.shape
-            ));
+            )
+            .into());
         };
         if sv != verts || rv != verts {
             return Err(format!(
                 "{where_}: vertex counts disagree: v_template {verts}, shapedirs {sv}, J_regressor {rv}"
-            ));
+            ).into());
         }
         if joints < NUM_JOINTS {
             return Err(format!(
                 "{where_}: J_regressor has {joints} joints, at least {NUM_JOINTS} are needed"
-            ));
+            )
+            .into());
         }
         let &[2, tree_joints] = kintree.shape.as_slice() else {
             return Err(format!(
                 "{where_}: kintree_table shape {:?} is not 2×J",
                 kintree.shape
-            ));
+            )
+            .into());
         };
         if tree_joints < NUM_JOINTS {
             return Err(format!(
                 "{where_}: kintree_table has {tree_joints} joints, at least {NUM_JOINTS} are needed"
-            ));
+            )
+            .into());
         }
         let mut parents = [0; NUM_JOINTS];
         for (j, parent) in parents.iter_mut().enumerate() {
@@ -127,12 +134,12 @@ impl BodyModel {
             let is_root = p < 0.0 || p >= tree_joints as f64;
             match (j, is_root) {
                 (0, true) => {}
-                (0, false) => return Err(format!("{where_}: kintree_table: joint 0 has parent {p}, expected none")),
+                (0, false) => return Err(format!("{where_}: kintree_table: joint 0 has parent {p}, expected none").into()),
                 (_, false) if (p as usize) < j => *parent = p as usize,
                 _ => {
                     return Err(format!(
                         "{where_}: kintree_table: joint {j} has parent {p}; joints 1..21 need an earlier joint as parent"
-                    ))
+                    ).into())
                 }
             }
         }
@@ -210,7 +217,7 @@ impl BodyModel {
 /// Read one AMASS motion `.npz` into SMPL-22 joints (metres, Y up) at its capture frame rate.
 pub fn read_clip(path: &Path, rel_path: &Path, model: &BodyModel) -> Result<RawClip, Reject> {
     let mut npz = Npz::open(path).map_err(|e| Reject::new("read", e))?;
-    let parse = |e: String| Reject::new("parse", e);
+    let parse = |e: IngestError| Reject::new("parse", e);
     let where_ = path.display();
     let poses = npz.get("poses").map_err(parse)?.ok_or_else(|| {
         Reject::new(

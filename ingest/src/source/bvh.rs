@@ -3,6 +3,7 @@
 //! and retargets it to SMPL-22 with a [`RigMap`].
 
 use crate::budget;
+use crate::error::IngestError;
 use crate::quat::{self, Quat, Vec3};
 use std::collections::HashSet;
 use std::fmt;
@@ -448,20 +449,22 @@ fn frame_time(lx: &mut Lexer, label_line: usize) -> Result<f64, BvhError> {
 }
 
 /// The motion-size budgets, checked before the motion values are allocated.
-fn check_size(frames: usize, channels: usize, joints: usize) -> Result<(), String> {
+fn check_size(frames: usize, channels: usize, joints: usize) -> Result<(), IngestError> {
     let values = frames.saturating_mul(channels);
     if values > budget::MAX_VALUES {
         return Err(format!(
             "Frames: {frames} × {channels} channels = {values} values, over the {}-value budget",
             budget::MAX_VALUES
-        ));
+        )
+        .into());
     }
     let positions = frames.saturating_mul(joints);
     if positions > budget::MAX_JOINT_FRAMES {
         return Err(format!(
             "Frames: {frames} × {joints} joints = {positions} joint positions, over the {} budget",
             budget::MAX_JOINT_FRAMES
-        ));
+        )
+        .into());
     }
     Ok(())
 }

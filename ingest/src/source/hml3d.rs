@@ -10,6 +10,7 @@
 use super::joints::poses_of;
 use super::CaptionSpan;
 use super::{RawClip, Reject};
+use crate::error::IngestError;
 use crate::npy;
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -43,12 +44,12 @@ pub struct CaptionLine {
 
 impl Hml3dFolder {
     /// Open `dir`: it must hold `new_joints/`; split files are read when present.
-    pub fn open(dir: &Path) -> Result<Self, String> {
+    pub fn open(dir: &Path) -> Result<Self, IngestError> {
         let joints = dir.join("new_joints");
         if !joints.is_dir() {
-            return Err(format!(
-                "{}: not a HumanML3D folder (no new_joints/ folder)",
-                dir.display()
+            return Err(IngestError::file(
+                dir,
+                "not a HumanML3D folder (no new_joints/ folder)",
             ));
         }
         let splits = crate::corpus::split::read_split_lists(dir)?;
@@ -59,12 +60,12 @@ impl Hml3dFolder {
     }
 
     /// The `new_joints/*.npy` files, sorted.
-    pub fn discover(&self) -> Result<Vec<PathBuf>, String> {
+    pub fn discover(&self) -> Result<Vec<PathBuf>, IngestError> {
         let dir = self.root.join("new_joints");
-        let entries = std::fs::read_dir(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        let entries = std::fs::read_dir(&dir).map_err(|e| IngestError::io(&dir, e))?;
         let mut files = Vec::new();
         for entry in entries {
-            let path = entry.map_err(|e| format!("{}: {e}", dir.display()))?.path();
+            let path = entry.map_err(|e| IngestError::io(&dir, e))?.path();
             if path.extension().is_some_and(|e| e == "npy") && path.is_file() {
                 files.push(path);
             }
@@ -191,7 +192,7 @@ fn segment(
 
 /// Parse the lines of a HumanML3D text file (`caption#tokens#start#end`); a span whose start and
 /// end are both 0 or NaN covers the whole clip. Errors name the 1-based line.
-pub fn parse_texts(text: &str) -> Result<Vec<CaptionLine>, String> {
+pub fn parse_texts(text: &str) -> Result<Vec<CaptionLine>, IngestError> {
     let mut out = Vec::new();
     for (n, line) in text.lines().enumerate() {
         let line = line.trim();
@@ -204,7 +205,8 @@ pub fn parse_texts(text: &str) -> Result<Vec<CaptionLine>, String> {
                 "line {}: expected 4 '#'-separated fields (caption#tokens#start#end), found {}",
                 n + 1,
                 fields.len()
-            ));
+            )
+            .into());
         };
         let seconds = |s: &str, what: &str| {
             s.trim()
@@ -217,7 +219,8 @@ pub fn parse_texts(text: &str) -> Result<Vec<CaptionLine>, String> {
             return Err(format!(
                 "line {}: span {start}..{end} s is not a forward span",
                 n + 1
-            ));
+            )
+            .into());
         }
         out.push(CaptionLine {
             caption: caption.trim().to_string(),
@@ -245,9 +248,11 @@ mod tests {
         assert_eq!((lines[1].start, lines[1].end), (Some(1.5), Some(3.25)));
         assert_eq!(lines[2].caption, "spins");
         assert_eq!(lines[2].end, None);
-        let err = parse_texts("ok#ok/X#0#0\nbad line#x\n").unwrap_err();
+        let err = parse_texts("ok#ok/X#0#0\nbad line#x\n")
+            .unwrap_err()
+            .to_string();
         assert!(err.starts_with("line 2: expected 4"), "{err}");
-        let err = parse_texts("x#x/X#2.0#1.0").unwrap_err();
+        let err = parse_texts("x#x/X#2.0#1.0").unwrap_err().to_string();
         assert!(err.contains("not a forward span"), "{err}");
     }
 }

@@ -2,6 +2,7 @@
 //! metres, Y up, f32 or f64 — e.g. HumanML3D `joints/` or any model's output.
 
 use super::{clip_id_of, RawClip, Reject};
+use crate::error::IngestError;
 use crate::npy::{self, NpyArray};
 use crate::skeleton::{Pose, NUM_JOINTS};
 use std::path::Path;
@@ -29,21 +30,19 @@ pub fn read_clip(path: &Path, rel_path: &Path, src_fps: f64) -> Result<RawClip, 
 }
 
 /// The first 22 joints of each frame of a T×J×3 array (J ≥ 22), or why the shape does not fit.
-pub fn poses_of(array: &NpyArray) -> Result<Vec<Pose>, String> {
+pub fn poses_of(array: &NpyArray) -> Result<Vec<Pose>, IngestError> {
     let &[frames, joints, 3] = array.shape.as_slice() else {
-        return Err(format!(
-            "array shape {:?} is not T×J×3 joint positions",
-            array.shape
-        ));
+        return Err(format!("array shape {:?} is not T×J×3 joint positions", array.shape).into());
     };
     if joints < NUM_JOINTS {
         return Err(format!(
             "array shape {:?} has {joints} joints, at least {NUM_JOINTS} are needed",
             array.shape
-        ));
+        )
+        .into());
     }
     if frames == 0 {
-        return Err(format!("array shape {:?} has zero frames", array.shape));
+        return Err(format!("array shape {:?} has zero frames", array.shape).into());
     }
     let poses = array
         .data
@@ -61,7 +60,7 @@ pub fn poses_of(array: &NpyArray) -> Result<Vec<Pose>, String> {
             .position(|p| p.iter().any(|v| !v.is_finite()))
             .map(|j| (t, j))
     }) {
-        return Err(format!("frame {t}, joint {j}: non-finite coordinate"));
+        return Err(format!("frame {t}, joint {j}: non-finite coordinate").into());
     }
     Ok(poses)
 }
@@ -77,17 +76,22 @@ mod tests {
             shape,
         };
         assert_eq!(poses_of(&arr(vec![4, 24, 3])).unwrap().len(), 4);
-        assert!(poses_of(&arr(vec![4, 66])).unwrap_err().contains("[4, 66]"));
+        assert!(poses_of(&arr(vec![4, 66]))
+            .unwrap_err()
+            .to_string()
+            .contains("[4, 66]"));
         assert!(poses_of(&arr(vec![4, 21, 3]))
             .unwrap_err()
+            .to_string()
             .contains("21 joints"));
         assert!(poses_of(&arr(vec![0, 22, 3]))
             .unwrap_err()
+            .to_string()
             .contains("zero frames"));
         let mut nan = arr(vec![2, 22, 3]);
         nan.data[66 + 5 * 3 + 1] = f64::NAN;
         assert_eq!(
-            poses_of(&nan).unwrap_err(),
+            poses_of(&nan).unwrap_err().to_string(),
             "frame 1, joint 5: non-finite coordinate"
         );
     }

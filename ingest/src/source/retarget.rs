@@ -16,6 +16,7 @@
 
 use super::bvh::{parse_bytes, Bvh};
 use super::{Labels, RawClip, Reject};
+use crate::error::IngestError;
 use crate::quat::{self, Quat, Vec3};
 use crate::skeleton::{Pose, JOINT_NAMES, NUM_JOINTS};
 use serde::Deserialize;
@@ -213,7 +214,7 @@ impl RigMap {
     }
 
     /// Parse a TOML map (format in the module docs); the error names what is wrong.
-    pub fn from_toml(text: &str) -> Result<Self, String> {
+    pub fn from_toml(text: &str) -> Result<Self, IngestError> {
         let file: MapFile = toml::from_str(text).map_err(|e| e.to_string())?;
         if let Some(unknown) = file
             .joints
@@ -223,7 +224,8 @@ impl RigMap {
             return Err(format!(
                 "unknown SMPL joint '{unknown}' (expected one of {})",
                 JOINT_NAMES.join(", ")
-            ));
+            )
+            .into());
         }
         let missing: Vec<&str> = JOINT_NAMES
             .iter()
@@ -231,13 +233,13 @@ impl RigMap {
             .filter(|n| !file.joints.contains_key(*n))
             .collect();
         if !missing.is_empty() {
-            return Err(format!("missing SMPL joints: {}", missing.join(", ")));
+            return Err(format!("missing SMPL joints: {}", missing.join(", ")).into());
         }
         if let Some((k, t)) = file.joints.iter().find_map(|(k, s)| match s {
             JointSource::Between { t, .. } if !t.is_finite() => Some((k, *t)),
             _ => None,
         }) {
-            return Err(format!("joint '{k}': t must be finite, found {t}"));
+            return Err(format!("joint '{k}': t must be finite, found {t}").into());
         }
         let mut joints = file.joints;
         Ok(Self {
@@ -250,9 +252,9 @@ impl RigMap {
     }
 
     /// Read a TOML map file; errors name the file.
-    pub fn load(path: &Path) -> Result<Self, String> {
-        let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-        Self::from_toml(&text).map_err(|e| format!("{}: {e}", path.display()))
+    pub fn load(path: &Path) -> Result<Self, IngestError> {
+        let text = std::fs::read_to_string(path).map_err(|e| IngestError::io(&path, e))?;
+        Self::from_toml(&text).map_err(IngestError::at(&path))
     }
 
     /// SMPL joints whose source names are absent from `names`, with what was expected.
@@ -560,11 +562,12 @@ mod tests {
         assert_eq!(map.joints[6], between("Spine", "Chest", 0.25));
         assert_eq!(map.joints[21], j("src_r_wrist"));
         let short = text.replace("l_knee = \"src_l_knee\"\n", "");
-        let e = RigMap::from_toml(&short).unwrap_err();
+        let e = RigMap::from_toml(&short).unwrap_err().to_string();
         assert!(e.contains("missing SMPL joints: l_knee"), "{e}");
         let bad = text.replace("l_knee =", "left_knee =");
         assert!(RigMap::from_toml(&bad)
             .unwrap_err()
+            .to_string()
             .contains("unknown SMPL joint 'left_knee'"));
     }
 
