@@ -133,8 +133,8 @@ fn parse_with(bytes: &[u8], integers: bool) -> Result<NpyArray, NpyError> {
 
 /// Read a `.npy` file; the error names the file.
 pub fn read(path: &Path) -> Result<NpyArray, IngestError> {
-    let bytes = std::fs::read(path).map_err(|e| IngestError::io(&path, e))?;
-    parse(&bytes).map_err(IngestError::at(&path))
+    let bytes = std::fs::read(path).map_err(|e| IngestError::io(path, e))?;
+    parse(&bytes).map_err(IngestError::at(path))
 }
 
 /// Encode f32 values with the given shape as `.npy` (version 1.0) bytes.

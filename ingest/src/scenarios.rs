@@ -174,7 +174,7 @@ pub fn build(
     let by_scenario = pools(&groups);
     if by_scenario.len() < 2 {
         return Err(IngestError::file(
-            &corpus.dir(),
+            corpus.dir(),
             format!(
                 "{} scenario label(s) in the corpus; scenario datasets need at least 2",
                 by_scenario.len()

@@ -16,11 +16,11 @@ use std::path::Path;
 
 /// sha256 of a file, hex, read in 1 MiB blocks (shards are never loaded whole for this).
 pub fn file_sha256(path: &Path) -> Result<String, IngestError> {
-    let mut file = std::fs::File::open(path).map_err(|e| IngestError::io(&path, e))?;
+    let mut file = std::fs::File::open(path).map_err(|e| IngestError::io(path, e))?;
     let mut hasher = Sha256::new();
     let mut buf = vec![0u8; 1 << 20];
     loop {
-        let n = file.read(&mut buf).map_err(|e| IngestError::io(&path, e))?;
+        let n = file.read(&mut buf).map_err(|e| IngestError::io(path, e))?;
         if n == 0 {
             return Ok(hex(&hasher.finalize()));
         }

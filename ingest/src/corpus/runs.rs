@@ -45,7 +45,7 @@ impl Cursor {
             } => {
                 if buffered.is_empty() {
                     if let Some(batch) = reader.next() {
-                        let batch = batch.map_err(IngestError::at(&path))?;
+                        let batch = batch.map_err(IngestError::at(path))?;
                         buffered.extend(records_from_batch(&batch)?);
                     }
                 }

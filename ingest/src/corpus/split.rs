@@ -51,7 +51,7 @@ pub fn read_ids(path: &Path) -> Result<Option<Vec<String>>, IngestError> {
     if !path.exists() {
         return Ok(None);
     }
-    let text = std::fs::read_to_string(path).map_err(|e| IngestError::io(&path, e))?;
+    let text = std::fs::read_to_string(path).map_err(|e| IngestError::io(path, e))?;
     Ok(Some(
         text.lines()
             .map(str::trim)

@@ -53,7 +53,7 @@ fn lock(path: &Path, out: &Path) -> Result<File, IngestError> {
         if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
             let mut holder = String::new();
             let _ = file.read_to_string(&mut holder);
-            return Err(IngestError::file(&out, format!("another ingest is writing this corpus: {} (lock file {}); wait for it to finish", holder.trim(), path.display())));
+            return Err(IngestError::file(out, format!("another ingest is writing this corpus: {} (lock file {}); wait for it to finish", holder.trim(), path.display())));
         }
         // The holder removes the lock file when it finishes: a lock taken on a file that is
         // no longer at `path` guards nothing, so open the current one again.
@@ -109,7 +109,7 @@ impl Staging {
             && std::fs::read_dir(out).map_err(io(out))?.next().is_some();
         if foreign {
             return Err(IngestError::file(
-                &out,
+                out,
                 "exists and is not a corpus (no manifest.json); choose an empty or new folder",
             ));
         }

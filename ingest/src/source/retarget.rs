@@ -253,8 +253,8 @@ impl RigMap {
 
     /// Read a TOML map file; errors name the file.
     pub fn load(path: &Path) -> Result<Self, IngestError> {
-        let text = std::fs::read_to_string(path).map_err(|e| IngestError::io(&path, e))?;
-        Self::from_toml(&text).map_err(IngestError::at(&path))
+        let text = std::fs::read_to_string(path).map_err(|e| IngestError::io(path, e))?;
+        Self::from_toml(&text).map_err(IngestError::at(path))
     }
 
     /// SMPL joints whose source names are absent from `names`, with what was expected.
