@@ -17,7 +17,8 @@
 //! weights as an uninterrupted run.
 
 use crate::accounting::{self, Accounting, SequenceShape};
-use crate::es_moe::{EsMoe, EsMoeConfig, EsMoeTrainer, MoeExample};
+use crate::es_moe::train::{EsMoeTrainer, MoeExample};
+use crate::es_moe::{EsMoe, EsMoeConfig};
 use crate::lm_data::{Limits, LmData};
 use crate::lora::{adapter_a_matrices, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
 use crate::prefix_lm::{init_model, LmBatch, PrefixLm, PrefixLmConfig};

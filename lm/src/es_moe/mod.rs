@@ -28,9 +28,7 @@
 //! [`crate::lora`]), `gate.safetensors` (`gate.cged.*`, `gate.emotion.*`, `gate.query.*`,
 //! `gate.keys.<j>`, the dictionary `gate.cged.dictionary`) and `moe.json` ([`MoeManifest`]).
 
-mod train;
-
-pub use train::{EsMoeTrainer, MoeExample, MoeStepLoss};
+pub mod train;
 
 use crate::lora::{add_deltas, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
 use crate::prefix_lm::{PrefixLm, PrefixLmConfig};
