@@ -28,6 +28,7 @@ use candle_core::backprop::GradStore;
 use candle_core::{CpuStorage, DType, Device, Layout, Result, Storage, Tensor, Var};
 use candle_nn::{Init, VarBuilder, VarMap};
 use motionscale_core::rng::SplitMix64;
+use nn::head_loss;
 use nn::lm_kernels::{self, LayerCache, Rope};
 use nn::seq_layout::SeqLayout;
 use nn::ModelError;
@@ -419,6 +420,10 @@ struct Trace {
 /// logits, or `None` for no extra term.
 pub type ExtraLoss<'a> = dyn Fn(&[f32]) -> Option<(f32, Vec<f32>)> + 'a;
 
+/// The loss of the normalised motion rows `xn` and its gradients with respect to `xn` and
+/// the head weight.
+type HeadLoss<'a> = dyn Fn(&Weights<'_>, &[f32]) -> (f32, Vec<f32>, Vec<f32>) + 'a;
+
 /// The text-prefix autoregressive transformer.
 #[derive(Debug, Clone)]
 pub struct PrefixLm {
@@ -534,8 +539,9 @@ impl PrefixLm {
             .collect()
     }
 
-    /// Forward pass: the logits of every motion slot and, when `keep`, the trace.
-    fn run(&self, w: &Weights, batch: &LmBatch, keep: bool) -> Result<(Vec<f32>, Trace)> {
+    /// Forward pass through the blocks: the last block's output and, when `keep`, the
+    /// blocks' traces.
+    fn run(&self, w: &Weights, batch: &LmBatch, keep: bool) -> Result<Trace> {
         let (c, layout) = (&self.config, &batch.layout);
         self.check(layout)?;
         let attn = self.attention(layout);
@@ -549,8 +555,13 @@ impl PrefixLm {
             }
             h = next;
         }
-        let logits = self.head(w, &h[..batch.inputs.len() * c.d_model]);
-        Ok((logits, Trace { blocks, h }))
+        Ok(Trace { blocks, h })
+    }
+
+    /// `RMSNorm(h; norm)` of the motion slots' rows of the last block's output.
+    fn final_norm(&self, w: &Weights, batch: &LmBatch, trace: &Trace) -> Vec<f32> {
+        let rows = batch.inputs.len() * self.config.d_model;
+        lm_kernels::rms_norm(&trace.h[..rows], w.norm, self.config.norm_eps as f32)
     }
 
     fn attention<'a>(&'a self, layout: &'a SeqLayout) -> lm_kernels::Attention<'a> {
@@ -571,15 +582,38 @@ impl PrefixLm {
 
     /// Logits of every motion slot, `batch · motion_slots × V` (sequence-major).
     pub fn forward(&self, batch: &LmBatch) -> Result<Tensor> {
-        let logits = self.with_weights(|w| Ok(self.run(w, batch, false)?.0))?;
+        let logits = self.with_weights(|w| {
+            let trace = self.run(w, batch, false)?;
+            Ok(self.head(w, &trace.h[..batch.inputs.len() * self.config.d_model]))
+        })?;
         let rows = batch.inputs.len();
         Tensor::from_vec(logits, (rows, self.config.vocab_size()), &Device::Cpu)
     }
 
+    /// `log p(target)` of every motion slot of `batch` (NaN where there is no target); the
+    /// head runs only on the slots with a target.
+    pub fn target_log_probs(&self, batch: &LmBatch) -> Result<Vec<f32>> {
+        self.with_weights(|w| {
+            let trace = self.run(w, batch, false)?;
+            let xn = self.final_norm(w, batch, &trace);
+            let d = self.config.d_model;
+            Ok(head_loss::linear_target_log_probs(
+                &xn,
+                w.head,
+                d,
+                &batch.targets,
+            ))
+        })
+    }
+
     /// Mean cross-entropy over the targets of `batch` and the gradient of every weight
-    /// (keyed by the weight tensors, as `loss.backward()` would key them).
+    /// (keyed by the weight tensors, as `loss.backward()` would key them). The head and
+    /// the loss run fused, on the slots with a target only.
     pub fn loss_and_grads(&self, batch: &LmBatch) -> Result<(f32, GradStore)> {
-        self.loss_and_grads_with(batch, &|_| None)
+        let d = self.config.d_model;
+        self.loss_and_grads_by(batch, &|w, xn| {
+            head_loss::linear_cross_entropy(xn, w.head, d, &batch.targets)
+        })
     }
 
     /// As [`Self::loss_and_grads`], plus an [`ExtraLoss`] term on the logits: `extra(logits)`
@@ -589,15 +623,33 @@ impl PrefixLm {
         batch: &LmBatch,
         extra: &ExtraLoss<'_>,
     ) -> Result<(f32, GradStore)> {
-        let (loss, grads) = self.with_weights(|w| {
-            let (logits, trace) = self.run(w, batch, true)?;
-            let (mut loss, mut g_logits) =
-                lm_kernels::cross_entropy(&logits, self.config.vocab_size(), &batch.targets);
+        let (d, v) = (self.config.d_model, self.config.vocab_size());
+        self.loss_and_grads_by(batch, &|w, xn| {
+            let rows = xn.len() / d;
+            let logits = lm_kernels::matmul_new((xn, false), (w.head, true), (rows, v, d));
+            let (mut loss, mut g_logits) = lm_kernels::cross_entropy(&logits, v, &batch.targets);
             if let Some((term, g_term)) = extra(&logits) {
                 loss += term;
                 g_logits.iter_mut().zip(g_term).for_each(|(g, e)| *g += e);
             }
-            Ok((loss, self.backward(w, batch, &trace, &g_logits)))
+            let g_xn = lm_kernels::matmul_new((&g_logits, false), (w.head, false), (rows, d, v));
+            let g_head = lm_kernels::matmul_new((&g_logits, true), (xn, false), (v, d, rows));
+            (loss, g_xn, g_head)
+        })
+    }
+
+    /// The loss and every weight's gradient, given `head_loss(weights, xn)`: the loss of the
+    /// normalised motion rows `xn` and its gradients with respect to `xn` and the head.
+    fn loss_and_grads_by(
+        &self,
+        batch: &LmBatch,
+        head_loss: &HeadLoss<'_>,
+    ) -> Result<(f32, GradStore)> {
+        let (loss, grads) = self.with_weights(|w| {
+            let trace = self.run(w, batch, true)?;
+            let xn = self.final_norm(w, batch, &trace);
+            let (loss, g_xn, g_head) = head_loss(w, &xn);
+            Ok((loss, self.backward(w, batch, &trace, &g_xn, g_head)))
         })?;
         let mut store = GradStore::default();
         for (t, g) in self.tensors().into_iter().zip(grads) {
@@ -606,26 +658,23 @@ impl PrefixLm {
         Ok((loss, store))
     }
 
-    /// Backward pass from the logits' gradient: the gradient of every weight, in
-    /// [`Self::tensors`] order.
+    /// Backward pass from the gradients of the normalised motion rows and of the head: the
+    /// gradient of every weight, in [`Self::tensors`] order.
     fn backward(
         &self,
         w: &Weights,
         batch: &LmBatch,
         trace: &Trace,
-        g_logits: &[f32],
+        g_xn: &[f32],
+        g_head: Vec<f32>,
     ) -> Vec<Vec<f32>> {
         let c = &self.config;
         let (d, v, e, eps) = (c.d_model, c.vocab_size(), c.text_dim, c.norm_eps as f32);
         let motion = batch.inputs.len();
         let attn = self.attention(&batch.layout);
-        // logits = RMSNorm(h_motion; norm)·headᵀ.
         let hm = &trace.h[..motion * d];
-        let xn = lm_kernels::rms_norm(hm, w.norm, eps);
-        let g_head = lm_kernels::matmul_new((g_logits, true), (&xn, false), (v, d, motion));
-        let g_xn = lm_kernels::matmul_new((g_logits, false), (w.head, false), (motion, d, v));
         let mut gh = vec![0f32; trace.h.len()];
-        let g_norm = lm_kernels::rms_norm_backward(hm, w.norm, &g_xn, eps, &mut gh[..motion * d]);
+        let g_norm = lm_kernels::rms_norm_backward(hm, w.norm, g_xn, eps, &mut gh[..motion * d]);
         let mut g_blocks: Vec<BlockGrads> = w
             .blocks
             .iter()

@@ -10,7 +10,7 @@
 
 use crate::lm_data::LmData;
 use crate::MotionLm;
-use nn::lm_kernels::{target_log_probs, IGNORE};
+use nn::lm_kernels::IGNORE;
 use nn::ModelError;
 use serde::{Deserialize, Serialize};
 
@@ -74,12 +74,10 @@ pub fn evaluate(
     let batch = if lm.per_caption() { 1 } else { batch.max(1) };
     for chunk in items.chunks(batch) {
         let b = data.batch(lm.config(), chunk);
-        let logits = lm
+        let lp = lm
             .for_caption(data.text_of(&chunk[0]))
-            .and_then(|model| model.forward(&b))
-            .and_then(|l| l.flatten_all()?.to_vec1::<f32>())
+            .and_then(|model| model.target_log_probs(&b))
             .map_err(ModelError::inference)?;
-        let lp = target_log_probs(&logits, lm.config().vocab_size(), &b.targets);
         for (&t, &l) in b.targets.iter().zip(&lp) {
             if t == IGNORE {
                 continue;

@@ -16,6 +16,7 @@
 //! to first when `reverse`) and its output is zero past its length.
 
 use crate::cpu_f32::{contiguous_f32, F32Values};
+use crate::fast_exp::{self, exp};
 use crate::lm_kernels::{column_sums, SharedMut};
 use crate::matmul::gemm_with;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
@@ -81,33 +82,6 @@ fn groups(lengths: &[usize]) -> Vec<Group> {
     groups
 }
 
-/// Round-to-nearest shift for f32 (1.5 · 2²³).
-const MAGIC: f32 = 12_582_912.0;
-
-/// eˣ for x clamped to [−87, 87], in plain arithmetic so the gate loop vectorises (libm's
-/// `expf`/`tanhf` calls were a third of the forward scan): x = k·ln2 + r, |r| ≤ ln2/2, eʳ by
-/// Cephes' `expf` polynomial (≈ 1 ulp), 2ᵏ from k's bits.
-#[inline(always)]
-fn exp(x: f32) -> f32 {
-    let x = x.clamp(-87.0, 87.0);
-    let shifted = x * std::f32::consts::LOG2_E + MAGIC;
-    let k = shifted - MAGIC;
-    let r = (x - k * 0.693_359_4) + k * 2.121_944_4e-4;
-    let mut p = 1.987_569_1e-4;
-    for c in [
-        1.398_199_9e-3,
-        8.333_452e-3,
-        4.166_579_6e-2,
-        0.166_666_65,
-        0.5,
-    ] {
-        p = p * r + c;
-    }
-    let e = p * r * r + r + 1.0;
-    let bits = shifted.to_bits().wrapping_sub(MAGIC.to_bits());
-    e * f32::from_bits(bits.wrapping_add(127) << 23)
-}
-
 #[inline(always)]
 fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + exp(-x))
@@ -122,7 +96,7 @@ fn tanh(x: f32) -> f32 {
 /// (both `3h`: r, z, n) and keeps r, z, n and gh_n in `saved` for the backward pass.
 fn gate_step(x: &[f32], gh: &[f32], h: &mut [f32], saved: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
-    if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+    if fast_exp::avx2_fma() {
         // SAFETY: the CPU supports the features the function was compiled for.
         return unsafe { gate_step_avx2(x, gh, h, saved) };
     }

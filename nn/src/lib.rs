@@ -4,7 +4,7 @@
 //! - [`conv_op`]: the fused 1-D convolution (im2col + gemm, ReLU and up-sampling fused in) of
 //!   the tokenizer and the evaluator;
 //! - [`lm_kernels`] and [`seq_layout`]: the prefix LM's fused forward/backward kernels and the
-//!   batch layout they read;
+//!   batch layout they read; [`head_loss`]: the LM head fused with its cross-entropy;
 //! - [`gru`] and [`gru_kernel`]: the GRU layer (PyTorch's gate layout and names) and its fused
 //!   scan with a hand-written backward through time;
 //! - [`optim`] (AdamW with saveable state, warm-up + cosine schedule), [`checkpoint`]
@@ -18,9 +18,11 @@ pub mod checkpoint;
 pub mod conv_op;
 pub mod cpu_f32;
 pub mod error;
+mod fast_exp;
 pub mod gradcheck;
 pub mod gru;
 pub mod gru_kernel;
+pub mod head_loss;
 pub mod kmeans;
 pub mod lm_kernels;
 pub mod matmul;

@@ -10,6 +10,7 @@
 //! (`prefix_lm`). Every reduction runs in a fixed order, so results never depend on thread
 //! scheduling: a resumed run reproduces an uninterrupted one bit for bit.
 
+use crate::fast_exp;
 use crate::matmul::{gemm_with, Operand};
 use crate::seq_layout::SeqLayout;
 use rayon::prelude::*;
@@ -517,9 +518,33 @@ impl LayerCache {
 // Cross-entropy
 
 /// `log p(target)` of one row of logits (log-softmax at the target).
-fn target_log_prob(row: &[f32], target: usize) -> f32 {
-    let max = row.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
-    let sum: f32 = row.iter().map(|&v| (v - max).exp()).sum();
+pub(crate) fn target_log_prob(row: &[f32], target: usize) -> f32 {
+    #[cfg(target_arch = "x86_64")]
+    if fast_exp::avx2_fma() {
+        // SAFETY: the CPU supports the features the function was compiled for.
+        return unsafe { target_log_prob_avx2(row, target) };
+    }
+    target_log_prob_body(row, target)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn target_log_prob_avx2(row: &[f32], target: usize) -> f32 {
+    target_log_prob_body(row, target)
+}
+
+#[inline(always)]
+fn target_log_prob_body(row: &[f32], target: usize) -> f32 {
+    let max = row_max(row);
+    let mut sums = [0f32; 8];
+    let chunks = row.chunks_exact(8);
+    let tail = chunks.remainder();
+    for c in chunks {
+        for i in 0..8 {
+            sums[i] += fast_exp::exp(c[i] - max);
+        }
+    }
+    let sum = sums.iter().sum::<f32>() + tail.iter().map(|&v| fast_exp::exp(v - max)).sum::<f32>();
     row[target] - max - sum.ln()
 }
 
@@ -600,20 +625,67 @@ pub fn cross_entropy(logits: &[f32], vocab: usize, targets: &[u32]) -> (f32, Vec
             if t == IGNORE {
                 return 0.0;
             }
-            let max = row.iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
-            let mut sum = 0f32;
-            for (g, &v) in g.iter_mut().zip(row) {
-                *g = (v - max).exp();
-                sum += *g;
-            }
-            let inv = scale / sum;
-            g.iter_mut().for_each(|v| *v *= inv);
-            g[t as usize] -= scale;
-            f64::from(max - row[t as usize] + sum.ln())
+            g.copy_from_slice(row);
+            cross_entropy_row(g, t as usize, scale)
         })
         .collect();
     let mean = losses.iter().sum::<f64>() / valid as f64;
     (mean as f32, grad)
+}
+
+/// Cross-entropy of one row of logits at `target`, turning the row into its gradient scaled
+/// by `scale`: `scale · (softmax − onehot)`.
+pub(crate) fn cross_entropy_row(row: &mut [f32], target: usize, scale: f32) -> f64 {
+    #[cfg(target_arch = "x86_64")]
+    if fast_exp::avx2_fma() {
+        // SAFETY: the CPU supports the features the function was compiled for.
+        return unsafe { cross_entropy_row_avx2(row, target, scale) };
+    }
+    cross_entropy_row_body(row, target, scale)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn cross_entropy_row_avx2(row: &mut [f32], target: usize, scale: f32) -> f64 {
+    cross_entropy_row_body(row, target, scale)
+}
+
+#[inline(always)]
+fn cross_entropy_row_body(row: &mut [f32], target: usize, scale: f32) -> f64 {
+    let max = row_max(row);
+    let at_target = row[target];
+    let mut sums = [0f32; 8];
+    let mut chunks = row.chunks_exact_mut(8);
+    for c in &mut chunks {
+        for i in 0..8 {
+            c[i] = fast_exp::exp(c[i] - max);
+            sums[i] += c[i];
+        }
+    }
+    let tail = chunks.into_remainder();
+    tail.iter_mut().for_each(|v| *v = fast_exp::exp(*v - max));
+    let sum = sums.iter().sum::<f32>() + tail.iter().sum::<f32>();
+    let inv = scale / sum;
+    row.iter_mut().for_each(|v| *v *= inv);
+    row[target] -= scale;
+    f64::from(max - at_target + sum.ln())
+}
+
+/// The largest value of a row (eight lanes, so it vectorises).
+#[inline(always)]
+fn row_max(row: &[f32]) -> f32 {
+    let mut lanes = [f32::NEG_INFINITY; 8];
+    let chunks = row.chunks_exact(8);
+    let tail = chunks.remainder();
+    for c in chunks {
+        for i in 0..8 {
+            lanes[i] = if c[i] > lanes[i] { c[i] } else { lanes[i] };
+        }
+    }
+    lanes
+        .iter()
+        .chain(tail)
+        .fold(f32::NEG_INFINITY, |m, &v| m.max(v))
 }
 
 #[cfg(test)]
