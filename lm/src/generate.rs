@@ -138,8 +138,10 @@ pub fn generate(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<
                 let motions: Vec<(&[u32], bool)> =
                     out.iter().map(|o| (o.as_slice(), true)).collect();
                 let full = LmBatch::new(c, texts, &motions);
-                let m = full.layout.motion_slots;
-                let rows: Vec<u32> = (0..batch).map(|b| (b * m + out[b].len()) as u32).collect();
+                let (l, p) = (&full.layout, full.layout.prefix_slots);
+                let rows: Vec<u32> = (0..batch)
+                    .map(|b| l.row(b, p + out[b].len()).expect("a real slot") as u32)
+                    .collect();
                 let full = model.forward(&full)?;
                 full.index_select(&Tensor::new(rows.as_slice(), &Device::Cpu)?, 0)?
             }

@@ -215,16 +215,18 @@ pub fn preset(name: &str) -> Option<&'static Preset> {
     PRESETS.iter().find(|p| p.name == name)
 }
 
-/// One model input: text embeddings and motion tokens laid out by a [`SeqLayout`].
+/// One model input: text embeddings and motion tokens laid out by a [`SeqLayout`], real
+/// slots only (sequence-major).
 #[derive(Debug, Clone)]
 pub struct LmBatch {
     /// The layout.
     pub layout: SeqLayout,
-    /// Text embeddings, `batch · prefix_slots × E` row-major (padding rows zero).
+    /// Text embeddings of the real text slots, `Σ prefix_lens × E` row-major.
     pub text: Vec<f32>,
-    /// Motion inputs `[BOS, m0, …]`, `batch · motion_slots` (PAD after the end).
+    /// Motion inputs `[BOS, m0, …]` of the real motion slots, `Σ motion_lens`.
     pub inputs: Vec<u32>,
-    /// Next-token targets `[m0, …, EOS]`, [`lm_kernels::IGNORE`] on padding.
+    /// Next-token targets `[m0, …(, EOS)]`, one per input; [`lm_kernels::IGNORE`] on the
+    /// slot after the last token of a clip that does not end there.
     pub targets: Vec<u32>,
 }
 
@@ -232,30 +234,26 @@ impl LmBatch {
     /// A batch from per-sequence text embeddings (rows of `text_dim` values) and motion
     /// tokens with whether the clip ends there. A sequence of n tokens has a target per
     /// token, plus EOS when it ends: inputs `[BOS, m0, …]`, targets `[m0, …, m(n−1) (, EOS)]`,
-    /// n (+1) slots; all sequences are padded to the longest.
+    /// n (+1) slots (at least one).
     pub fn new(config: &PrefixLmConfig, texts: &[&[f32]], motions: &[(&[u32], bool)]) -> Self {
         let e = config.text_dim;
         let prefix_lens: Vec<usize> = texts.iter().map(|t| t.len() / e).collect();
-        let slots = |(m, ends): &(&[u32], bool)| (m.len() + usize::from(*ends)).max(1);
-        let motion_slots = motions.iter().map(slots).max().unwrap_or(1);
-        let layout = SeqLayout::new(prefix_lens, motion_slots);
-        let mut text = vec![0f32; layout.batch * layout.prefix_slots * e];
-        for (b, t) in texts.iter().enumerate() {
-            text[b * layout.prefix_slots * e..][..t.len()].copy_from_slice(t);
-        }
-        let mut inputs = vec![config.pad(); layout.batch * motion_slots];
-        let mut targets = vec![lm_kernels::IGNORE; layout.batch * motion_slots];
-        for (b, motion) in motions.iter().enumerate() {
-            let (tokens, ends) = *motion;
-            let n = slots(motion);
-            let inp = &mut inputs[b * motion_slots..][..n];
-            inp[0] = config.bos();
-            inp[1..].copy_from_slice(&tokens[..n - 1]);
-            let tgt = &mut targets[b * motion_slots..][..n];
-            tgt[..tokens.len()].copy_from_slice(tokens);
+        let motion_lens: Vec<usize> = motions
+            .iter()
+            .map(|(m, ends)| (m.len() + usize::from(*ends)).max(1))
+            .collect();
+        let layout = SeqLayout::packed(prefix_lens, motion_lens);
+        let text = texts.concat();
+        let (mut inputs, mut targets) = (Vec::new(), Vec::new());
+        for (&(tokens, ends), &n) in motions.iter().zip(&layout.motion_lens) {
+            inputs.push(config.bos());
+            inputs.extend_from_slice(&tokens[..n - 1]);
+            targets.extend_from_slice(&tokens[..n.min(tokens.len())]);
             if ends {
-                tgt[tokens.len()] = config.eos();
+                targets.push(config.eos());
             }
+            // An empty clip that does not end has one slot and nothing to predict.
+            targets.resize(inputs.len(), lm_kernels::IGNORE);
         }
         Self {
             layout,
@@ -580,7 +578,7 @@ impl PrefixLm {
         lm_kernels::matmul_new((&xn, false), (w.head, true), (h.len() / d, v, d))
     }
 
-    /// Logits of every motion slot, `batch · motion_slots × V` (sequence-major).
+    /// Logits of every real motion slot, `motion_rows × V` (sequence-major).
     pub fn forward(&self, batch: &LmBatch) -> Result<Tensor> {
         let logits = self.with_weights(|w| {
             let trace = self.run(w, batch, false)?;
@@ -875,15 +873,16 @@ mod tests {
         let (model, _) = init_model(&tiny(), 3).unwrap();
         let (t0, t1) = (text(5, 6, 4), text(2, 6, 5));
         let (m0, m1) = ([1u32, 2, 3, 4], [9u32, 8]);
-        let both = logits(&model, &[&t0, &t1], &[(&m0, true), (&m1, false)]);
+        // The shorter sequence first: its padding has no rows, so the longer one's start at 2.
+        let both = logits(&model, &[&t1, &t0], &[(&m1, false), (&m0, true)]);
         let alone0 = logits(&model, &[&t0], &[(&m0, true)]);
         let alone1 = logits(&model, &[&t1], &[(&m1, false)]);
-        let slots = 5;
-        for s in 0..alone0.len() {
-            assert!(row_diff(&both[s], &alone0[s]) < 1e-5);
-        }
+        assert_eq!((alone1.len(), alone0.len(), both.len()), (2, 5, 7));
         for s in 0..alone1.len() {
-            assert!(row_diff(&both[slots + s], &alone1[s]) < 1e-5);
+            assert!(row_diff(&both[s], &alone1[s]) < 1e-5);
+        }
+        for s in 0..alone0.len() {
+            assert!(row_diff(&both[2 + s], &alone0[s]) < 1e-5);
         }
     }
 
@@ -936,8 +935,8 @@ mod tests {
         let (l, d, f, hd) = (&batch.layout, c.d_model, c.ffn_hidden, c.head_dim());
         let eps = c.norm_eps as f32;
         let lin = |x: &Tensor, name: &str| x.matmul(&w(name).t().unwrap()).unwrap();
-        let text =
-            Tensor::from_slice(&batch.text, (l.batch * l.prefix_slots, c.text_dim), dev).unwrap();
+        let text_rows = batch.text.len() / c.text_dim;
+        let text = Tensor::from_slice(&batch.text, (text_rows, c.text_dim), dev).unwrap();
         let text = lin(&text, "prefix_proj.weight")
             .broadcast_add(&w("prefix_proj.bias"))
             .unwrap();
@@ -947,14 +946,17 @@ mod tests {
             0,
         )
         .unwrap();
-        // Rows in slot order, sequence by sequence, and back.
+        // Rows in slot order, sequence by sequence (padding slots read an extra zero row),
+        // and back.
+        let all = l.batch * l.slots();
         let order: Vec<u32> = (0..l.batch)
-            .flat_map(|b| (0..l.slots()).map(move |s| l.row(b, s) as u32))
+            .flat_map(|b| (0..l.slots()).map(move |s| l.row(b, s).unwrap_or(l.rows()) as u32))
             .collect();
-        let mut back = vec![0u32; order.len()];
+        let mut back = vec![0u32; l.rows()];
         order
             .iter()
             .enumerate()
+            .filter(|(_, &r)| (r as usize) < l.rows())
             .for_each(|(i, &r)| back[r as usize] = i as u32);
         let (order, back) = (
             Tensor::new(order, dev).unwrap(),
@@ -970,7 +972,7 @@ mod tests {
                     t.iter().chain(t).copied().collect::<Vec<_>>()
                 })
                 .collect();
-            Tensor::from_vec(v, (l.rows(), hd), dev).unwrap()
+            Tensor::from_vec(v, (all, hd), dev).unwrap()
         };
         let (cos, sin) = (table(false), table(true));
         let rotate = |x: &Tensor| {
@@ -999,7 +1001,10 @@ mod tests {
         for i in 0..c.n_layers {
             let p = |n: &str| format!("blocks.{i}.{n}");
             let xn = rms_norm_slow(&h, &w(&p("n1.weight")), eps).unwrap();
-            let qkv = lin(&xn, &p("attn.wqkv.weight"))
+            let qkv = lin(&xn, &p("attn.wqkv.weight"));
+            let zero = Tensor::zeros((1, 3 * d), DType::F32, dev).unwrap();
+            let qkv = Tensor::cat(&[&qkv, &zero], 0)
+                .unwrap()
                 .index_select(&order, 0)
                 .unwrap();
             let heads: Vec<Tensor> = (0..c.n_heads)
@@ -1010,7 +1015,7 @@ mod tests {
                     let scores =
                         (q.matmul(&kk.t().unwrap()).unwrap() / (hd as f64).sqrt()).unwrap();
                     let probs = softmax(&(scores + &mask).unwrap(), 2).unwrap();
-                    probs.matmul(&v).unwrap().reshape((l.rows(), hd)).unwrap()
+                    probs.matmul(&v).unwrap().reshape((all, hd)).unwrap()
                 })
                 .collect();
             let a = Tensor::cat(&heads, 1)

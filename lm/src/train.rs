@@ -284,7 +284,7 @@ pub struct TrainState {
     pub step: u64,
     /// Motion loss positions trained on (D so far).
     pub tokens_seen: u64,
-    /// Exact FLOPs executed so far (padding included).
+    /// Exact FLOPs of the real (unpadded) slots so far.
     pub flops_exact: f64,
     /// Train-stream items consumed (batch k holds items k·B..(k+1)·B).
     pub data_position: u64,
@@ -310,7 +310,7 @@ pub struct EvalRecord {
     pub test: SplitLoss,
     /// C = 6·(N_nv + N_v)·D.
     pub flops_6n: f64,
-    /// Exact FLOPs executed (padding included).
+    /// Exact FLOPs of the real (unpadded) slots.
     pub flops_exact: f64,
     /// Non-vocabulary parameters.
     pub n_nv: u64,
@@ -682,16 +682,18 @@ impl Run {
             .step(&grads, lr, Some(c.hyper.grad_clip))
             .map_err(ModelError::inference)?;
         let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
-        let shape = SequenceShape {
-            prefix: batch.layout.prefix_slots,
-            motion: batch.layout.motion_slots,
-        };
+        let layout = &batch.layout;
+        let flops: f64 = (layout.prefix_lens.iter().zip(&layout.motion_lens))
+            .map(|(&prefix, &motion)| {
+                let shape = SequenceShape { prefix, motion };
+                accounting::train_flops_exact(&self.config.model, shape)
+            })
+            .sum();
         let s = &mut self.state;
         s.step += 1;
         s.tokens_seen += tokens;
         s.data_position += c.hyper.batch_size as u64;
-        s.flops_exact +=
-            c.hyper.batch_size as f64 * accounting::train_flops_exact(&self.config.model, shape);
+        s.flops_exact += flops;
         Ok(TrainEvent::Step {
             step: s.step,
             loss,

@@ -323,14 +323,26 @@ impl Attention<'_> {
         self.d / self.heads
     }
 
+    /// The real slots of sequence `b` with their rows.
+    fn rows_of(&self, b: usize) -> impl Iterator<Item = (usize, usize)> + '_ {
+        (0..self.layout.slots()).filter_map(move |s| self.layout.row(b, s).map(|r| (s, r)))
+    }
+
     /// Copy head `h` of sequence `b` (slot order) out of `qkv` into `scr.q/k/v`, q and k
-    /// rotated.
+    /// rotated; padding slots (no row) get zeros, which the mask keeps out of every real
+    /// slot's attention.
     fn gather(&self, qkv: &[f32], b: usize, h: usize, scr: &mut HeadScratch) {
         let (d, hd) = (self.d, self.head_dim());
         for s in 0..self.layout.slots() {
-            let row = &qkv[self.layout.row(b, s) * 3 * d..][..3 * d];
-            let pos = self.layout.position(b, s);
             let dst = s * hd..(s + 1) * hd;
+            let Some(r) = self.layout.row(b, s) else {
+                for x in [&mut scr.q, &mut scr.k, &mut scr.v] {
+                    x[dst.clone()].fill(0.0);
+                }
+                continue;
+            };
+            let row = &qkv[r * 3 * d..][..3 * d];
+            let pos = self.layout.position(b, s);
             scr.q[dst.clone()].copy_from_slice(&row[h * hd..][..hd]);
             scr.k[dst.clone()].copy_from_slice(&row[d + h * hd..][..hd]);
             scr.v[dst.clone()].copy_from_slice(&row[2 * d + h * hd..][..hd]);
@@ -366,8 +378,8 @@ impl Attention<'_> {
                     masked_softmax(p, slots, |i, j| self.layout.allowed(b, i, j));
                     let mnk = (slots, hd, slots);
                     matmul(&mut scr.o, (p, false), (&scr.v, false), mnk, 1.0);
-                    for s in 0..slots {
-                        let at = self.layout.row(b, s) * d + h * hd;
+                    for (s, r) in self.rows_of(b) {
+                        let at = r * d + h * hd;
                         // SAFETY: (row of sequence b, columns of head h) is written by this
                         // (b, h) item only, and lies inside `out` (rows × d).
                         unsafe {
@@ -399,9 +411,10 @@ impl Attention<'_> {
                     let (b, h) = (bh / heads, bh % heads);
                     let p = &probs[bh * slots * slots..][..slots * slots];
                     self.gather(qkv, b, h, scr);
-                    // gs.o = dO (slots × hd).
-                    for s in 0..slots {
-                        let at = self.layout.row(b, s) * d + h * hd;
+                    // gs.o = dO (slots × hd), zero on padding slots.
+                    gs.o.fill(0.0);
+                    for (s, r) in self.rows_of(b) {
+                        let at = r * d + h * hd;
                         gs.o[s * hd..(s + 1) * hd].copy_from_slice(&grad[at..at + hd]);
                     }
                     // dV = Pᵀ dO; dP = dO Vᵀ.
@@ -417,12 +430,12 @@ impl Attention<'_> {
                     // dQ = dS K; dK = dSᵀ Q (rotated frame), then rotated back.
                     matmul(&mut gs.q, (&gs.p, false), (&scr.k, false), sd, 1.0);
                     matmul(&mut gs.k, (&gs.p, true), (&scr.q, false), sd, 1.0);
-                    for s in 0..slots {
+                    for (s, row) in self.rows_of(b) {
                         let pos = self.layout.position(b, s);
                         let r = s * hd..(s + 1) * hd;
                         self.rope.rotate(&mut gs.q[r.clone()], pos, true);
                         self.rope.rotate(&mut gs.k[r.clone()], pos, true);
-                        let at = self.layout.row(b, s) * 3 * d + h * hd;
+                        let at = row * 3 * d + h * hd;
                         for (part, src) in [&gs.q, &gs.k, &gs.v].into_iter().enumerate() {
                             // SAFETY: (row of sequence b, q/k/v columns of head h) is written by
                             // this (b, h) item only, inside `out` (rows × 3d).
@@ -762,15 +775,16 @@ mod tests {
                 .map(|i| (a[i] - b[i]).abs())
                 .fold(0.0, f32::max)
         };
+        let row = |s: usize| layout.row(0, s).expect("a real slot");
         // The last text slot changes the first (text attends forwards) and vice versa.
-        let last = bump(layout.row(0, 2));
-        assert!(row_diff(&base, &last, layout.row(0, 0)) > 1e-4);
-        let first = bump(layout.row(0, 0));
-        assert!(row_diff(&base, &first, layout.row(0, 2)) > 1e-4);
+        let last = bump(row(2));
+        assert!(row_diff(&base, &last, row(0)) > 1e-4);
+        let first = bump(row(0));
+        assert!(row_diff(&base, &first, row(2)) > 1e-4);
         // A motion slot changes no text slot.
-        let motion = bump(layout.row(0, 4));
+        let motion = bump(row(4));
         for s in 0..3 {
-            assert_eq!(row_diff(&base, &motion, layout.row(0, s)), 0.0);
+            assert_eq!(row_diff(&base, &motion, row(s)), 0.0);
         }
     }
 }
