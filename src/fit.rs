@@ -73,6 +73,11 @@ pub struct FitArgs {
     /// them: predicted vs trained N_opt and loss, inside or outside the 95% interval.
     #[arg(long, value_name = "C")]
     pub holdout_budget: Option<f64>,
+    /// Fit only the runs of vocabulary size K (the --v-col column). Cross-entropy is not
+    /// comparable between vocabularies, so the parametric L(N, D) of one vocabulary is the one
+    /// to set beside its IsoFLOP law.
+    #[arg(long, value_name = "K")]
+    pub vocab: Option<f64>,
     /// Also fit Muennighoff et al.'s data-constrained L(N, D') (effective data
     /// D' = U + U·R*·(1 − e^(−R/R*)), R = epochs − 1) with R* fitted, and compare it with the
     /// plain fit by the error on each budget left out in turn.
@@ -146,6 +151,7 @@ impl FitArgs {
             seed: self.seed,
             huber_delta: self.huber_delta,
             holdout_budget: self.holdout_budget,
+            vocab: self.vocab,
             repeated_data: self.repeated_data,
             ..FitOptions::default()
         })

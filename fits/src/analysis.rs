@@ -21,7 +21,12 @@ type LawPoints = (&'static str, &'static str, &'static str, Vec<(f64, f64)>);
 /// Fits every law the table's columns allow; with `opts.holdout_budget`, without that budget's
 /// runs, then scores the prediction on them.
 pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
-    let all = Runs::read(t, opts)?;
+    let mut all = Runs::read(t, opts)?;
+    if let Some(k) = opts.vocab {
+        all = all.of_vocabulary(k).map_err(|message| {
+            FitError::Invalid(format!("{}: --vocab {k}: {message}", t.path().display()))
+        })?;
+    }
     let (runs, held_out) = match opts.holdout_budget {
         None => (all, None),
         Some(c) => {
@@ -40,7 +45,7 @@ pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
         ));
         fits.holdout = Some(holdout::score(held, &fits)?);
     }
-    match runs.total_parameters() {
+    match runs.total_parameters(opts.group_tol_dex) {
         Some(total) => match fit_runs(t, &total, opts) {
             Ok(f) => fits.total_n = Some(Box::new(f)),
             Err(e) => fits

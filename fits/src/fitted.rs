@@ -111,6 +111,9 @@ pub struct FitOptions {
     pub lbfgs: LbfgsOptions,
     /// Fit without the runs of this budget group and score the prediction on them.
     pub holdout_budget: Option<f64>,
+    /// Fit only the runs of this vocabulary size (the V column), so that the parametric
+    /// fit's raw loss is one vocabulary's and comparable between runs.
+    pub vocab: Option<f64>,
     /// Also fit the data-constrained L(N, D') of Muennighoff et al. (needs an epochs column).
     pub repeated_data: bool,
 }
@@ -128,6 +131,7 @@ impl Default for FitOptions {
             huber_delta: 1e-3,
             lbfgs: LbfgsOptions::default(),
             holdout_budget: None,
+            vocab: None,
             repeated_data: false,
         }
     }

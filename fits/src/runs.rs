@@ -2,6 +2,7 @@
 //! derived ones (C without a compute column, width without a width column).
 
 use crate::fitted::{ColumnChoice, FitOptions};
+use crate::isoflop;
 use crate::table::Table;
 use crate::FitError;
 use std::collections::BTreeMap;
@@ -192,10 +193,18 @@ impl Runs {
 
     /// The same runs with N counted as every parameter, N + N_v (embedding and output head
     /// included, as Pearce & Song 2024 recommend at small scale); `None` without an N_v column.
-    pub fn total_parameters(&self) -> Option<Self> {
-        let nv = self.nv.as_ref()?;
-        let mut out = self.clone();
-        out.n = self.n.iter().zip(nv).map(|(a, b)| a + b).collect();
+    /// Where several vocabularies were trained at one budget and N, only the one with the
+    /// lowest mean loss is kept (every seed of it): each IsoFLOP curve is then the N
+    /// convention's envelope over vocabularies, each point at its own run's total N. Pooling
+    /// them instead mixes curves of different vocabularies, which no parabola fits.
+    pub fn total_parameters(&self, tol_dex: f64) -> Option<Self> {
+        self.nv.as_ref()?;
+        let mut out = match &self.v {
+            Some(v) => self.select(&self.best_vocabulary_rows(v, tol_dex)),
+            None => self.clone(),
+        };
+        let nv = out.nv.as_deref().unwrap_or_default();
+        out.n = out.n.iter().zip(nv).map(|(a, b)| a + b).collect();
         let name = |c: &Option<String>| c.clone().unwrap_or_default();
         let total = format!(
             "{} + {}",
@@ -204,6 +213,58 @@ impl Runs {
         );
         out.columns.insert("N".into(), Some(total));
         Some(out)
+    }
+
+    /// The runs of vocabulary size `k`; an error without a V column or without such runs.
+    pub fn of_vocabulary(&self, k: f64) -> Result<Self, String> {
+        let v = self
+            .v
+            .as_ref()
+            .ok_or("the table has no vocabulary column")?;
+        let rows: Vec<usize> = (0..v.len()).filter(|&i| v[i] == k).collect();
+        if rows.is_empty() {
+            let mut sizes: Vec<f64> = v.clone();
+            sizes.sort_by(f64::total_cmp);
+            sizes.dedup();
+            return Err(format!(
+                "no runs of this vocabulary; the table has {sizes:?}"
+            ));
+        }
+        let mut out = self.select(&rows);
+        out.notes
+            .push(format!("only the {} runs of vocabulary {k}", rows.len()));
+        Ok(out)
+    }
+
+    /// The rows of the vocabulary with the lowest mean loss at each (budget group, N), in
+    /// row order.
+    fn best_vocabulary_rows(&self, v: &[f64], tol_dex: f64) -> Vec<usize> {
+        let mut keep = Vec::new();
+        for group in isoflop::group_rows(&self.c, self.group.as_deref(), tol_dex) {
+            // (N, V) → (loss sum, runs) of this budget.
+            let mut cells: BTreeMap<(u64, u64), (f64, usize)> = BTreeMap::new();
+            for &i in &group {
+                let cell = cells
+                    .entry((self.n[i].to_bits(), v[i].to_bits()))
+                    .or_default();
+                *cell = (cell.0 + self.loss[i], cell.1 + 1);
+            }
+            let mut best: BTreeMap<u64, (f64, u64)> = BTreeMap::new();
+            for ((n, vocab), (sum, count)) in cells {
+                let mean = sum / count as f64;
+                let entry = best.entry(n).or_insert((mean, vocab));
+                if mean < entry.0 {
+                    *entry = (mean, vocab);
+                }
+            }
+            keep.extend(
+                group
+                    .iter()
+                    .filter(|&&i| best[&self.n[i].to_bits()].1 == v[i].to_bits()),
+            );
+        }
+        keep.sort_unstable();
+        keep
     }
 
     /// Unique training tokens per run, D / epochs (needs both columns).
@@ -245,13 +306,37 @@ mod tests {
         let r = runs();
         assert_eq!(r.nv.as_ref().unwrap()[0], 243.0 * 64.0 * 2.0);
         assert_eq!(r.nv.as_ref().unwrap()[1], 243.0 * 32.0 * 2.0);
-        let t = r.total_parameters().unwrap();
+        let t = r.total_parameters(0.05).unwrap();
         assert_eq!(t.n, vec![74_048.0 + 31_104.0, 24_672.0 + 15_552.0]);
         assert_eq!(t.columns["N"].as_deref(), Some("n_nv + n_v"));
         assert_eq!(t.loss, r.loss);
         let mut no_nv = r.clone();
         no_nv.nv = None;
-        assert!(no_nv.total_parameters().is_none());
+        assert!(no_nv.total_parameters(0.05).is_none());
+    }
+
+    #[test]
+    fn total_parameters_keep_the_best_vocabulary_of_each_budget_and_size() {
+        // Row 2: the 24,672 model at K = 1,000 (N_v = 1,003·32·2 = 64,192) beats K = 240,
+        // so it replaces row 1; at 74,048 only K = 240 was trained.
+        let mut r = runs().select(&[0, 1, 1]);
+        r.v.as_mut().unwrap()[2] = 1000.0;
+        r.nv.as_mut().unwrap()[2] = 64_192.0;
+        r.loss[2] = -3.4;
+        let t = r.total_parameters(0.05).unwrap();
+        assert_eq!(t.n, vec![74_048.0 + 31_104.0, 24_672.0 + 64_192.0]);
+        assert_eq!(t.loss, vec![-3.1, -3.4]);
+        assert_eq!(t.v, Some(vec![240.0, 1000.0]));
+    }
+
+    #[test]
+    fn one_vocabulary_is_selected_or_the_sizes_are_listed() {
+        let mut r = runs();
+        r.v.as_mut().unwrap()[1] = 1000.0;
+        let k = r.of_vocabulary(1000.0).unwrap();
+        assert_eq!((k.n.clone(), k.loss.clone()), (vec![24_672.0], vec![-3.3]));
+        let err = r.of_vocabulary(4375.0).unwrap_err();
+        assert!(err.contains("[240.0, 1000.0]"), "{err}");
     }
 
     #[test]
