@@ -289,10 +289,11 @@ pub fn caption_embeddings(
     stored: &CaptionEmbeddings,
     encoder: Option<&dyn TextEncoder>,
 ) -> Result<HashMap<String, Vec<f32>>, ModelError> {
+    let mut found = stored.get_many(captions.iter().map(String::as_str))?;
     let mut table = HashMap::new();
     let mut missing = Vec::new();
     for caption in captions {
-        match stored.get(caption)? {
+        match found.remove(caption) {
             Some(t) => {
                 table.insert(caption.clone(), t.embeddings);
             }

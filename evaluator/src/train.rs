@@ -119,12 +119,14 @@ pub fn caption_table(
     embeddings: &CaptionEmbeddings,
     captions: impl IntoIterator<Item = String>,
 ) -> Result<HashMap<String, Vec<f32>>, ModelError> {
+    let captions: Vec<String> = captions.into_iter().collect();
+    let mut stored = embeddings.get_many(captions.iter().map(String::as_str))?;
     let mut table = HashMap::new();
     for caption in captions {
         if table.contains_key(&caption) {
             continue;
         }
-        let tokens = embeddings.get(&caption)?.ok_or_else(|| {
+        let tokens = stored.remove(&caption).ok_or_else(|| {
             ModelError::Argument(format!(
                 "caption {caption:?} has no embedding by {}; run `motionscale embed-text` on the corpus",
                 embeddings.encoder()

@@ -84,6 +84,13 @@ impl LmData {
         let encoder = text::resolve_encoder(corpus_dir, encoder)?;
         let embeddings = CaptionEmbeddings::open(corpus_dir, &encoder)?;
         let captions = clip_captions(corpus_dir)?;
+        let wanted = set
+            .clips
+            .iter()
+            .filter_map(|clip| captions.get(&clip.motion_id))
+            .flatten()
+            .map(String::as_str);
+        let mut stored = embeddings.get_many(wanted)?;
         let mut index: HashMap<String, usize> = HashMap::new();
         let mut text = Vec::new();
         let mut by_split: BTreeMap<String, Vec<Example>> = BTreeMap::new();
@@ -104,7 +111,7 @@ impl LmData {
                     ids.push(i);
                     continue;
                 }
-                let emb = embeddings.get(caption)?.ok_or_else(|| {
+                let emb = stored.remove(caption).ok_or_else(|| {
                     ModelError::Corpus(format!(
                         "{}: caption {caption:?} has no {encoder} embedding; rerun embed-text",
                         corpus_dir.display()

@@ -26,7 +26,7 @@ use parquet::file::properties::WriterProperties;
 use parquet::schema::types::{ColumnPath, SchemaDescriptor};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use std::collections::{BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -510,7 +510,7 @@ impl CaptionEmbeddings {
                 .iter()
                 .enumerate()
                 .flat_map(|(g, rg)| (0..rg.num_rows() as usize).map(move |r| (g, r)));
-            for batch in shard.reader(&[col::CAPTION], None)? {
+            for batch in shard.reader(&[col::CAPTION], None, None)? {
                 let batch = batch.map_err(|e| ModelError::invalid(&shard.path, e))?;
                 let texts = batch
                     .column(0)
@@ -561,16 +561,70 @@ impl CaptionEmbeddings {
             return Ok(None);
         };
         let shard = &self.shards[s];
-        let bad = |e: &dyn std::fmt::Display| ModelError::invalid(&shard.path, e);
         let batch = shard
-            .reader(&[col::TOKENS, col::EMBEDDINGS], Some((group, row)))?
+            .reader(&[col::TOKENS, col::EMBEDDINGS], Some(group), Some(row))?
             .next()
-            .ok_or_else(|| bad(&format!("row {row} of row group {group} missing")))?
-            .map_err(|e| bad(&e))?;
+            .ok_or_else(|| {
+                ModelError::invalid(
+                    &shard.path,
+                    format!("row {row} of row group {group} missing"),
+                )
+            })?
+            .map_err(|e| ModelError::invalid(&shard.path, e))?;
+        self.row_embeddings(shard, &batch, 0, caption).map(Some)
+    }
+
+    /// The token embeddings of every caption of `captions` that was embedded, reading each
+    /// row group that holds one once: a lookup per caption decompresses its whole page again
+    /// for every caption, seconds for a corpus's worth.
+    pub fn get_many<'a>(
+        &self,
+        captions: impl IntoIterator<Item = &'a str>,
+    ) -> Result<HashMap<String, TokenEmbeddings>, ModelError> {
+        // (shard, row group) → (row in group, caption), sorted by row.
+        let mut wanted: BTreeMap<(usize, usize), Vec<(usize, &str)>> = BTreeMap::new();
+        for caption in captions {
+            if let Some(&(s, group, row)) = self.index.get(caption) {
+                wanted.entry((s, group)).or_default().push((row, caption));
+            }
+        }
+        let mut out = HashMap::new();
+        for ((s, group), mut rows) in wanted {
+            rows.sort_unstable();
+            rows.dedup();
+            let shard = &self.shards[s];
+            let mut first = 0;
+            let mut next = rows.iter().peekable();
+            for batch in shard.reader(&[col::TOKENS, col::EMBEDDINGS], Some(group), None)? {
+                let batch = batch.map_err(|e| ModelError::invalid(&shard.path, e))?;
+                while let Some(&&(row, caption)) = next.peek() {
+                    if row >= first + batch.num_rows() {
+                        break;
+                    }
+                    let emb = self.row_embeddings(shard, &batch, row - first, caption)?;
+                    out.insert(caption.to_string(), emb);
+                    next.next();
+                }
+                first += batch.num_rows();
+            }
+        }
+        Ok(out)
+    }
+
+    /// The token embeddings in row `row` of `batch` (columns tokens and embeddings), which
+    /// hold `caption`'s.
+    fn row_embeddings(
+        &self,
+        shard: &Shard,
+        batch: &RecordBatch,
+        row: usize,
+        caption: &str,
+    ) -> Result<TokenEmbeddings, ModelError> {
+        let bad = |e: &dyn std::fmt::Display| ModelError::invalid(&shard.path, e);
         let tokens = batch
             .column_by_name(col::TOKENS)
             .and_then(|c| c.as_list_opt::<i32>())
-            .map(|l| l.value(0))
+            .map(|l| l.value(row))
             .ok_or_else(|| bad(&"tokens is not a list"))?;
         let tokens: Vec<String> = tokens
             .as_string_opt::<i32>()
@@ -581,7 +635,7 @@ impl CaptionEmbeddings {
         let values = batch
             .column_by_name(col::EMBEDDINGS)
             .and_then(|c| c.as_list_opt::<i32>())
-            .map(|l| l.value(0))
+            .map(|l| l.value(row))
             .ok_or_else(|| bad(&"embeddings is not a list"))?;
         let embeddings = values
             .as_primitive_opt::<Float32Type>()
@@ -596,20 +650,22 @@ impl CaptionEmbeddings {
                 self.dim
             )));
         }
-        Ok(Some(TokenEmbeddings {
+        Ok(TokenEmbeddings {
             tokens,
             embeddings,
             dim: self.dim,
-        }))
+        })
     }
 }
 
 impl Shard {
-    /// A reader of `columns`, of the whole shard or of one (row group, row).
+    /// A reader of `columns`: of the whole shard, or of row group `group`, or of row `row`
+    /// of that group.
     fn reader(
         &self,
         columns: &[&str],
-        row: Option<(usize, usize)>,
+        group: Option<usize>,
+        row: Option<usize>,
     ) -> Result<parquet::arrow::arrow_reader::ParquetRecordBatchReader, ModelError> {
         let mask = projection(
             self.metadata.parquet_schema(),
@@ -621,13 +677,14 @@ impl Shard {
             self.metadata.clone(),
         )
         .with_projection(mask);
-        if let Some((group, r)) = row {
-            builder = builder
-                .with_row_groups(vec![group])
-                .with_row_selection(RowSelection::from(vec![
-                    RowSelector::skip(r),
-                    RowSelector::select(1),
-                ]));
+        if let Some(group) = group {
+            builder = builder.with_row_groups(vec![group]);
+        }
+        if let Some(r) = row {
+            builder = builder.with_row_selection(RowSelection::from(vec![
+                RowSelector::skip(r),
+                RowSelector::select(1),
+            ]));
         }
         builder
             .build()

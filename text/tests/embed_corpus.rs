@@ -124,6 +124,19 @@ fn fallback_embeddings_resume_and_read_back() {
         assert_eq!(read.get(c).unwrap().as_ref(), Some(&expected), "{c}");
     }
     assert_eq!(read.get("no such caption").unwrap(), None);
+    // The bulk read gives the same rows, and leaves out what was never embedded.
+    let many = read
+        .get_many(
+            captions
+                .iter()
+                .map(String::as_str)
+                .chain(["no such caption"]),
+        )
+        .unwrap();
+    assert_eq!(many.len(), captions.len());
+    for c in &captions {
+        assert_eq!(many.get(c.as_str()), read.get(c).unwrap().as_ref(), "{c}");
+    }
 
     // The shard file carries its encoder and stores embeddings byte-stream-split.
     let dir = corpus.join(&entry.dir);
