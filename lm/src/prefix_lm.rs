@@ -804,6 +804,7 @@ pub fn init_model(config: &PrefixLmConfig, seed: u64) -> Result<(PrefixLm, VarMa
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nn::gradcheck::max_abs_diff;
     use std::collections::HashMap;
 
     fn tiny() -> PrefixLmConfig {
@@ -820,13 +821,6 @@ mod tests {
         model.forward(&batch).unwrap().to_vec2::<f32>().unwrap()
     }
 
-    fn row_diff(a: &[f32], b: &[f32]) -> f32 {
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0, f32::max)
-    }
-
     #[test]
     fn motion_is_causal_and_every_motion_slot_sees_the_whole_text() {
         let (model, _) = init_model(&tiny(), 1).unwrap();
@@ -840,14 +834,14 @@ mod tests {
             let other = logits(&model, &[&t], &[(&changed, true)]);
             for s in 0..=k {
                 assert_eq!(
-                    row_diff(&base[s], &other[s]),
+                    max_abs_diff(&base[s], &other[s]),
                     0.0,
                     "token {k} moved slot {s}"
                 );
             }
             for s in k + 1..base.len() {
                 assert!(
-                    row_diff(&base[s], &other[s]) > 1e-6,
+                    max_abs_diff(&base[s], &other[s]) > 1e-6,
                     "token {k} left slot {s}"
                 );
             }
@@ -861,7 +855,7 @@ mod tests {
             let other = logits(&model, &[&changed], &[(&m, true)]);
             for s in 0..base.len() {
                 assert!(
-                    row_diff(&base[s], &other[s]) > 1e-6,
+                    max_abs_diff(&base[s], &other[s]) > 1e-6,
                     "text {j} left slot {s}"
                 );
             }
@@ -879,10 +873,10 @@ mod tests {
         let alone1 = logits(&model, &[&t1], &[(&m1, false)]);
         assert_eq!((alone1.len(), alone0.len(), both.len()), (2, 5, 7));
         for s in 0..alone1.len() {
-            assert!(row_diff(&both[s], &alone1[s]) < 1e-5);
+            assert!(max_abs_diff(&both[s], &alone1[s]) < 1e-5);
         }
         for s in 0..alone0.len() {
-            assert!(row_diff(&both[2 + s], &alone0[s]) < 1e-5);
+            assert!(max_abs_diff(&both[2 + s], &alone0[s]) < 1e-5);
         }
     }
 
@@ -919,7 +913,7 @@ mod tests {
                 .to_vec2::<f32>()
                 .unwrap();
             for b in 0..2 {
-                worst = worst.max(row_diff(&step[b], &full[b * layout.motion_slots + t]));
+                worst = worst.max(max_abs_diff(&step[b], &full[b * layout.motion_slots + t]));
             }
         }
         eprintln!("KV cache: largest logit difference from full recomputation {worst:.2e}");

@@ -1,4 +1,5 @@
-//! The finite-difference reference of the gradient tests of every model.
+//! The references of the gradient tests of every model: finite differences, and the
+//! largest element-wise difference their tolerances are checked on.
 
 use candle_core::{Device, Tensor, Var};
 
@@ -20,4 +21,13 @@ pub fn numeric_gradient(var: &Var, k: usize, loss: impl Fn() -> f64) -> f64 {
     let numeric = (at(eps) - at(-eps)) / (2.0 * f64::from(eps));
     set(start.clone());
     numeric
+}
+
+/// The largest |a[i] − b[i]| (the slices must have the same length).
+pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }

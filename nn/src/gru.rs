@@ -151,7 +151,7 @@ impl StackedGru {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gradcheck::numeric_gradient;
+    use crate::gradcheck::{max_abs_diff, numeric_gradient};
     use crate::gru_kernel::{reverse_within, scan_reference};
     use candle_core::{Device, Var};
     use motionscale_core::rng::SplitMix64;
@@ -215,14 +215,6 @@ mod tests {
         t.flatten_all().unwrap().to_vec1().unwrap()
     }
 
-    fn max_diff(a: &[f32], b: &[f32]) -> f32 {
-        assert_eq!(a.len(), b.len());
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0, f32::max)
-    }
-
     /// Mixed lengths (with 1 and the full length), equal lengths, a batch of one.
     const SHAPES: [(&[usize], usize, usize); 4] = [
         (&[5, 1, 7, 3, 7, 2], 7, 6),
@@ -242,7 +234,7 @@ mod tests {
                     .iter()
                     .zip(fused.iter().zip(&reference))
                 {
-                    let diff = max_diff(a, b);
+                    let diff = max_abs_diff(a, b);
                     assert!(
                         diff < 2e-5,
                         "{lengths:?} reverse {reverse}: {what} differ by {diff}"

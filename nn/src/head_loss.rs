@@ -171,6 +171,7 @@ fn gather(x: &[f32], d: usize, rows: &[usize], out: &mut [f32]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::gradcheck::max_abs_diff;
     use crate::lm_kernels::{cross_entropy, matmul_new, target_log_probs};
 
     fn values(n: usize, seed: u64) -> Vec<f32> {
@@ -186,13 +187,6 @@ mod tests {
         let g_x = matmul_new((&g, false), (head, false), (rows, d, vocab));
         let g_head = matmul_new((&g, true), (x, false), (vocab, d, rows));
         (loss, g_x, g_head)
-    }
-
-    fn max_diff(a: &[f32], b: &[f32]) -> f32 {
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0, f32::max)
     }
 
     #[test]
@@ -227,8 +221,11 @@ mod tests {
                     (fl - loss).abs() < 1e-5,
                     "{case} {split:?}: loss {fl} vs {loss}"
                 );
-                assert!(max_diff(&fx, &g_x) < 1e-6, "{case} {split:?}: grad x");
-                assert!(max_diff(&fh, &g_head) < 1e-6, "{case} {split:?}: grad head");
+                assert!(max_abs_diff(&fx, &g_x) < 1e-6, "{case} {split:?}: grad x");
+                assert!(
+                    max_abs_diff(&fh, &g_head) < 1e-6,
+                    "{case} {split:?}: grad head"
+                );
                 for &r in &valid {
                     assert!(fx[r * d..][..d].iter().any(|&g| g != 0.0));
                 }
