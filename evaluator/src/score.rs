@@ -293,6 +293,10 @@ pub fn caption_embeddings(
     let mut table = HashMap::new();
     let mut missing = Vec::new();
     for caption in captions {
+        // A caption listed twice was taken from `found` the first time.
+        if table.contains_key(caption) {
+            continue;
+        }
         match found.remove(caption) {
             Some(t) => {
                 table.insert(caption.clone(), t.embeddings);
