@@ -3,7 +3,8 @@
     python3 docs/results/scaling-law/tables.py $L/runs/results.csv
 
 Prints, as Markdown: the IsoFLOP grid (L_u of every run, best vocabulary marked), the seed
-repeats (each seed's L_u, mean, standard deviation and range), and worker throughput per
+repeats (each seed's L_u, mean, standard deviation, range, and wall time with the binary
+that trained it), and worker throughput per
 model size and binary (the plan's budget FLOPs C per wall second of the run, with the
 number of runs).
 """
@@ -47,18 +48,19 @@ def seeds(rows):
     groups = defaultdict(list)
     for r in rows:
         base = r["run_id"].rsplit("-s", 1)[0] if r["seed"] != "0" else r["run_id"]
-        groups[base].append(float(r["norm_test_loss"]))
-    print("| point | seeds | L_u per seed | mean | sd | range |")
-    print("|---|---|---|---|---|---|")
-    for run_id, losses in sorted(groups.items()):
-        if len(losses) < 2:
+        groups[base].append(r)
+    print("| point | seeds | L_u per seed | mean | sd | range | wall s per seed (binary) |")
+    print("|---|---|---|---|---|---|---|")
+    for run_id, runs in sorted(groups.items()):
+        if len(runs) < 2:
             continue
-        sd = statistics.stdev(losses)
-        spread = max(losses) - min(losses)
+        runs.sort(key=lambda r: int(r["seed"]))
+        losses = [float(r["norm_test_loss"]) for r in runs]
+        walls = ", ".join(f"{float(r['wall_s']):.0f} ({r['git_revision'][:7]})" for r in runs)
         values = ", ".join(f"{v:.4f}" for v in losses)
         print(
-            f"| `{run_id}` | {len(losses)} | {values} | {statistics.mean(losses):.4f} "
-            f"| {sd:.4f} | {spread:.4f} |"
+            f"| `{run_id}` | {len(runs)} | {values} | {statistics.mean(losses):.4f} "
+            f"| {statistics.stdev(losses):.4f} | {max(losses) - min(losses):.4f} | {walls} |"
         )
 
 
