@@ -9,11 +9,11 @@
 //! The blocks and the parts the rows are split into depend only on the shapes, never on the
 //! number of threads, so the result is the same on any machine.
 
-use crate::lm_kernels::{cross_entropy_row, target_log_prob, IGNORE};
+use crate::lm_kernels::{cross_entropy_row, matmul, target_log_prob, IGNORE};
 use crate::matmul::gemm_with;
 use rayon::prelude::*;
 
-/// Bytes of logits one block holds (well inside a core's L2).
+/// Bytes of logits one block holds (about a core's L2; at least 64 rows, for the gemm).
 const BLOCK_BYTES: usize = 1 << 20;
 /// Rows of targets per part (parts run in parallel, each with its own `head` gradient).
 const PART_ROWS: usize = 128;
@@ -54,9 +54,7 @@ pub fn linear_cross_entropy(
     d: usize,
     targets: &[u32],
 ) -> (f32, Vec<f32>, Vec<f32>) {
-    let rows: Vec<usize> = (0..targets.len())
-        .filter(|&r| targets[r] != IGNORE)
-        .collect();
+    let rows = target_rows(targets);
     let split = Split::new(rows.len(), head.len() / d, d);
     linear_cross_entropy_split(x, head, d, targets, &rows, split)
 }
@@ -84,24 +82,12 @@ fn linear_cross_entropy_split(
                 let n = block.len();
                 gather(x, d, block, &mut xb);
                 let (xb, logits) = (&xb[..n * d], &mut logits[..n * vocab]);
-                gemm_with(
-                    logits,
-                    (xb, false),
-                    (head, true),
-                    (n, vocab, d),
-                    (false, 1.0, false),
-                );
+                matmul(logits, (xb, false), (head, true), (n, vocab, d), 1.0);
                 for (row, &r) in logits.chunks_mut(vocab).zip(block) {
                     losses.push(cross_entropy_row(row, targets[r] as usize, scale));
                 }
                 let g_xb = &mut g_x[b * split.block * d..][..n * d];
-                gemm_with(
-                    g_xb,
-                    (logits, false),
-                    (head, false),
-                    (n, d, vocab),
-                    (false, 1.0, false),
-                );
+                matmul(g_xb, (logits, false), (head, false), (n, d, vocab), 1.0);
                 gemm_with(
                     &mut g_head,
                     (logits, true),
@@ -130,9 +116,7 @@ fn linear_cross_entropy_split(
 /// [`IGNORE`]), computing logits only for the rows with a target.
 pub fn linear_target_log_probs(x: &[f32], head: &[f32], d: usize, targets: &[u32]) -> Vec<f32> {
     let vocab = head.len() / d;
-    let rows: Vec<usize> = (0..targets.len())
-        .filter(|&r| targets[r] != IGNORE)
-        .collect();
+    let rows = target_rows(targets);
     let block = Split::new(rows.len(), vocab, d).block;
     let found: Vec<Vec<f32>> = rows
         .par_chunks(block)
@@ -140,13 +124,8 @@ pub fn linear_target_log_probs(x: &[f32], head: &[f32], d: usize, targets: &[u32
             let (mut xb, mut logits) =
                 (vec![0f32; block.len() * d], vec![0f32; block.len() * vocab]);
             gather(x, d, block, &mut xb);
-            gemm_with(
-                &mut logits,
-                (&xb, false),
-                (head, true),
-                (block.len(), vocab, d),
-                (false, 1.0, false),
-            );
+            let mnk = (block.len(), vocab, d);
+            matmul(&mut logits, (&xb, false), (head, true), mnk, 1.0);
             logits
                 .chunks(vocab)
                 .zip(block)
@@ -159,6 +138,13 @@ pub fn linear_target_log_probs(x: &[f32], head: &[f32], d: usize, targets: &[u32
         out[r] = lp;
     }
     out
+}
+
+/// The rows whose target is not [`IGNORE`], in order.
+fn target_rows(targets: &[u32]) -> Vec<usize> {
+    (0..targets.len())
+        .filter(|&r| targets[r] != IGNORE)
+        .collect()
 }
 
 /// Copy the `d`-wide rows `rows` of `x` into the front of `out`.

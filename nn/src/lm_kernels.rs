@@ -80,9 +80,15 @@ pub fn matmul_new(lhs: Operand, rhs: Operand, (m, n, k): (usize, usize, usize)) 
     dst
 }
 
-/// One small single-threaded product of the attention kernels (`dst = scale · lhs · rhs`),
-/// which run many of them in parallel.
-fn matmul(dst: &mut [f32], lhs: Operand, rhs: Operand, mnk: (usize, usize, usize), scale: f32) {
+/// One small single-threaded product (`dst = scale · lhs · rhs`) of the kernels that run
+/// many of them in parallel (attention per sequence and head, the fused head per part).
+pub(crate) fn matmul(
+    dst: &mut [f32],
+    lhs: Operand,
+    rhs: Operand,
+    mnk: (usize, usize, usize),
+    scale: f32,
+) {
     gemm_with(dst, lhs, rhs, mnk, (false, scale, false));
 }
 
