@@ -189,7 +189,7 @@ pub fn evaluator(args: BenchEvaluatorArgs) -> Result<ExitCode> {
         add_reference(&script, &flags, repeats, ours, &mut line, &mut figures)?;
     }
     println!("{line}");
-    write_figures(args.json.as_ref(), &figures)?;
+    super::write_json(args.json.as_ref(), &figures)?;
     Ok(ExitCode::SUCCESS)
 }
 
@@ -259,7 +259,7 @@ pub fn ctvae(args: BenchCtvaeArgs) -> Result<ExitCode> {
         println!("{line}");
         figures.push(figure);
     }
-    write_figures(args.json.as_ref(), &serde_json::Value::Array(figures))?;
+    super::write_json(args.json.as_ref(), &serde_json::Value::Array(figures))?;
     Ok(ExitCode::SUCCESS)
 }
 
@@ -285,14 +285,5 @@ fn add_reference(
     ));
     figure["reference"] = reference;
     figure["ratio"] = (theirs / ours).into();
-    Ok(())
-}
-
-fn write_figures(path: Option<&PathBuf>, figures: &serde_json::Value) -> Result<()> {
-    if let Some(path) = path {
-        let text = serde_json::to_string_pretty(figures)?;
-        motionscale_core::write_atomic(path, text.as_bytes())
-            .with_context(|| format!("writing {}", path.display()))?;
-    }
     Ok(())
 }

@@ -290,8 +290,6 @@ pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
         }
         report["generate"] = gen;
     }
-    if let Some(path) = &args.json {
-        motionscale_core::write_atomic(path, serde_json::to_string_pretty(&report)?.as_bytes())?;
-    }
+    super::write_json(args.json.as_ref(), &report)?;
     Ok(ExitCode::SUCCESS)
 }

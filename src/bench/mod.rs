@@ -1,6 +1,7 @@
 //! `motionscale bench …`: each stage's speed, printed beside the target or the PyTorch
 //! reference (`../shared/bench/`) measured in the same run.
 
+mod embed;
 mod fit;
 mod gru;
 mod ingest;
@@ -10,7 +11,7 @@ mod tokenizer;
 use anyhow::{bail, Context, Result};
 use clap::Subcommand;
 use serde_json::{json, Value};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -25,6 +26,8 @@ pub enum BenchCommand {
     Train(lm::BenchTrainArgs),
     /// Time tokenizer training steps (FSQ, VQ) at the T2M-GPT shape; --reference runs PyTorch too.
     Tokenizer(tokenizer::BenchTokenizerArgs),
+    /// Time caption embedding (MiniLM) over a corpus's captions; --reference runs PyTorch too.
+    Embed(embed::BenchEmbedArgs),
     /// Time the whole `fit` command (4,500 starts + bootstrap) on a Chinchilla-like stand-in.
     Fit(fit::BenchFitArgs),
     /// Time the evaluator's training step (batch 64, hidden 256); --reference runs PyTorch too.
@@ -40,6 +43,7 @@ pub fn run(command: BenchCommand) -> Result<ExitCode> {
         BenchCommand::Synth(args) => ingest::synth(args),
         BenchCommand::Train(args) => lm::train(args),
         BenchCommand::Tokenizer(args) => tokenizer::bench_tokenizer(args),
+        BenchCommand::Embed(args) => embed::bench_embed(args),
         BenchCommand::Fit(args) => fit::bench(args),
         BenchCommand::Evaluator(args) => gru::evaluator(args),
         BenchCommand::Ctvae(args) => gru::ctvae(args),
@@ -137,4 +141,14 @@ pub fn run_reference(script: &Path, args: &[&str]) -> Result<serde_json::Value> 
     }
     serde_json::from_slice(&std::fs::read(out.path())?)
         .with_context(|| format!("reading the output of {}", script.display()))
+}
+
+/// Write `figures` as pretty JSON to `path` (atomically), when a path is given.
+pub fn write_json(path: Option<&PathBuf>, figures: &Value) -> Result<()> {
+    if let Some(path) = path {
+        let text = serde_json::to_string_pretty(figures)?;
+        motionscale_core::write_atomic(path, text.as_bytes())
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
 }

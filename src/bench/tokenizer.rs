@@ -7,6 +7,7 @@
 
 use anyhow::{bail, Result};
 use candle_core::{Device, Tensor};
+use serde_json::json;
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
@@ -38,6 +39,9 @@ pub struct BenchTokenizerArgs {
     /// fp32 peak of this machine in GFLOP/s (sgemm_peak.py: ≈447 on 2 threads here).
     #[arg(long, default_value_t = 447.0)]
     pub peak_gflops: f64,
+    /// Also write the figures as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
 }
 
 /// One timed configuration.
@@ -121,6 +125,7 @@ pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
         rayon::current_num_threads(),
         args.peak_gflops
     );
+    let mut figures = Vec::new();
     for quantizer in &args.quantizers {
         for &batch in &args.batches {
             let ours = time_ours(quantizer, batch, &args)?;
@@ -132,6 +137,10 @@ pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
                 gflops,
                 100.0 * gflops / args.peak_gflops
             );
+            let mut figure = json!({"what": "tokenizer training step", "quantizer": quantizer,
+                "batch": batch, "threads": rayon::current_num_threads(),
+                "steps_per_s": ours.steps_per_s, "gflops": gflops,
+                "flops_per_step": ours.flops_per_step});
             if args.reference {
                 let theirs = time_reference(quantizer, batch, &args)?;
                 if (theirs.flops_per_step / ours.flops_per_step - 1.0).abs() > 1e-6 {
@@ -141,14 +150,19 @@ pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
                         theirs.flops_per_step
                     );
                 }
+                let ratio = ours.steps_per_s / theirs.steps_per_s;
                 line.push_str(&format!(
-                    "; PyTorch {:.3} steps/s → ratio {:.2}×",
-                    theirs.steps_per_s,
-                    ours.steps_per_s / theirs.steps_per_s
+                    "; PyTorch {:.3} steps/s → ratio {ratio:.2}×",
+                    theirs.steps_per_s
                 ));
+                figure["reference"] = json!({"steps_per_s": theirs.steps_per_s,
+                    "gflops": theirs.flops_per_step * theirs.steps_per_s / 1e9});
+                figure["ratio"] = ratio.into();
             }
             println!("{line}");
+            figures.push(figure);
         }
     }
+    super::write_json(args.json.as_ref(), &serde_json::Value::Array(figures))?;
     Ok(ExitCode::SUCCESS)
 }

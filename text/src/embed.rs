@@ -267,7 +267,7 @@ pub fn embed_corpus_sharded(
             progress(done, total);
             continue;
         }
-        let embeddings = embed_slice(encoder, slice, batch, &|n| progress(done + n, total))?;
+        let embeddings = embed_texts(encoder, slice, batch, &|n| progress(done + n, total))?;
         report.embedded += slice.len() as u64;
         report.tokens += embeddings.iter().map(|e| e.len() as u64).sum::<u64>();
         let bytes = encode_shard(&id, dim, slice, &embeddings)?;
@@ -330,8 +330,9 @@ fn read_index(path: &Path) -> Result<Option<Index>, ModelError> {
     }
 }
 
-/// Embed `texts` in batches of similar length (less padding), returning them in input order.
-fn embed_slice(
+/// Embed `texts` in batches of `batch` texts of similar length (less padding), returning
+/// them in input order; calls `progress(texts done)` after each batch.
+pub fn embed_texts(
     encoder: &dyn TextEncoder,
     texts: &[String],
     batch: usize,

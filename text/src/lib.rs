@@ -21,7 +21,7 @@ pub mod t5;
 mod transformer;
 
 pub use bert::BertEncoder;
-pub use embed::{embed_corpus, embed_corpus_sharded, CaptionEmbeddings, EmbedReport};
+pub use embed::{embed_corpus, embed_corpus_sharded, embed_texts, CaptionEmbeddings, EmbedReport};
 pub use fallback::FallbackEncoder;
 pub use resolve::{encoder_for, resolve_encoder, EncoderChoice};
 pub use t5::T5Encoder;
