@@ -24,6 +24,19 @@ pub struct BenchFitArgs {
     /// instead of a temporary folder.
     #[arg(long, value_name = "DIR")]
     pub keep: Option<PathBuf>,
+    /// Also time the multi-start parametric fit alone, ours in this process and SciPy's
+    /// (scripts/scipy_fit.py: L-BFGS-B from every start, as Epoch's replication), and print the ratio.
+    #[arg(long)]
+    pub reference: bool,
+    /// Both fit every K-th start of the grid only (SciPy needs ~10 min for all 4,500 here).
+    #[arg(long, default_value_t = 10)]
+    pub reference_stride: usize,
+    /// The SciPy reference script.
+    #[arg(long, default_value = "scripts/scipy_fit.py")]
+    pub reference_script: PathBuf,
+    /// Also write the figures as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
 }
 
 /// Target wall time of a full 4,500-start fit of ~250 runs on 2 cores.
@@ -80,5 +93,49 @@ pub fn bench(args: BenchFitArgs) -> Result<ExitCode> {
         args.bootstrap,
         if secs < TARGET_SECONDS { "met" } else { "MISSED" }
     );
+    let mut figures = serde_json::json!({"what": "fit command", "runs": runs.len(),
+        "grid": args.starts_grid, "bootstrap": args.bootstrap, "threads": threads,
+        "command_s": secs});
+    if args.reference {
+        figures["parametric"] = parametric_beside_scipy(&args, &csv, &runs)?;
+    }
+    super::write_json(args.json.as_ref(), &figures)?;
     Ok(ExitCode::SUCCESS)
+}
+
+/// Our multi-start fit of L(N, D) on `runs` (in this process, all threads) and SciPy's on the
+/// same CSV, one after the other; prints both, their fitted exponents and the ratio.
+fn parametric_beside_scipy(
+    args: &BenchFitArgs,
+    csv: &std::path::Path,
+    runs: &[fits::synth::Run],
+) -> Result<serde_json::Value> {
+    use fits::parametric::{multi_start, natural, LogRuns, StartGrid};
+    let column = |f: fn(&fits::synth::Run) -> f64| runs.iter().map(f).collect::<Vec<_>>();
+    let log_runs = LogRuns::new(&column(|r| r.n), &column(|r| r.d), &column(|r| r.loss));
+    let starts: Vec<[f64; 5]> = StartGrid::epoch()
+        .points()
+        .into_iter()
+        .step_by(args.reference_stride.max(1))
+        .collect();
+    let t0 = Instant::now();
+    let fit = multi_start(&log_runs, 1e-3, &starts, &Default::default())?;
+    let ours = t0.elapsed().as_secs_f64();
+    let [e, a, b, alpha, beta] = natural(&fit.best().x);
+    let csv_arg = csv.to_string_lossy();
+    let stride = args.reference_stride.max(1).to_string();
+    let flags = ["--results", &csv_arg, "--stride", &stride];
+    let theirs = super::run_reference(&args.reference_script, &flags)?;
+    let scipy_s = super::number(&theirs, "seconds")?;
+    println!(
+        "parametric fit, {} starts of Epoch's grid: ours {ours:.2} s (α {alpha:.4}, β {beta:.4}, E {e:.4}); SciPy L-BFGS-B {scipy_s:.1} s (α {:.4}, β {:.4}, E {:.4}) → ratio {:.0}×",
+        starts.len(),
+        super::number(&theirs, "alpha")?,
+        super::number(&theirs, "beta")?,
+        super::number(&theirs, "E")?,
+        scipy_s / ours
+    );
+    Ok(serde_json::json!({"starts": starts.len(), "ours_s": ours,
+        "ours": {"E": e, "A": a, "B": b, "alpha": alpha, "beta": beta, "objective": fit.best().f},
+        "reference": theirs, "ratio": scipy_s / ours}))
 }
