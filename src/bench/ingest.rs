@@ -24,6 +24,16 @@ pub struct BenchIngestArgs {
     /// Seconds to spend timing the feature pipeline.
     #[arg(long, default_value_t = 3.0)]
     pub feature_seconds: f64,
+    /// A checkout of EricGuo5513/HumanML3D: also time its own `process_file` on the same
+    /// fixture in this run (scripts/humanml3d_speed.py) and print the ratio to it.
+    #[arg(long, value_name = "HUMANML3D_DIR")]
+    pub reference: Option<PathBuf>,
+    /// The HumanML3D speed script.
+    #[arg(long, default_value = "scripts/humanml3d_speed.py")]
+    pub reference_script: PathBuf,
+    /// Also write the figures as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
 }
 
 fn peak_rss_mib() -> Option<f64> {
@@ -145,8 +155,19 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
         peak_rss_mib().unwrap_or(f64::NAN),
     );
 
-    let fixture = args.data.join("humanml3d-fixtures/a_asis_joints.npy");
-    let arr = ingest::npy::read(&fixture)?;
+    let mut figures = serde_json::json!({"what": "ingest", "inputs": report.inputs,
+        "clips": report.clips, "rejects": report.rejects, "threads": threads, "ingest_s": secs,
+        "source_frames_per_s": report.source_frames as f64 / secs});
+    figures["features"] = features(&args)?;
+    super::write_json(args.json.as_ref(), &figures)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Joints → 263 features on fixture (a), one thread, beside the original HumanML3D code:
+/// timed in this run with `--reference`, else the fixtures README's figure.
+fn features(args: &BenchIngestArgs) -> Result<serde_json::Value> {
+    let fixtures = args.data.join("humanml3d-fixtures");
+    let arr = ingest::npy::read(&fixtures.join("a_asis_joints.npy"))?;
     let poses = ingest::source::joints::poses_of(&arr)?;
     let opts = Hml263Options::default();
     let mut extractor = Hml263Extractor::default();
@@ -162,11 +183,29 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
         calls += 1;
     }
     let fps = (calls as usize * poses.len()) as f64 / t2.elapsed().as_secs_f64();
+    let (reference_fps, source) = match &args.reference {
+        Some(checkout) => {
+            let (checkout, fixtures) = (checkout.to_string_lossy(), fixtures.to_string_lossy());
+            let flags = ["--humanml3d", &checkout, "--fixtures", &fixtures];
+            let json = super::run_reference(&args.reference_script, &flags)?;
+            (
+                super::number(&json, "frames_per_s")?,
+                "the original HumanML3D process_file, timed in this run",
+            )
+        }
+        None => (
+            REFERENCE_FRAMES_PER_SEC,
+            "the fixtures README's figure for the original HumanML3D code on this machine class",
+        ),
+    };
     println!(
-        "features: joints → 263 on fixture (a), 1 thread: {fps:.0} input frames/s ({:.1} µs per {}-frame clip) = {:.0}× the reference's {REFERENCE_FRAMES_PER_SEC:.0} frames/s per core (target 50×, stretch 100×; reference figure from the fixtures README, original HumanML3D code on this machine class)",
+        "features: joints → 263 on fixture (a), 1 thread: {fps:.0} input frames/s ({:.1} µs per {}-frame clip) = {:.0}× the reference's {reference_fps:.0} frames/s per core (target 50×, stretch 100×; reference: {source})",
         t2.elapsed().as_secs_f64() * 1e6 / calls as f64,
         poses.len(),
-        fps / REFERENCE_FRAMES_PER_SEC,
+        fps / reference_fps,
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(
+        serde_json::json!({"frames_per_s": fps, "reference_frames_per_s": reference_fps,
+        "reference": source, "ratio": fps / reference_fps}),
+    )
 }
