@@ -7,6 +7,7 @@ use crate::prefix_lm::{LmBatch, PrefixLm};
 use candle_core::{Device, Result, Tensor};
 use motionscale_core::rng::SplitMix64;
 use nn::seq_layout::SeqLayout;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// How to sample.
@@ -96,6 +97,12 @@ pub fn sample(logits: &[f32], candidates: usize, s: &Sampling, rng: &mut SplitMi
 
 /// Motion tokens (without BOS/EOS) for each text prefix (`text_dim`-wide rows).
 pub fn generate(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<Vec<u32>>> {
+    // Decoding runs dozens of small parallel kernels per token: started from a pool thread
+    // each is a cheap fork, from outside the pool a cross-thread hand-off and a sleep.
+    rayon::scope(|_| decode(model, texts, s))
+}
+
+fn decode(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<Vec<u32>>> {
     let c = model.config();
     let (batch, eos) = (texts.len(), c.eos() as usize);
     // Candidates: the codes, then (BOS masked out) EOS once `min_tokens` are out.
@@ -147,17 +154,26 @@ pub fn generate(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<
             }
         };
         let mut logits = logits.to_vec2::<f32>()?;
-        for b in 0..batch {
-            if done[b] {
-                continue;
-            }
-            logits[b][bos] = f32::NEG_INFINITY;
-            let token = sample(&logits[b], candidates(out[b].len()), s, &mut rngs[b]);
-            if token == eos {
-                done[b] = true;
-            } else {
-                out[b].push(token as u32);
-                inputs[b] = token as u32;
+        // Rows draw from their own generators, so sampling them in parallel changes nothing.
+        let drawn: Vec<Option<usize>> = logits
+            .par_iter_mut()
+            .zip(rngs.par_iter_mut())
+            .enumerate()
+            .map(|(b, (row, rng))| {
+                (!done[b]).then(|| {
+                    row[bos] = f32::NEG_INFINITY;
+                    sample(row, candidates(out[b].len()), s, rng)
+                })
+            })
+            .collect();
+        for (b, token) in drawn.into_iter().enumerate() {
+            match token {
+                Some(t) if t == eos => done[b] = true,
+                Some(t) => {
+                    out[b].push(t as u32);
+                    inputs[b] = t as u32;
+                }
+                None => {}
             }
         }
         if done.iter().all(|&d| d) {

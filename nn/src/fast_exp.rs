@@ -3,7 +3,7 @@
 //! per value.
 
 /// Whether this CPU has AVX2 and FMA (the detection is cached by std).
-pub(crate) fn avx2_fma() -> bool {
+pub fn avx2_fma() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
@@ -21,7 +21,7 @@ const MAGIC: f32 = 12_582_912.0;
 /// `expf` calls were a third of the GRU scan and of the LM's cross-entropy): x = k·ln2 + r,
 /// |r| ≤ ln2/2, eʳ by Cephes' `expf` polynomial (≈ 1 ulp), 2ᵏ from k's bits.
 #[inline(always)]
-pub(crate) fn exp(x: f32) -> f32 {
+pub fn exp(x: f32) -> f32 {
     let x = x.clamp(-87.0, 87.0);
     let shifted = x * std::f32::consts::LOG2_E + MAGIC;
     let k = shifted - MAGIC;

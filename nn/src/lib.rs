@@ -18,7 +18,7 @@ pub mod checkpoint;
 pub mod conv_op;
 pub mod cpu_f32;
 pub mod error;
-mod fast_exp;
+pub mod fast_exp;
 pub mod gradcheck;
 pub mod gru;
 pub mod gru_kernel;

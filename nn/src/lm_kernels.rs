@@ -19,10 +19,12 @@ use rayon::prelude::*;
 pub const IGNORE: u32 = u32::MAX;
 
 /// Rows per parallel work item of the row-wise kernels (fixed, so reductions are too).
-const ROW_BLOCK: usize = 32;
+pub const ROW_BLOCK: usize = 32;
 
-/// Sum of `a[i]·b[i]` with eight partial sums (vectorises; fixed order).
-fn dot(a: &[f32], b: &[f32]) -> f32 {
+/// Sum of `a[i]·b[i]` with eight partial sums (vectorises; fixed order). Inlined across
+/// crates, so callers compiled for wider vectors (AVX2) get them here too.
+#[inline]
+pub fn dot(a: &[f32], b: &[f32]) -> f32 {
     let mut acc = [0f32; 8];
     let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
     let (ra, rb) = (ca.remainder(), cb.remainder());
@@ -149,12 +151,33 @@ pub fn gate_sigmoid(ab: &[f32], f: usize) -> Vec<f32> {
         .zip(ab.par_chunks(2 * f * ROW_BLOCK))
         .for_each(|(sb, abb)| {
             for (sr, abr) in sb.chunks_mut(f).zip(abb.chunks(2 * f)) {
-                for (s, a) in sr.iter_mut().zip(&abr[..f]) {
-                    *s = 1.0 / (1.0 + (-a).exp());
-                }
+                sigmoid_into(sr, &abr[..f]);
             }
         });
     s
+}
+
+/// `dst = σ(src)`, through the vectorised exp where the CPU has AVX2 + FMA.
+fn sigmoid_into(dst: &mut [f32], src: &[f32]) {
+    #[cfg(target_arch = "x86_64")]
+    if fast_exp::avx2_fma() {
+        // SAFETY: the CPU supports the features the function was compiled for.
+        return unsafe { sigmoid_avx2(dst, src) };
+    }
+    sigmoid_body(dst, src);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn sigmoid_avx2(dst: &mut [f32], src: &[f32]) {
+    sigmoid_body(dst, src);
+}
+
+#[inline(always)]
+fn sigmoid_body(dst: &mut [f32], src: &[f32]) {
+    for (s, a) in dst.iter_mut().zip(src) {
+        *s = 1.0 / (1.0 + fast_exp::exp(-a));
+    }
 }
 
 /// SwiGLU `silu(a)·b = a·σ(a)·b` of the rows `[a | b]`, given `σ(a)`.
@@ -494,9 +517,9 @@ impl Attention<'_> {
                         vc[s * hd..(s + 1) * hd].copy_from_slice(&row[2 * d + h * hd..][..hd]);
                     }
                     let p = &mut scr.p[..n_new * to];
-                    matmul(p, (&scr.q, false), (kc, true), (n_new, to, hd), scale);
+                    new_row_scores(p, &scr.q, kc, (hd, to), scale);
                     masked_softmax(p, to, |i, j| layout.allowed(b, from + i, j));
-                    matmul(&mut scr.o, (p, false), (vc, false), (n_new, hd, to), 1.0);
+                    weighted_values(&mut scr.o, p, vc, (hd, to));
                     for i in 0..n_new {
                         let at = (b * n_new + i) * d + h * hd;
                         // SAFETY: (new row of sequence b, columns of head h) belongs to this
@@ -512,6 +535,28 @@ impl Attention<'_> {
                 },
             );
         out
+    }
+}
+
+/// Scores `scale · q_i · k_j` of a few new rows against the `to` cached keys. Decoding has
+/// one row per (sequence, head): plain dot products beat a gemm call of that size.
+fn new_row_scores(p: &mut [f32], q: &[f32], k: &[f32], (hd, to): (usize, usize), scale: f32) {
+    for (row, qi) in p.chunks_mut(to).zip(q.chunks(hd)) {
+        for (v, kj) in row.iter_mut().zip(k.chunks(hd)) {
+            *v = scale * dot(qi, kj);
+        }
+    }
+}
+
+/// `o_i = Σ_j p_ij · v_j` of the new rows (weights already softmaxed; masked ones are 0).
+fn weighted_values(o: &mut [f32], p: &[f32], v: &[f32], (hd, to): (usize, usize)) {
+    for (oi, row) in o.chunks_mut(hd).zip(p.chunks(to)) {
+        oi.fill(0.0);
+        for (&w, vj) in row.iter().zip(v.chunks(hd)) {
+            if w != 0.0 {
+                oi.iter_mut().zip(vj).for_each(|(a, b)| *a += w * b);
+            }
+        }
     }
 }
 

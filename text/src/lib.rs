@@ -14,13 +14,23 @@
 //! first GPU (`nn::default_device`).
 
 pub mod bert;
+pub mod bert_cpu;
 pub mod embed;
 pub mod fallback;
 pub mod resolve;
 pub mod t5;
 mod transformer;
 
+// The unit tests share the integration tests' helpers (the MiniLM folder, recorded skips),
+// which name this crate `text`.
+#[cfg(test)]
+extern crate self as text;
+#[cfg(test)]
+#[path = "../tests/common/mod.rs"]
+mod test_common;
+
 pub use bert::BertEncoder;
+pub use bert_cpu::BertCpu;
 pub use embed::{embed_corpus, embed_corpus_sharded, embed_texts, CaptionEmbeddings, EmbedReport};
 pub use fallback::FallbackEncoder;
 pub use resolve::{encoder_for, resolve_encoder, EncoderChoice};
