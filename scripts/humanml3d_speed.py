@@ -16,6 +16,7 @@ usage: humanml3d_speed.py --humanml3d DIR --fixtures DIR [--reps 50] [--out FILE
 Prints JSON: frames/s, median seconds per call, the largest difference from the fixture.
 """
 import argparse
+import importlib.util
 import json
 import os
 import statistics
@@ -26,6 +27,8 @@ import warnings
 
 import numpy as np
 
+from reference_output import emit
+
 
 def shim():
     # torch.cross without dim warns on every call of the upstream code.
@@ -33,13 +36,10 @@ def shim():
     np.float = float
     import scipy.ndimage
     sys.modules.setdefault("scipy.ndimage.filters", scipy.ndimage)
-    if "tqdm" not in sys.modules:
-        try:
-            import tqdm  # noqa: F401
-        except ImportError:
-            stub = types.ModuleType("tqdm")
-            stub.tqdm = lambda x, *a, **k: x
-            sys.modules["tqdm"] = stub
+    if importlib.util.find_spec("tqdm") is None:
+        stub = types.ModuleType("tqdm")
+        stub.tqdm = lambda x, *a, **k: x
+        sys.modules["tqdm"] = stub
 
 
 def upstream(checkout):
@@ -91,10 +91,7 @@ def main():
         "max_abs_diff_from_fixture": float(np.abs(features - expected).max()),
         "reps": args.reps,
     }
-    print(json.dumps(out))
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(out, f, indent=1)
+    emit(out, args.out)
 
 
 if __name__ == "__main__":

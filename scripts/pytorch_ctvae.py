@@ -18,12 +18,13 @@ usage: pytorch_ctvae.py [--shape cpu|paper] [--batch 64] [--classes 10] [--threa
 Prints JSON: steps/s, median seconds per step, the shape and the timing samples.
 """
 import argparse
-import json
 import statistics
 import time
 
 import torch
 from torch import nn
+
+from reference_output import emit
 
 SHAPES = {"cpu": (2, 128, 64), "paper": (8, 256, 256)}
 FEATURES, MAX_FRAMES, JOINTS = 263, 100, slice(4, 67)
@@ -113,10 +114,7 @@ def main():
            "latent": latent, "batch": b, "mean_frames": frames / b, "threads": torch.get_num_threads(),
            "median_step_s": median, "steps_per_s": 1.0 / median, "samples_s": samples,
            "torch": torch.__version__}
-    print(json.dumps(out))
-    if a.out:
-        with open(a.out, "w") as f:
-            json.dump(out, f, indent=1)
+    emit(out, a.out)
 
 
 if __name__ == "__main__":

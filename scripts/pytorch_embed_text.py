@@ -13,12 +13,13 @@ usage: pytorch_embed_text.py --encoder DIR --captions FILE [--batch 64] [--threa
 FILE holds one caption per line. Prints JSON: captions/s, tokens/s, median seconds per pass.
 """
 import argparse
-import json
 import statistics
 import time
 
 import torch
 from transformers import AutoModel, AutoTokenizer
+
+from reference_output import emit
 
 
 def embed_all(model, tokenizer, captions, batch):
@@ -71,10 +72,7 @@ def main():
         "samples_s": samples,
         "torch": torch.__version__,
     }
-    print(json.dumps(out))
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(out, f, indent=1)
+    emit(out, args.out)
 
 
 if __name__ == "__main__":

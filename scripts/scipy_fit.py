@@ -16,12 +16,13 @@ Prints JSON: the fitted E, A, B, α, β, the objective, starts, and the wall sec
 import argparse
 import csv
 import itertools
-import json
 import time
 
 import numpy as np
 from scipy.optimize import minimize
 from scipy.special import huber, logsumexp
+
+from reference_output import emit
 
 DELTA = 1e-3
 
@@ -86,10 +87,7 @@ def main():
         "alpha": float(alpha),
         "beta": float(beta),
     }
-    print(json.dumps(out))
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump(out, f, indent=1)
+    emit(out, args.out)
 
 
 if __name__ == "__main__":
