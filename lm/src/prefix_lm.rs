@@ -416,11 +416,11 @@ struct Trace {
 
 /// An extra loss on the logits (`rows × V`): its value and its gradient with respect to the
 /// logits, or `None` for no extra term.
-pub type ExtraLoss<'a> = dyn Fn(&[f32]) -> Option<(f32, Vec<f32>)> + 'a;
+pub type ExtraLoss<'a> = dyn Fn(&[f32]) -> Option<(f32, Vec<f32>)> + Sync + 'a;
 
 /// The loss of the normalised motion rows `xn` and its gradients with respect to `xn` and
 /// the head weight.
-type HeadLoss<'a> = dyn Fn(&Weights<'_>, &[f32]) -> (f32, Vec<f32>, Vec<f32>) + 'a;
+type HeadLoss<'a> = dyn Fn(&Weights<'_>, &[f32]) -> (f32, Vec<f32>, Vec<f32>) + Sync + 'a;
 
 /// The text-prefix autoregressive transformer.
 #[derive(Debug, Clone)]
@@ -643,11 +643,15 @@ impl PrefixLm {
         batch: &LmBatch,
         head_loss: &HeadLoss<'_>,
     ) -> Result<(f32, GradStore)> {
-        let (loss, grads) = self.with_weights(|w| {
-            let trace = self.run(w, batch, true)?;
-            let xn = self.final_norm(w, batch, &trace);
-            let (loss, g_xn, g_head) = head_loss(w, &xn);
-            Ok((loss, self.backward(w, batch, &trace, &g_xn, g_head)))
+        // From a pool thread each parallel kernel of the step is a cheap fork; from outside
+        // the pool it is a cross-thread hand-off and a sleep.
+        let (loss, grads) = rayon::scope(|_| {
+            self.with_weights(|w| {
+                let trace = self.run(w, batch, true)?;
+                let xn = self.final_norm(w, batch, &trace);
+                let (loss, g_xn, g_head) = head_loss(w, &xn);
+                Ok((loss, self.backward(w, batch, &trace, &g_xn, g_head)))
+            })
         })?;
         let mut store = GradStore::default();
         for (t, g) in self.tensors().into_iter().zip(grads) {
