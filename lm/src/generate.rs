@@ -97,9 +97,7 @@ pub fn sample(logits: &[f32], candidates: usize, s: &Sampling, rng: &mut SplitMi
 
 /// Motion tokens (without BOS/EOS) for each text prefix (`text_dim`-wide rows).
 pub fn generate(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<Vec<u32>>> {
-    // Decoding runs dozens of small parallel kernels per token: started from a pool thread
-    // each is a cheap fork, from outside the pool a cross-thread hand-off and a sleep.
-    rayon::scope(|_| decode(model, texts, s))
+    nn::lm_kernels::in_pool(|| decode(model, texts, s))
 }
 
 fn decode(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<Vec<u32>>> {

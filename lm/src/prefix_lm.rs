@@ -643,9 +643,7 @@ impl PrefixLm {
         batch: &LmBatch,
         head_loss: &HeadLoss<'_>,
     ) -> Result<(f32, GradStore)> {
-        // From a pool thread each parallel kernel of the step is a cheap fork; from outside
-        // the pool it is a cross-thread hand-off and a sleep.
-        let (loss, grads) = rayon::scope(|_| {
+        let (loss, grads) = lm_kernels::in_pool(|| {
             self.with_weights(|w| {
                 let trace = self.run(w, batch, true)?;
                 let xn = self.final_norm(w, batch, &trace);

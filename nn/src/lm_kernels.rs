@@ -18,6 +18,13 @@ use rayon::prelude::*;
 /// Target id of a position without loss (padding).
 pub const IGNORE: u32 = u32::MAX;
 
+/// Run `f` on a thread of the rayon pool. A step of many small parallel kernels (a decoded
+/// token, an LM training step) started there forks each kernel cheaply; started outside the
+/// pool, each kernel is a cross-thread hand-off and a sleep.
+pub fn in_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    rayon::scope(|_| f())
+}
+
 /// Rows per parallel work item of the row-wise kernels (fixed, so reductions are too).
 pub const ROW_BLOCK: usize = 32;
 

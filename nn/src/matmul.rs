@@ -20,22 +20,6 @@ pub fn gemm_with(
     let threads = rayon::current_num_threads();
     let macs = m * n * k;
     let parallel = parallel && threads > 1;
-    if parallel && (SPLIT_MIN_MACS..PARALLEL_MIN_MACS).contains(&macs) && n >= 2 * SPLIT_COLUMNS {
-        return gemm_column_split(
-            dst,
-            (lhs, lhs_t),
-            (rhs, rhs_t),
-            (m, n, k),
-            (accumulate, scale),
-            threads,
-        );
-    }
-    // Small products (decoding a few rows) lose more to waking threads than they gain.
-    let parallelism = if parallel && macs >= PARALLEL_MIN_MACS {
-        gemm::Parallelism::Rayon(threads)
-    } else {
-        gemm::Parallelism::None
-    };
     let block = Block {
         dst: dst.as_mut_ptr(),
         row_stride: n,
@@ -44,35 +28,18 @@ pub fn gemm_with(
         m,
         k,
     };
+    if parallel && (SPLIT_MIN_MACS..PARALLEL_MIN_MACS).contains(&macs) && n >= 2 * SPLIT_COLUMNS {
+        // SAFETY: the assert above bounds the whole product.
+        return unsafe { block.run_in_column_bands((accumulate, scale), threads) };
+    }
+    // Small products (decoding a few rows) lose more to waking threads than they gain.
+    let parallelism = if parallel && macs >= PARALLEL_MIN_MACS {
+        gemm::Parallelism::Rayon(threads)
+    } else {
+        gemm::Parallelism::None
+    };
     // SAFETY: the assert above bounds every index gemm reads or writes.
     unsafe { block.run((0, n), (accumulate, scale), parallelism) }
-}
-
-/// Mid-sized products (a batch of decoded rows: m ≈ 32) are too small for gemm's own
-/// threading, which splits along m; each thread takes a band of columns instead. Every
-/// output still sums over the whole of k in one call, so the values equal the serial ones.
-fn gemm_column_split(
-    dst: &mut [f32],
-    lhs: Operand,
-    rhs: Operand,
-    (m, n, k): (usize, usize, usize),
-    (accumulate, scale): (bool, f32),
-    threads: usize,
-) {
-    let band = n.div_ceil(threads).next_multiple_of(SPLIT_COLUMNS);
-    let block = Block {
-        dst: dst.as_mut_ptr(),
-        row_stride: n,
-        lhs,
-        rhs,
-        m,
-        k,
-    };
-    (0..n.div_ceil(band)).into_par_iter().for_each(|i| {
-        let cols = (i * band, ((i + 1) * band).min(n));
-        // SAFETY: the caller's assert bounds the whole product; bands of columns are disjoint.
-        unsafe { block.run(cols, (accumulate, scale), gemm::Parallelism::None) }
-    });
 }
 
 /// One product `dst[.., cols] (+)= scale · op(lhs) · op(rhs)[.., cols]` (row-major `dst` of
@@ -86,10 +53,26 @@ struct Block<'a> {
     k: usize,
 }
 
-// SAFETY: threads write disjoint column bands of `dst` (see `gemm_column_split`).
+// SAFETY: threads write disjoint column bands of `dst` (see `Block::run_in_column_bands`).
 unsafe impl Sync for Block<'_> {}
 
 impl Block<'_> {
+    /// Mid-sized products (a batch of decoded rows: m ≈ 32) are too small for gemm's own
+    /// threading, which splits along m; each thread takes a band of columns instead. Every
+    /// output still sums over the whole of k in one call, so the values equal the serial ones.
+    ///
+    /// # Safety
+    /// `dst`, `lhs` and `rhs` hold the whole product.
+    unsafe fn run_in_column_bands(&self, (accumulate, scale): (bool, f32), threads: usize) {
+        let n = self.row_stride;
+        let band = n.div_ceil(threads).next_multiple_of(SPLIT_COLUMNS);
+        (0..n.div_ceil(band)).into_par_iter().for_each(|i| {
+            let cols = (i * band, ((i + 1) * band).min(n));
+            // SAFETY: the caller's contract; bands of columns are disjoint.
+            unsafe { self.run(cols, (accumulate, scale), gemm::Parallelism::None) }
+        });
+    }
+
     /// # Safety
     /// `dst`, `lhs` and `rhs` hold the whole product; no one else touches `dst[.., cols]`.
     unsafe fn run(
