@@ -35,10 +35,17 @@ pub use model_error::ModelError;
 
 /// The device models load onto: the first CUDA GPU when built with `cuda` and one is
 /// present, else the CPU.
+///
+/// Opened once per process: each `Device::new_cuda` is a new device (its own context, handles
+/// and kernels), and candle refuses to combine tensors of two of them.
 pub fn default_device() -> candle_core::Device {
     #[cfg(feature = "cuda")]
-    if let Ok(device) = candle_core::Device::new_cuda(0) {
-        return device;
+    {
+        static DEVICE: std::sync::OnceLock<candle_core::Device> = std::sync::OnceLock::new();
+        DEVICE
+            .get_or_init(|| candle_core::Device::new_cuda(0).unwrap_or(candle_core::Device::Cpu))
+            .clone()
     }
+    #[cfg(not(feature = "cuda"))]
     candle_core::Device::Cpu
 }
