@@ -126,7 +126,7 @@ fn decode(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<Vec<u3
     for (b, t) in texts.iter().enumerate() {
         text[b * p * c.text_dim..][..t.len()].copy_from_slice(t);
     }
-    let mut cache = s.kv_cache.then(|| model.new_cache(&layout));
+    let mut cache = s.kv_cache.then(|| model.new_cache(&layout)).transpose()?;
     let mut inputs = vec![c.bos(); batch];
     for t in 0..s.max_tokens {
         let logits = match cache.as_mut() {

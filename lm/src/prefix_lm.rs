@@ -30,6 +30,7 @@ use candle_nn::{Init, VarBuilder, VarMap};
 use motionscale_core::rng::SplitMix64;
 use nn::head_loss;
 use nn::lm_kernels::{self, LayerCache, Rope};
+use nn::matmul::{transpose, Operand};
 use nn::seq_layout::SeqLayout;
 use nn::ModelError;
 use serde::{Deserialize, Serialize};
@@ -289,6 +290,13 @@ struct BlockWeights<'a> {
     w2: &'a [f32],
 }
 
+impl BlockWeights<'_> {
+    /// The four matrices as the forward products read them: each `W` (`out × in`) transposed.
+    fn forward_mats(&self) -> [Operand<'_>; 4] {
+        [self.wqkv, self.wo, self.w13, self.w2].map(|m| (m, true))
+    }
+}
+
 /// What the backward pass needs from a block's forward pass.
 struct BlockTrace {
     h: Vec<f32>,
@@ -322,27 +330,29 @@ impl Block {
         ]
     }
 
-    /// The block on rows `h` (`rows × d`); `attend` maps the packed QKV rows to the attention
-    /// output and its softmax probabilities.
+    /// The block on rows `h` (`rows × d`) with its matrices read as `mats` (Wqkvᵀ, Woᵀ,
+    /// W13ᵀ, W2ᵀ: [`BlockWeights::forward_mats`] or a decoding cache's copies); `attend` maps
+    /// the packed QKV rows to the attention output and its softmax probabilities.
     fn forward(
         c: &PrefixLmConfig,
         w: &BlockWeights,
+        [wqkv, wo, w13, w2]: [Operand; 4],
         h: Vec<f32>,
         attend: impl FnOnce(&[f32]) -> (Vec<f32>, Vec<f32>),
     ) -> (Vec<f32>, BlockTrace) {
         let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
         let rows = h.len() / d;
         let xn = lm_kernels::rms_norm(&h, w.n1, eps);
-        let qkv = lm_kernels::matmul_new((&xn, false), (w.wqkv, true), (rows, 3 * d, d));
+        let qkv = lm_kernels::matmul_new((&xn, false), wqkv, (rows, 3 * d, d));
         let (a, probs) = attend(&qkv);
         let mut h1 = h.clone();
-        lm_kernels::gemm(&mut h1, (&a, false), (w.wo, true), (rows, d, d), true);
+        lm_kernels::gemm(&mut h1, (&a, false), wo, (rows, d, d), true);
         let xn = lm_kernels::rms_norm(&h1, w.n2, eps);
-        let ab = lm_kernels::matmul_new((&xn, false), (w.w13, true), (rows, 2 * f, d));
+        let ab = lm_kernels::matmul_new((&xn, false), w13, (rows, 2 * f, d));
         let sig = lm_kernels::gate_sigmoid(&ab, f);
         let mut h2 = h1.clone();
         let act = lm_kernels::swiglu(&ab, &sig, f);
-        lm_kernels::gemm(&mut h2, (&act, false), (w.w2, true), (rows, d, f), true);
+        lm_kernels::gemm(&mut h2, (&act, false), w2, (rows, d, f), true);
         let trace = BlockTrace {
             h,
             qkv,
@@ -547,7 +557,8 @@ impl PrefixLm {
         h.extend(self.project_text(w, &batch.text));
         let mut blocks = Vec::new();
         for bw in &w.blocks {
-            let (next, trace) = Block::forward(c, bw, h, |qkv| attn.forward(qkv));
+            let mats = bw.forward_mats();
+            let (next, trace) = Block::forward(c, bw, mats, h, |qkv| attn.forward(qkv));
             if keep {
                 blocks.push(trace);
             }
@@ -571,18 +582,19 @@ impl PrefixLm {
         }
     }
 
-    /// `RMSNorm(h; norm) · headᵀ`.
-    fn head(&self, w: &Weights, h: &[f32]) -> Vec<f32> {
+    /// `RMSNorm(h; norm) · headᵀ`, with `headᵀ` read as `head_t`.
+    fn head(&self, w: &Weights, h: &[f32], head_t: Operand) -> Vec<f32> {
         let (d, v) = (self.config.d_model, self.config.vocab_size());
         let xn = lm_kernels::rms_norm(h, w.norm, self.config.norm_eps as f32);
-        lm_kernels::matmul_new((&xn, false), (w.head, true), (h.len() / d, v, d))
+        lm_kernels::matmul_new((&xn, false), head_t, (h.len() / d, v, d))
     }
 
     /// Logits of every real motion slot, `motion_rows × V` (sequence-major).
     pub fn forward(&self, batch: &LmBatch) -> Result<Tensor> {
         let logits = self.with_weights(|w| {
             let trace = self.run(w, batch, false)?;
-            Ok(self.head(w, &trace.h[..batch.inputs.len() * self.config.d_model]))
+            let h = &trace.h[..batch.inputs.len() * self.config.d_model];
+            Ok(self.head(w, h, (w.head, true)))
         })?;
         let rows = batch.inputs.len();
         Tensor::from_vec(logits, (rows, self.config.vocab_size()), &Device::Cpu)
@@ -698,12 +710,35 @@ impl PrefixLm {
         grads
     }
 
-    /// An empty key/value cache for sequences laid out by `layout`.
-    pub fn new_cache(&self, layout: &SeqLayout) -> Vec<LayerCache> {
-        let (heads, hd) = (self.config.n_heads, self.config.head_dim());
-        (0..self.config.n_layers)
-            .map(|_| LayerCache::new(layout, heads, hd))
-            .collect()
+    /// An empty decoding cache for sequences laid out by `layout`.
+    pub fn new_cache(&self, layout: &SeqLayout) -> Result<DecodeCache> {
+        let (c, d) = (&self.config, self.config.d_model);
+        let (heads, hd, f) = (c.n_heads, c.head_dim(), c.ffn_hidden);
+        // One row per step reads the weights fastest as they are (gemm's matrix-vector path).
+        let transposed = (layout.batch > 1)
+            .then(|| {
+                self.with_weights(|w| {
+                    let t = |b: &BlockWeights| {
+                        [
+                            transpose(b.wqkv, 3 * d, d),
+                            transpose(b.wo, d, d),
+                            transpose(b.w13, 2 * f, d),
+                            transpose(b.w2, d, f),
+                        ]
+                    };
+                    Ok(TransposedWeights {
+                        blocks: w.blocks.iter().map(t).collect(),
+                        head: transpose(w.head, c.vocab_size(), d),
+                    })
+                })
+            })
+            .transpose()?;
+        Ok(DecodeCache {
+            layers: (0..c.n_layers)
+                .map(|_| LayerCache::new(layout, heads, hd))
+                .collect(),
+            transposed,
+        })
     }
 
     /// Run slots `from..to` of every sequence through the model against `cache` (filled
@@ -712,7 +747,7 @@ impl PrefixLm {
     /// inputs of the new motion slots, sequence-major.
     pub fn forward_cached(
         &self,
-        cache: &mut [LayerCache],
+        cache: &mut DecodeCache,
         layout: &SeqLayout,
         text: &[f32],
         tokens: &[u32],
@@ -743,19 +778,39 @@ impl PrefixLm {
                 h.extend_from_slice(&motion[b * per_seq * d..][..per_seq * d]);
             }
             let attn = self.attention(layout);
-            for (bw, layer) in w.blocks.iter().zip(cache.iter_mut()) {
+            let t = cache.transposed.as_ref();
+            for (i, (bw, layer)) in w.blocks.iter().zip(&mut cache.layers).enumerate() {
                 let attend = |qkv: &[f32]| (attn.cached(qkv, layer, (from, to)), Vec::new());
-                h = Block::forward(c, bw, h, attend).0;
+                let mats = t.map_or(bw.forward_mats(), |t| {
+                    t.blocks[i].each_ref().map(|m| (m.as_slice(), false))
+                });
+                h = Block::forward(c, bw, mats, h, attend).0;
             }
             let last: Vec<f32> = h
                 .chunks(n_new * d)
                 .flat_map(|rows| &rows[(n_new - 1) * d..])
                 .copied()
                 .collect();
-            Ok(self.head(w, &last))
+            let head_t = t.map_or((w.head, true), |t| (t.head.as_slice(), false));
+            Ok(self.head(w, &last, head_t))
         })?;
         Tensor::from_vec(logits, (layout.batch, c.vocab_size()), &Device::Cpu)
     }
+}
+
+/// What cached decoding keeps between steps: each layer's keys and values and, for batches
+/// of several sequences, the weights transposed.
+pub struct DecodeCache {
+    layers: Vec<LayerCache>,
+    transposed: Option<TransposedWeights>,
+}
+
+/// Every matrix a decoding step multiplies by, transposed once (`in × out`), so that each
+/// step's few-row products read it as it lies (see [`nn::matmul::transpose`]).
+struct TransposedWeights {
+    /// Per block: Wqkvᵀ, Woᵀ, W13ᵀ, W2ᵀ.
+    blocks: Vec<[Vec<f32>; 4]>,
+    head: Vec<f32>,
 }
 
 /// Fill every weight matrix of `varmap` with N(0, [`INIT_STD`]²) values drawn from a
@@ -897,7 +952,7 @@ mod tests {
         let mut text_rows = vec![0f32; 2 * 4 * 6];
         text_rows[..t0.len()].copy_from_slice(&t0);
         text_rows[24..24 + t1.len()].copy_from_slice(&t1);
-        let mut cache = model.new_cache(&layout);
+        let mut cache = model.new_cache(&layout).unwrap();
         let p = layout.prefix_slots;
         let mut worst = 0f32;
         for t in 0..layout.motion_slots {

@@ -13,11 +13,17 @@
 //! Layouts: input `(batch, frames, in)`, weight `(out, in, kernel)` (PyTorch's), bias `(out)`,
 //! output `(batch, out_frames, out)`. The im2col matrix has one row per output frame and
 //! columns `k·in + c` (tap-major, so each tap is one contiguous copy of a frame).
+//!
+//! [`conv1d_fused`] can also compute only each sequence's first output frames ([`ConvOutput`]):
+//! the rest are zero, as the mask after a padded batch's convolution makes them, but cost
+//! nothing, which for a batch padded to its longest clip (the evaluator's) is ~40% of the
+//! FLOPs. It can apply a leaky ReLU to the output in the same pass.
 
 use crate::cpu_f32::{contiguous_f32, tensor_f32, F32Values};
 use crate::matmul::gemm_with;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
+use std::borrow::Cow;
 
 /// Geometry of a convolution and the pre-ops fused into its input read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -85,24 +91,109 @@ impl ConvGeometry {
     }
 }
 
+/// Which output frames the fused op computes, and the activation it applies to them.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ConvOutput {
+    /// Output frames computed for each sequence, from the first; the others are zero and
+    /// pass no gradient (`None`: every frame).
+    pub valid: Option<Vec<usize>>,
+    /// Negative slope of a leaky ReLU applied to the output (`Some(0.0)` is a ReLU).
+    pub leaky_slope: Option<f32>,
+}
+
 /// Rows per parallel task of the copies (large enough to amortise scheduling).
 const ROWS_PER_TASK: usize = 64;
 
-/// The im2col matrix of `x` (batch × frames × channels): (batch·out_frames) × (kernel·channels).
+/// The output rows an op computes: all `batch × out` of them in order, or each sequence's
+/// first `valid[b]`, packed one after another.
+struct Rows {
+    out: usize,
+    /// Packed row of each sequence's first frame, and the total at the end; `None`: all rows.
+    starts: Option<Vec<usize>>,
+    batch: usize,
+}
+
+impl Rows {
+    fn new(batch: usize, out: usize, valid: Option<&[usize]>) -> Self {
+        let starts = valid.map(|v| {
+            let mut starts = vec![0];
+            for &n in v {
+                starts.push(starts[starts.len() - 1] + n.min(out));
+            }
+            starts
+        });
+        Self { out, starts, batch }
+    }
+
+    fn count(&self) -> usize {
+        self.starts
+            .as_ref()
+            .map_or(self.batch * self.out, |s| s[self.batch])
+    }
+
+    /// Packed row of sequence `b`'s first frame, and how many frames it has.
+    fn span(&self, b: usize) -> (usize, usize) {
+        match &self.starts {
+            Some(s) => (s[b], s[b + 1] - s[b]),
+            None => (b * self.out, self.out),
+        }
+    }
+
+    /// Sequence and frame of packed row `r`.
+    fn locate(&self, r: usize) -> (usize, usize) {
+        match &self.starts {
+            Some(s) => {
+                let b = s.partition_point(|&start| start <= r) - 1;
+                (b, r - s[b])
+            }
+            None => (r / self.out, r % self.out),
+        }
+    }
+
+    /// The packed rows of `padded` (`batch·out` rows of `width`).
+    fn gather<'a>(&self, padded: &'a [f32], width: usize) -> Cow<'a, [f32]> {
+        if self.starts.is_none() {
+            return Cow::Borrowed(padded);
+        }
+        let mut packed = vec![0f32; self.count() * width];
+        for b in 0..self.batch {
+            let (start, n) = self.span(b);
+            packed[start * width..][..n * width]
+                .copy_from_slice(&padded[b * self.out * width..][..n * width]);
+        }
+        Cow::Owned(packed)
+    }
+
+    /// `packed` rows put back in their places among `batch·out` rows, zeros elsewhere.
+    fn scatter(&self, packed: Vec<f32>, width: usize) -> Vec<f32> {
+        if self.starts.is_none() {
+            return packed;
+        }
+        let mut padded = vec![0f32; self.batch * self.out * width];
+        for b in 0..self.batch {
+            let (start, n) = self.span(b);
+            padded[b * self.out * width..][..n * width]
+                .copy_from_slice(&packed[start * width..][..n * width]);
+        }
+        padded
+    }
+}
+
+/// The im2col matrix of `x` (batch × frames × channels) at the output rows `rows`:
+/// rows.count() × (kernel·channels).
 fn im2col(
     x: &[f32],
-    (batch, frames, channels): (usize, usize, usize),
+    (frames, channels): (usize, usize),
     g: &ConvGeometry,
+    rows: &Rows,
 ) -> Vec<f32> {
-    let out = g.out_len(frames);
     let width = g.kernel * channels;
-    let mut cols = vec![0f32; batch * out * width];
+    let mut cols = vec![0f32; rows.count() * width];
     cols.par_chunks_mut(width * ROWS_PER_TASK)
         .enumerate()
         .for_each(|(task, chunk)| {
             for (i, row) in chunk.chunks_exact_mut(width).enumerate() {
-                let r = task * ROWS_PER_TASK + i;
-                let (b, t) = (r / out, r % out);
+                let (b, t) = rows.locate(task * ROWS_PER_TASK + i);
                 for (k, dst) in row.chunks_exact_mut(channels).enumerate() {
                     if let Some(s) = g.source(t, k, frames) {
                         let src = &x[(b * frames + s) * channels..][..channels];
@@ -125,15 +216,16 @@ fn col2im(
     x: &[f32],
     (batch, frames, channels): (usize, usize, usize),
     g: &ConvGeometry,
+    rows: &Rows,
 ) -> Vec<f32> {
-    let out = g.out_len(frames);
     let width = g.kernel * channels;
     let mut dx = vec![0f32; batch * frames * channels];
     dx.par_chunks_mut(frames * channels)
         .enumerate()
         .for_each(|(b, dxb)| {
-            for t in 0..out {
-                let row = &dcols[(b * out + t) * width..][..width];
+            let (start, n) = rows.span(b);
+            for t in 0..n {
+                let row = &dcols[(start + t) * width..][..width];
                 for (k, src) in row.chunks_exact(channels).enumerate() {
                     if let Some(s) = g.source(t, k, frames) {
                         let dst = &mut dxb[s * channels..][..channels];
@@ -181,7 +273,10 @@ fn channels_major(t: &[f32], (out, inp, kernel): (usize, usize, usize)) -> Vec<f
 type Dims3 = (usize, usize, usize);
 
 /// The fused convolution (see the module docs).
-struct ConvOp(ConvGeometry);
+struct ConvOp {
+    geometry: ConvGeometry,
+    output: ConvOutput,
+}
 
 impl ConvOp {
     fn dims(x: &Layout, w: &Layout) -> Result<(Dims3, Dims3)> {
@@ -192,6 +287,54 @@ impl ConvOp {
         }
         Ok(((b, t, c), (o, i, k)))
     }
+
+    fn rows(&self, batch: usize, frames: usize) -> Rows {
+        Rows::new(
+            batch,
+            self.geometry.out_len(frames),
+            self.output.valid.as_deref(),
+        )
+    }
+}
+
+/// Leaky ReLU in place.
+fn leaky_relu(y: &mut [f32], slope: f32) {
+    y.par_chunks_mut(4096).for_each(|chunk| {
+        chunk
+            .iter_mut()
+            .for_each(|v| *v = if *v > 0.0 { *v } else { *v * slope })
+    });
+}
+
+/// `dy` through the leaky ReLU whose outputs were `y` (same sign as its inputs).
+fn leaky_relu_backward(dy: &mut [f32], y: &[f32], slope: f32) {
+    dy.par_chunks_mut(4096)
+        .zip(y.par_chunks(4096))
+        .for_each(|(d, y)| {
+            d.iter_mut()
+                .zip(y)
+                .for_each(|(d, &y)| *d = if y > 0.0 { *d } else { *d * slope })
+        });
+}
+
+/// The bias gradient, column sums of `dy` (rows × width): per fixed chunk of rows in
+/// parallel, then summed in order (a rayon `reduce` would add in a scheduling-dependent order).
+fn bias_gradient(dy: &[f32], width: usize) -> Vec<f32> {
+    let partial: Vec<Vec<f32>> = dy
+        .par_chunks(width * ROWS_PER_TASK)
+        .map(|chunk| {
+            let mut s = vec![0f32; width];
+            chunk
+                .chunks_exact(width)
+                .for_each(|r| s.iter_mut().zip(r).for_each(|(a, v)| *a += v));
+            s
+        })
+        .collect();
+    let mut sums = vec![0f32; width];
+    for s in &partial {
+        sums.iter_mut().zip(s).for_each(|(a, v)| *a += v);
+    }
+    sums
 }
 
 impl CustomOp3 for ConvOp {
@@ -208,7 +351,7 @@ impl CustomOp3 for ConvOp {
         bs: &CpuStorage,
         bl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let g = &self.0;
+        let g = &self.geometry;
         let ((batch, frames, inp), (out_ch, _, kernel)) = Self::dims(xl, wl)?;
         if kernel != g.kernel {
             candle_core::bail!("conv op: weight has {kernel} taps, geometry {}", g.kernel);
@@ -216,18 +359,15 @@ impl CustomOp3 for ConvOp {
         let x = contiguous_f32(xs, xl, "input")?;
         let w = contiguous_f32(ws, wl, "weight")?;
         let bias = contiguous_f32(bs, bl, "bias")?;
-        let out = g.out_len(frames);
-        let rows = batch * out;
+        let rows = self.rows(batch, frames);
         let width = kernel * inp;
         let wt = taps_major(w, (out_ch, inp, kernel));
-        let cols;
         let lhs = if g.is_pointwise() {
-            x
+            rows.gather(x, inp)
         } else {
-            cols = im2col(x, (batch, frames, inp), g);
-            &cols
+            Cow::Owned(im2col(x, (frames, inp), g, &rows))
         };
-        let mut y = vec![0f32; rows * out_ch];
+        let mut y = vec![0f32; rows.count() * out_ch];
         y.par_chunks_mut(out_ch * ROWS_PER_TASK).for_each(|chunk| {
             chunk
                 .chunks_exact_mut(out_ch)
@@ -235,12 +375,17 @@ impl CustomOp3 for ConvOp {
         });
         gemm_with(
             &mut y,
-            (lhs, false),
+            (&lhs, false),
             (&wt, true),
-            (rows, out_ch, width),
+            (rows.count(), out_ch, width),
             (true, 1.0, true),
         );
-        Ok((CpuStorage::F32(y), Shape::from((batch, out, out_ch))))
+        if let Some(slope) = self.output.leaky_slope {
+            leaky_relu(&mut y, slope);
+        }
+        let y = rows.scatter(y, out_ch);
+        let shape = Shape::from((batch, g.out_len(frames), out_ch));
+        Ok((CpuStorage::F32(y), shape))
     }
 
     fn bwd(
@@ -248,65 +393,53 @@ impl CustomOp3 for ConvOp {
         x: &Tensor,
         w: &Tensor,
         _bias: &Tensor,
-        _res: &Tensor,
+        res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let g = &self.0;
+        let g = &self.geometry;
         let ((batch, frames, inp), (out_ch, _, kernel)) = Self::dims(x.layout(), w.layout())?;
-        let out = g.out_len(frames);
-        let (rows, width) = (batch * out, kernel * inp);
+        let rows = self.rows(batch, frames);
+        let width = kernel * inp;
         let xv = F32Values::of(x)?;
         let wt = taps_major(&tensor_f32(w)?, (out_ch, inp, kernel));
-        let dy = F32Values::of(grad)?;
-        let cols;
-        let lhs: &[f32] = if g.is_pointwise() {
-            &xv
+        let dy_padded = F32Values::of(grad)?;
+        let mut dy = rows.gather(&dy_padded, out_ch);
+        if let Some(slope) = self.output.leaky_slope {
+            let y = F32Values::of(res)?;
+            leaky_relu_backward(dy.to_mut(), &rows.gather(&y, out_ch), slope);
+        }
+        let lhs = if g.is_pointwise() {
+            rows.gather(&xv, inp)
         } else {
-            cols = im2col(&xv, (batch, frames, inp), g);
-            &cols
+            Cow::Owned(im2col(&xv, (frames, inp), g, &rows))
         };
         // dW (out × kernel·in) = dYᵀ · cols.
         let mut dwt = vec![0f32; out_ch * width];
         gemm_with(
             &mut dwt,
             (&dy, true),
-            (lhs, false),
-            (out_ch, width, rows),
+            (&lhs, false),
+            (out_ch, width, rows.count()),
             (false, 1.0, true),
         );
         let dw = channels_major(&dwt, (out_ch, inp, kernel));
-        // db = column sums of dY: per fixed chunk of rows in parallel, then summed in order
-        // (a rayon `reduce` would add in a scheduling-dependent order).
-        let partial: Vec<Vec<f32>> = dy
-            .par_chunks(out_ch * ROWS_PER_TASK)
-            .map(|chunk| {
-                let mut s = vec![0f32; out_ch];
-                chunk
-                    .chunks_exact(out_ch)
-                    .for_each(|r| s.iter_mut().zip(r).for_each(|(a, v)| *a += v));
-                s
-            })
-            .collect();
-        let mut db = vec![0f32; out_ch];
-        for s in &partial {
-            db.iter_mut().zip(s).for_each(|(a, v)| *a += v);
-        }
+        let db = bias_gradient(&dy, out_ch);
         let device = x.device();
         // An input that no gradient reaches (the data under the first layer) gets none.
         let dx = if x.track_op() {
             // dcols (rows × kernel·in) = dY · Wt, then scattered back onto the input frames.
-            let mut dcols = vec![0f32; rows * width];
+            let mut dcols = vec![0f32; rows.count() * width];
             gemm_with(
                 &mut dcols,
                 (&dy, false),
                 (&wt, false),
-                (rows, width, out_ch),
+                (rows.count(), width, out_ch),
                 (false, 1.0, true),
             );
             let dx = if g.is_pointwise() {
-                dcols
+                rows.scatter(dcols, inp)
             } else {
-                col2im(&dcols, &xv, (batch, frames, inp), g)
+                col2im(&dcols, &xv, (batch, frames, inp), g, &rows)
             };
             Some(Tensor::from_vec(dx, (batch, frames, inp), device)?)
         } else {
@@ -324,10 +457,42 @@ impl CustomOp3 for ConvOp {
 /// geometry `g` → (batch, out_frames, out). f32 CPU tensors take the fused op; anything else
 /// [`conv1d_reference`].
 pub fn conv1d(x: &Tensor, weight: &Tensor, bias: &Tensor, g: ConvGeometry) -> Result<Tensor> {
+    conv1d_fused(x, weight, bias, g, &ConvOutput::default())
+}
+
+/// [`conv1d`] computing only the output rows and activation `output` names; other devices
+/// compose it of [`conv1d_reference`], candle's leaky ReLU and a mask.
+pub fn conv1d_fused(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: &Tensor,
+    geometry: ConvGeometry,
+    output: &ConvOutput,
+) -> Result<Tensor> {
     if x.device().is_cpu() && x.dtype() == DType::F32 {
-        return x.contiguous()?.apply_op3(weight, bias, ConvOp(g));
+        let op = ConvOp {
+            geometry,
+            output: output.clone(),
+        };
+        return x.contiguous()?.apply_op3(weight, bias, op);
     }
-    conv1d_reference(x, weight, bias, g)
+    let mut y = conv1d_reference(x, weight, bias, geometry)?;
+    if let Some(slope) = output.leaky_slope {
+        y = candle_nn::ops::leaky_relu(&y, slope as f64)?;
+    }
+    match &output.valid {
+        Some(valid) => y.broadcast_mul(&valid_mask(valid, y.dim(1)?, y.device())?),
+        None => Ok(y),
+    }
+}
+
+/// `(batch, frames, 1)`: ones at each sequence's first `valid[b]` frames, zeros after.
+pub fn valid_mask(valid: &[usize], frames: usize, device: &candle_core::Device) -> Result<Tensor> {
+    let values: Vec<f32> = valid
+        .iter()
+        .flat_map(|&n| (0..frames).map(move |t| if t < n { 1.0 } else { 0.0 }))
+        .collect();
+    Tensor::from_vec(values, (valid.len(), frames, 1), device)
 }
 
 /// The same convolution composed of candle ops with exact gradients on every device: pad,
@@ -520,6 +685,55 @@ mod tests {
             ..ConvGeometry::plain(3, 1, 1, 1)
         };
         check(up, 5, (4, 3));
+    }
+
+    /// The fused op computing only the first frames of each sequence, with a leaky ReLU,
+    /// against the composed reference (convolution, candle's leaky ReLU, mask): outputs and
+    /// all three gradients, in the strided and the pointwise (no im2col) paths.
+    #[test]
+    fn valid_rows_and_leaky_output_match_the_composed_ops() {
+        let dev = Device::Cpu;
+        for (g, frames, valid) in [
+            (ConvGeometry::plain(4, 2, 1, 1), 12, vec![6, 2, 0, 4]),
+            (ConvGeometry::plain(1, 1, 1, 0), 7, vec![7, 1, 3, 5]),
+        ] {
+            let output = ConvOutput {
+                valid: Some(valid.clone()),
+                leaky_slope: Some(0.2),
+            };
+            let x = Var::randn(0f32, 1.0, (4, frames, 5), &dev).unwrap();
+            let w = Var::randn(0f32, 0.3, (6, 5, g.kernel), &dev).unwrap();
+            let b = Var::randn(0f32, 1.0, 6, &dev).unwrap();
+            let composed = |x: &Tensor, w: &Tensor, b: &Tensor| {
+                let y = conv1d_reference(x, w, b, g).unwrap();
+                let y = candle_nn::ops::leaky_relu(&y, 0.2).unwrap();
+                let mask = valid_mask(&valid, y.dim(1).unwrap(), &dev).unwrap();
+                y.broadcast_mul(&mask).unwrap()
+            };
+            let fused = conv1d_fused(&x, &w, &b, g, &output).unwrap();
+            let reference = composed(&x, &w, &b);
+            assert!(max_diff(&fused, &reference) < 1e-5, "{g:?}");
+            let probe = Tensor::randn(0f32, 1.0, fused.dims(), &dev).unwrap();
+            let fused_grads = (fused * &probe)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap();
+            let reference_grads = (reference * &probe)
+                .unwrap()
+                .sum_all()
+                .unwrap()
+                .backward()
+                .unwrap();
+            for var in [&x, &w, &b] {
+                let (a, e) = (
+                    fused_grads.get(var).unwrap(),
+                    reference_grads.get(var).unwrap(),
+                );
+                assert!(max_diff(a, e) < 1e-4, "{g:?}: {}", max_diff(a, e));
+            }
+        }
     }
 
     #[test]

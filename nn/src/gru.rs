@@ -7,7 +7,7 @@
 //! fused scan of [`crate::gru_kernel`]; [`crate::gru_kernel::scan_reference`] is the same recurrence as plain
 //! candle ops (other devices, and the tests' yardstick).
 
-use crate::conv_op::{conv1d, ConvGeometry};
+use crate::conv_op::{conv1d_fused, ConvGeometry, ConvOutput};
 use crate::gru_kernel::gru_scan;
 use candle_core::{Result, Tensor};
 use candle_nn::{Linear, VarBuilder};
@@ -44,7 +44,7 @@ impl GruLayer {
     /// (`(batch, steps, in)`), last to first when `reverse`, and is zero past them.
     pub fn states(&self, x: &Tensor, lengths: &[usize], reverse: bool) -> Result<Tensor> {
         gru_scan(
-            &per_step(&self.w_ih, x)?,
+            &per_step(&self.w_ih, x, lengths)?,
             &self.w_hh,
             &self.b_hh,
             lengths,
@@ -53,23 +53,29 @@ impl GruLayer {
     }
 }
 
-/// `linear` applied to every step of `x` `(batch, steps, in)`: a pointwise convolution through
-/// the fused conv op (one gemm with the bias as its initial value, a hand-written backward
-/// that skips the input's gradient when nothing needs it).
+/// `linear` applied to each sequence's first `lengths[b]` steps of `x` `(batch, steps, in)`,
+/// zero past them: a pointwise convolution through the fused conv op (one gemm over the real
+/// steps only, with the bias as its initial value, and a hand-written backward that skips the
+/// input's gradient when nothing needs it).
 ///
 /// Why not `Linear::forward` on the 3-D tensor: candle broadcasts the weight over the batch,
 /// and its backward then runs one small product per sequence and sums them.
-pub fn per_step(linear: &Linear, x: &Tensor) -> Result<Tensor> {
+pub fn per_step(linear: &Linear, x: &Tensor, lengths: &[usize]) -> Result<Tensor> {
     let w = linear.weight();
     let (out, inp) = w.dims2()?;
     let bias = linear
         .bias()
         .ok_or_else(|| candle_core::Error::Msg("per-step linear without a bias".into()))?;
-    conv1d(
+    let output = ConvOutput {
+        valid: Some(lengths.to_vec()),
+        leaky_slope: None,
+    };
+    conv1d_fused(
         x,
         &w.reshape((out, inp, 1))?,
         bias,
         ConvGeometry::plain(1, 1, 1, 0),
+        &output,
     )
 }
 

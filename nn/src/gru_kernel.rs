@@ -18,7 +18,7 @@
 use crate::cpu_f32::{contiguous_f32, F32Values};
 use crate::fast_exp::{self, exp};
 use crate::lm_kernels::{column_sums, SharedMut};
-use crate::matmul::gemm_with;
+use crate::matmul::{gemm_with, transpose};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -178,6 +178,8 @@ impl GruScan {
         let mut out = vec![0f32; d.batch * d.steps * hd];
         let mut gates = vec![0f32; d.batch * d.steps * 4 * hd];
         let (out_ptr, gates_ptr) = (SharedMut(out.as_mut_ptr()), SharedMut(gates.as_mut_ptr()));
+        // Each step's few-row product reads W_hhᵀ as it lies (see `transpose`).
+        let wt = transpose(w, h3, hd);
         groups(&self.lengths).par_iter().for_each(|g| {
             let mut h = vec![0f32; g.rows.len() * hd];
             let mut gh = vec![0f32; g.rows.len() * h3];
@@ -189,7 +191,7 @@ impl GruScan {
                 gemm_with(
                     &mut gh[..a * h3],
                     (&h[..a * hd], false),
-                    (w, true),
+                    (&wt, false),
                     (a, h3, hd),
                     (true, 1.0, false),
                 );
