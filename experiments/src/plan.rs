@@ -148,7 +148,34 @@ pub enum VocabSource {
     },
 }
 
+/// Whether two paths name the same folder: equal, or equal once resolved. A plan committed
+/// with paths relative to the data folder names the same corpus and token sets as the absolute
+/// paths a new plan records.
+fn same_path(a: &Path, b: &Path) -> bool {
+    a == b
+        || matches!(
+            (std::fs::canonicalize(a), std::fs::canonicalize(b)),
+            (Ok(x), Ok(y)) if x == y
+        )
+}
+
 impl Vocabulary {
+    /// Whether `other` is this vocabulary, its folders compared by [`same_path`].
+    fn same_as(&self, other: &Vocabulary) -> bool {
+        let folders_agree = match (&self.source, &other.source) {
+            (VocabSource::TokenSet { dir: a }, VocabSource::TokenSet { dir: b })
+            | (VocabSource::Tokenizer { dir: a }, VocabSource::Tokenizer { dir: b }) => {
+                same_path(a, b)
+            }
+            (a, b) => a == b,
+        };
+        let with_other_source = Vocabulary {
+            source: other.source.clone(),
+            ..self.clone()
+        };
+        folders_agree && with_other_source == *other
+    }
+
     /// The token set folder of this vocabulary in the sweep folder `runs`.
     pub fn tokens_dir(&self, runs: &Path) -> PathBuf {
         match &self.source {
@@ -609,7 +636,7 @@ impl IsoFlopPlan {
                 "--extend: {what} not as in the extended plan (give the same flags)"
             )))
         };
-        if new.corpus != self.corpus || new.text_encoder != self.text_encoder {
+        if !same_path(&new.corpus, &self.corpus) || new.text_encoder != self.text_encoder {
             return differs("the corpus or its text encoder".into());
         }
         if new.train != self.train {
@@ -618,7 +645,7 @@ impl IsoFlopPlan {
         let mut plan = self.clone();
         for vocab in new.vocabularies {
             match plan.vocabulary(vocab.codebook) {
-                Some(old) if *old != vocab => {
+                Some(old) if !old.same_as(&vocab) => {
                     return differs(format!("vocabulary {} (its source)", vocab.codebook))
                 }
                 Some(_) => {}
@@ -946,6 +973,27 @@ mod tests {
             dir: "/elsewhere".into(),
         };
         refused(base.extended_by(other), "vocabulary 1024");
+        // The same corpus and token set named through another path (a plan committed with
+        // paths relative to the data folder, extended with absolute ones) is no difference.
+        let data = tempfile::tempdir().unwrap();
+        let (corpus, tokens) = (data.path().join("corpus"), data.path().join("tokens"));
+        std::fs::create_dir(&corpus).unwrap();
+        std::fs::create_dir(&tokens).unwrap();
+        let (alias, tokens_alias) = (data.path().join("alias"), data.path().join("tokens-alias"));
+        std::os::unix::fs::symlink(&corpus, &alias).unwrap();
+        std::os::unix::fs::symlink(&tokens, &tokens_alias).unwrap();
+        let named = |corpus: &Path, tokens: &Path| {
+            let mut p = small_plan();
+            p.corpus = corpus.into();
+            p.vocabularies[1].source = VocabSource::TokenSet { dir: tokens.into() };
+            p
+        };
+        let extended = named(&alias, &tokens_alias).extended_by(named(&corpus, &tokens));
+        assert_eq!(
+            extended.unwrap().corpus,
+            alias,
+            "the base plan's paths are kept"
+        );
         let repeat = |ids: &[&str], seeds: &[u64]| {
             let ids: Vec<String> = ids.iter().map(|s| s.to_string()).collect();
             plan.clone().add_repeats(&ids, seeds).map(|()| plan.clone())

@@ -107,10 +107,10 @@ const ROWS_PER_TASK: usize = 64;
 /// The output rows an op computes: all `batch × out` of them in order, or each sequence's
 /// first `valid[b]`, packed one after another.
 struct Rows {
+    batch: usize,
     out: usize,
     /// Packed row of each sequence's first frame, and the total at the end; `None`: all rows.
     starts: Option<Vec<usize>>,
-    batch: usize,
 }
 
 impl Rows {
@@ -122,7 +122,7 @@ impl Rows {
             }
             starts
         });
-        Self { out, starts, batch }
+        Self { batch, out, starts }
     }
 
     fn count(&self) -> usize {
