@@ -38,6 +38,7 @@ if [ ! -f "$link/libcuda.so.1" ]; then
   gcc -shared -fPIC -O1 -Wl,-soname,libcuda.so.1 -o "$link/libcuda.so.1" "$link/libcuda_stub.c"
   ln -sf libcuda.so.1 "$link/libcuda.so"
 fi
-CARGO_TARGET_DIR=${CARGO_TARGET_DIR:-target-cuda} RUSTFLAGS="-L native=$link" \
+target=${CARGO_TARGET_DIR:-target-cuda}
+CARGO_TARGET_DIR=$target RUSTFLAGS="-L native=$link" \
   cargo build --release --features cuda --bin motionscale
-echo "target-cuda/release/motionscale (needs libcuda.so.1, libcublas.so.13, libcublasLt.so.13, libcurand.so.10, libcudart.so.13 at run time)"
+echo "$target/release/motionscale (needs libcuda.so.1, libcublas.so.13, libcublasLt.so.13, libcurand.so.10, libcudart.so.13 at run time)"
