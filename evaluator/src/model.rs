@@ -517,10 +517,13 @@ mod tests {
 
     /// The movement convolutions' weight gradients at a batch of three of different lengths
     /// agree with central differences (candle's own `conv1d` backward got them wrong for
-    /// batches above one).
+    /// batches above one). The loss is piecewise linear in each weight (convolution, then
+    /// leaky ReLU): where a step crosses a kink the one-sided differences disagree, and that
+    /// weight is left out; most are not.
     #[test]
     fn movement_conv_gradients_match_central_differences() {
         let (eval, varmap) = tiny();
+        init_weights(&varmap, 3).unwrap();
         let vars = varmap.data().lock().unwrap().clone();
         for (conv, name, width) in [
             (&eval.conv1, "motion.conv.0.weight", 6),
@@ -551,6 +554,7 @@ mod tests {
                 .to_vec1()
                 .unwrap();
             let values: Vec<f32> = var.flatten_all().unwrap().to_vec1().unwrap();
+            let (mut checked, mut tried) = (0, 0);
             for i in (0..values.len()).step_by(5) {
                 let at = |delta: f32| {
                     let mut v = values.clone();
@@ -559,13 +563,24 @@ mod tests {
                         .unwrap();
                     loss().to_scalar::<f32>().unwrap()
                 };
-                let numeric = (at(1e-2) - at(-1e-2)) / 2e-2;
+                let (up, mid, down) = (at(1e-2), at(0.0), at(-1e-2));
+                let (ahead, behind) = ((up - mid) / 1e-2, (mid - down) / 1e-2);
+                tried += 1;
+                if (ahead - behind).abs() > 1e-2 * ahead.abs().max(1.0) {
+                    continue;
+                }
+                checked += 1;
+                let numeric = (up - down) / 2e-2;
                 assert!(
-                    (analytic[i] - numeric).abs() < 2e-2 * numeric.abs().max(1.0),
+                    (analytic[i] - numeric).abs() < 1e-2 * numeric.abs().max(1.0),
                     "{name}[{i}]: {} vs {numeric}",
                     analytic[i]
                 );
             }
+            assert!(
+                2 * checked > tried,
+                "{name}: {checked} of {tried} weights away from a kink"
+            );
             var.set(&Tensor::from_vec(values, var.dims(), &Device::Cpu).unwrap())
                 .unwrap();
         }
