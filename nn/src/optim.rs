@@ -6,14 +6,16 @@
 //! in one fused pass per parameter (PyTorch's `torch.optim.AdamW` arithmetic, bias
 //! corrections included) and saves them as safetensors (`m.<name>`, `v.<name>`, `step`).
 
+use crate::cpu_f32::{contiguous_f32, F32Values};
 use crate::error::NnError;
 use candle_core::backprop::GradStore;
-use candle_core::{Device, Tensor, Var};
+use candle_core::{CpuStorage, DType, Device, InplaceOp2, Layout, Tensor, Var};
 use motionscale_core::FileError;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::Path;
+use std::sync::Mutex;
 
 /// AdamW hyper-parameters (the learning rate comes from the schedule at every step).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -69,6 +71,94 @@ impl LrSchedule {
 /// Elements per parallel task of the update.
 const CHUNK: usize = 16 * 1024;
 
+/// The numbers of one AdamW step, shared by every parameter.
+#[derive(Debug, Clone, Copy)]
+struct StepValues {
+    /// Gradient scale from norm clipping.
+    scale: f32,
+    beta: (f32, f32),
+    eps: f32,
+    /// Learning rate over the first moment's bias correction.
+    step_size: f32,
+    bias2_sqrt: f32,
+    /// `1 − lr · weight_decay`.
+    decay: f32,
+}
+
+impl StepValues {
+    /// Update parameters `p` and moments `m`, `v` from gradient `g` (PyTorch's arithmetic).
+    fn apply(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+        p.par_chunks_mut(CHUNK)
+            .zip(m.par_chunks_mut(CHUNK))
+            .zip(v.par_chunks_mut(CHUNK))
+            .zip(g.par_chunks(CHUNK))
+            .for_each(|(((p, m), v), g)| {
+                #[cfg(target_arch = "x86_64")]
+                if crate::fast_exp::avx2_fma() {
+                    // SAFETY: the CPU supports the features the function was compiled for.
+                    return unsafe { self.chunk_avx2(p, m, v, g) };
+                }
+                self.chunk(p, m, v, g);
+            });
+    }
+
+    /// [`StepValues::chunk`] in 8-wide registers: its square roots and divisions are most of
+    /// the optimiser's time. Exactly rounded either way (no FMA contraction), so the values do
+    /// not depend on the path.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma")]
+    fn chunk_avx2(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+        self.chunk(p, m, v, g);
+    }
+
+    /// One chunk of the update; iterators rather than indices, so that it vectorises.
+    #[inline(always)]
+    fn chunk(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
+        let (b1, b2) = self.beta;
+        for (((p, m), v), &g) in p.iter_mut().zip(m).zip(v).zip(g) {
+            let g = g * self.scale;
+            *m = b1 * *m + (1.0 - b1) * g;
+            *v = b2 * *v + (1.0 - b2) * g * g;
+            let denom = v.sqrt() / self.bias2_sqrt + self.eps;
+            *p = *p * self.decay - self.step_size * *m / denom;
+        }
+    }
+}
+
+/// One parameter's update applied in place to its storage, reading the gradient where it
+/// lies: copying each parameter out and back and its gradient out made the optimiser a tenth
+/// of a tokenizer step (~20 M parameters, twelve passes over memory instead of eight).
+struct Update<'a> {
+    moments: Mutex<(&'a mut Vec<f32>, &'a mut Vec<f32>)>,
+    step: StepValues,
+}
+
+impl InplaceOp2 for Update<'_> {
+    fn name(&self) -> &'static str {
+        "adamw-update"
+    }
+
+    fn cpu_fwd(
+        &self,
+        p: &mut CpuStorage,
+        pl: &Layout,
+        g: &CpuStorage,
+        gl: &Layout,
+    ) -> candle_core::Result<()> {
+        let g = contiguous_f32(g, gl, "gradient")?;
+        let (start, end) = pl
+            .contiguous_offsets()
+            .ok_or_else(|| candle_core::Error::Msg("adamw: parameter not contiguous".into()))?;
+        let CpuStorage::F32(p) = p else {
+            candle_core::bail!("adamw: parameter is not f32");
+        };
+        let mut moments = self.moments.lock().expect("adamw moments lock");
+        let (m, v) = &mut *moments;
+        self.step.apply(&mut p[start..end], m, v, g);
+        Ok(())
+    }
+}
+
 /// One parameter with its moments.
 struct Slot {
     name: String,
@@ -122,26 +212,21 @@ impl AdamW {
         lr: f64,
         max_norm: Option<f64>,
     ) -> Result<f64, NnError> {
-        let grads: Vec<Option<Vec<f32>>> = self
+        let grads: Vec<Option<&Tensor>> = self
             .slots
             .iter()
-            .map(|slot| {
-                grads
-                    .get(slot.var.as_tensor())
-                    .map(|g| g.flatten_all()?.to_vec1::<f32>())
-                    .transpose()
-            })
-            .collect::<candle_core::Result<_>>()?;
+            .map(|slot| grads.get(slot.var.as_tensor()))
+            .collect();
         // Sums of squares per fixed chunk in parallel, added in order: deterministic.
-        let squares: Vec<f64> = grads
-            .iter()
-            .flatten()
-            .flat_map(|g| {
+        let mut squares = Vec::new();
+        for g in grads.iter().flatten() {
+            let g = F32Values::of(g)?;
+            squares.extend(
                 g.par_chunks(CHUNK)
                     .map(|c| c.iter().map(|&v| (v as f64) * (v as f64)).sum::<f64>())
-                    .collect::<Vec<_>>()
-            })
-            .collect();
+                    .collect::<Vec<_>>(),
+            );
+        }
         let norm = squares.iter().sum::<f64>().sqrt();
         let scale = match max_norm {
             Some(max) if norm > max => (max / (norm + 1e-6)) as f32,
@@ -151,31 +236,32 @@ impl AdamW {
         let c = self.config;
         let t = self.step as i32;
         let (bias1, bias2) = (1.0 - c.beta1.powi(t), 1.0 - c.beta2.powi(t));
-        let step_size = (lr / bias1) as f32;
-        let bias2_sqrt = bias2.sqrt() as f32;
-        let decay = (1.0 - lr * c.weight_decay) as f32;
-        let (b1, b2, eps) = (c.beta1 as f32, c.beta2 as f32, c.eps as f32);
+        let step = StepValues {
+            scale,
+            beta: (c.beta1 as f32, c.beta2 as f32),
+            eps: c.eps as f32,
+            step_size: (lr / bias1) as f32,
+            bias2_sqrt: bias2.sqrt() as f32,
+            decay: (1.0 - lr * c.weight_decay) as f32,
+        };
         for (slot, grad) in self.slots.iter_mut().zip(grads) {
             let Some(grad) = grad else {
                 continue;
             };
             let var = slot.var.as_tensor();
-            let mut p = var.flatten_all()?.to_vec1::<f32>()?;
-            p.par_chunks_mut(CHUNK)
-                .zip(slot.m.par_chunks_mut(CHUNK))
-                .zip(slot.v.par_chunks_mut(CHUNK))
-                .zip(grad.par_chunks(CHUNK))
-                .for_each(|(((p, m), v), g)| {
-                    for i in 0..p.len() {
-                        let g = g[i] * scale;
-                        m[i] = b1 * m[i] + (1.0 - b1) * g;
-                        v[i] = b2 * v[i] + (1.0 - b2) * g * g;
-                        let denom = v[i].sqrt() / bias2_sqrt + eps;
-                        p[i] = p[i] * decay - step_size * m[i] / denom;
-                    }
-                });
-            let shape = var.shape().clone();
-            slot.var.set(&Tensor::from_vec(p, shape, var.device())?)?;
+            if var.device().is_cpu() && var.dtype() == DType::F32 {
+                let update = Update {
+                    moments: Mutex::new((&mut slot.m, &mut slot.v)),
+                    step,
+                };
+                var.inplace_op2(&grad.contiguous()?, &update)?;
+            } else {
+                let mut p = var.flatten_all()?.to_vec1::<f32>()?;
+                let g = grad.flatten_all()?.to_vec1::<f32>()?;
+                step.apply(&mut p, &mut slot.m, &mut slot.v, &g);
+                let shape = var.shape().clone();
+                slot.var.set(&Tensor::from_vec(p, shape, var.device())?)?;
+            }
         }
         Ok(norm)
     }
