@@ -20,7 +20,7 @@ SEED=${SEED:-0}
 RUN_TIMEOUT=${RUN_TIMEOUT:-150}
 mkdir -p "$OUT"
 main() {
-WORK=$(mktemp -d /tmp/cuda-check.XXXXXX)
+WORK=$(mktemp -d -t cuda-check.XXXXXX)
 echo "== work dir $WORK, out $OUT, steps $STEPS, batch $BATCH, seed $SEED"
 
 # ---- 1. binary (gzip-compressed binaries are unpacked first)

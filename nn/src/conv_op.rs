@@ -19,7 +19,7 @@
 //! nothing, which for a batch padded to its longest clip (the evaluator's) is ~40% of the
 //! FLOPs. It can apply a leaky ReLU to the output in the same pass.
 
-use crate::cpu_f32::{contiguous_f32, tensor_f32, F32Values};
+use crate::cpu_f32::{contiguous_f32, F32Values};
 use crate::matmul::gemm_with;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -401,7 +401,7 @@ impl CustomOp3 for ConvOp {
         let rows = self.rows(batch, frames);
         let width = kernel * inp;
         let xv = F32Values::of(x)?;
-        let wt = taps_major(&tensor_f32(w)?, (out_ch, inp, kernel));
+        let wt = taps_major(&F32Values::of(w)?, (out_ch, inp, kernel));
         let dy_padded = F32Values::of(grad)?;
         let mut dy = rows.gather(&dy_padded, out_ch);
         if let Some(slope) = self.output.leaky_slope {
