@@ -23,7 +23,7 @@ pub fn numeric_gradient(var: &Var, k: usize, loss: impl Fn() -> f64) -> f64 {
     numeric
 }
 
-/// The largest |a[i] − b[i]| (the slices must have the same length).
+/// The largest `|a[i] − b[i]|` (the slices must have the same length).
 pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()

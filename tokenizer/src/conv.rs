@@ -20,13 +20,18 @@
 //! build them with `vb.pp("encoder")` and `vb.pp("decoder")`.
 //!
 //! Tensors are (batch, frames, features) everywhere: the convolutions run channels-last
-//! ([`crate::conv_op`]), with the ReLUs and up-samplings of the PyTorch `net` fused into the
-//! input reads of the convolutions that follow them.
+//! ([`nn::conv_op`]), with the ReLUs and up-samplings of the PyTorch `net` fused into the
+//! input reads of the convolutions that follow them. Both networks are one list of layers
+//! that runs two ways: on candle tensors (any device, candle's autograd), and for training on
+//! the CPU on plain values with a tape and a hand-written backward pass (`forward_tape`,
+//! `backward`), which spares candle's per-activation gradient buffers.
 
 use crate::error::TokenizerError;
-use candle_core::{Module, Tensor};
+use candle_core::{Module, Tensor, Var};
 use candle_nn::{Init, VarBuilder};
-use nn::conv_op::{conv1d, ConvGeometry};
+use nn::conv_op::{conv1d, ConvCpu, ConvGeometry, ConvOutput, ConvWeights};
+use nn::cpu_f32::F32Values;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// Shape of a T2M-GPT encoder/decoder pair.
@@ -185,6 +190,20 @@ impl Conv {
             vb,
         )
     }
+
+    /// The op on CPU values, with the weight in its gemm layout.
+    fn cpu(&self) -> candle_core::Result<(ConvCpu, ConvWeights)> {
+        let weights = ConvWeights::new(
+            &F32Values::of(&self.weight)?,
+            &F32Values::of(&self.bias)?,
+            self.weight.dims3()?,
+        );
+        let op = ConvCpu {
+            geometry: self.geometry,
+            output: ConvOutput::default(),
+        };
+        Ok((op, weights))
+    }
 }
 
 impl Module for Conv {
@@ -193,54 +212,210 @@ impl Module for Conv {
     }
 }
 
-/// One residual unit: `x + conv2(relu(conv1(relu(x))))`, `conv1` of kernel 3 and dilation
-/// `d` (padding `d` keeps the length), `conv2` of kernel 1; no normalisation. Both ReLUs
-/// are fused into the convolutions' input reads.
+/// One layer of an encoder or decoder, as both executors ([`ConvNet::forward`] on candle
+/// tensors, [`ConvNet::forward_tape`] on CPU values) run it.
 #[derive(Debug, Clone)]
-struct ResUnit {
-    conv1: Conv,
-    conv2: Conv,
+enum Layer {
+    /// `h = conv(h)`.
+    Conv(Conv),
+    /// A residual unit `h + conv2(relu(conv1(relu(h))))`: `conv1` of kernel 3 and dilation
+    /// `d` (padding `d` keeps the length), `conv2` of kernel 1, no normalisation; both ReLUs
+    /// are fused into the convolutions' input reads.
+    Residual(Conv, Conv),
+    /// `h = relu(h)`, where the ReLU's output also feeds a residual path (not fusable).
+    Relu,
 }
 
-impl ResUnit {
-    fn new(width: usize, dilation: usize, vb: VarBuilder) -> candle_core::Result<Self> {
-        Ok(Self {
-            conv1: Conv::same((width, width), 3, dilation, true, vb.pp("conv1"))?,
-            conv2: Conv::same((width, width), 1, 1, true, vb.pp("conv2"))?,
+/// The residual stack `units.{u}` of a `Resnet1d`, dilations [`ConvConfig::dilations`].
+fn residual_stack(config: &ConvConfig, vb: VarBuilder) -> candle_core::Result<Vec<Layer>> {
+    let (w, vb) = (config.width, vb.pp("units"));
+    config
+        .dilations()
+        .into_iter()
+        .enumerate()
+        .map(|(u, d)| {
+            let vb = vb.pp(u);
+            Ok(Layer::Residual(
+                Conv::same((w, w), 3, d, true, vb.pp("conv1"))?,
+                Conv::same((w, w), 1, 1, true, vb.pp("conv2"))?,
+            ))
         })
+        .collect()
+}
+
+/// What a CPU forward pass keeps for its backward pass, per layer.
+enum Saved {
+    /// The conv's input, its frames, the op and its weights.
+    Conv(Box<ConvStep>),
+    /// Both convs' steps of a residual unit (the second's input is the first's output).
+    Residual(Box<[ConvStep; 2]>),
+    /// The ReLU's output.
+    Relu(Vec<f32>),
+}
+
+/// One convolution as run forward: its input values, im2col matrix and frames, op and weights.
+struct ConvStep {
+    input: Vec<f32>,
+    columns: Option<Vec<f32>>,
+    frames: usize,
+    op: ConvCpu,
+    weights: ConvWeights,
+    /// The weight and bias tensors the gradients belong to.
+    params: (Tensor, Tensor),
+}
+
+impl ConvStep {
+    /// Run `conv` on `input` (batch × frames rows), keeping what its backward needs.
+    fn run(
+        conv: &Conv,
+        input: Vec<f32>,
+        (batch, frames): (usize, usize),
+    ) -> candle_core::Result<(Self, Vec<f32>)> {
+        let (op, weights) = conv.cpu()?;
+        let (y, columns) = op.forward_keeping_columns(&input, (batch, frames), &weights);
+        let step = Self {
+            input,
+            columns,
+            frames,
+            op,
+            weights,
+            params: (conv.weight.clone(), conv.bias.clone()),
+        };
+        Ok((step, y))
+    }
+
+    fn out_frames(&self) -> usize {
+        self.op.geometry.out_len(self.frames)
+    }
+
+    /// The input gradient (when asked for), pushing the parameter gradients onto `grads`.
+    fn backward(
+        self,
+        batch: usize,
+        dy: &[f32],
+        input_grad: bool,
+        grads: &mut ParamGrads,
+    ) -> candle_core::Result<Option<Vec<f32>>> {
+        let g = self.op.backward(
+            (&self.input, None, self.columns.as_deref()),
+            (batch, self.frames),
+            &self.weights,
+            dy,
+            input_grad,
+        );
+        let (weight, bias) = self.params;
+        let dw = Tensor::from_vec(g.weight, weight.shape(), weight.device())?;
+        let db = Tensor::from_vec(g.bias, bias.shape(), bias.device())?;
+        grads.extend([(weight, dw), (bias, db)]);
+        Ok(g.input)
     }
 }
 
-impl Module for ResUnit {
-    fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        x + self.conv2.forward(&self.conv1.forward(x)?)?
+/// Gradients of parameters, keyed by the parameter tensors (as a `GradStore` keys them).
+pub type ParamGrads = Vec<(Tensor, Tensor)>;
+
+/// A CPU forward pass's activations, for its backward pass.
+pub struct Tape {
+    batch: usize,
+    saved: Vec<Saved>,
+}
+
+impl Tape {
+    /// The backward pass of the [`ConvNet::forward_tape`] that recorded this tape, for the
+    /// output gradient `dy`: the input's gradient (when `input_grad`) and every parameter's.
+    fn backward(
+        self,
+        dy: Vec<f32>,
+        input_grad: bool,
+    ) -> candle_core::Result<(Option<Vec<f32>>, ParamGrads)> {
+        let Tape { batch, saved } = self;
+        let mut grads = ParamGrads::new();
+        let mut dh = dy;
+        for (i, step) in saved.into_iter().enumerate().rev() {
+            // The first layer's input gradient only when asked for (not for the data).
+            let wanted = input_grad || i > 0;
+            match step {
+                Saved::Conv(conv) => match conv.backward(batch, &dh, wanted, &mut grads)? {
+                    Some(dx) => dh = dx,
+                    None => return Ok((None, grads)),
+                },
+                Saved::Residual(steps) => {
+                    let [first, second] = *steps;
+                    let dmid = second
+                        .backward(batch, &dh, true, &mut grads)?
+                        .expect("asked for");
+                    let dx = first
+                        .backward(batch, &dmid, true, &mut grads)?
+                        .expect("asked for");
+                    add_assign(&mut dh, &dx);
+                }
+                Saved::Relu(out) => dh
+                    .par_iter_mut()
+                    .zip(out.par_iter())
+                    .for_each(|(d, &o)| *d = if o > 0.0 { *d } else { 0.0 }),
+            }
+        }
+        Ok((Some(dh), grads))
     }
 }
 
-/// A stack of residual units with dilations [`ConvConfig::dilations`], keys `units.{u}`.
+/// `a += b`, in parallel chunks.
+fn add_assign(a: &mut [f32], b: &[f32]) {
+    a.par_chunks_mut(1 << 14)
+        .zip(b.par_chunks(1 << 14))
+        .for_each(|(a, b)| a.iter_mut().zip(b).for_each(|(a, b)| *a += b));
+}
+
+/// The layers of an encoder or decoder, in order.
 #[derive(Debug, Clone)]
-struct Resnet1d {
-    units: Vec<ResUnit>,
+struct ConvNet {
+    layers: Vec<Layer>,
 }
 
-impl Resnet1d {
-    fn new(config: &ConvConfig, vb: VarBuilder) -> candle_core::Result<Self> {
-        let vb = vb.pp("units");
-        let units = config
-            .dilations()
-            .into_iter()
-            .enumerate()
-            .map(|(u, d)| ResUnit::new(config.width, d, vb.pp(u)))
-            .collect::<candle_core::Result<_>>()?;
-        Ok(Self { units })
-    }
-}
-
-impl Module for Resnet1d {
+impl ConvNet {
+    /// Forward pass on candle tensors (any device; gradients by candle's autograd).
     fn forward(&self, x: &Tensor) -> candle_core::Result<Tensor> {
-        self.units
+        self.layers
             .iter()
-            .try_fold(x.clone(), |h, unit| unit.forward(&h))
+            .try_fold(x.clone(), |h, layer| match layer {
+                Layer::Conv(conv) => conv.forward(&h),
+                Layer::Residual(conv1, conv2) => &h + conv2.forward(&conv1.forward(&h)?)?,
+                Layer::Relu => h.relu(),
+            })
+    }
+
+    /// Forward pass on CPU values `x` (batch × frames × channels, row-major): the output
+    /// values and frames, and the tape its hand-written backward pass reads. Off candle's
+    /// graph, so no gradient buffer is allocated and zero-filled per activation.
+    fn forward_tape(
+        &self,
+        x: Vec<f32>,
+        (batch, frames): (usize, usize),
+    ) -> candle_core::Result<(Vec<f32>, usize, Tape)> {
+        let (mut h, mut frames) = (x, frames);
+        let mut saved = Vec::with_capacity(self.layers.len());
+        for layer in &self.layers {
+            match layer {
+                Layer::Conv(conv) => {
+                    let (step, y) = ConvStep::run(conv, h, (batch, frames))?;
+                    frames = step.out_frames();
+                    saved.push(Saved::Conv(Box::new(step)));
+                    h = y;
+                }
+                Layer::Residual(conv1, conv2) => {
+                    let (first, mid) = ConvStep::run(conv1, h, (batch, frames))?;
+                    let (second, mut y) = ConvStep::run(conv2, mid, (batch, frames))?;
+                    add_assign(&mut y, &first.input);
+                    saved.push(Saved::Residual(Box::new([first, second])));
+                    h = y;
+                }
+                Layer::Relu => {
+                    h.par_iter_mut().for_each(|v| *v = v.max(0.0));
+                    saved.push(Saved::Relu(h.clone()));
+                }
+            }
+        }
+        Ok((h, frames, Tape { batch, saved }))
     }
 }
 
@@ -265,13 +440,37 @@ fn check_input(
     Ok(())
 }
 
+/// `net` run on CPU values from `x`, its output as a fresh variable (so that candle's autograd
+/// of what follows stops there) and the tape of the pass.
+fn forward_tape(net: &ConvNet, x: &Tensor) -> Result<(Var, Tape), TokenizerError> {
+    let (batch, frames, _) = x.dims3()?;
+    let (y, frames, tape) = net.forward_tape(F32Values::of(x)?.to_vec(), (batch, frames))?;
+    let channels = y.len() / (batch * frames);
+    Ok((
+        Var::from_vec(y, (batch, frames, channels), x.device())?,
+        tape,
+    ))
+}
+
+/// The hand-written backward pass recorded in `tape`, for the output gradient `dy`.
+fn backward(
+    tape: Tape,
+    dy: &Tensor,
+    input_grad: bool,
+    input_dims: (usize, usize, usize),
+) -> Result<(Option<Tensor>, ParamGrads), TokenizerError> {
+    let (dx, grads) = tape.backward(F32Values::of(dy)?.to_vec(), input_grad)?;
+    let dx = dx
+        .map(|dx| Tensor::from_vec(dx, input_dims, dy.device()))
+        .transpose()?;
+    Ok((dx, grads))
+}
+
 /// T2M-GPT motion encoder: (batch, frames, `input_dim`) → (batch, frames / 2^down_t, `code_dim`).
 #[derive(Debug, Clone)]
 pub struct ConvEncoder {
-    input: Conv,
-    /// Per stage: the stride-2 down-sampling conv, then its residual stack.
-    stages: Vec<(Conv, Resnet1d)>,
-    output: Conv,
+    /// Input conv; per stage the stride-2 down-sampling conv and its residual stack; output conv.
+    net: ConvNet,
     config: ConvConfig,
 }
 
@@ -280,25 +479,28 @@ impl ConvEncoder {
     pub fn new(config: &ConvConfig, vb: VarBuilder) -> Result<Self, TokenizerError> {
         config.validate()?;
         let (w, net) = (config.width, vb.pp("net"));
-        let input = Conv::same((config.input_dim, w), 3, 1, false, net.pp(0))?;
-        let stages = (0..config.down_t)
-            .map(|s| {
-                // The ReLU after the input conv (net.1) is fused into the first down conv.
-                let down = Conv::new((w, w, 4), 2, 1, 1, s == 0, false, net.pp(2 + 2 * s))?;
-                Ok((down, Resnet1d::new(config, net.pp(3 + 2 * s))?))
-            })
-            .collect::<candle_core::Result<_>>()?;
-        let output = Conv::same(
+        let mut layers = vec![Layer::Conv(Conv::same(
+            (config.input_dim, w),
+            3,
+            1,
+            false,
+            net.pp(0),
+        )?)];
+        for s in 0..config.down_t {
+            // The ReLU after the input conv (net.1) is fused into the first down conv.
+            let down = Conv::new((w, w, 4), 2, 1, 1, s == 0, false, net.pp(2 + 2 * s))?;
+            layers.push(Layer::Conv(down));
+            layers.extend(residual_stack(config, net.pp(3 + 2 * s))?);
+        }
+        layers.push(Layer::Conv(Conv::same(
             (w, config.code_dim),
             3,
             1,
             config.down_t == 0,
             net.pp(2 + 2 * config.down_t),
-        )?;
+        )?));
         Ok(Self {
-            input,
-            stages,
-            output,
+            net: ConvNet { layers },
             config: config.clone(),
         })
     }
@@ -313,29 +515,33 @@ impl ConvEncoder {
     pub fn forward(&self, x: &Tensor) -> Result<Tensor, TokenizerError> {
         let factor = self.config.downsample_factor();
         check_input(x, self.config.input_dim, factor, "conv encoder")?;
-        let h = self.input.forward(x)?;
-        let h = self
-            .stages
-            .iter()
-            .try_fold(h, |h, (down, res)| res.forward(&down.forward(&h)?))?;
-        Ok(self.output.forward(&h)?)
+        Ok(self.net.forward(x)?)
     }
-}
 
-/// One decoder stage: residual stack, then a k3 conv reading the ×2 nearest up-sampled input.
-#[derive(Debug, Clone)]
-struct UpStage {
-    resnet: Resnet1d,
-    conv: Conv,
+    /// [`Self::forward`] on the CPU for training: the latents as a fresh variable and the
+    /// tape for [`Self::backward`].
+    pub fn forward_tape(&self, x: &Tensor) -> Result<(Var, Tape), TokenizerError> {
+        check_input(
+            x,
+            self.config.input_dim,
+            self.config.downsample_factor(),
+            "conv encoder",
+        )?;
+        forward_tape(&self.net, x)
+    }
+
+    /// Every parameter's gradient for the latents' gradient `dz` (the input gets none).
+    pub fn backward(&self, tape: Tape, dz: &Tensor) -> Result<ParamGrads, TokenizerError> {
+        Ok(backward(tape, dz, false, (0, 0, 0))?.1)
+    }
 }
 
 /// T2M-GPT motion decoder: (batch, latents, `code_dim`) → (batch, latents · 2^down_t, `input_dim`).
 #[derive(Debug, Clone)]
 pub struct ConvDecoder {
-    input: Conv,
-    stages: Vec<UpStage>,
-    post: Conv,
-    output: Conv,
+    /// Input conv and ReLU; per stage a residual stack, then a k3 conv reading the ×2 nearest
+    /// up-sampled input; a k3 conv; the output conv.
+    net: ConvNet,
     config: ConvConfig,
 }
 
@@ -345,24 +551,21 @@ impl ConvDecoder {
         config.validate()?;
         let (w, net) = (config.width, vb.pp("net"));
         let input = Conv::same((config.code_dim, w), 3, 1, false, net.pp(0))?;
-        let stages = (0..config.down_t)
-            .map(|s| {
-                Ok(UpStage {
-                    resnet: Resnet1d::new(config, net.pp(2 + 3 * s))?,
-                    // Index 3 + 3s is the parameter-free Upsample, fused into this conv.
-                    conv: Conv::new((w, w, 3), 1, 1, 1, false, true, net.pp(4 + 3 * s))?,
-                })
-            })
-            .collect::<candle_core::Result<_>>()?;
+        // The ReLU after the input conv (net.1) feeds the residual path too: not fusable.
+        let mut layers = vec![Layer::Conv(input), Layer::Relu];
+        for s in 0..config.down_t {
+            layers.extend(residual_stack(config, net.pp(2 + 3 * s))?);
+            // Index 3 + 3s is the parameter-free Upsample, fused into this conv.
+            let up = Conv::new((w, w, 3), 1, 1, 1, false, true, net.pp(4 + 3 * s))?;
+            layers.push(Layer::Conv(up));
+        }
         let last = 2 + 3 * config.down_t;
-        let post = Conv::same((w, w), 3, 1, false, net.pp(last))?;
+        layers.push(Layer::Conv(Conv::same((w, w), 3, 1, false, net.pp(last))?));
         // net.{last+1} is the ReLU fused into the output conv.
         let output = Conv::same((w, config.input_dim), 3, 1, true, net.pp(last + 2))?;
+        layers.push(Layer::Conv(output));
         Ok(Self {
-            input,
-            stages,
-            post,
-            output,
+            net: ConvNet { layers },
             config: config.clone(),
         })
     }
@@ -375,13 +578,30 @@ impl ConvDecoder {
     /// Decode `z` (batch, latents, `code_dim`) to (batch, latents · 2^down_t, `input_dim`).
     pub fn forward(&self, z: &Tensor) -> Result<Tensor, TokenizerError> {
         check_input(z, self.config.code_dim, 1, "conv decoder")?;
-        // The ReLU after the input conv (net.1) feeds the residual path too: not fusable.
-        let h = self.input.forward(z)?.relu()?;
-        let h = self
-            .stages
-            .iter()
-            .try_fold(h, |h, stage| stage.conv.forward(&stage.resnet.forward(&h)?))?;
-        Ok(self.output.forward(&self.post.forward(&h)?)?)
+        Ok(self.net.forward(z)?)
+    }
+
+    /// [`Self::forward`] on the CPU for training: the motion as a fresh variable and the tape
+    /// for [`Self::backward`].
+    pub fn forward_tape(&self, z: &Tensor) -> Result<(Var, Tape), TokenizerError> {
+        check_input(z, self.config.code_dim, 1, "conv decoder")?;
+        forward_tape(&self.net, z)
+    }
+
+    /// The latents' gradient and every parameter's, for the motion's gradient `dy`.
+    pub fn backward(
+        &self,
+        tape: Tape,
+        dy: &Tensor,
+    ) -> Result<(Tensor, ParamGrads), TokenizerError> {
+        let (batch, frames, _) = dy.dims3()?;
+        let latents = frames / self.config.downsample_factor();
+        let dims = (batch, latents, self.config.code_dim);
+        let (dz, grads) = backward(tape, dy, true, dims)?;
+        Ok((
+            dz.expect("the decoder's input gradient was asked for"),
+            grads,
+        ))
     }
 }
 

@@ -18,6 +18,7 @@ use crate::conv::{ConvConfig, ConvDecoder, ConvEncoder};
 use crate::error::TokenizerError;
 use crate::fsq::{levels_for, Bound, FsqConfig, FsqQuantizer};
 use crate::vq::{VqConfig, VqQuantizer};
+use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::{VarBuilder, VarMap};
 use motionscale_core::rng::SplitMix64;
@@ -297,23 +298,87 @@ impl MotionTokenizer {
         x: &Tensor,
         first_step: bool,
     ) -> Result<(Reconstruction, usize), TokenizerError> {
-        let Quantizer::Vq(vq) = &mut self.quantizer else {
-            return Ok((self.forward(x)?, 0));
-        };
         let z = self.encoder.forward(x)?;
-        if first_step {
-            vq.init_from(&z)?;
+        let (quantized, indices, commitment, reset) = self.quantize_train(&z, first_step)?;
+        let pass = Reconstruction {
+            motion: self.decoder.forward(&quantized)?,
+            indices,
+            commitment,
+        };
+        Ok((pass, reset))
+    }
+
+    /// The quantizer's part of [`Self::forward_train`] on latents `z`: quantized latents
+    /// (straight-through), token ids, the commitment loss (VQ) and the dead codes reset.
+    fn quantize_train(
+        &mut self,
+        z: &Tensor,
+        first_step: bool,
+    ) -> Result<(Tensor, Tensor, Option<Tensor>, usize), TokenizerError> {
+        match &mut self.quantizer {
+            Quantizer::Fsq(fsq) => {
+                let out = fsq.forward(z)?;
+                Ok((out.quantized, out.indices, None, 0))
+            }
+            Quantizer::Vq(vq) => {
+                if first_step {
+                    vq.init_from(z)?;
+                }
+                let (out, reset) = vq.forward_train(z)?;
+                Ok((out.quantized, out.indices, Some(out.commitment_loss), reset))
+            }
         }
-        let (out, reset) = vq.forward_train(&z)?;
-        let motion = self.decoder.forward(&out.quantized)?;
-        Ok((
-            Reconstruction {
-                motion,
-                indices: out.indices,
-                commitment: Some(out.commitment_loss),
-            },
-            reset,
-        ))
+    }
+
+    /// One training pass on normalised windows `x`: the loss (`reconstruction` of the decoded
+    /// motion and `x`, plus the VQ commitment), the dead codes reset and the gradient of every
+    /// variable, keyed as `loss.backward()` keys them.
+    ///
+    /// On the CPU the encoder and decoder run their hand-written passes ([`ConvEncoder::forward_tape`]):
+    /// candle's autograd allocates and zero-fills a gradient buffer for every activation and
+    /// adds into it, about a tenth of a step at the T2M-GPT shape. Candle differentiates only
+    /// the loss (for the motion's gradient) and the quantizer (for the latents').
+    pub fn loss_and_grads(
+        &mut self,
+        x: &Tensor,
+        first_step: bool,
+        reconstruction: impl Fn(&Tensor, &Tensor) -> candle_core::Result<Tensor>,
+    ) -> Result<(f64, usize, GradStore), TokenizerError> {
+        if !self.device.is_cpu() {
+            let (pass, reset) = self.forward_train(x, first_step)?;
+            let mut loss = reconstruction(&pass.motion, x)?;
+            if let Some(commitment) = &pass.commitment {
+                loss = (loss + commitment)?;
+            }
+            let grads = loss.backward()?;
+            return Ok((loss.to_scalar::<f32>()? as f64, reset, grads));
+        }
+        let (z, encoder_tape) = self.encoder.forward_tape(x)?;
+        let (quantized, _, commitment, reset) = self.quantize_train(z.as_tensor(), first_step)?;
+        let (motion, decoder_tape) = self.decoder.forward_tape(&quantized)?;
+        let loss = reconstruction(motion.as_tensor(), x)?;
+        let dmotion = loss
+            .backward()?
+            .remove(motion.as_tensor())
+            .expect("the loss reads the motion");
+        let (dquantized, decoder_grads) = self.decoder.backward(decoder_tape, &dmotion)?;
+        // Σ quantized ⊙ dquantized has the decoder's gradient at the quantized latents: its
+        // backward carries it through the quantizer, with the commitment's own.
+        let mut through_quantizer = (&quantized * &dquantized)?.sum_all()?;
+        let mut total = loss.to_scalar::<f32>()? as f64;
+        if let Some(commitment) = &commitment {
+            through_quantizer = (through_quantizer + commitment)?;
+            total += commitment.to_scalar::<f32>()? as f64;
+        }
+        let mut grads = through_quantizer.backward()?;
+        let dz = grads
+            .remove(z.as_tensor())
+            .expect("the quantizer reads the latents");
+        let encoder_grads = self.encoder.backward(encoder_tape, &dz)?;
+        for (param, grad) in decoder_grads.into_iter().chain(encoder_grads) {
+            grads.insert(&param, grad);
+        }
+        Ok((total, reset, grads))
     }
 
     /// Token ids (batch, frames / 4) of normalised motion `x` (batch, frames, 263).
@@ -488,5 +553,74 @@ impl MotionTokenizer {
             .iter()
             .map(|b| format!("{b:02x}"))
             .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::loss::reconstruction_losses;
+
+    fn tokenizer(quantizer: &str) -> MotionTokenizer {
+        let conv = ConvConfig {
+            width: 16,
+            code_dim: 8,
+            ..ConvConfig::default()
+        };
+        let config = TokenizerConfig::new(quantizer, 256, Bound::Tanh, conv).unwrap();
+        let (mean, std) = (vec![0.0; FEATURES], vec![1.0; FEATURES]);
+        MotionTokenizer::new(config, mean, std, &Device::Cpu, 3).unwrap()
+    }
+
+    fn reconstruction(motion: &Tensor, x: &Tensor) -> candle_core::Result<Tensor> {
+        let weights = Tensor::new(&[1f32, 0.5], x.device())?;
+        (reconstruction_losses(motion, x)? * weights)?.sum_all()
+    }
+
+    /// The CPU path's hand-written encoder and decoder passes give the loss and every
+    /// gradient that candle's autograd of the same pass gives.
+    #[test]
+    fn hand_written_gradients_match_candle_autograd() {
+        let mut rng = SplitMix64(11);
+        let values: Vec<f32> = (0..2 * 32 * FEATURES)
+            .map(|_| rng.range(-1.5, 1.5) as f32)
+            .collect();
+        let x = Tensor::from_vec(values, (2, 32, FEATURES), &Device::Cpu).unwrap();
+        for quantizer in ["fsq", "vq"] {
+            let (mut hand, mut autograd) = (tokenizer(quantizer), tokenizer(quantizer));
+            let (loss, _, grads) = hand.loss_and_grads(&x, true, reconstruction).unwrap();
+            let (pass, _) = autograd.forward_train(&x, true).unwrap();
+            let mut expected_loss = reconstruction(&pass.motion, &x).unwrap();
+            if let Some(commitment) = &pass.commitment {
+                expected_loss = (expected_loss + commitment).unwrap();
+            }
+            let expected = expected_loss.backward().unwrap();
+            let expected_loss = expected_loss.to_scalar::<f32>().unwrap() as f64;
+            assert!(
+                (loss - expected_loss).abs() < 1e-6,
+                "{quantizer}: loss {loss} vs {expected_loss}"
+            );
+            let ours = hand.vars().data().lock().unwrap();
+            let theirs = autograd.vars().data().lock().unwrap();
+            assert!(ours.len() > 40, "{quantizer}: {} variables", ours.len());
+            for (name, var) in ours.iter() {
+                let ours = grads.get(var.as_tensor()).expect(name);
+                let theirs = expected.get(theirs[name].as_tensor()).expect(name);
+                let scale = theirs
+                    .abs()
+                    .unwrap()
+                    .max_all()
+                    .unwrap()
+                    .to_scalar::<f32>()
+                    .unwrap();
+                let diff = (ours - theirs).unwrap().abs().unwrap().max_all().unwrap();
+                let diff = diff.to_scalar::<f32>().unwrap();
+                assert!(scale > 0.0, "{quantizer} {name}: no gradient");
+                assert!(
+                    diff <= 1e-5 * scale.max(1e-3),
+                    "{quantizer} {name}: {diff} (scale {scale})"
+                );
+            }
+        }
     }
 }

@@ -266,16 +266,12 @@ pub fn optimizer_step(
     config: &TrainConfig,
     first_step: bool,
 ) -> Result<(f64, usize), TokenizerError> {
-    let (pass, reset) = model.forward_train(x, first_step)?;
-    let losses = reconstruction_losses(&pass.motion, x)?;
     let weights = Tensor::new(&[1f32, config.velocity_weight as f32], x.device())?;
-    let mut loss = (losses * weights)?.sum_all()?;
-    if let Some(commitment) = &pass.commitment {
-        loss = (loss + commitment)?;
-    }
-    let grads = loss.backward()?;
+    let reconstruction =
+        |motion: &Tensor, x: &Tensor| (reconstruction_losses(motion, x)? * &weights)?.sum_all();
+    let (loss, reset, grads) = model.loss_and_grads(x, first_step, reconstruction)?;
     optimizer.step(&grads, lr, config.grad_clip)?;
-    Ok((loss.to_scalar::<f32>()? as f64, reset))
+    Ok((loss, reset))
 }
 
 /// Start from scratch, or restore weights, optimiser position and state from `out` when it
