@@ -603,18 +603,12 @@ mod tests {
             let ours = hand.vars().data().lock().unwrap();
             let theirs = autograd.vars().data().lock().unwrap();
             assert!(ours.len() > 40, "{quantizer}: {} variables", ours.len());
+            let values = |t: &Tensor| t.flatten_all().unwrap().to_vec1::<f32>().unwrap();
             for (name, var) in ours.iter() {
-                let ours = grads.get(var.as_tensor()).expect(name);
-                let theirs = expected.get(theirs[name].as_tensor()).expect(name);
-                let scale = theirs
-                    .abs()
-                    .unwrap()
-                    .max_all()
-                    .unwrap()
-                    .to_scalar::<f32>()
-                    .unwrap();
-                let diff = (ours - theirs).unwrap().abs().unwrap().max_all().unwrap();
-                let diff = diff.to_scalar::<f32>().unwrap();
+                let ours = values(grads.get(var.as_tensor()).expect(name));
+                let theirs = values(expected.get(theirs[name].as_tensor()).expect(name));
+                let scale = theirs.iter().fold(0f32, |m, v| m.max(v.abs()));
+                let diff = nn::gradcheck::max_abs_diff(&ours, &theirs);
                 assert!(scale > 0.0, "{quantizer} {name}: no gradient");
                 assert!(
                     diff <= 1e-5 * scale.max(1e-3),
