@@ -343,11 +343,6 @@ impl ConvWeights {
             dims,
         }
     }
-
-    /// Output channels.
-    pub fn out_channels(&self) -> usize {
-        self.dims.0
-    }
 }
 
 /// The gradients of one convolution, weight in PyTorch's `(out, in, kernel)` layout.
@@ -456,6 +451,11 @@ impl ConvCpu {
     /// The output of the gemm operand `lhs` (see [`Self::lhs`]).
     fn product(&self, lhs: &[f32], rows: &Rows, w: &ConvWeights) -> Vec<f32> {
         let (out_ch, inp, kernel) = w.dims;
+        if self.per_tap() {
+            let frames = lhs.len() / (rows.batch * inp);
+            let y = PerTap::new(self, w, (rows.batch, frames)).forward(lhs);
+            return self.activate(y, rows, out_ch);
+        }
         // Every row starts as the bias (written once, no zero-fill first); gemm adds to it.
         let len = rows.count() * out_ch;
         let mut y = Vec::with_capacity(len);
@@ -472,9 +472,6 @@ impl ConvCpu {
         unsafe { y.set_len(len) };
         if self.polyphase() {
             Polyphase::new(w).forward(&mut y, lhs);
-        } else if self.per_tap() {
-            let frames = lhs.len() / (rows.batch * inp);
-            PerTap::new(self, w, (rows.batch, frames)).forward(&mut y, lhs);
         } else {
             gemm_with(
                 &mut y,
@@ -484,6 +481,11 @@ impl ConvCpu {
                 (true, 1.0, true),
             );
         }
+        self.activate(y, rows, out_ch)
+    }
+
+    /// The output activation applied to the computed rows `y`, which are then put in place.
+    fn activate(&self, mut y: Vec<f32>, rows: &Rows, out_ch: usize) -> Vec<f32> {
         if let Some(slope) = self.output.leaky_slope {
             leaky_relu(&mut y, slope);
         }
@@ -627,8 +629,8 @@ impl<'a> PerTap<'a> {
             .collect()
     }
 
-    /// `y` (batch-major, holding the bias) += the convolution of the time-major input `x_t`.
-    fn forward(&self, y: &mut [f32], x_t: &[f32]) {
+    /// The output (batch-major, with the bias) of the time-major input `x_t`.
+    fn forward(&self, x_t: &[f32]) -> Vec<f32> {
         let (out, inp, _) = self.w.dims;
         let b = self.batch;
         let mut y_t = vec![0f32; self.out_frames * b * out];
@@ -642,15 +644,21 @@ impl<'a> PerTap<'a> {
                 true,
             );
         }
-        // Back to batch-major, onto the bias.
+        // Back to batch-major, adding the bias on the way (as bias + product, the order of
+        // the other paths' single add).
+        let mut y = vec![0f32; y_t.len()];
         y.par_chunks_mut(self.out_frames * out)
             .enumerate()
             .for_each(|(bi, yb)| {
                 for (t, row) in yb.chunks_exact_mut(out).enumerate() {
                     let src = &y_t[(t * b + bi) * out..][..out];
-                    row.iter_mut().zip(src).for_each(|(d, v)| *d += v);
+                    row.iter_mut()
+                        .zip(src)
+                        .zip(&self.w.bias)
+                        .for_each(|((d, v), bias)| *d = bias + v);
                 }
             });
+        y
     }
 
     /// The weight gradient, taps-major, from the time-major output gradient `dy_t`.

@@ -190,7 +190,7 @@ impl<'a> Strided<'a> {
 
 /// `dst (+)= lhs · rhs` over strided views (m×k times k×n), into the m×n block of `dst`
 /// starting at `dst_offset` with rows `dst_row_stride` apart; on gemm's threads when large.
-/// For products whose operands are interleaved with other data (a polyphase convolution's).
+/// For products over windows of larger matrices (a polyphase phase, a convolution tap).
 pub fn gemm_strided(
     dst: &mut [f32],
     (dst_offset, dst_row_stride): (usize, usize),

@@ -316,7 +316,8 @@ pub type ParamGrads = Vec<(Tensor, Tensor)>;
 
 /// A CPU forward pass's activations, for its backward pass.
 pub struct Tape {
-    batch: usize,
+    /// (batch, frames, channels) of the input.
+    input: (usize, usize, usize),
     saved: Vec<Saved>,
 }
 
@@ -328,7 +329,8 @@ impl Tape {
         dy: Vec<f32>,
         input_grad: bool,
     ) -> candle_core::Result<(Option<Vec<f32>>, ParamGrads)> {
-        let Tape { batch, saved } = self;
+        let Tape { input, saved } = self;
+        let batch = input.0;
         let mut grads = ParamGrads::new();
         let mut dh = dy;
         for (i, step) in saved.into_iter().enumerate().rev() {
@@ -392,6 +394,7 @@ impl ConvNet {
         x: Vec<f32>,
         (batch, frames): (usize, usize),
     ) -> candle_core::Result<(Vec<f32>, usize, Tape)> {
+        let input = (batch, frames, x.len() / (batch * frames));
         let (mut h, mut frames) = (x, frames);
         let mut saved = Vec::with_capacity(self.layers.len());
         for layer in &self.layers {
@@ -415,7 +418,7 @@ impl ConvNet {
                 }
             }
         }
-        Ok((h, frames, Tape { batch, saved }))
+        Ok((h, frames, Tape { input, saved }))
     }
 }
 
@@ -457,11 +460,11 @@ fn backward(
     tape: Tape,
     dy: &Tensor,
     input_grad: bool,
-    input_dims: (usize, usize, usize),
 ) -> Result<(Option<Tensor>, ParamGrads), TokenizerError> {
+    let input = tape.input;
     let (dx, grads) = tape.backward(F32Values::of(dy)?.to_vec(), input_grad)?;
     let dx = dx
-        .map(|dx| Tensor::from_vec(dx, input_dims, dy.device()))
+        .map(|dx| Tensor::from_vec(dx, input, dy.device()))
         .transpose()?;
     Ok((dx, grads))
 }
@@ -532,7 +535,7 @@ impl ConvEncoder {
 
     /// Every parameter's gradient for the latents' gradient `dz` (the input gets none).
     pub fn backward(&self, tape: Tape, dz: &Tensor) -> Result<ParamGrads, TokenizerError> {
-        Ok(backward(tape, dz, false, (0, 0, 0))?.1)
+        Ok(backward(tape, dz, false)?.1)
     }
 }
 
@@ -594,10 +597,7 @@ impl ConvDecoder {
         tape: Tape,
         dy: &Tensor,
     ) -> Result<(Tensor, ParamGrads), TokenizerError> {
-        let (batch, frames, _) = dy.dims3()?;
-        let latents = frames / self.config.downsample_factor();
-        let dims = (batch, latents, self.config.code_dim);
-        let (dz, grads) = backward(tape, dy, true, dims)?;
+        let (dz, grads) = backward(tape, dy, true)?;
         Ok((
             dz.expect("the decoder's input gradient was asked for"),
             grads,
