@@ -17,8 +17,10 @@
 //! [`ConvCpu`] is the same computation on plain values, for networks that run their own
 //! backward pass (the tokenizer's); it can keep its im2col matrix for the backward pass. Over
 //! whole sequences, a stride-1 convolution runs one product per tap over the time-major input
-//! (no im2col, no multiply-adds with padding), and an up-sampling k3 convolution runs as two k2
-//! convolutions of the input itself (polyphase: a third fewer multiply-adds).
+//! (no im2col, no multiply-adds with padding), a k3 "same" convolution as Winograd's F(2,3)
+//! where that takes fewer products (a third fewer at dilation 1), and an up-sampling k3
+//! convolution as two k2 convolutions of the input itself (polyphase: a third fewer
+//! multiply-adds).
 //!
 //! [`conv1d_fused`] can also compute only each sequence's first output frames ([`ConvOutput`]):
 //! the rest are zero, as the mask after a padded batch's convolution makes them, but cost
@@ -30,6 +32,9 @@ use crate::matmul::{gemm_new, gemm_strided, gemm_with, transpose, Strided};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::borrow::Cow;
+use winograd::Winograd;
+
+mod winograd;
 
 /// Geometry of a convolution and the pre-ops fused into its input read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -402,11 +407,28 @@ impl ConvCpu {
         g.kernel > 1 && g.stride == 1 && !g.upsample_input && self.output.valid.is_none()
     }
 
+    /// The [`Winograd`] F(2,3) form of this conv over `frames`-frame sequences, when it is a
+    /// k3 "same" conv that [`PerTap`] would run and F(2,3) takes fewer products.
+    fn winograd<'a>(
+        &self,
+        w: &'a ConvWeights,
+        (batch, frames): (usize, usize),
+    ) -> Option<Winograd<'a>> {
+        let g = &self.geometry;
+        let same_k3 = g.kernel == 3 && g.padding == g.dilation;
+        (self.per_tap() && same_k3 && Winograd::pays_off(frames, g.dilation))
+            .then(|| Winograd::new(w, (g.dilation, g.relu_input), (batch, frames)))
+    }
+
     /// The matrix the products read: the im2col matrix of `x` (`x` itself, packed, when
     /// pointwise), one row per output row in `rows`, or per input frame when polyphase; the
-    /// time-major input for [`PerTap`] convs.
-    fn lhs<'a>(&self, x: &'a [f32], (frames, inp): (usize, usize), rows: &Rows) -> Cow<'a, [f32]> {
+    /// time-major input for [`PerTap`] convs, the transformed input for [`Winograd`] ones.
+    fn lhs<'a>(&self, x: &'a [f32], frames: usize, rows: &Rows, w: &ConvWeights) -> Cow<'a, [f32]> {
+        let inp = w.dims.1;
         assert_eq!(x.len(), rows.batch * frames * inp, "conv input size");
+        if let Some(winograd) = self.winograd(w, (rows.batch, frames)) {
+            return Cow::Owned(winograd.transform_input(x));
+        }
         if self.per_tap() {
             let relu = self.geometry.relu_input;
             return Cow::Owned(time_major(x, (rows.batch, frames, inp), relu));
@@ -430,7 +452,7 @@ impl ConvCpu {
     /// The output `(batch, out_frames, out)` of `x` `(batch, frames, in)`.
     pub fn forward(&self, x: &[f32], (batch, frames): (usize, usize), w: &ConvWeights) -> Vec<f32> {
         let rows = self.rows(batch, frames);
-        self.product(&self.lhs(x, (frames, w.dims.1), &rows), &rows, w)
+        self.product(&self.lhs(x, frames, &rows, w), (&rows, frames), w)
     }
 
     /// [`Self::forward`], also returning the im2col matrix it multiplied (`None` when that
@@ -442,17 +464,19 @@ impl ConvCpu {
         w: &ConvWeights,
     ) -> (Vec<f32>, Option<Vec<f32>>) {
         let rows = self.rows(batch, frames);
-        match self.lhs(x, (frames, w.dims.1), &rows) {
-            Cow::Borrowed(lhs) => (self.product(lhs, &rows, w), None),
-            Cow::Owned(cols) => (self.product(&cols, &rows, w), Some(cols)),
+        match self.lhs(x, frames, &rows, w) {
+            Cow::Borrowed(lhs) => (self.product(lhs, (&rows, frames), w), None),
+            Cow::Owned(cols) => (self.product(&cols, (&rows, frames), w), Some(cols)),
         }
     }
 
     /// The output of the gemm operand `lhs` (see [`Self::lhs`]).
-    fn product(&self, lhs: &[f32], rows: &Rows, w: &ConvWeights) -> Vec<f32> {
+    fn product(&self, lhs: &[f32], (rows, frames): (&Rows, usize), w: &ConvWeights) -> Vec<f32> {
         let (out_ch, inp, kernel) = w.dims;
+        if let Some(winograd) = self.winograd(w, (rows.batch, frames)) {
+            return self.activate(winograd.forward(lhs), rows, out_ch);
+        }
         if self.per_tap() {
-            let frames = lhs.len() / (rows.batch * inp);
             let y = PerTap::new(self, w, (rows.batch, frames)).forward(lhs);
             return self.activate(y, rows, out_ch);
         }
@@ -513,8 +537,17 @@ impl ConvCpu {
         }
         let lhs = match columns {
             Some(cols) => Cow::Borrowed(cols),
-            None => self.lhs(x, (frames, inp), &rows),
+            None => self.lhs(x, frames, &rows, w),
         };
+        if let Some(winograd) = self.winograd(w, (batch, frames)) {
+            let (weight, bias, input) = winograd.backward((x, &lhs), &dy, input_grad);
+            let weight = channels_major(&weight, (out_ch, inp, kernel));
+            return ConvGrads {
+                input,
+                weight,
+                bias,
+            };
+        }
         if self.per_tap() {
             let per_tap = PerTap::new(self, w, (batch, frames));
             let dy_t = time_major(&dy, (batch, rows.out, out_ch), false);
@@ -1171,7 +1204,7 @@ mod tests {
         check(up, 5, (4, 3));
     }
 
-    /// `geometry`'s own path (polyphase or per-tap) against the generic path (im2col, one
+    /// `geometry`'s own path (polyphase, per-tap or Winograd) against the generic path (im2col, one
     /// gemm), which computing every frame as "valid" selects: outputs and all three gradients
     /// agree to rounding, across sequence boundaries.
     fn matches_the_generic_path(
@@ -1246,6 +1279,32 @@ mod tests {
                 matches_the_generic_path(g, (3, frames, 16, 24));
             }
         }
+    }
+
+    /// Winograd F(2,3) where it takes fewer products than one per tap: dilation 1 with and
+    /// without a tile whose second output is past the end (9 and 8 frames), residue classes
+    /// of unequal lengths (dilation 2 and 3), with and without the input ReLU; per tap where
+    /// many taps read padding (dilation 9 over 16 frames, dilation 3 over 16).
+    #[test]
+    fn winograd_matches_the_im2col() {
+        let weights = ConvWeights::new(&[0.0; 3 * 16 * 24], &[0.0; 24], (24, 16, 3));
+        for (dilation, frames) in [(1, 8), (1, 9), (2, 13), (3, 32)] {
+            for relu_input in [false, true] {
+                let g = ConvGeometry {
+                    relu_input,
+                    ..ConvGeometry::plain(3, 1, dilation, dilation)
+                };
+                let op = ConvCpu {
+                    geometry: g,
+                    output: ConvOutput::default(),
+                };
+                assert!(op.winograd(&weights, (3, frames)).is_some(), "{g:?}");
+                matches_the_generic_path(g, (3, frames, 16, 24));
+            }
+        }
+        assert!(
+            !Winograd::pays_off(16, 9) && !Winograd::pays_off(16, 3) && Winograd::pays_off(16, 1)
+        );
     }
 
     /// The fused op computing only the first frames of each sequence, with a leaky ReLU,
