@@ -262,22 +262,36 @@ pub fn write_plots(out: &Path, rows: &[SweepRow]) -> Result<(), TokenizerError> 
     let mut sizes: Vec<f64> = rows.iter().map(|r| r.codebook as f64).collect();
     sizes.sort_by(f64::total_cmp);
     sizes.dedup();
-    type Metric<'a> = (&'a str, &'a str, &'a dyn Fn(&SweepRow) -> f64);
+    // Usage is read on the train split, reconstruction on the split the sweep evaluated.
+    let split = rows.first().map_or("evaluated", |r| r.split.as_str());
+    type Metric<'a> = (&'a str, String, &'a dyn Fn(&SweepRow) -> f64);
     let metrics: [Metric; 4] = [
-        ("utilization", "codebook utilisation (%)", &|r| {
-            100.0 * r.utilization
-        }),
-        ("entropy", "entropy of code usage (nats)", &|r| r.entropy),
-        ("mpjpe", "MPJPE, global joints (mm)", &|r| r.mpjpe_mm),
-        ("mpjpe_root", "MPJPE, root-aligned joints (mm)", &|r| {
-            r.mpjpe_root_mm
-        }),
+        (
+            "utilization",
+            "codebook utilisation, train split (%)".into(),
+            &|r| 100.0 * r.utilization,
+        ),
+        (
+            "entropy",
+            "entropy of code usage, train split (nats)".into(),
+            &|r| r.entropy,
+        ),
+        (
+            "mpjpe",
+            format!("MPJPE, global joints, {split} split (mm)"),
+            &|r| r.mpjpe_mm,
+        ),
+        (
+            "mpjpe_root",
+            format!("MPJPE, root-aligned joints, {split} split (mm)"),
+            &|r| r.mpjpe_root_mm,
+        ),
     ];
     for (name, label, value) in metrics {
         let mut chart = plot::Chart::new(
             format!("{label} vs codebook size"),
             "codebook size (nominal 2^k; FSQ uses Π L_i ≤ 2^k codes)",
-            label,
+            label.as_str(),
         );
         chart.log_x = true;
         chart.x_ticks = Some(sizes.clone());

@@ -75,8 +75,10 @@ pub fn bench_embed(args: BenchEmbedArgs) -> Result<ExitCode> {
         captions.len() as f64 / ours,
         tokens as f64 / ours
     );
+    // The corpus's folder name, not its path: a committed figure names no machine's folders.
+    let corpus = args.corpus.file_name().map(|n| n.to_string_lossy());
     let mut figures = serde_json::json!({"what": "caption embedding", "encoder": encoder.id(),
-        "corpus": args.corpus, "captions": captions.len(), "tokens": tokens, "batch": args.batch,
+        "corpus": corpus, "captions": captions.len(), "tokens": tokens, "batch": args.batch,
         "threads": rayon::current_num_threads(), "time": timing,
         "captions_per_s": captions.len() as f64 / ours});
     if args.reference {
