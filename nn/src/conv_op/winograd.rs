@@ -21,6 +21,7 @@
 use super::{bias_gradient, ConvWeights};
 use crate::matmul::{gemm_new, transpose};
 use rayon::prelude::*;
+use std::ops::Range;
 
 /// One Winograd F(2,3) convolution over a batch of whole sequences.
 pub(super) struct Winograd<'a> {
@@ -52,6 +53,22 @@ fn per_block(
         .zip(fourth.par_chunks_mut(block))
         .map(|(((a, b), c), d)| (a, b, c, d))
         .enumerate()
+}
+
+/// Values `at` of each of the four products.
+fn rows_at(products: &[Vec<f32>], at: Range<usize>) -> [&[f32]; 4] {
+    [0, 1, 2, 3].map(|j| &products[j][at.clone()])
+}
+
+/// Values `at` of each of the four components of `block`.
+fn slice_components<'s>(block: &'s mut Components<'_>, at: Range<usize>) -> Components<'s> {
+    let (c0, c1, c2, c3) = block;
+    (
+        &mut c0[at.clone()],
+        &mut c1[at.clone()],
+        &mut c2[at.clone()],
+        &mut c3[at],
+    )
 }
 
 impl<'a> Winograd<'a> {
@@ -102,18 +119,12 @@ impl<'a> Winograd<'a> {
         let relu = self.relu_input;
         let d = self.dilation as isize;
         let mut xt = vec![0f32; 4 * self.rows() * inp];
-        per_block(&mut xt, self.tiles.len() * inp).for_each(|(b, (c0, c1, c2, c3))| {
+        per_block(&mut xt, self.tiles.len() * inp).for_each(|(b, mut block)| {
             let read = |f| self.frame(x, b, f, inp).unwrap_or(&zeros);
             for (i, &t0) in self.tiles.iter().enumerate() {
                 let t0 = t0 as isize;
                 let (x0, x1, x2, x3) = (read(t0 - d), read(t0), read(t0 + d), read(t0 + 2 * d));
-                let at = i * inp..(i + 1) * inp;
-                let (c0, c1, c2, c3) = (
-                    &mut c0[at.clone()],
-                    &mut c1[at.clone()],
-                    &mut c2[at.clone()],
-                    &mut c3[at],
-                );
+                let (c0, c1, c2, c3) = slice_components(&mut block, i * inp..(i + 1) * inp);
                 for c in 0..inp {
                     let act = |v: f32| if relu { v.max(0.0) } else { v };
                     let (v0, v1, v2, v3) = (act(x0[c]), act(x1[c]), act(x2[c]), act(x3[c]));
@@ -131,16 +142,7 @@ impl<'a> Winograd<'a> {
         // W̃_j as (in × out), from the taps-major transposed weight `(3·in, out)`.
         let tap = |k: usize, r: usize| &self.w.taps_t[(k * inp + r) * out..][..out];
         let wt = transform_weight(inp * out, out, |r| [tap(0, r), tap(1, r), tap(2, r)]);
-        let products: Vec<Vec<f32>> = (0..4)
-            .map(|j| {
-                let (lhs, rhs) = (
-                    &xt[j * rows * inp..][..rows * inp],
-                    &wt[j * inp * out..][..inp * out],
-                );
-                gemm_new((lhs, false), (rhs, false), (rows, out, inp))
-            })
-            .collect();
-        self.transform_output(&products)
+        self.transform_output(&component_products(xt, &wt, (rows, out, inp)))
     }
 
     /// `y = bias + A·M`: each output frame from its tile's four products.
@@ -153,13 +155,7 @@ impl<'a> Winograd<'a> {
             .for_each(|(b, yb)| {
                 for (dst, &(i, second)) in yb.chunks_exact_mut(out).zip(&slots) {
                     let row = b * self.tiles.len() + i;
-                    let at = row * out..(row + 1) * out;
-                    let (m0, m1, m2, m3) = (
-                        &m[0][at.clone()],
-                        &m[1][at.clone()],
-                        &m[2][at.clone()],
-                        &m[3][at],
-                    );
+                    let [m0, m1, m2, m3] = rows_at(m, row * out..(row + 1) * out);
                     let bias = &self.w.bias[..out];
                     match second {
                         false => (0..out).for_each(|c| dst[c] = bias[c] + (m0[c] + m1[c] + m2[c])),
@@ -204,18 +200,12 @@ impl<'a> Winograd<'a> {
         let zeros = vec![0f32; out];
         let d = self.dilation as isize;
         let mut dm = vec![0f32; 4 * self.rows() * out];
-        per_block(&mut dm, self.tiles.len() * out).for_each(|(b, (c0, c1, c2, c3))| {
+        per_block(&mut dm, self.tiles.len() * out).for_each(|(b, mut block)| {
             for (i, &t0) in self.tiles.iter().enumerate() {
                 let t0 = t0 as isize;
                 let g0 = self.frame(dy, b, t0, out).unwrap_or(&zeros);
                 let g1 = self.frame(dy, b, t0 + d, out).unwrap_or(&zeros);
-                let at = i * out..(i + 1) * out;
-                let (c0, c1, c2, c3) = (
-                    &mut c0[at.clone()],
-                    &mut c1[at.clone()],
-                    &mut c2[at.clone()],
-                    &mut c3[at],
-                );
+                let (c0, c1, c2, c3) = slice_components(&mut block, i * out..(i + 1) * out);
                 for c in 0..out {
                     (c0[c], c1[c], c2[c], c3[c]) = (g0[c], g0[c] + g1[c], g0[c] - g1[c], -g1[c]);
                 }
@@ -241,13 +231,7 @@ impl<'a> Winograd<'a> {
             .collect();
         let mut grad = vec![0f32; out * 3 * inp];
         grad.par_chunks_mut(3 * inp).enumerate().for_each(|(o, g)| {
-            let at = o * inp..(o + 1) * inp;
-            let (d0, d1, d2, d3) = (
-                &dwt[0][at.clone()],
-                &dwt[1][at.clone()],
-                &dwt[2][at.clone()],
-                &dwt[3][at],
-            );
+            let [d0, d1, d2, d3] = rows_at(&dwt, o * inp..(o + 1) * inp);
             let (g0, rest) = g.split_at_mut(inp);
             let (g1, g2) = rest.split_at_mut(inp);
             for c in 0..inp {
@@ -266,16 +250,7 @@ impl<'a> Winograd<'a> {
         // W̃_jᵀ as (out × in), from the taps-major weight `(out, 3·in)`.
         let tap = |k: usize, o: usize| &self.w.taps[(3 * o + k) * inp..][..inp];
         let wt = transform_weight(out * inp, inp, |o| [tap(0, o), tap(1, o), tap(2, o)]);
-        let dxt: Vec<Vec<f32>> = (0..4)
-            .map(|j| {
-                let (lhs, rhs) = (
-                    &dm[j * rows * out..][..rows * out],
-                    &wt[j * out * inp..][..out * inp],
-                );
-                gemm_new((lhs, false), (rhs, false), (rows, inp, out))
-            })
-            .collect();
-        self.gather_input_grad(&dxt, x)
+        self.gather_input_grad(&component_products(dm, &wt, (rows, inp, out)), x)
     }
 
     /// `dx = Bᵀ·dX̃` frame by frame: a frame is one role (position in the tile) of at most
@@ -289,9 +264,8 @@ impl<'a> Winograd<'a> {
             .for_each(|(b, dxb)| {
                 for (s, dst) in dxb.chunks_exact_mut(inp).enumerate() {
                     for &(i, role) in &readers[s] {
-                        let row = (b * self.tiles.len() + i) * inp;
-                        let e = |j: usize| &dxt[j][row..row + inp];
-                        add_role(dst, role, [e(0), e(1), e(2), e(3)]);
+                        let row = b * self.tiles.len() + i;
+                        add_role(dst, role, rows_at(dxt, row * inp..(row + 1) * inp));
                     }
                     if self.relu_input {
                         let xs = &x[(b * self.frames + s) * inp..][..inp];
@@ -326,6 +300,16 @@ impl<'a> Winograd<'a> {
 fn tiles(frames: usize, dilation: usize) -> Vec<usize> {
     (0..dilation.min(frames))
         .flat_map(|r| (r..frames).step_by(2 * dilation))
+        .collect()
+}
+
+/// The four products `lhs_j · rhs_j` (m×k times k×n) of components stored one after another.
+fn component_products(lhs: &[f32], rhs: &[f32], (m, n, k): (usize, usize, usize)) -> Vec<Vec<f32>> {
+    (0..4)
+        .map(|j| {
+            let (lhs, rhs) = (&lhs[j * m * k..][..m * k], &rhs[j * k * n..][..k * n]);
+            gemm_new((lhs, false), (rhs, false), (m, n, k))
+        })
         .collect()
 }
 
