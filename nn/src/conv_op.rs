@@ -540,12 +540,11 @@ impl ConvCpu {
             None => self.lhs(x, frames, &rows, w),
         };
         if let Some(winograd) = self.winograd(w, (batch, frames)) {
-            let (weight, bias, input) = winograd.backward((x, &lhs), &dy, input_grad);
-            let weight = channels_major(&weight, (out_ch, inp, kernel));
+            let (weight, input) = winograd.backward((x, &lhs), &dy, input_grad);
             return ConvGrads {
                 input,
-                weight,
-                bias,
+                weight: channels_major(&weight, (out_ch, inp, kernel)),
+                bias: bias_gradient(&dy, out_ch),
             };
         }
         if self.per_tap() {
@@ -623,6 +622,24 @@ fn time_major(x: &[f32], (batch, frames, channels): Dims3, relu: bool) -> Vec<f3
     t
 }
 
+/// The time-major `v_t` (frames × batch × width) back to batch-major: `write(b, f, row, src)`
+/// writes the row of sequence `b`, frame `f` from its time-major row `src`.
+fn batch_major(
+    v_t: &[f32],
+    (batch, frames, width): Dims3,
+    write: impl Fn(usize, usize, &mut [f32], &[f32]) + Sync,
+) -> Vec<f32> {
+    let mut v = vec![0f32; v_t.len()];
+    v.par_chunks_mut(frames * width)
+        .enumerate()
+        .for_each(|(b, vb)| {
+            for (f, row) in vb.chunks_exact_mut(width).enumerate() {
+                write(b, f, row, &v_t[(f * batch + b) * width..][..width]);
+            }
+        });
+    v
+}
+
 /// A stride-1 convolution as one product per tap over the time-major input: with frames
 /// outermost, the output frames whose tap `k` reads inside the input are one contiguous block
 /// of rows for the whole batch, and so are the input frames they read. So no im2col copy, and
@@ -679,19 +696,12 @@ impl<'a> PerTap<'a> {
         }
         // Back to batch-major, adding the bias on the way (as bias + product, the order of
         // the other paths' single add).
-        let mut y = vec![0f32; y_t.len()];
-        y.par_chunks_mut(self.out_frames * out)
-            .enumerate()
-            .for_each(|(bi, yb)| {
-                for (t, row) in yb.chunks_exact_mut(out).enumerate() {
-                    let src = &y_t[(t * b + bi) * out..][..out];
-                    row.iter_mut()
-                        .zip(src)
-                        .zip(&self.w.bias)
-                        .for_each(|((d, v), bias)| *d = bias + v);
-                }
-            });
-        y
+        batch_major(&y_t, (b, self.out_frames, out), |_, _, row, src| {
+            row.iter_mut()
+                .zip(src)
+                .zip(&self.w.bias)
+                .for_each(|((d, v), bias)| *d = bias + v);
+        })
     }
 
     /// The weight gradient, taps-major, from the time-major output gradient `dy_t`.
@@ -732,19 +742,12 @@ impl<'a> PerTap<'a> {
             );
         }
         let relu = self.geometry.relu_input;
-        let mut dx = vec![0f32; x.len()];
-        dx.par_chunks_mut(self.frames * inp)
-            .enumerate()
-            .for_each(|(bi, dxb)| {
-                for (f, row) in dxb.chunks_exact_mut(inp).enumerate() {
-                    let src = &dx_t[(f * b + bi) * inp..][..inp];
-                    let xs = &x[(bi * self.frames + f) * inp..][..inp];
-                    row.iter_mut().zip(src).zip(xs).for_each(|((d, &g), &v)| {
-                        *d = if relu && v <= 0.0 { 0.0 } else { g };
-                    });
-                }
+        batch_major(&dx_t, (b, self.frames, inp), |bi, f, row, src| {
+            let xs = &x[(bi * self.frames + f) * inp..][..inp];
+            row.iter_mut().zip(src).zip(xs).for_each(|((d, &g), &v)| {
+                *d = if relu && v <= 0.0 { 0.0 } else { g };
             });
-        dx
+        })
     }
 }
 

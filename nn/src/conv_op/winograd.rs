@@ -18,7 +18,7 @@
 //! paired from the first); a tile whose second output is past the end computes it and drops
 //! it, and frames before the start or past the end read as zero.
 
-use super::{bias_gradient, ConvWeights};
+use super::ConvWeights;
 use crate::matmul::{gemm_new, transpose};
 use rayon::prelude::*;
 use std::ops::Range;
@@ -179,19 +179,17 @@ impl<'a> Winograd<'a> {
     }
 
     /// The gradients for the output gradient `dy` (batch-major) of [`Self::forward`] on the
-    /// batch-major input `x` with transformed input `xt`: the weight's (taps-major), the
-    /// bias's and, when `input_grad`, the input's (batch-major, through the ReLU's mask).
+    /// batch-major input `x` with transformed input `xt`: the weight's (taps-major) and, when
+    /// `input_grad`, the input's (batch-major, through the ReLU's mask).
     pub(super) fn backward(
         &self,
         (x, xt): (&[f32], &[f32]),
         dy: &[f32],
         input_grad: bool,
-    ) -> (Vec<f32>, Vec<f32>, Option<Vec<f32>>) {
-        let out = self.w.dims.0;
+    ) -> (Vec<f32>, Option<Vec<f32>>) {
         let dm = self.transform_output_grad(dy);
         let weight = self.weight_grad(&dm, xt);
-        let input = input_grad.then(|| self.input_grad(&dm, x));
-        (weight, bias_gradient(dy, out), input)
+        (weight, input_grad.then(|| self.input_grad(&dm, x)))
     }
 
     /// `dM = Aᵀ·dy` (4 × tiles·batch × out); an output past the end has no gradient.
