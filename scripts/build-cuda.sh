@@ -8,6 +8,7 @@
 # on the GPU machine the driver's own libcuda.so.1 takes its place (scripts/cuda-check.sh).
 #
 #   CUDA_COMPUTE_CAP=90 CUDA_DIR=$HOME/.cache/motionscale/cuda13 bash scripts/build-cuda.sh
+#   bash scripts/build-cuda.sh --check   # cargo check --workspace --all-targets --features cuda
 #
 # CUDA_COMPUTE_CAP: the GPU's compute capability (90: H100/H200); candle's kernels are built
 # for it (nvidia-smi is not asked, there is none here).
@@ -39,6 +40,11 @@ if [ ! -f "$link/libcuda.so.1" ]; then
   ln -sf libcuda.so.1 "$link/libcuda.so"
 fi
 target=${CARGO_TARGET_DIR:-target-cuda}
+if [ "${1-}" = "--check" ]; then
+  CARGO_TARGET_DIR=$target RUSTFLAGS="-L native=$link" \
+    cargo check --release --workspace --all-targets --features cuda
+  exit
+fi
 CARGO_TARGET_DIR=$target RUSTFLAGS="-L native=$link" \
   cargo build --release --features cuda --bin motionscale
 echo "$target/release/motionscale (needs libcuda.so.1, libcublas.so.13, libcublasLt.so.13, libcurand.so.10, libcudart.so.13 at run time)"

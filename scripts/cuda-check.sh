@@ -2,8 +2,8 @@
 # Checks a motionscale binary built with `--features cuda` on a machine with an NVIDIA GPU:
 #  1. finds the CUDA libraries the binary links (the driver's libcuda.so.1; cuBLAS, cuRAND and
 #     the runtime, e.g. from a PyTorch install) and sets LD_LIBRARY_PATH;
-#  2. `evaluator train` STEPS steps on the GPU, then the same command with CUDA_VISIBLE_DEVICES=
-#     (nn::default_device() falls back to the CPU), same seed, a validation every step;
+#  2. `evaluator train` STEPS steps with `--device cuda`, then the same command with
+#     `--device cpu`, same seed, a validation every step;
 #  3. `evaluator embed` of the test split with the GPU-trained weights on both devices;
 #  4. prints both loss logs side by side and the largest embedding difference; all in $OUT.
 #
@@ -23,44 +23,9 @@ main() {
 WORK=$(mktemp -d -t cuda-check.XXXXXX)
 echo "== work dir $WORK, out $OUT, steps $STEPS, batch $BATCH, seed $SEED"
 
-# ---- 1. binary (gzip-compressed binaries are unpacked first)
-BIN=${BIN:?set BIN to the cuda-built motionscale}
-case "$BIN" in
-  *.gz) gzip -dc "$BIN" > "$WORK/motionscale"; chmod +x "$WORK/motionscale"; BIN=$WORK/motionscale;;
-esac
-sha256sum "$BIN" 2>/dev/null | tee "$OUT/binary.sha256"
-
-# ---- libraries: known places first, then ONE filesystem search for the rest (never */stubs/*)
-LIBS="libcuda.so.1 libcudart.so.13 libcublas.so.13 libcublasLt.so.13 libcurand.so.10 libnvrtc.so.13"
-KNOWN=(/usr/local/nvidia/lib64 /usr/local/nvidia/lib /usr/lib/x86_64-linux-gnu /usr/lib64 /lib/x86_64-linux-gnu
-       /opt/torch/.venv/lib/python3*/site-packages/nvidia/cu13/lib /opt/torch/.venv/lib/python3*/site-packages/nvidia/*/lib
-       /usr/local/cuda/lib64 /usr/local/cuda/targets/x86_64-linux/lib)
-declare -A FOUND=()
-for lib in $LIBS; do
-  for d in "${KNOWN[@]}"; do if [ -f "$d/$lib" ]; then FOUND[$lib]=$d; break; fi; done
-done
-MISSING=""; for lib in $LIBS; do [ -n "${FOUND[$lib]-}" ] || MISSING="$MISSING $lib"; done
-if [ -n "$MISSING" ]; then
-  echo "searching / for:$MISSING"
-  expr=(); for lib in $MISSING; do expr+=(-o -name "$lib"); done
-  while read -r f; do
-    b=$(basename "$f"); if [ -z "${FOUND[$b]-}" ] && [ -f "$f" ]; then FOUND[$b]=$(dirname "$f"); fi
-  done < <(timeout 90 find / \( -path /proc -o -path /sys -o -path '*/stubs' -o -path '*/.debug' \) -prune \
-             -o \( -false "${expr[@]}" \) -print 2>/dev/null)
-fi
-LIBDIRS=()
-for lib in $LIBS; do
-  d=${FOUND[$lib]-}
-  echo "lib $lib -> ${d:-NOT FOUND}"
-  if [ -n "$d" ]; then
-    case " ${LIBDIRS[*]-} " in *" $d "*) ;; *) LIBDIRS+=("$d");; esac
-  fi
-done
-LD=$(IFS=:; echo "${LIBDIRS[*]-}")
-export LD_LIBRARY_PATH=$LD${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
-echo "LD_LIBRARY_PATH=$LD_LIBRARY_PATH"
-echo "== ldd"; ldd "$BIN" > "$OUT/ldd.txt" 2>&1; cat "$OUT/ldd.txt"
-if grep -q -i 'not found\|error' "$OUT/ldd.txt"; then echo "FATAL: unresolved libraries"; return 2; fi
+# ---- 1. binary and CUDA libraries (scripts/cuda-env.sh)
+source "$(dirname "${BASH_SOURCE[0]}")/cuda-env.sh"
+cuda_env || return $?
 
 # ---- 2. GPU
 echo "== nvidia-smi -L"; nvidia-smi -L; nvidia-smi --query-gpu=name,driver_version,memory.used,memory.total --format=csv
@@ -69,12 +34,15 @@ echo "== nvidia-smi -L"; nvidia-smi -L; nvidia-smi --query-gpu=name,driver_versi
 cp -r "${CORPUS:?set CORPUS to a corpus with caption embeddings}" "$WORK/corpus"
 CORPUS=$WORK/corpus
 
-run_train() { # $1 = gpu|cpu, rest: env assignments
-  local tag=$1; shift
-  echo "== evaluator train on $tag ($*)"
+device_of() { [ "$1" = gpu ] && echo cuda || echo cpu; }
+
+run_train() { # $1 = gpu|cpu
+  local tag=$1
+  echo "== evaluator train on $tag"
   local t0=$(date +%s.%N)
-  env "$@" timeout "$RUN_TIMEOUT" "$BIN" evaluator train --corpus "$CORPUS" --out "$WORK/ev-$tag" \
-      --steps "$STEPS" --eval-every 1 --batch "$BATCH" --seed "$SEED" > "$OUT/train-$tag.out" 2>&1
+  RUST_BACKTRACE=1 timeout "$RUN_TIMEOUT" "$BIN" evaluator train --corpus "$CORPUS" --out "$WORK/ev-$tag" \
+      --steps "$STEPS" --eval-every 1 --batch "$BATCH" --seed "$SEED" --device "$(device_of "$tag")" \
+      > "$OUT/train-$tag.out" 2>&1
   local rc=$?
   local t1=$(date +%s.%N)
   cat "$OUT/train-$tag.out"
@@ -84,30 +52,28 @@ run_train() { # $1 = gpu|cpu, rest: env assignments
   return $rc
 }
 
-# ---- 3a. GPU run, with a memory/utilisation monitor (evidence the GPU was really used:
-# default_device() silently falls back to the CPU when CUDA does not initialise)
+# ---- 3a. GPU run, with a memory/utilisation monitor (evidence the GPU was really used)
 nvidia-smi --query-gpu=timestamp,memory.used,utilization.gpu --format=csv -lms 500 > "$OUT/gpu-monitor.csv" 2>&1 &
 MON=$!
 ( while sleep 1; do nvidia-smi --query-compute-apps=pid,process_name,used_memory --format=csv,noheader; done ) \
   > "$OUT/gpu-apps.txt" 2>&1 &
 APPS=$!
-run_train gpu RUST_BACKTRACE=1
+run_train gpu
 GPU_RC=$?
 kill "$MON" "$APPS" 2>/dev/null; wait "$MON" "$APPS" 2>/dev/null
 echo "peak GPU memory.used during the GPU run (MiB): $(awk -F', ' 'NR>1{gsub(/ MiB/,"",$2); if($2+0>m)m=$2+0} END{print m+0}' "$OUT/gpu-monitor.csv")"
 echo "compute apps seen: $(sort -u "$OUT/gpu-apps.txt" | grep -c motionscale) motionscale line(s)"; sort -u "$OUT/gpu-apps.txt" | head -5
 
-# ---- 3b. CPU run (same binary, no visible GPU)
-run_train cpu CUDA_VISIBLE_DEVICES= RUST_BACKTRACE=1
+# ---- 3b. CPU run (same binary)
+run_train cpu
 CPU_RC=$?
 
 # ---- 4. forward pass of the GPU-trained weights on both devices
 if [ $GPU_RC -eq 0 ]; then
   for tag in gpu cpu; do
-    if [ $tag = cpu ]; then envs="CUDA_VISIBLE_DEVICES="; else envs="RUST_BACKTRACE=1"; fi
     echo "== evaluator embed (GPU-trained weights) on $tag"
-    env $envs timeout "$RUN_TIMEOUT" "$BIN" evaluator embed --evaluator "$WORK/ev-gpu" --motions "$CORPUS" \
-        --split test --out "$OUT/embed-$tag" > "$OUT/embed-$tag.out" 2>&1
+    RUST_BACKTRACE=1 timeout "$RUN_TIMEOUT" "$BIN" evaluator embed --evaluator "$WORK/ev-gpu" --motions "$CORPUS" \
+        --split test --device "$(device_of "$tag")" --out "$OUT/embed-$tag" > "$OUT/embed-$tag.out" 2>&1
     echo "embed-$tag rc=$?"; tail -5 "$OUT/embed-$tag.out"
   done
 fi

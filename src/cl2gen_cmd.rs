@@ -1,5 +1,6 @@
 //! `motionscale cl2gen`: continual learning to generate with BI-CTVAE.
 
+use crate::device_args::DeviceArgs;
 use anyhow::{bail, Context, Result};
 use evaluator::metrics::Interval;
 use experiments::cl2gen::{compare_table, run_cl2gen, Cl2GenConfig, MetricIntervals, ReplaySource};
@@ -90,6 +91,9 @@ pub struct Cl2GenArgs {
     /// Output folder; re-running resumes after the last finished task.
     #[arg(long, required = true)]
     pub out: Option<PathBuf>,
+    /// Where BI-CTVAE and the evaluator run (recorded in summary.json).
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// `motionscale cl2gen compare`.
@@ -133,6 +137,7 @@ pub fn cl2gen(args: Cl2GenArgs) -> Result<ExitCode> {
         bail!("--corpus, --evaluator and --out are required");
     };
     crate::memory::keep_freed_memory();
+    let device = args.device.open()?;
     let replay = ratio(&args.replay).with_context(|| format!("--replay {:?}", args.replay))?;
     if args.min_frames < 4 || args.max_frames < args.min_frames {
         bail!("--min-frames must be at least 4 and at most --max-frames");
@@ -173,7 +178,7 @@ pub fn cl2gen(args: Cl2GenArgs) -> Result<ExitCode> {
         out,
     };
     let started = std::time::Instant::now();
-    let report = run_cl2gen(&config, |line| eprintln!("{line}"))?;
+    let report = run_cl2gen(&config, &device, |line| eprintln!("{line}"))?;
     let last = report.evals.last().context("no task")?;
     let opt = |v: Option<f64>| v.map_or_else(|| "–".into(), |v| format!("{v:.3}"));
     println!(

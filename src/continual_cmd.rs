@@ -93,6 +93,9 @@ pub struct ContinualArgs {
     /// Output folder; re-running resumes.
     #[arg(long, required = true)]
     pub out: Option<PathBuf>,
+    /// Where the evaluator runs.
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
 }
 
 /// `motionscale continual compare`.
@@ -145,6 +148,7 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         ..EsMoeConfig::default()
     });
     crate::memory::keep_freed_memory();
+    let device = args.device.open()?;
     let config = ContinualConfig {
         scenarios: required(args.scenarios, "scenarios")?,
         tokens: required(args.tokens, "tokens")?,
@@ -180,7 +184,7 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         out: required(args.out, "out")?,
     };
     let started = std::time::Instant::now();
-    let report = run_continual(&config, |line| eprintln!("{line}"))?;
+    let report = run_continual(&config, &device, |line| eprintln!("{line}"))?;
     let s = report.mean;
     let opt = |v: Option<f64>| v.map_or_else(|| "–".into(), |v| format!("{v:.3}"));
     println!(

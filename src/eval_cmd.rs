@@ -2,6 +2,7 @@
 //! the user's corpus, and generation metrics computed with it.
 
 use crate::commands::progress_bar;
+use crate::device_args::DeviceArgs;
 use anyhow::{Context, Result};
 use evaluator::model::TrainedEvaluator;
 use evaluator::score::{
@@ -60,11 +61,15 @@ pub struct EvaluatorTrainArgs {
     /// Stop (with a checkpoint) after this many steps; the same command without it continues.
     #[arg(long)]
     pub stop_after: Option<u64>,
+    /// Where the evaluator trains (recorded in its config.json; a resume may change it).
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// `motionscale evaluator train`.
 pub fn evaluator_train(args: EvaluatorTrainArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
+    let device = args.device.open()?;
     let config = EvaluatorTrainConfig {
         corpus: args.corpus,
         text_encoder: args.text_emb,
@@ -84,7 +89,7 @@ pub fn evaluator_train(args: EvaluatorTrainArgs) -> Result<ExitCode> {
     };
     let started = std::time::Instant::now();
     let bar = progress_bar("evaluator", "steps");
-    let last = train_evaluator(&config, &mut |event| match event {
+    let last = train_evaluator(&config, &device, &mut |event| match event {
         EvaluatorEvent::Step(step, total, loss) => {
             bar.set_length(total);
             bar.set_position(step);
@@ -103,7 +108,7 @@ pub fn evaluator_train(args: EvaluatorTrainArgs) -> Result<ExitCode> {
         }
     })?;
     bar.finish_and_clear();
-    let evaluator = TrainedEvaluator::load(&config.out)?;
+    let evaluator = TrainedEvaluator::load(&config.out, &device)?;
     println!(
         "evaluator {} → {} in {:.0} s: val R-precision@1 {:.3}, emotion acc {:.3}, action acc {:.3}",
         evaluator.id,
@@ -143,6 +148,9 @@ pub struct MotionSetArgs {
     /// BERT-family encoder folder for captions the corpus has not embedded.
     #[arg(long)]
     pub encoder: Option<PathBuf>,
+    /// Where the evaluator and the encoder run.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// The loaded inputs of [`MotionSetArgs`].
@@ -154,9 +162,11 @@ struct Loaded {
 }
 
 impl MotionSetArgs {
-    /// Load the evaluator, the motion set (with `options`) and the optional encoder.
+    /// Load the evaluator and the optional encoder onto `--device`, and the motion set (with
+    /// `options`).
     fn load(&self, options: &EvalOptions) -> Result<Loaded> {
-        let evaluator = TrainedEvaluator::load(&self.evaluator)
+        let device = self.device.open()?;
+        let evaluator = TrainedEvaluator::load(&self.evaluator, &device)
             .with_context(|| format!("loading the evaluator in {}", self.evaluator.display()))?;
         let corpus = self
             .corpus
@@ -172,7 +182,11 @@ impl MotionSetArgs {
                 .collect();
             hml3d_folder(&self.motions, options, &labels)?
         };
-        let encoder = self.encoder.as_deref().map(BertEncoder::load).transpose()?;
+        let encoder = self
+            .encoder
+            .as_deref()
+            .map(|dir| BertEncoder::load(dir, &device))
+            .transpose()?;
         Ok(Loaded {
             evaluator,
             corpus,

@@ -137,12 +137,19 @@ pub struct LogitsArgs {
     /// clip-<k>-text.npy / clip-<k>-logits.npy, for checking the model in another framework.
     #[arg(long)]
     pub out: PathBuf,
+    /// Where the model runs.
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
+    /// Executor and precision.
+    #[command(flatten)]
+    pub compute: ComputeArgs,
 }
 
 /// `motionscale model logits`: the logits of a trained model on a few clips of its token set,
 /// with the exact inputs that produced them (`scripts/torch-check-lm.py` reads them).
 pub fn logits(args: LogitsArgs) -> Result<ExitCode> {
-    let (model, run) = lm::train::load_model(&args.model)?;
+    let (model, run) = lm::train::load_model(&args.model, &args.device.open()?)?;
+    let model = model.with_compute(args.compute.compute());
     let limits = Limits {
         text_tokens: run.train.hyper.max_text_tokens,
         motion_tokens: run.train.hyper.max_motion_tokens,
@@ -195,6 +202,70 @@ pub fn logits(args: LogitsArgs) -> Result<ExitCode> {
         args.out.display()
     );
     Ok(ExitCode::SUCCESS)
+}
+
+/// Arguments of `motionscale model executors`.
+#[derive(clap::Args, Debug)]
+pub struct ExecutorsArgs {
+    /// Model width.
+    #[arg(long, default_value_t = 256)]
+    pub width: usize,
+    /// Blocks.
+    #[arg(long, default_value_t = 4)]
+    pub layers: usize,
+    /// Heads.
+    #[arg(long, default_value_t = 4)]
+    pub heads: usize,
+    /// Motion codes K.
+    #[arg(long, default_value_t = 1024)]
+    pub vocab: usize,
+    /// Sequences in the batch.
+    #[arg(long, default_value_t = 8)]
+    pub batch: usize,
+    /// Seed of the weights and the batch.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Largest relative difference of the loss, any gradient and the logits (f32).
+    #[arg(long, default_value_t = 1e-5)]
+    pub tolerance: f32,
+    /// Where the graph executor runs.
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
+    /// Print the figures as JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `motionscale model executors`.
+pub fn executors(args: ExecutorsArgs) -> Result<ExitCode> {
+    let device = args.device.open()?;
+    let config = lm::PrefixLmConfig::new(args.width, args.layers, args.heads, args.vocab, 384);
+    config.validate()?;
+    let a = lm::executor_check::compare(&config, args.batch, args.seed, &device)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&a)?);
+    } else {
+        println!(
+            "graph on {} vs cpu on the CPU, d{} × {} layers, batch {}: loss {:.6} (relative Δ {:.1e}), gradients {:.1e} (worst {}), logits {:.1e}, KV-cached logits max |Δ| {:.1e}",
+            a.device, args.width, args.layers, args.batch, a.loss, a.loss_relative,
+            a.gradient_relative, a.worst_weight, a.logits_relative, a.cached_logits_max_abs
+        );
+    }
+    let ok = [a.loss_relative, a.gradient_relative, a.logits_relative]
+        .iter()
+        .all(|&d| d <= args.tolerance)
+        && a.cached_logits_max_abs <= 10.0 * args.tolerance;
+    if !ok {
+        eprintln!(
+            "error: the executors differ by more than {:e}",
+            args.tolerance
+        );
+    }
+    Ok(if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(1)
+    })
 }
 
 /// Arguments of `motionscale model presets`.
@@ -361,6 +432,40 @@ pub struct TrainArgs {
     /// Print the final report as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Where the model trains.
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
+    /// Executor and precision.
+    #[command(flatten)]
+    pub compute: ComputeArgs,
+}
+
+/// How the prefix LM computes: `--precision` and `--executor`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct ComputeArgs {
+    /// Arithmetic of the matrix products: f32 (the default), or bf16 from f32 master
+    /// weights (f32 optimiser state, norms, softmax and loss); bf16 runs the graph executor.
+    #[arg(long, value_name = "f32|bf16")]
+    pub precision: Option<nn::device::Precision>,
+    /// Force an executor (default: cpu for f32 on the CPU, graph otherwise): for comparing
+    /// the two.
+    #[arg(long, value_enum)]
+    pub executor: Option<lm::prefix_lm::Executor>,
+}
+
+impl ComputeArgs {
+    /// The model's compute settings (f32 unless `--precision` says otherwise).
+    pub fn compute(&self) -> lm::prefix_lm::Compute {
+        self.compute_or(nn::device::Precision::F32)
+    }
+
+    /// The model's compute settings, `precision` unless `--precision` is given.
+    pub fn compute_or(&self, precision: nn::device::Precision) -> lm::prefix_lm::Compute {
+        lm::prefix_lm::Compute {
+            executor: self.executor,
+            precision: self.precision.unwrap_or(precision),
+        }
+    }
 }
 
 /// `motionscale train`.
@@ -379,6 +484,8 @@ pub fn train(args: TrainArgs) -> Result<ExitCode> {
     config.stop_after = args.stop_after;
     config.eval_every = args.eval_every;
     config.checkpoint_every = args.checkpoint_every;
+    config.compute = args.compute.compute();
+    let device = args.device.open()?;
     let bar = crate::commands::progress_bar("train", "steps");
     bar.set_style(
         indicatif::ProgressStyle::with_template(
@@ -387,14 +494,14 @@ pub fn train(args: TrainArgs) -> Result<ExitCode> {
         .progress_chars("=> "),
     );
     let mut tokens_per_s = 0.0;
-    let report = lm::train::train(&config, &mut |event| match event {
+    let report = lm::train::train(&config, &device, &mut |event| match event {
         TrainEvent::Started { from, total, run } => {
             bar.set_length(*total);
             bar.set_position(*from);
             check_vocab(args.vocab, run);
             let p = run.accounting.params;
             bar.println(format!(
-                    "model d {} × {} layers, N_nv {} N_v {} (untied), vocabulary {}, text {}; {} steps{}",
+                    "model d {} × {} layers, N_nv {} N_v {} (untied), vocabulary {}, text {}; {} steps on {} ({}){}",
                     run.model.d_model,
                     run.model.n_layers,
                     p.n_nv,
@@ -402,6 +509,8 @@ pub fn train(args: TrainArgs) -> Result<ExitCode> {
                     run.model.vocab_size(),
                     run.text_encoder,
                     total,
+                    run.device,
+                    run.train.compute.precision,
                     if *from > 0 { format!(", resuming at step {from}") } else { String::new() }
                 ));
         }
@@ -534,12 +643,24 @@ pub struct GenerateArgs {
     /// Recompute the whole sequence every step instead of using the key/value cache.
     #[arg(long)]
     pub no_cache: bool,
+    /// Where the model, the text encoder and the tokenizer run.
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
+    /// Executor and precision of the model.
+    #[command(flatten)]
+    pub compute: ComputeArgs,
 }
 
 /// Decode `tokens` with the run's tokenizer and write HumanML3D features (.npy) or a BVH
 /// of the recovered joints.
-fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path) -> Result<()> {
-    let features = lm::train::run_tokenizer(run, dir)?.detokenize(tokens)?;
+fn write_motion(
+    tokens: &[u32],
+    run: &RunConfig,
+    dir: Option<&Path>,
+    out: &Path,
+    device: &candle_core::Device,
+) -> Result<()> {
+    let features = lm::train::run_tokenizer(run, dir, device)?.detokenize(tokens)?;
     ingest::export::motion::write_motion(out, &features, false)
         .with_context(|| format!("writing {}", out.display()))
 }
@@ -547,8 +668,14 @@ fn write_motion(tokens: &[u32], run: &RunConfig, dir: Option<&Path>, out: &Path)
 /// `motionscale generate`.
 pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
-    let (model, run) = lm::train::load_lm(&args.model)?;
-    let encoder = text::encoder_for(&run.corpus, &run.text_encoder, args.encoder.as_deref())?;
+    let device = args.device.open()?;
+    let (model, run) = lm::train::load_lm(&args.model, &device, args.compute.compute())?;
+    let encoder = text::encoder_for(
+        &run.corpus,
+        &run.text_encoder,
+        args.encoder.as_deref(),
+        &device,
+    )?;
     let sampling = Sampling {
         temperature: args.temperature,
         top_k: (args.top_k > 0).then_some(args.top_k),
@@ -569,7 +696,7 @@ pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
             batch: args.batch,
             sampling,
         };
-        let tokenizer = lm::train::run_tokenizer(&run, args.tokenizer.as_deref())?;
+        let tokenizer = lm::train::run_tokenizer(&run, args.tokenizer.as_deref(), &device)?;
         return crate::generate_batch::generate_batch(
             &options,
             model.as_ref(),
@@ -602,7 +729,9 @@ pub fn generate(args: GenerateArgs) -> Result<ExitCode> {
                 serde_json::to_string_pretty(&value)?.as_bytes(),
             )?;
         }
-        "npy" | "bvh" => write_motion(&tokens, &run, args.tokenizer.as_deref(), &args.out)?,
+        "npy" | "bvh" => {
+            write_motion(&tokens, &run, args.tokenizer.as_deref(), &args.out, &device)?
+        }
         _ => bail!("--out must end in .json, .npy or .bvh"),
     }
     println!(

@@ -5,6 +5,7 @@ mod bench;
 mod cl2gen_cmd;
 mod commands;
 mod continual_cmd;
+mod device_args;
 mod eval_cmd;
 mod fit;
 mod generate_batch;
@@ -131,6 +132,10 @@ enum ModelCommand {
     Presets(lm_cmd::PresetsArgs),
     /// A trained model's logits on a few clips, with their inputs (for cross-framework checks).
     Logits(lm_cmd::LogitsArgs),
+    /// The two executors side by side: the graph executor on --device against the cpu
+    /// executor on the CPU (loss, every gradient, logits, KV-cached decoding); exit 1 beyond
+    /// the tolerances.
+    Executors(lm_cmd::ExecutorsArgs),
 }
 
 #[derive(Subcommand)]
@@ -234,6 +239,7 @@ fn main() -> ExitCode {
         Command::Model(ModelCommand::Info(args)) => lm_cmd::info(*args),
         Command::Model(ModelCommand::Presets(args)) => lm_cmd::presets(args),
         Command::Model(ModelCommand::Logits(args)) => lm_cmd::logits(args),
+        Command::Model(ModelCommand::Executors(args)) => lm_cmd::executors(args),
         Command::Train(args) => lm_cmd::train(args),
         Command::Generate(args) => lm_cmd::generate(args),
         Command::Evaluator(EvaluatorCommand::Train(args)) => eval_cmd::evaluator_train(args),

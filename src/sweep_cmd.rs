@@ -52,6 +52,9 @@ pub struct PlanArgs {
     /// Checkpoint and evaluate the test split every N steps (and at the end).
     #[arg(long, default_value_t = TrainSettings::default().checkpoint_every)]
     pub checkpoint_every: u64,
+    /// Arithmetic of every point: f32, or bf16 products from f32 masters (on a GPU).
+    #[arg(long, default_value = "f32", value_name = "f32|bf16")]
+    pub precision: nn::device::Precision,
     /// An earlier fit (`fit`'s fits.json, e.g. of a pilot sweep): each budget then gets the
     /// --sizes-per-budget models of --models nearest its predicted N_opt (the fit's parabola at
     /// that budget, else its N_opt ∝ C^b law, else its parametric L(N, D)), with a warning where
@@ -112,6 +115,7 @@ impl PlanArgs {
         TrainSettings {
             hyper: self.hyper.clone(),
             checkpoint_every: self.checkpoint_every,
+            precision: self.precision,
         }
     }
 
@@ -241,6 +245,18 @@ pub struct RunArgs {
     /// Only train / tokenize the vocabularies, then stop.
     #[arg(long, conflicts_with = "only_index")]
     pub prepare_only: bool,
+    /// Where this process prepares vocabularies and trains (without --devices).
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
+    /// GPUs the points are spread over, worker processes sharing each (e.g. cuda:0,cuda:1).
+    #[arg(long, value_delimiter = ',', conflicts_with_all = ["only_index", "jobs"])]
+    pub devices: Vec<nn::device::DeviceSpec>,
+    /// Worker processes per GPU of --devices (small runs leave a GPU mostly idle).
+    #[arg(long, default_value_t = 1)]
+    pub jobs_per_device: usize,
+    /// Points of at least this many parameters (N_nv + N_v) take a GPU alone.
+    #[arg(long, default_value_t = 50_000_000)]
+    pub exclusive_params: u64,
 }
 
 fn log_line(line: &str) {
@@ -254,14 +270,15 @@ pub fn run_cmd(args: RunArgs) -> Result<ExitCode> {
     if args.prepare_only {
         let runs = local::adopt_plan(&plan, &args.out)?;
         let points = local::select(&plan, None)?;
-        local::prepare_all(&plan, &runs, &points, &log_line)?;
+        local::prepare_all(&plan, &runs, &points, &args.device.open()?, &log_line)?;
         println!("vocabularies ready in {}", runs.display());
         return Ok(ExitCode::SUCCESS);
     }
     let exe = std::env::current_exe().context("locating the motionscale executable")?;
     let runs = std::path::absolute(&args.out)?;
     let plan_file = runs.join(local::PLAN_FILE);
-    let worker = |index: usize| {
+    let device = args.device.open()?;
+    let worker = |index: usize, gpu: Option<nn::device::DeviceSpec>| {
         let mut c = Command::new(&exe);
         c.arg("sweep")
             .arg("run")
@@ -270,13 +287,19 @@ pub fn run_cmd(args: RunArgs) -> Result<ExitCode> {
             .arg("--out")
             .arg(&runs)
             .arg("--only-index")
-            .arg(index.to_string());
+            .arg(index.to_string())
+            .arg("--device")
+            .arg(gpu.unwrap_or_else(|| args.device.spec()).to_string());
         c
     };
     let options = LocalOptions {
         jobs: args.jobs.max(1),
         only: args.only_index.map(|i| vec![i]),
         worker: &worker,
+        devices: args.devices.clone(),
+        jobs_per_device: args.jobs_per_device,
+        exclusive_params: args.exclusive_params,
+        device: &device,
     };
     let started = std::time::Instant::now();
     let summary = local::run_local(&plan, &runs, &options, &log_line)?;
@@ -363,6 +386,9 @@ pub struct SubmitArgs {
     /// CPUs per task (RAYON_NUM_THREADS in the task).
     #[arg(long, default_value_t = 1)]
     pub cpus_per_task: usize,
+    /// GPUs per training task (`#SBATCH --gpus-per-task`; the task trains on it). 0: CPU.
+    #[arg(long, default_value_t = 0)]
+    pub gpus_per_task: usize,
     /// Time limit per job, e.g. 2:00:00.
     #[arg(long)]
     pub time: Option<String>,
@@ -385,6 +411,7 @@ pub fn submit_cmd(args: SubmitArgs) -> Result<ExitCode> {
         array_throttle: args.array_throttle,
         partition: args.partition.clone(),
         cpus_per_task: args.cpus_per_task.max(1),
+        gpus_per_task: args.gpus_per_task,
         time: args.time.clone(),
         fit_args: args.fit_args.clone(),
     };

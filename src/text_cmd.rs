@@ -1,5 +1,6 @@
 //! `motionscale embed-text`: choose a frozen text encoder and embed a corpus's captions.
 
+use crate::device_args::DeviceArgs;
 use anyhow::Result;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -40,6 +41,9 @@ pub struct EmbedTextArgs {
     /// Print the report as JSON.
     #[arg(long)]
     pub json: bool,
+    /// Where a transformer encoder runs.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 impl EncoderArgs {
@@ -78,7 +82,8 @@ pub fn embed(
 
 /// `motionscale embed-text`.
 pub fn embed_text(args: EmbedTextArgs) -> Result<ExitCode> {
-    let encoder = args.encoder.choice().load(&args.corpus)?;
+    let device = args.device.open()?;
+    let encoder = args.encoder.choice().load(&args.corpus, &device)?;
     let report = embed(&args.corpus, encoder.as_ref(), args.batch, args.json)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);

@@ -2,6 +2,7 @@
 //! tokenizers (FSQ / VQ VAEs) trained on a corpus, their metrics, and token sets.
 
 use crate::commands::progress_bar;
+use crate::device_args::DeviceArgs;
 use anyhow::{bail, Context, Result};
 use candle_core::Device;
 use ingest::corpus::Corpus;
@@ -124,6 +125,9 @@ pub struct TrainArgs {
     /// Output folder: the checkpoint; re-running the same command resumes it.
     #[arg(long)]
     pub out: PathBuf,
+    /// Where the tokenizer trains (recorded in train.json; a resume may change it).
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 fn step_bar(label: &str, steps: u64) -> impl FnMut(StepReport) {
@@ -157,6 +161,7 @@ fn step_bar(label: &str, steps: u64) -> impl FnMut(StepReport) {
 /// `motionscale tokenizer train`.
 pub fn train_cmd(args: TrainArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
+    let device = args.device.open()?;
     let config = args
         .flags
         .tokenizer_config(&args.quantizer, args.codebook)?;
@@ -168,7 +173,7 @@ pub fn train_cmd(args: TrainArgs) -> Result<ExitCode> {
         &args.out,
         config,
         train_config,
-        &Device::Cpu,
+        &device,
         step_bar(&label, args.flags.steps),
     )?;
     println!(
@@ -201,14 +206,22 @@ pub struct EvalArgs {
     /// Also write the JSON report here.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Where the tokenizer runs.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 fn open_corpus(dir: &Path) -> Result<Corpus> {
     Ok(Corpus::open(dir)?)
 }
 
-fn eval_report(tokenizer_dir: &Path, corpus: &Corpus, split: &str) -> Result<EvalReport> {
-    let tokenizer = MotionTokenizer::load(tokenizer_dir, &Device::Cpu)?;
+fn eval_report(
+    tokenizer_dir: &Path,
+    corpus: &Corpus,
+    split: &str,
+    device: &Device,
+) -> Result<EvalReport> {
+    let tokenizer = MotionTokenizer::load(tokenizer_dir, device)?;
     let bar = progress_bar(&format!("eval {split}"), "clips");
     let report = evaluate(
         &tokenizer,
@@ -226,8 +239,9 @@ fn eval_report(tokenizer_dir: &Path, corpus: &Corpus, split: &str) -> Result<Eva
 
 /// `motionscale tokenizer eval`: metrics as JSON on stdout.
 pub fn eval_cmd(args: EvalArgs) -> Result<ExitCode> {
+    let device = args.device.open()?;
     let corpus = open_corpus(&args.corpus)?;
-    let report = eval_report(&args.tokenizer, &corpus, &args.split)?;
+    let report = eval_report(&args.tokenizer, &corpus, &args.split, &device)?;
     let json = serde_json::to_string_pretty(&report)?;
     if let Some(out) = &args.out {
         motionscale_core::write_atomic(out, json.as_bytes())
@@ -249,16 +263,21 @@ pub struct TokenizeArgs {
     /// Output token-set folder (tokens.parquet, unigram.json, manifest.json).
     #[arg(long)]
     pub out: PathBuf,
+    /// Where the tokenizer runs.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// `motionscale tokenize`: every clip of a corpus → token ids.
 pub fn tokenize_cmd(args: TokenizeArgs) -> Result<ExitCode> {
+    let device = args.device.open()?;
     let corpus = open_corpus(&args.corpus)?;
     let bar = progress_bar("tokenize", "clips");
-    let manifest = write_token_set(&args.tokenizer, &corpus, &args.out, |done, total| {
+    let progress = |done: usize, total: usize| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
-    })?;
+    };
+    let manifest = write_token_set(&args.tokenizer, &corpus, &args.out, &device, progress)?;
     bar.finish_and_clear();
     for (split, count) in &manifest.splits {
         println!("{split}: {} clips, {} tokens", count.clips, count.tokens);
@@ -294,11 +313,15 @@ pub struct DecodeArgs {
     /// Write joint positions instead of features to .npy files.
     #[arg(long)]
     pub joints: bool,
+    /// Where the tokenizer runs.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// `motionscale tokenizer decode`: token ids → features, joints or BVH.
 pub fn decode_cmd(args: DecodeArgs) -> Result<ExitCode> {
-    let tokenizer = MotionTokenizer::load(&args.tokenizer, &Device::Cpu)?;
+    let device = args.device.open()?;
+    let tokenizer = MotionTokenizer::load(&args.tokenizer, &device)?;
     let corpus = args.corpus.as_deref().map(open_corpus).transpose()?;
     let clips: Vec<(String, Vec<u32>)> = match (&args.tokens, &args.ids) {
         (Some(dir), None) => {
@@ -385,11 +408,15 @@ pub struct SweepArgs {
     /// Output folder (one sub-folder per run, sweep.csv, sweep.parquet); re-running resumes.
     #[arg(long)]
     pub out: PathBuf,
+    /// Where the tokenizers train and run.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// `motionscale tokenizer sweep`: train and evaluate every (quantizer, codebook) pair.
 pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
+    let device = args.device.open()?;
     use experiments::codebook_sweep::{sweep, SweepEvent, SweepPlan};
     if let Some(q) = args
         .quantizers
@@ -412,7 +439,7 @@ pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
         &args.corpus,
         &args.out,
         &plan,
-        &Device::Cpu,
+        &device,
         |event| match event {
             SweepEvent::Step(name, r) => {
                 bar.set_length(r.steps);

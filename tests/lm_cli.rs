@@ -89,6 +89,81 @@ fn train_then_generate_a_bvh_that_ingest_reads_back() {
     );
     let rejects = std::fs::read_to_string(back.join("rejects.jsonl")).unwrap();
     assert!(rejects.trim().is_empty(), "{rejects}");
+
+    // The same run on the graph executor (candle's autograd) ends at the same test loss, and
+    // the run records where and how it trained.
+    let config: serde_json::Value = read_json(&run.join("config.json"));
+    assert_eq!(config["device"], "cpu");
+    assert_eq!(config["train"]["compute"]["precision"], "f32");
+    let tokens = tmp.path().join("tokens");
+    let graph_run = tmp.path().join("graph-run");
+    let train = |out: &Path, extra: &[&str]| {
+        let mut args = vec![
+            "train",
+            "--tokens",
+            arg(&tokens),
+            "--preset",
+            "cpu-50K",
+            "--tokens-budget",
+            "3000",
+            "--batch",
+            "8",
+            "--out",
+            arg(out),
+            "--json",
+        ];
+        args.extend_from_slice(extra);
+        motionscale(&args)
+    };
+    let graph = train(&graph_run, &["--executor", "graph"]);
+    assert_eq!(code(&graph), 0, "{}", text(&graph));
+    let graph: serde_json::Value =
+        serde_json::from_str(&String::from_utf8_lossy(&graph.stdout)).unwrap();
+    let ce = |r: &serde_json::Value| r["eval"]["test"]["cross_entropy"].as_f64().unwrap();
+    assert!(
+        (ce(&graph) - ce(&report)).abs() < 1e-3,
+        "graph {} vs cpu {}",
+        ce(&graph),
+        ce(&report)
+    );
+    // No GPU in this build: a clear error, exit 1, nothing trained.
+    for args in [
+        vec![
+            "train",
+            "--tokens",
+            arg(&tokens),
+            "--preset",
+            "cpu-50K",
+            "--tokens-budget",
+            "3000",
+            "--out",
+            arg(&tmp.path().join("gpu-run")),
+            "--device",
+            "cuda",
+        ],
+        vec![
+            "generate",
+            "--model",
+            arg(&run),
+            "--text",
+            "a person walks",
+            "--out",
+            arg(&tmp.path().join("gpu.json")),
+            "--device",
+            "cuda:1",
+        ],
+        vec!["model", "executors", "--device", "cuda"],
+    ] {
+        let out = motionscale(&args);
+        assert_eq!(code(&out), 1, "{args:?}: {}", text(&out));
+        assert!(
+            text(&out).contains("built without CUDA"),
+            "{args:?}: {}",
+            text(&out)
+        );
+        assert!(!text(&out).contains("panicked"), "{}", text(&out));
+    }
+    assert!(!tmp.path().join("gpu-run").exists());
 }
 
 #[test]

@@ -171,6 +171,11 @@ impl Evaluator {
         })
     }
 
+    /// The device its weights live on.
+    pub fn device(&self) -> &Device {
+        self.conv1.weight().device()
+    }
+
     /// Encode normalised motions (`lengths` multiples of [`UNIT`]).
     pub fn encode_motion(&self, motion: &Padded) -> Result<MotionOutputs> {
         // Each stage is zero past each clip's length, as in a batch of one: the second
@@ -304,6 +309,10 @@ pub struct EvaluatorFile {
     pub text_encoder: String,
     /// Training settings (steps, batch, learning rate, seed…).
     pub train: serde_json::Value,
+    /// Device training last ran on (`cpu`, `cuda:N`: a resume may change it); empty in older
+    /// files.
+    #[serde(default)]
+    pub device: String,
 }
 
 /// Format tag of an evaluator's `config.json`.
@@ -342,8 +351,8 @@ fn read_stats(path: &Path, dim: usize) -> std::result::Result<Vec<f32>, ModelErr
 }
 
 impl TrainedEvaluator {
-    /// Load the evaluator in `dir`.
-    pub fn load(dir: &Path) -> std::result::Result<Self, ModelError> {
+    /// Load the evaluator in `dir` onto `device`.
+    pub fn load(dir: &Path, device: &Device) -> std::result::Result<Self, ModelError> {
         let file: EvaluatorFile = motionscale_core::read_json(&dir.join("config.json"))?;
         if file.format != FORMAT {
             return Err(ModelError::invalid(
@@ -358,10 +367,8 @@ impl TrainedEvaluator {
         }
         let weights = dir.join("model.safetensors");
         // SAFETY: the checkpoint is only read; it must not change while the model lives.
-        let vb = unsafe {
-            VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, &nn::default_device())
-        }
-        .map_err(|e| ModelError::invalid(&weights, e))?;
+        let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, device) }
+            .map_err(|e| ModelError::invalid(&weights, e))?;
         let net = Evaluator::new(file.config.clone(), vb)
             .map_err(|e| ModelError::invalid(&weights, e))?;
         let dim = file.config.feature_dim;
@@ -423,7 +430,7 @@ impl TrainedEvaluator {
         batch: usize,
     ) -> std::result::Result<MotionPredictions, ModelError> {
         let mut out = MotionPredictions::default();
-        let device = nn::default_device();
+        let device = self.net.device();
         for chunk in motions.chunks(batch.max(1)) {
             let windows: Vec<Vec<f32>> = chunk
                 .iter()
@@ -431,7 +438,7 @@ impl TrainedEvaluator {
                 .collect();
             let rows: Vec<&[f32]> = windows.iter().map(Vec::as_slice).collect();
             let mut run = || -> Result<()> {
-                let padded = Padded::new(&rows, self.file.config.feature_dim, &device)?;
+                let padded = Padded::new(&rows, self.file.config.feature_dim, device)?;
                 let o = self.net.encode_motion(&padded)?;
                 let classes = |t: &Tensor| -> Result<Vec<usize>> {
                     let v: Vec<u32> = t.argmax(D::Minus1)?.to_vec1()?;
@@ -455,7 +462,7 @@ impl TrainedEvaluator {
         batch: usize,
     ) -> std::result::Result<Vec<Vec<f32>>, ModelError> {
         let c = &self.file.config;
-        let device = nn::default_device();
+        let device = self.net.device();
         let mut out = Vec::with_capacity(texts.len());
         for chunk in texts.chunks(batch.max(1)) {
             let rows: Vec<&[f32]> = chunk
@@ -463,7 +470,7 @@ impl TrainedEvaluator {
                 .map(|t| &t[..t.len().min(c.max_text_tokens * c.text_dim)])
                 .collect();
             let run = || -> Result<Vec<Vec<f32>>> {
-                let padded = Padded::new(&rows, c.text_dim, &device)?;
+                let padded = Padded::new(&rows, c.text_dim, device)?;
                 self.net.encode_text(&padded)?.to_vec2()
             };
             out.extend(run().map_err(ModelError::inference)?);

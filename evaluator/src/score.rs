@@ -263,6 +263,9 @@ pub struct EvalReport {
     pub reference_count: usize,
     /// Options, split, seed and repeats included.
     pub options: EvalOptions,
+    /// Device the evaluator ran on (`cpu`, `cuda:N`); empty in older reports.
+    #[serde(default)]
+    pub device: String,
     /// FID against the reference (or between the halves).
     pub fid: Interval,
     /// R-precision top-1, top-2, top-3.
@@ -419,6 +422,7 @@ fn report(
         group_count,
         reference_count: reference.motions.len(),
         options: options.clone(),
+        device: nn::device::device_name(evaluator.net.device()),
         fid: required(take("fid")),
         r_precision: [
             required(take("top1")),

@@ -4,7 +4,7 @@
 //! split, and checkpoints a re-run resumes from.
 //!
 //! ```text
-//! OUT/config.json          EvaluatorFile: shape, label sets, corpus (+ id), text encoder, settings
+//! OUT/config.json          EvaluatorFile: shape, labels, corpus (+ id), text encoder, settings, device
 //! OUT/model.safetensors    weights (PyTorch names: motion.conv.0, motion.gru.weight_ih_l0_reverse…)
 //! OUT/mean.npy, std.npy    the feature statistics it normalises with (the corpus's)
 //! OUT/state.json           last committed step (written last); OUT/resume/<step>/ its files
@@ -16,13 +16,14 @@ use crate::model::{
     corpus_id, init_evaluator, labelled_cross_entropy, EvaluatorConfig, EvaluatorFile, Padded,
     TrainedEvaluator, FORMAT, UNIT,
 };
-use candle_core::Tensor;
+use candle_core::{Device, Tensor};
 use candle_nn::VarMap;
 use ingest::corpus::reader::{ClipMeta, Corpus};
 use ingest::corpus::schema::FEATURE_DIM;
 use motionscale_core::files::{append_json_line, check_same_run, read_json, write_json};
 use motionscale_core::rng::SplitMix64;
 use nn::checkpoint::{save_safetensors, ResumeFiles};
+use nn::device::device_name;
 use nn::optim::{AdamW, AdamWConfig, LrSchedule};
 use nn::ModelError;
 use serde::{Deserialize, Serialize};
@@ -176,12 +177,13 @@ const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 
 /// The configuration file of an evaluator trained by `config` on `train` (its emotion and
 /// action classes are the labels the train clips carry) over `text_dim`-wide caption
-/// embeddings of `encoder`.
+/// embeddings of `encoder`, on `device`.
 fn evaluator_file(
     config: &EvaluatorTrainConfig,
     train: &[LabelledClip],
     text_dim: usize,
     encoder: String,
+    device: &Device,
 ) -> Result<EvaluatorFile, ModelError> {
     let labels = |f: fn(&LabelledClip) -> &Option<String>| -> Vec<String> {
         let set: BTreeSet<String> = train.iter().filter_map(|c| f(c).clone()).collect();
@@ -204,6 +206,7 @@ fn evaluator_file(
         corpus_id: corpus_id(&config.corpus)?,
         text_encoder: encoder,
         train: serde_json::to_value(config).map_err(|e| ModelError::invalid(&config.out, e))?,
+        device: device_name(device),
     })
 }
 
@@ -217,9 +220,10 @@ fn copy_stats(config: &EvaluatorTrainConfig, name: &str) -> Result<Vec<f32>, Mod
     Ok(array.data.iter().map(|&v| v as f32).collect())
 }
 
-/// Train (or resume) an evaluator; returns the last validation.
+/// Train (or resume, on any device) an evaluator on `device`; returns the last validation.
 pub fn train_evaluator(
     config: &EvaluatorTrainConfig,
+    device: &Device,
     on_event: &mut dyn FnMut(EvaluatorEvent),
 ) -> Result<Validation, ModelError> {
     let encoder = resolve_encoder(&config.corpus, config.text_encoder.as_deref())?;
@@ -238,7 +242,7 @@ pub fn train_evaluator(
     }
     let all_captions = train.iter().chain(&val).flat_map(|c| c.captions.clone());
     let captions = caption_table(&embeddings, all_captions)?;
-    let file = evaluator_file(config, &train, embeddings.dim(), encoder)?;
+    let file = evaluator_file(config, &train, embeddings.dim(), encoder, device)?;
     let net_config = file.config.clone();
     let out = &config.out;
     std::fs::create_dir_all(out).map_err(|e| ModelError::io(out, e))?;
@@ -247,8 +251,8 @@ pub fn train_evaluator(
         copy_stats(config, "std.npy")?,
     );
 
-    let (net, varmap) = init_evaluator(net_config, config.seed, &nn::default_device())
-        .map_err(ModelError::inference)?;
+    let (net, varmap) =
+        init_evaluator(net_config, config.seed, device).map_err(ModelError::inference)?;
     let vars = varmap.data().lock().expect("varmap lock").clone();
     let adamw = AdamWConfig {
         weight_decay: 0.0,
@@ -259,11 +263,16 @@ pub fn train_evaluator(
     let config_path = out.join("config.json");
     let mut state = TrainState { step: 0 };
     let log = out.join("log.jsonl");
-    if !resume.state_path().is_file() {
+    let resumed = resume.state_path().is_file();
+    if !resumed {
         let _ = std::fs::remove_file(&log);
     } else {
+        // The same run may go on on another device.
         check_same_run(&config_path, "an evaluator", |old: EvaluatorFile| {
-            old == file
+            EvaluatorFile {
+                device: file.device.clone(),
+                ..old
+            } == file
         })?;
         state = read_json(resume.state_path())?;
         let files = resume.files(state.step);
@@ -276,7 +285,13 @@ pub fn train_evaluator(
             .map_err(|e| ModelError::invalid(&moments, e))?;
         drop_lines_after(&log, state.step)?;
     }
-    write_json(&config_path, &file)?;
+    let end = config
+        .stop_after
+        .map_or(config.steps, |s| s.min(config.steps));
+    // A run with no step left keeps the device it trained on (and so its content id).
+    if !resumed || state.step < end {
+        write_json(&config_path, &file)?;
+    }
     let evaluator = TrainedEvaluator::from_parts(net, file, mean, std);
     let schedule = LrSchedule {
         peak: config.lr,
@@ -286,9 +301,6 @@ pub fn train_evaluator(
     };
     let mut last = None;
     let (mut loss_sum, mut loss_steps) = (0f64, 0u64);
-    let end = config
-        .stop_after
-        .map_or(config.steps, |s| s.min(config.steps));
     while state.step < end {
         let loss = train_step(&evaluator, &train, &captions, config, state.step)
             .map_err(ModelError::inference)?;
@@ -358,10 +370,10 @@ fn train_step(
         emotion.push(class_of(&c.emotions, &clip.emotion));
         action.push(class_of(&c.actions, &clip.action));
     }
-    let device = nn::default_device();
+    let device = net.device();
     let rows: Vec<&[f32]> = windows.iter().map(Vec::as_slice).collect();
-    let motion = net.encode_motion(&Padded::new(&rows, c.feature_dim, &device)?)?;
-    let text = net.encode_text(&Padded::new(&texts, c.text_dim, &device)?)?;
+    let motion = net.encode_motion(&Padded::new(&rows, c.feature_dim, device)?)?;
+    let text = net.encode_text(&Padded::new(&texts, c.text_dim, device)?)?;
     let same: Vec<Vec<bool>> = chosen
         .iter()
         .map(|a| chosen.iter().map(|b| a == b).collect())

@@ -12,13 +12,14 @@
 //! OUT/accuracy.{svg,png}      per-class accuracy of generated motions after each task
 //! OUT/summary.json            classes, tasks, every task's metrics, ground truth, and the
 //!                             final model's and the real windows' metrics as mean and 95%
-//!                             interval over `repeats` evaluations (the paper's ±)
+//!                             interval over `repeats` evaluations (the paper's ±); the device
 //! ```
 
 use crate::ctvae::CtvaeConfig;
 use crate::ctvae_train::{CtvaeTrainer, LossWeights, Sample};
 use crate::error::SweepError;
 use crate::seeds;
+use candle_core::Device;
 use evaluator::metrics::{accuracy, diversity, fid, multimodality, Interval};
 use evaluator::model::{TrainedEvaluator, UNIT};
 use evaluator::train::{corpus_clips, LabelledClip};
@@ -117,6 +118,10 @@ pub struct Cl2GenReport {
     /// Content id of the evaluator that scored it (`evaluator train` prints it).
     #[serde(default)]
     pub evaluator_id: String,
+    /// Device of the run that wrote it (`cpu`, `cuda:N`; a resumed run may have trained the
+    /// earlier tasks elsewhere); empty in older reports.
+    #[serde(default)]
+    pub device: String,
     /// Classes in task order.
     pub tasks: Vec<Vec<String>>,
     /// Every task's evaluation.
@@ -456,13 +461,15 @@ fn load_data(config: &Cl2GenConfig, evaluator: &TrainedEvaluator) -> Result<Data
     })
 }
 
-/// Run (or resume) `config`; `log` receives one line per finished task.
+/// Run (or resume) `config` with BI-CTVAE and the evaluator on `device`; `log` receives one
+/// line per finished task.
 pub fn run_cl2gen(
     config: &Cl2GenConfig,
+    device: &Device,
     mut log: impl FnMut(&str),
 ) -> Result<Cl2GenReport, SweepError> {
     std::fs::create_dir_all(&config.out).map_err(|e| SweepError::io(&config.out, e))?;
-    let evaluator = TrainedEvaluator::load(&config.evaluator)?;
+    let evaluator = TrainedEvaluator::load(&config.evaluator, device)?;
     let data = load_data(config, &evaluator)?;
     let classes = &data.classes;
     let mut resolved = config.clone();
@@ -501,8 +508,14 @@ pub fn run_cl2gen(
         .ground_truth(&real, &mut rng)?
         .task_eval(0, &all, classes);
     let model_config = resolved.model.clone();
-    let mut trainer = CtvaeTrainer::new(model_config, config.weights, evaluator.std(), config.seed)
-        .map_err(ModelError::inference)?;
+    let mut trainer = CtvaeTrainer::new(
+        model_config,
+        config.weights,
+        evaluator.std(),
+        config.seed,
+        device,
+    )
+    .map_err(ModelError::inference)?;
     let mut evals = Vec::new();
     for t in 0..tasks.len() {
         let dir = config.out.join(format!("task-{}", t + 1));
@@ -553,6 +566,7 @@ pub fn run_cl2gen(
     let report = Cl2GenReport {
         config: resolved,
         evaluator_id: evaluator.id.clone(),
+        device: nn::device::device_name(device),
         tasks: tasks
             .iter()
             .map(|t| t.iter().map(|&k| classes[k as usize].clone()).collect())

@@ -41,6 +41,7 @@ use lm::caption_set::{generate_caption_set, CaptionSetOptions};
 use lm::es_moe::EsMoeConfig;
 use lm::generate::Sampling;
 use lm::lora::LoraConfig;
+use lm::prefix_lm::Compute;
 use lm::train::{load_lm, load_model, run_tokenizer, train, ModelShape, RunConfig, TrainConfig};
 use motionscale_core::files::{check_same_run, read_json, write_json};
 use motionscale_core::rng::SplitMix64;
@@ -366,11 +367,15 @@ struct Setup {
     tokenizer: MotionTokenizer,
     references: HashMap<String, MotionSet>,
     labels: HashMap<String, LabelledClip>,
+    /// Where every network of the run trains and runs.
+    device: candle_core::Device,
 }
 
-/// Run (or resume) `config`; `log` receives one line per finished piece of work.
+/// Run (or resume) `config`, every network on `device`; `log` receives one line per finished
+/// piece of work.
 pub fn run_continual(
     config: &ContinualConfig,
+    device: &candle_core::Device,
     mut log: impl FnMut(&str),
 ) -> Result<ContinualReport, SweepError> {
     std::fs::create_dir_all(&config.out).map_err(|e| SweepError::io(&config.out, e))?;
@@ -379,7 +384,7 @@ pub fn run_continual(
         old == *config
     })?;
     write_json(&config_path, config)?;
-    let setup = prepare(config)?;
+    let setup = prepare(config, device)?;
     let mut results = Vec::new();
     for o in 0..config.orders {
         results.push(run_order(config, &setup, o, &mut log)?);
@@ -410,14 +415,14 @@ fn eval_options(config: &ContinualConfig, dataset: &str) -> EvalOptions {
 }
 
 /// Load what every step reads, refusing a backbone that trained on a held-out clip.
-fn prepare(config: &ContinualConfig) -> Result<Setup, SweepError> {
+fn prepare(config: &ContinualConfig, device: &candle_core::Device) -> Result<Setup, SweepError> {
     let sets: ScenarioDatasets = read_json(&config.scenarios.join("datasets.json"))?;
     let names: Vec<String> = sets.datasets.iter().map(|d| d.name.clone()).collect();
-    let evaluator = TrainedEvaluator::load(&config.evaluator)?;
-    let (_, base_run) = load_model(&config.base)?;
+    let evaluator = TrainedEvaluator::load(&config.evaluator, device)?;
+    let (_, base_run) = load_model(&config.base, device)?;
     check_backbone_held_out(&base_run, &config.scenarios, &names)?;
     let corpus = base_run.corpus.clone();
-    let tokenizer = run_tokenizer(&base_run, None)?;
+    let tokenizer = run_tokenizer(&base_run, None, device)?;
     let mut references = HashMap::new();
     for name in &names {
         let reference = corpus_split(&corpus, &eval_options(config, name))?;
@@ -434,6 +439,7 @@ fn prepare(config: &ContinualConfig) -> Result<Setup, SweepError> {
         tokenizer,
         references,
         labels,
+        device: device.clone(),
     })
 }
 
@@ -469,7 +475,7 @@ fn run_order(
         train_config.hyper.batch_size = config.batch_size;
         train_config.hyper.lr = config.lr;
         train_config.hyper.seed = config.seed;
-        let report = train(&train_config, &mut |_| {})?;
+        let report = train(&train_config, &setup.device, &mut |_| {})?;
         let gate = report
             .eval
             .expert_weights
@@ -609,7 +615,7 @@ fn score_step(
     train_dir: &Path,
     log: &mut impl FnMut(&str),
 ) -> Result<Vec<EvalReport>, SweepError> {
-    let (model, run) = load_lm(train_dir)?;
+    let (model, run) = load_lm(train_dir, &setup.device, Compute::default())?;
     let mut row = Vec::new();
     for name in ordered {
         let eval_path = step_dir.join(format!("eval-{name}.json"));

@@ -158,6 +158,11 @@ impl Ctvae {
             .forward(&self.decoder.states(&input, &vec![steps; batch])?)
     }
 
+    /// The device its weights live on.
+    pub fn device(&self) -> &Device {
+        self.mode_mu.device()
+    }
+
     /// The class modes' means and log variances, `(classes, latent)` each.
     pub fn modes(&self) -> (&Tensor, &Tensor) {
         (&self.mode_mu, &self.mode_logvar)
@@ -185,7 +190,7 @@ impl Ctvae {
         let mu = self.mode_mu.get(class as usize)?;
         let sd = (self.mode_logvar.get(class as usize)? * 0.5)?.exp()?;
         let eps: Vec<f32> = (0..n * z).map(|_| rng.normal() as f32).collect();
-        let eps = Tensor::from_vec(eps, (n, z), &Device::Cpu)?;
+        let eps = Tensor::from_vec(eps, (n, z), self.device())?;
         eps.broadcast_mul(&sd)?.broadcast_add(&mu)
     }
 
@@ -198,16 +203,20 @@ impl Ctvae {
         };
         let mut rng = SplitMix64::stream(seed, 0x6d6f6465);
         let values: Vec<f32> = (0..mu.elem_count()).map(|_| rng.normal() as f32).collect();
-        mu.set(&Tensor::from_vec(values, mu.dims(), &Device::Cpu)?)?;
+        mu.set(&Tensor::from_vec(values, mu.dims(), mu.device())?)?;
         vars["modes.logvar"].set(&vars["modes.logvar"].zeros_like()?)
     }
 }
 
-/// A fresh seeded BI-CTVAE and its variables: PyTorch's default initialisation for the
-/// networks, N(0, 1) mode means.
-pub fn init_ctvae(config: CtvaeConfig, seed: u64) -> Result<(Ctvae, candle_nn::VarMap)> {
+/// A fresh seeded BI-CTVAE and its variables on `device`: PyTorch's default initialisation
+/// for the networks, N(0, 1) mode means.
+pub fn init_ctvae(
+    config: CtvaeConfig,
+    seed: u64,
+    device: &Device,
+) -> Result<(Ctvae, candle_nn::VarMap)> {
     let varmap = candle_nn::VarMap::new();
-    let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+    let vb = VarBuilder::from_varmap(&varmap, DType::F32, device);
     let model = Ctvae::new(config, vb)?;
     evaluator::model::init_weights(&varmap, seed)?;
     Ctvae::init_modes(&varmap, seed)?;
@@ -227,7 +236,7 @@ mod tests {
             latent: 2,
             max_frames: 10,
         };
-        init_ctvae(config, 3).unwrap()
+        init_ctvae(config, 3, &Device::Cpu).unwrap()
     }
 
     fn set(varmap: &candle_nn::VarMap, name: &str, values: Vec<f32>, shape: (usize, usize)) {

@@ -61,13 +61,19 @@ pub struct CtvaeTrainer {
 }
 
 impl CtvaeTrainer {
-    /// A fresh model of `config` (seeded) with AdamW (β 0.9/0.999, weight decay 0.01).
-    pub fn new(config: CtvaeConfig, weights: LossWeights, std: &[f32], seed: u64) -> Result<Self> {
-        let (model, varmap) = init_ctvae(config, seed)?;
+    /// A fresh model of `config` (seeded) on `device` with AdamW (β 0.9/0.999, weight decay
+    /// 0.01).
+    pub fn new(
+        config: CtvaeConfig,
+        weights: LossWeights,
+        std: &[f32],
+        seed: u64,
+        device: &Device,
+    ) -> Result<Self> {
+        let (model, varmap) = init_ctvae(config, seed, device)?;
         let vars = varmap.data().lock().expect("varmap lock").clone();
         let opt = AdamW::new(&vars, AdamWConfig::default());
-        let joint_std =
-            Tensor::from_slice(&std[JOINT_POSITIONS], JOINT_POSITIONS.len(), &Device::Cpu)?;
+        let joint_std = Tensor::from_slice(&std[JOINT_POSITIONS], JOINT_POSITIONS.len(), device)?;
         Ok(Self {
             model,
             varmap,
@@ -86,9 +92,9 @@ impl CtvaeTrainer {
         aux: Option<(&TrainedEvaluator, &[u32])>,
         rng: &mut SplitMix64,
     ) -> Result<StepLoss> {
-        let dim = self.model.config.feature_dim;
+        let (dim, device) = (self.model.config.feature_dim, self.model.device());
         let rows: Vec<&[f32]> = batch.iter().map(|s| s.poses.as_slice()).collect();
-        let padded = Padded::new(&rows, dim, &Device::Cpu)?;
+        let padded = Padded::new(&rows, dim, device)?;
         let (n, steps, _) = padded.values.dims3()?;
         let classes: Vec<u32> = batch.iter().map(|s| s.class).collect();
         let mask: Vec<f32> = padded
@@ -96,7 +102,7 @@ impl CtvaeTrainer {
             .iter()
             .flat_map(|&l| (0..steps).map(move |t| if t < l { 1.0 } else { 0.0 }))
             .collect();
-        let mask = Tensor::from_vec(mask, (n, steps, 1), &Device::Cpu)?;
+        let mask = Tensor::from_vec(mask, (n, steps, 1), device)?;
         let frames: usize = padded.lengths.iter().sum();
         let posterior = self
             .model
@@ -104,7 +110,7 @@ impl CtvaeTrainer {
         let eps: Vec<f32> = (0..n * self.model.config.latent)
             .map(|_| rng.normal() as f32)
             .collect();
-        let eps = Tensor::from_vec(eps, posterior.mu.dims(), &Device::Cpu)?;
+        let eps = Tensor::from_vec(eps, posterior.mu.dims(), device)?;
         let z = (&posterior.mu + (eps * (&posterior.logvar * 0.5)?.exp()?)?)?;
         let recon = self
             .model
@@ -134,7 +140,7 @@ impl CtvaeTrainer {
                 })?
                 .action;
             let targets: Vec<u32> = classes.iter().map(|&c| actions[c as usize]).collect();
-            let ce = candle_nn::loss::cross_entropy(&logits, &Tensor::new(targets, &Device::Cpu)?)?;
+            let ce = candle_nn::loss::cross_entropy(&logits, &Tensor::new(targets, device)?)?;
             aux_loss = ce.to_scalar()?;
             total = (total + (ce * self.weights.aux)?)?;
         }

@@ -3,13 +3,18 @@
 //! processes. Each worker gets `cores / jobs` threads (`RAYON_NUM_THREADS`, which both rayon
 //! and candle's CPU kernels read) so that the workers do not oversubscribe the machine, and
 //! dies with its parent (`PR_SET_PDEATHSIG`), so killing `sweep run` stops the whole sweep.
+//!
+//! With GPUs ([`LocalOptions::devices`]) the workers are `jobs_per_device` per GPU: small
+//! runs leave most of a GPU idle and share one, while a large run (at least
+//! `exclusive_params` parameters) only starts on an idle GPU and keeps it to itself.
 
 use crate::plan::{IsoFlopPlan, PlanPoint};
 use crate::prepare::prepare_vocabulary;
 use crate::results::{self, read_row, run_dir};
 use crate::run::{run_point, Outcome, RunError};
 use crate::SweepError;
-use std::collections::VecDeque;
+use candle_core::Device;
+use nn::device::DeviceSpec;
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
@@ -20,12 +25,21 @@ pub const PLAN_FILE: &str = "plan.toml";
 
 /// How [`run_local`] runs the points.
 pub struct LocalOptions<'a> {
-    /// Points trained at once (1: in this process).
+    /// Points trained at once on the CPU (1: in this process).
     pub jobs: usize,
     /// Only these plan rows (all when `None`).
     pub only: Option<Vec<usize>>,
-    /// The command that runs one plan row in a worker process (used when `jobs > 1`).
-    pub worker: &'a dyn Fn(usize) -> Command,
+    /// The command that runs one plan row in a worker process, on a GPU when given (used
+    /// when `jobs > 1` or with `devices`).
+    pub worker: &'a dyn Fn(usize, Option<DeviceSpec>) -> Command,
+    /// GPUs the worker processes share (none: workers on the CPU).
+    pub devices: Vec<DeviceSpec>,
+    /// Worker processes per GPU.
+    pub jobs_per_device: usize,
+    /// Points of at least this many parameters (N_nv + N_v) take a GPU alone.
+    pub exclusive_params: u64,
+    /// Where vocabularies are prepared and, without `devices`, points run in this process.
+    pub device: &'a Device,
 }
 
 /// What [`run_local`] did.
@@ -93,11 +107,12 @@ pub fn select<'p>(
     }
 }
 
-/// Prepare the token sets of every vocabulary that `points` use.
+/// Prepare the token sets of every vocabulary that `points` use, on `device`.
 pub fn prepare_all(
     plan: &IsoFlopPlan,
     runs: &Path,
     points: &[&PlanPoint],
+    device: &Device,
     log: &dyn Fn(&str),
 ) -> Result<(), SweepError> {
     for vocab in &plan.vocabularies {
@@ -105,7 +120,7 @@ pub fn prepare_all(
             .iter()
             .any(|p| p.codebook == vocab.codebook && p.runnable())
         {
-            prepare_vocabulary(plan, vocab, runs, log)?;
+            prepare_vocabulary(plan, vocab, runs, device, log)?;
         }
     }
     Ok(())
@@ -140,10 +155,10 @@ pub fn run_local(
             todo.push(point);
         }
     }
-    prepare_all(plan, &runs, &todo, log)?;
-    if options.jobs <= 1 || todo.len() <= 1 {
+    prepare_all(plan, &runs, &todo, options.device, log)?;
+    if options.devices.is_empty() && (options.jobs <= 1 || todo.len() <= 1) {
         for point in todo {
-            match run_point(plan, &runs, point, log) {
+            match run_point(plan, &runs, point, options.device, log) {
                 Ok(Outcome::Trained(row)) => {
                     summary.trained += 1;
                     log(&format!(
@@ -165,7 +180,29 @@ pub fn run_local(
     Ok(summary)
 }
 
-/// Run `todo` in up to `options.jobs` worker processes at once.
+/// What one device (or the CPU) is running: how many workers, and whether one is large.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Load {
+    /// Workers running there.
+    pub running: usize,
+    /// Whether one of them is a large run.
+    pub large: bool,
+}
+
+/// The slot a point may start on now, given each slot's load and the workers a slot takes:
+/// the least loaded slot with room, where a large point needs an idle slot and a slot
+/// running a large point takes nothing else; `None` when the point must wait.
+pub fn pick_slot(large: bool, loads: &[Load], per_slot: usize) -> Option<usize> {
+    loads
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| !l.large && l.running < per_slot && (!large || l.running == 0))
+        .min_by_key(|(_, l)| l.running)
+        .map(|(i, _)| i)
+}
+
+/// Run `todo` in worker processes: `options.jobs` at once on the CPU, or `jobs_per_device`
+/// per GPU of `options.devices` (large points alone on theirs).
 fn run_workers(
     runs: &Path,
     todo: Vec<&PlanPoint>,
@@ -173,47 +210,74 @@ fn run_workers(
     summary: &mut Summary,
     log: &dyn Fn(&str),
 ) -> Result<(), SweepError> {
-    let threads = (available_threads() / options.jobs).max(1);
+    let gpus = !options.devices.is_empty();
+    let (slots, per_slot) = if gpus {
+        (options.devices.len(), options.jobs_per_device.max(1))
+    } else {
+        (1, options.jobs.max(1))
+    };
+    let threads = (available_threads() / (slots * per_slot)).max(1);
     log(&format!(
-        "{} points in {} worker processes of {threads} thread(s) each",
+        "{} points in up to {} worker processes ({per_slot} on each of {}) of {threads} thread(s) each",
         todo.len(),
-        options.jobs
+        slots * per_slot,
+        if gpus {
+            let names: Vec<String> = options.devices.iter().map(|d| d.to_string()).collect();
+            names.join(", ")
+        } else {
+            "the CPU".into()
+        }
     ));
-    let mut queue: VecDeque<&PlanPoint> = todo.into();
-    let mut running: Vec<(&PlanPoint, Child)> = Vec::new();
+    let large = |p: &PlanPoint| gpus && p.n_nv + p.n_v >= options.exclusive_params;
+    let mut queue: Vec<&PlanPoint> = todo;
+    let mut loads = vec![Load::default(); slots];
+    let mut running: Vec<(&PlanPoint, usize, Child)> = Vec::new();
     loop {
-        while running.len() < options.jobs {
-            let Some(point) = queue.pop_front() else {
-                break;
+        // Start, in plan order, every waiting point that has a slot now.
+        let mut k = 0;
+        while k < queue.len() {
+            let Some(slot) = pick_slot(large(queue[k]), &loads, per_slot) else {
+                k += 1;
+                continue;
             };
-            let mut command = (options.worker)(point.index);
+            let point = queue.remove(k);
+            let device = gpus.then(|| options.devices[slot]);
+            let mut command = (options.worker)(point.index, device);
             command.env("RAYON_NUM_THREADS", threads.to_string());
             die_with_parent(&mut command);
             let child = command.spawn().map_err(|e| SweepError::Command {
                 command: format!("{command:?}"),
                 message: e.to_string(),
             })?;
-            running.push((point, child));
+            loads[slot].running += 1;
+            loads[slot].large |= large(point);
+            running.push((point, slot, child));
         }
         if running.is_empty() {
             return Ok(());
         }
         std::thread::sleep(Duration::from_millis(100));
         let mut still = Vec::with_capacity(running.len());
-        for (point, mut child) in running {
+        for (point, slot, mut child) in running {
             let status = child.try_wait().map_err(|e| SweepError::Command {
                 command: format!("worker for {}", point.run_id),
                 message: e.to_string(),
             })?;
-            match status {
-                None => still.push((point, child)),
-                Some(s) if s.success() => summary.trained += 1,
-                Some(s) => {
-                    let error = worker_error(runs, &point.run_id)
-                        .unwrap_or_else(|| format!("worker exited with {s}"));
-                    log(&format!("{}: failed: {error}", point.run_id));
-                    summary.failed.push((point.run_id.clone(), error));
-                }
+            let Some(s) = status else {
+                still.push((point, slot, child));
+                continue;
+            };
+            loads[slot].running -= 1;
+            if large(point) {
+                loads[slot].large = false;
+            }
+            if s.success() {
+                summary.trained += 1;
+            } else {
+                let error = worker_error(runs, &point.run_id)
+                    .unwrap_or_else(|| format!("worker exited with {s}"));
+                log(&format!("{}: failed: {error}", point.run_id));
+                summary.failed.push((point.run_id.clone(), error));
             }
         }
         running = still;
@@ -257,4 +321,35 @@ pub fn collect(runs: &Path) -> Result<(Vec<results::RunRow>, Vec<String>), Sweep
         .map(|p| p.run_id.clone())
         .collect();
     Ok((rows, missing))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn small_runs_share_a_gpu_and_a_large_one_takes_an_idle_gpu_alone() {
+        let idle = Load::default();
+        let one = Load {
+            running: 1,
+            large: false,
+        };
+        let big = Load {
+            running: 1,
+            large: true,
+        };
+        // Small points go to the least loaded GPU with room.
+        assert_eq!(pick_slot(false, &[one, idle], 4), Some(1));
+        assert_eq!(pick_slot(false, &[one, one], 2), Some(0));
+        let full = Load {
+            running: 2,
+            large: false,
+        };
+        assert_eq!(pick_slot(false, &[full, full], 2), None);
+        // A large point waits for an idle GPU; nothing joins a GPU running a large point.
+        assert_eq!(pick_slot(true, &[one, one], 4), None);
+        assert_eq!(pick_slot(true, &[one, idle], 4), Some(1));
+        assert_eq!(pick_slot(false, &[big], 4), None);
+        assert_eq!(pick_slot(true, &[big, idle], 4), Some(1));
+    }
 }

@@ -55,9 +55,10 @@ use ingest::corpus::Corpus;
 use lm::accounting;
 use lm::prefix_lm::{PrefixLmConfig, PRESETS};
 use lm::train::{Hyperparams, ModelShape, TrainConfig, HYPERPARAMS};
+use nn::device::Precision;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-use tokenizer::model::{MotionTokenizer, TokenizerConfig};
+use tokenizer::model::TokenizerConfig;
 use tokenizer::TokenSet;
 
 /// Format tag of a plan file.
@@ -97,14 +98,22 @@ pub struct TrainSettings {
     pub hyper: Hyperparams,
     /// Checkpoint (and evaluate the test split) every this many steps, and at the end.
     pub checkpoint_every: u64,
+    /// Arithmetic of every point (written only when not f32, so earlier plans read alike).
+    #[serde(default, skip_serializing_if = "is_f32")]
+    pub precision: Precision,
+}
+
+fn is_f32(p: &Precision) -> bool {
+    *p == Precision::F32
 }
 
 impl Default for TrainSettings {
-    /// `lm::train`'s defaults, checkpointing every 100 steps.
+    /// `lm::train`'s defaults, checkpointing every 100 steps, f32.
     fn default() -> Self {
         Self {
             hyper: HYPERPARAMS,
             checkpoint_every: 100,
+            precision: Precision::F32,
         }
     }
 }
@@ -395,12 +404,13 @@ fn train_data(
             (t.codebook_size, t.nominal_codebook, targets)
         }
         VocabSource::Tokenizer { dir } => {
-            let t = MotionTokenizer::load(dir, &candle_core::Device::Cpu)?;
-            let c = t.config();
+            // Its shape only: the weights are read where the sweep tokenizes.
+            let path = dir.join(tokenizer::model::CONFIG_FILE);
+            let c: TokenizerConfig = motionscale_core::files::read_json(&path)?;
             (
                 c.codebook_size(),
                 c.nominal_codebook,
-                from_corpus(t.downsample())?,
+                from_corpus(c.conv.downsample_factor())?,
             )
         }
         VocabSource::Train { tokenizer, .. } => (
@@ -763,6 +773,7 @@ impl IsoFlopPlan {
         c.hyper.seed = point.seed(self);
         c.eval_every = Some(s.checkpoint_every);
         c.checkpoint_every = Some(s.checkpoint_every);
+        c.compute.precision = s.precision;
         Ok(c)
     }
 }

@@ -10,11 +10,13 @@ use ingest::corpus::Corpus;
 use motionscale_core::lock::FileLock;
 use std::path::{Path, PathBuf};
 
-/// The token set folder of `vocab`, made first when the sweep owns it; `log` sees progress.
+/// The token set folder of `vocab`, made first (the tokenizer trained and run on `device`)
+/// when the sweep owns it; `log` sees progress.
 pub fn prepare_vocabulary(
     plan: &IsoFlopPlan,
     vocab: &Vocabulary,
     runs: &Path,
+    device: &candle_core::Device,
     log: &dyn Fn(&str),
 ) -> Result<PathBuf, SweepError> {
     let tokens = vocab.tokens_dir(runs);
@@ -53,7 +55,7 @@ pub fn prepare_vocabulary(
             &tokenizer_dir,
             (**tokenizer).clone(),
             (**train).clone(),
-            &candle_core::Device::Cpu,
+            device,
             |r| {
                 if let Some(val) = r.val {
                     log(&format!(
@@ -70,7 +72,7 @@ pub fn prepare_vocabulary(
     }
     let corpus = Corpus::open(&plan.corpus).map_err(|e| SweepError::invalid(&plan.corpus, e))?;
     let manifest =
-        tokenizer::evaluate::write_token_set(&tokenizer_dir, &corpus, &tokens, |_, _| {})?;
+        tokenizer::evaluate::write_token_set(&tokenizer_dir, &corpus, &tokens, device, |_, _| {})?;
     let train = manifest.splits.get("train").copied().unwrap_or_default();
     log(&format!(
         "vocabulary {}: tokenized {} train clips ({} tokens) → {}",

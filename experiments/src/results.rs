@@ -7,7 +7,8 @@
 //! Columns ([`COLUMNS`], the declared Arrow schema of [`schema`]): the spec's `run_id, budget,
 //! n_nv, n_v, vocab, d_model, layers, heads, tokens, train_loss, test_loss, norm_test_loss,
 //! wall_s, flops` (the names `motionscale fit` reads by default), then `seed, git_revision,
-//! hostname` and `index, model, vocab_nominal, tokens_planned, steps, flops_6n, epochs, flags`.
+//! hostname, device, precision` and `index, model, vocab_nominal, tokens_planned, steps,
+//! flops_6n, epochs, flags`.
 
 use crate::plan::IsoFlopPlan;
 use crate::SweepError;
@@ -59,6 +60,12 @@ pub struct RunRow {
     pub git_revision: String,
     /// Host that finished the run.
     pub hostname: String,
+    /// Device that finished the run (`cpu`, `cuda:N`; rows from before devices: `cpu`).
+    #[serde(default = "cpu")]
+    pub device: String,
+    /// Arithmetic of the run (`f32`, `bf16`).
+    #[serde(default = "f32")]
+    pub precision: String,
     /// Plan row.
     pub index: u64,
     /// Model preset.
@@ -77,6 +84,14 @@ pub struct RunRow {
     pub flags: String,
 }
 
+fn cpu() -> String {
+    "cpu".into()
+}
+
+fn f32() -> String {
+    "f32".into()
+}
+
 /// One cell of a row.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Cell<'a> {
@@ -92,7 +107,7 @@ pub enum Cell<'a> {
 pub type Column = (&'static str, DataType, fn(&RunRow) -> Cell<'_>);
 
 /// Every column of the table, in order.
-pub const COLUMNS: [Column; 25] = [
+pub const COLUMNS: [Column; 27] = [
     ("run_id", DataType::Utf8, |r| Cell::Str(&r.run_id)),
     ("budget", DataType::Float64, |r| Cell::F64(r.budget)),
     ("n_nv", DataType::UInt64, |r| Cell::U64(r.n_nv)),
@@ -114,6 +129,8 @@ pub const COLUMNS: [Column; 25] = [
         Cell::Str(&r.git_revision)
     }),
     ("hostname", DataType::Utf8, |r| Cell::Str(&r.hostname)),
+    ("device", DataType::Utf8, |r| Cell::Str(&r.device)),
+    ("precision", DataType::Utf8, |r| Cell::Str(&r.precision)),
     ("index", DataType::UInt64, |r| Cell::U64(r.index)),
     ("model", DataType::Utf8, |r| Cell::Str(&r.model)),
     ("vocab_nominal", DataType::UInt64, |r| {
@@ -291,6 +308,8 @@ mod tests {
             seed: 0,
             git_revision: "abc, \"quoted\"".into(),
             hostname: "host".into(),
+            device: "cuda:1".into(),
+            precision: "bf16".into(),
             index: i,
             model: "cpu-50K".into(),
             vocab_nominal: 256,

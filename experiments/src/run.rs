@@ -16,6 +16,7 @@ use crate::plan::{IsoFlopPlan, PlanPoint};
 use crate::prepare::prepare_vocabulary;
 use crate::results::{self, read_row, run_dir, RunRow};
 use crate::SweepError;
+use candle_core::Device;
 use lm::train::{train, TrainEvent, TrainReport};
 use motionscale_core::lock::FileLock;
 use motionscale_core::{write_json, FileError};
@@ -67,6 +68,7 @@ pub fn run_point(
     plan: &IsoFlopPlan,
     runs: &Path,
     point: &PlanPoint,
+    device: &Device,
     log: &dyn Fn(&str),
 ) -> Result<Outcome, SweepError> {
     let dir = run_dir(runs, &point.run_id);
@@ -84,7 +86,7 @@ pub fn run_point(
     if error_path.exists() {
         std::fs::remove_file(&error_path).map_err(|e| SweepError::io(&error_path, e))?;
     }
-    match train_point(plan, runs, point, log) {
+    match train_point(plan, runs, point, device, log) {
         Ok(row) => {
             results::write_row(runs, &row)?;
             results::rebuild_tables(runs, plan)?;
@@ -107,12 +109,13 @@ fn train_point(
     plan: &IsoFlopPlan,
     runs: &Path,
     point: &PlanPoint,
+    device: &Device,
     log: &dyn Fn(&str),
 ) -> Result<RunRow, SweepError> {
     let vocab = plan
         .vocabulary(point.codebook)
         .expect("validated plans list every point's vocabulary");
-    let tokens = prepare_vocabulary(plan, vocab, runs, log)?;
+    let tokens = prepare_vocabulary(plan, vocab, runs, device, log)?;
     let dir = run_dir(runs, &point.run_id);
     let train_dir = dir.join("train");
     let config = plan.train_config(point, &tokens, &train_dir)?;
@@ -154,7 +157,7 @@ fn train_point(
             point.run_id, e.step, e.train_loss, e.test.cross_entropy, e.test.normalized_loss
         )),
     };
-    let report = match train(&config, &mut on_event) {
+    let report = match train(&config, device, &mut on_event) {
         Ok(report) => report,
         Err(ModelError::File(e @ FileError::Invalid { .. }))
             if e.path().starts_with(&train_dir) =>
@@ -164,7 +167,7 @@ fn train_point(
                 point.run_id
             ));
             std::fs::remove_dir_all(&train_dir).map_err(|e| SweepError::io(&train_dir, e))?;
-            train(&config, &mut on_event)?
+            train(&config, device, &mut on_event)?
         }
         Err(e) => return Err(e.into()),
     };
@@ -195,6 +198,8 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
         seed: point.seed(plan),
         git_revision: git_revision().to_string(),
         hostname: hostname().to_string(),
+        device: report.device.clone(),
+        precision: plan.train.precision.to_string(),
         index: point.index as u64,
         model: point.model.clone(),
         vocab_nominal: point.codebook as u64,

@@ -37,6 +37,10 @@ pub struct SlurmOptions {
     pub partition: Option<String>,
     /// CPUs per task.
     pub cpus_per_task: usize,
+    /// GPUs per training task (0: the tasks run on the CPU); the tasks then train on the
+    /// GPU Slurm hands them (`--device cuda`: Slurm's `CUDA_VISIBLE_DEVICES` makes it
+    /// `cuda:0`).
+    pub gpus_per_task: usize,
     /// Time limit per job (`--time`), e.g. `1:00:00`.
     pub time: Option<String>,
     /// Extra arguments of `motionscale fit`.
@@ -122,6 +126,18 @@ fn script(name: &str, log: &str, options: &SlurmOptions, extra: &[String], body:
     lines.join("\n") + "\n"
 }
 
+/// The `#SBATCH` lines and the `sweep run` device flag of a task with `gpus` GPUs (none: the
+/// CPU, the binary's default device).
+fn gpu_request(gpus: usize) -> (Vec<String>, &'static str) {
+    match gpus {
+        0 => (Vec::new(), ""),
+        n => (
+            vec![format!("#SBATCH --gpus-per-task={n}")],
+            " --device cuda",
+        ),
+    }
+}
+
 /// The scripts of a submission, written into `RUNS/slurm/`.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Scripts {
@@ -164,26 +180,35 @@ pub fn write_scripts(
                 .join(tokenizer::tokens::MANIFEST)
                 .is_file()
     });
+    let (gpu_lines, device) = gpu_request(options.gpus_per_task);
     let prepare = needs_prepare
         .then(|| {
-            let body =
-                format!("exec {exe} sweep run --plan {plan_arg} --out {runs_arg} --prepare-only");
+            let body = format!(
+                "exec {exe} sweep run --plan {plan_arg} --out {runs_arg} --prepare-only{device}"
+            );
             let log = logs.join("prepare-%j.log");
             write(
                 "prepare.sbatch",
-                script("sweep-prepare", &log.to_string_lossy(), options, &[], &body),
+                script(
+                    "sweep-prepare",
+                    &log.to_string_lossy(),
+                    options,
+                    &gpu_lines,
+                    &body,
+                ),
             )
         })
         .transpose()?;
     let array = (!rows.is_empty())
         .then(|| {
             let throttle = options.array_throttle.map(|t| format!("%{t}")).unwrap_or_default();
-            let extra = [
+            let mut extra = vec![
                 "# Array task ids are plan rows (the points not done at submission).".to_string(),
                 format!("#SBATCH --array={}{throttle}", array_spec(&rows)),
             ];
+            extra.extend(gpu_lines.iter().cloned());
             let body = format!(
-                "exec {exe} sweep run --plan {plan_arg} --out {runs_arg} --only-index \"$SLURM_ARRAY_TASK_ID\""
+                "exec {exe} sweep run --plan {plan_arg} --out {runs_arg} --only-index \"$SLURM_ARRAY_TASK_ID\"{device}"
             );
             let log = logs.join("run-%A_%a.log");
             let path = write("array.sbatch", script("sweep-runs", &log.to_string_lossy(), options, &extra, &body))?;
@@ -354,6 +379,18 @@ mod tests {
         assert_eq!(array_spec(&[0, 1, 2, 3, 5, 7, 8, 9]), "0-3,5,7-9");
         assert_eq!(array_spec(&[4]), "4");
         assert_eq!(array_spec(&[]), "");
+    }
+
+    #[test]
+    fn a_gpu_task_asks_slurm_for_its_gpus_and_trains_on_them() {
+        assert_eq!(gpu_request(0), (Vec::new(), ""));
+        assert_eq!(
+            gpu_request(2),
+            (
+                vec!["#SBATCH --gpus-per-task=2".to_string()],
+                " --device cuda"
+            )
+        );
     }
 
     #[test]

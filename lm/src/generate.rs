@@ -4,7 +4,7 @@
 //! recomputes the whole sequence (the reference for the cache, and its benchmark).
 
 use crate::prefix_lm::{LmBatch, PrefixLm};
-use candle_core::{Device, Result, Tensor};
+use candle_core::{Result, Tensor};
 use motionscale_core::rng::SplitMix64;
 use nn::seq_layout::SeqLayout;
 use rayon::prelude::*;
@@ -148,7 +148,7 @@ fn decode(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<Vec<u3
                     .map(|b| l.row(b, p + out[b].len()).expect("a real slot") as u32)
                     .collect();
                 let full = model.forward(&full)?;
-                full.index_select(&Tensor::new(rows.as_slice(), &Device::Cpu)?, 0)?
+                full.index_select(&Tensor::new(rows.as_slice(), full.device())?, 0)?
             }
         };
         let mut logits = logits.to_vec2::<f32>()?;
@@ -216,7 +216,8 @@ mod tests {
     #[test]
     fn cached_and_recomputed_decoding_agree() {
         let config = crate::PrefixLmConfig::new(32, 2, 2, 12, 5);
-        let (model, _) = crate::prefix_lm::init_model(&config, 4).unwrap();
+        let (model, _) =
+            crate::prefix_lm::init_model(&config, 4, &candle_core::Device::Cpu).unwrap();
         let mut rng = SplitMix64(9);
         let texts: Vec<Vec<f32>> = [3usize, 1]
             .iter()

@@ -9,8 +9,7 @@
 //! unchanged). Adapters of several experts share one safetensors file, keyed
 //! `experts.<expert>.blocks.<i>.<projection>.lora_{A,B}.weight`.
 
-use crate::prefix_lm::PrefixLm;
-use crate::prefix_lm::PrefixLmConfig;
+use crate::prefix_lm::{Compute, PrefixLm, PrefixLmConfig};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var};
 use candle_nn::VarBuilder;
@@ -51,6 +50,8 @@ pub struct LoraAdapter {
     pub expert: String,
     /// `(weight name, A, B)` per adapted projection, in block and [`TARGETS`] order.
     pairs: Vec<(String, Var, Var)>,
+    /// Where A and B live.
+    device: Device,
 }
 
 /// Name and `(out, in)` shape of every adapted weight of a model.
@@ -68,12 +69,13 @@ fn targets(model: &PrefixLmConfig) -> Vec<(String, (usize, usize))> {
 }
 
 impl LoraAdapter {
-    /// A new adapter for `model`: A drawn from `seed`, B zero.
+    /// A new adapter for `model` on `device`: A drawn from `seed`, B zero.
     pub fn new(
         model: &PrefixLmConfig,
         config: LoraConfig,
         expert: &str,
         seed: u64,
+        device: &Device,
     ) -> Result<Self> {
         let pairs = targets(model)
             .into_iter()
@@ -84,8 +86,8 @@ impl LoraAdapter {
                 let a: Vec<f32> = (0..config.rank * inp)
                     .map(|_| rng.range(-bound, bound) as f32)
                     .collect();
-                let a = Var::from_tensor(&Tensor::from_vec(a, (config.rank, inp), &Device::Cpu)?)?;
-                let b = Var::zeros((out, config.rank), DType::F32, &Device::Cpu)?;
+                let a = Var::from_tensor(&Tensor::from_vec(a, (config.rank, inp), device)?)?;
+                let b = Var::zeros((out, config.rank), DType::F32, device)?;
                 Ok((name, a, b))
             })
             .collect::<Result<_>>()?;
@@ -93,6 +95,7 @@ impl LoraAdapter {
             config,
             expert: expert.to_string(),
             pairs,
+            device: device.clone(),
         })
     }
 
@@ -135,16 +138,23 @@ impl LoraAdapter {
         add_deltas(base, &[(1.0, self.deltas()?)])
     }
 
-    /// The model with this adapter merged into `base` (its weight tensors are the entries
-    /// of the returned map, so gradients keyed by them can be read back).
+    /// The model with this adapter merged into `base`, run with `compute` (its weight
+    /// tensors are the entries of the returned map, so gradients keyed by them can be read
+    /// back).
     pub fn merged_model(
         &self,
         config: &PrefixLmConfig,
         base: &HashMap<String, Tensor>,
+        compute: Compute,
     ) -> Result<(PrefixLm, HashMap<String, Tensor>)> {
         let merged = self.merge(base)?;
-        let vb = VarBuilder::from_tensors(merged.clone(), DType::F32, &Device::Cpu);
-        Ok((PrefixLm::new(config, vb)?, merged))
+        let model = merged_lm(config, &merged, compute)?;
+        Ok((model, merged))
+    }
+
+    /// The device of the adapter's matrices.
+    pub fn device(&self) -> &Device {
+        &self.device
     }
 
     /// The adapter's gradients from the gradients of the merged weights (chain rule).
@@ -176,8 +186,7 @@ impl LoraAdapter {
 
     /// Load this expert's A and B from an adapter file.
     pub fn load(&self, path: &Path) -> std::result::Result<(), ModelError> {
-        let tensors = candle_core::safetensors::load(path, &Device::Cpu)
-            .map_err(|e| ModelError::invalid(path, e))?;
+        let tensors = base_weights(path, self.device())?;
         for (key, var) in self.vars() {
             let t = tensors
                 .get(&key)
@@ -186,6 +195,22 @@ impl LoraAdapter {
         }
         Ok(())
     }
+}
+
+/// The model whose weights are `weights` (by name, as a model file holds them), run with
+/// `compute`.
+pub fn merged_lm(
+    config: &PrefixLmConfig,
+    weights: &HashMap<String, Tensor>,
+    compute: Compute,
+) -> Result<PrefixLm> {
+    let device = weights
+        .get("head.weight")
+        .ok_or_else(|| candle_core::Error::Msg("the weights have no head.weight".into()))?
+        .device()
+        .clone();
+    let vb = VarBuilder::from_tensors(weights.clone(), DType::F32, &device);
+    Ok(PrefixLm::new(config, vb)?.with_compute(compute))
 }
 
 /// `base` with weighted updates added: W + Σ_j w_j·ΔW_j for every weight the updates name
@@ -218,8 +243,9 @@ pub fn add_deltas(
 /// (`blocks.<i>.<projection>.weight`): the subspaces an O-LoRA adapter keeps orthogonal to.
 pub fn adapter_a_matrices(
     path: &Path,
+    device: &Device,
 ) -> std::result::Result<Vec<HashMap<String, Tensor>>, ModelError> {
-    let tensors = base_weights(path)?;
+    let tensors = base_weights(path, device)?;
     let mut by_expert: std::collections::BTreeMap<String, HashMap<String, Tensor>> =
         std::collections::BTreeMap::new();
     for (key, t) in tensors {
@@ -268,15 +294,18 @@ impl LoraAdapter {
     }
 }
 
-/// Every weight of a model file, by name.
-pub fn base_weights(path: &Path) -> std::result::Result<HashMap<String, Tensor>, ModelError> {
-    candle_core::safetensors::load(path, &Device::Cpu).map_err(|e| ModelError::invalid(path, e))
+/// Every weight of a model file, by name, on `device`.
+pub fn base_weights(
+    path: &Path,
+    device: &Device,
+) -> std::result::Result<HashMap<String, Tensor>, ModelError> {
+    candle_core::safetensors::load(path, device).map_err(|e| ModelError::invalid(path, e))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::prefix_lm::{init_model, LmBatch};
+    use crate::prefix_lm::{init_model, Executor, LmBatch};
     use nn::gradcheck::numeric_gradient;
 
     fn weights(varmap: &candle_nn::VarMap) -> HashMap<String, Tensor> {
@@ -309,13 +338,25 @@ mod tests {
         LoraAdapter,
     ) {
         let config = PrefixLmConfig::new(32, layers, 4, 20, 6);
-        let (base, varmap) = init_model(&config, 1).unwrap();
+        let (base, varmap) = init_model(&config, 1, &Device::Cpu).unwrap();
         let lora = LoraConfig {
             rank,
             alpha: 2.0 * rank as f64,
         };
-        let adapter = LoraAdapter::new(&config, lora, "e0", 2).unwrap();
+        let adapter = LoraAdapter::new(&config, lora, "e0", 2, &Device::Cpu).unwrap();
         (config, base, weights(&varmap), adapter)
+    }
+
+    /// Every B of `lora` drawn from U(−0.1, 0.1) with `seed` (a new adapter's are zero).
+    fn random_b(lora: &LoraAdapter, seed: u64) {
+        let mut rng = SplitMix64(seed);
+        for (_, _, b) in &lora.pairs {
+            let values: Vec<f32> = (0..b.elem_count())
+                .map(|_| rng.range(-0.1, 0.1) as f32)
+                .collect();
+            b.set(&Tensor::from_vec(values, b.dims(), &Device::Cpu).unwrap())
+                .unwrap();
+        }
     }
 
     fn loss(model: &PrefixLm, b: &LmBatch) -> f64 {
@@ -325,7 +366,7 @@ mod tests {
     #[test]
     fn a_new_adapter_leaves_the_model_unchanged() {
         let (config, base, w, lora) = fixture(2, 4);
-        let (merged, _) = lora.merged_model(&config, &w).unwrap();
+        let (merged, _) = lora.merged_model(&config, &w, Compute::default()).unwrap();
         let b = batch(&config);
         let (x, y) = (base.forward(&b).unwrap(), merged.forward(&b).unwrap());
         let diff: f32 = (x - y)
@@ -378,16 +419,9 @@ mod tests {
     fn adapter_gradients_match_finite_differences() {
         let (config, _, w, lora) = fixture(1, 2);
         // Non-zero B, so both A and B have gradients.
-        let mut rng = SplitMix64(9);
-        for (_, _, b) in &lora.pairs {
-            let values: Vec<f32> = (0..b.elem_count())
-                .map(|_| rng.range(-0.1, 0.1) as f32)
-                .collect();
-            b.set(&Tensor::from_vec(values, b.dims(), &Device::Cpu).unwrap())
-                .unwrap();
-        }
+        random_b(&lora, 9);
         let b = batch(&config);
-        let (model, merged) = lora.merged_model(&config, &w).unwrap();
+        let (model, merged) = lora.merged_model(&config, &w, Compute::default()).unwrap();
         let (_, g) = model.loss_and_grads(&b).unwrap();
         let g = lora.grads(&merged, &g).unwrap();
         for (name, var) in lora.vars() {
@@ -401,7 +435,13 @@ mod tests {
             let values: Vec<f32> = var.as_tensor().flatten_all().unwrap().to_vec1().unwrap();
             for k in [0, values.len() / 2, values.len() - 1] {
                 let numeric = numeric_gradient(&var, k, || {
-                    loss(&lora.merged_model(&config, &w).unwrap().0, &b)
+                    loss(
+                        &lora
+                            .merged_model(&config, &w, Compute::default())
+                            .unwrap()
+                            .0,
+                        &b,
+                    )
                 });
                 let a = f64::from(analytic[k]);
                 assert!(
@@ -410,5 +450,46 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn adapter_gradients_agree_on_both_executors() {
+        let (config, _, w, lora) = fixture(2, 4);
+        random_b(&lora, 10);
+        let b = batch(&config);
+        let run = |executor| {
+            let compute = Compute {
+                executor: Some(executor),
+                ..Compute::default()
+            };
+            let (model, merged) = lora.merged_model(&config, &w, compute).unwrap();
+            let (loss, g) = model.loss_and_grads(&b).unwrap();
+            (loss, lora.grads(&merged, &g).unwrap())
+        };
+        let ((l_cpu, g_cpu), (l_graph, g_graph)) = (run(Executor::Cpu), run(Executor::Graph));
+        assert!(
+            (l_cpu - l_graph).abs() <= 1e-5 * l_cpu.abs(),
+            "{l_cpu} vs {l_graph}"
+        );
+        let mut worst = 0f32;
+        for (name, var) in lora.vars() {
+            let values = |g: &GradStore| -> Vec<f32> {
+                g.get(var.as_tensor())
+                    .unwrap()
+                    .flatten_all()
+                    .unwrap()
+                    .to_vec1()
+                    .unwrap()
+            };
+            let (a, c) = (values(&g_graph), values(&g_cpu));
+            let scale = c.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
+            let d = nn::gradcheck::max_abs_diff(&a, &c) / scale;
+            assert!(
+                d <= 1e-5,
+                "{name}: gradients differ by {d:.2e} of their scale"
+            );
+            worst = worst.max(d);
+        }
+        eprintln!("LoRA graph vs cpu: loss {l_graph} vs {l_cpu}, gradients {worst:.2e} (relative)");
     }
 }

@@ -21,7 +21,7 @@ use crate::es_moe::train::{EsMoeTrainer, MoeExample};
 use crate::es_moe::{EsMoe, EsMoeConfig};
 use crate::lm_data::{Limits, LmData};
 use crate::lora::{adapter_a_matrices, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
-use crate::prefix_lm::{init_model, LmBatch, PrefixLm, PrefixLmConfig};
+use crate::prefix_lm::{init_model, Compute, LmBatch, PrefixLm, PrefixLmConfig};
 use crate::test_loss::{evaluate, SplitLoss};
 use crate::MotionLm;
 use candle_core::{DType, Device, Tensor};
@@ -221,6 +221,9 @@ pub struct TrainConfig {
     /// The optimisation settings.
     #[serde(flatten)]
     pub hyper: Hyperparams,
+    /// Executor and precision (the device is the caller's: see [`train`]).
+    #[serde(default)]
+    pub compute: Compute,
     /// Evaluate every this many steps (default: ten times per run, and at the end).
     #[serde(skip)]
     pub eval_every: Option<u64>,
@@ -248,6 +251,7 @@ impl TrainConfig {
             tokens_budget,
             betas: (0.9, 0.95),
             hyper: HYPERPARAMS,
+            compute: Compute::default(),
             eval_every: None,
             checkpoint_every: None,
             stop_after: None,
@@ -275,6 +279,14 @@ pub struct RunConfig {
     pub schedule: LrSchedule,
     /// Parameters and FLOPs per token (exact count at the configured maximum lengths).
     pub accounting: Accounting,
+    /// The device the run trained on (`cpu`, `cuda:N`); a run may resume on another.
+    #[serde(default = "cpu_name")]
+    pub device: String,
+}
+
+/// The device name of runs recorded before devices were.
+fn cpu_name() -> String {
+    "cpu".into()
 }
 
 /// `OUT/state.json`: how far the checkpoint beside it got.
@@ -363,10 +375,13 @@ pub struct TrainReport {
     pub eval: EvalRecord,
     /// Output folder.
     pub out: PathBuf,
+    /// The device it trained on (`cpu`, `cuda:N`).
+    pub device: String,
 }
 
-/// The trained model in `dir` (`model.safetensors`, memory-mapped) and its run config.
-pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), ModelError> {
+/// The trained model in `dir` (`model.safetensors`, memory-mapped on the CPU, else copied to
+/// `device`) and its run config.
+pub fn load_model(dir: &Path, device: &Device) -> Result<(PrefixLm, RunConfig), ModelError> {
     let run: RunConfig = read_json(&dir.join("config.json"))?;
     if matches!(run.train.model, ModelShape::EsMoe { .. }) {
         return Err(ModelError::invalid(
@@ -376,22 +391,27 @@ pub fn load_model(dir: &Path) -> Result<(PrefixLm, RunConfig), ModelError> {
     }
     let weights = dir.join(MODEL_FILE);
     // SAFETY: the checkpoint is only read; it must not change while the model lives.
-    let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, &Device::Cpu) }
+    let vb = unsafe { VarBuilder::from_mmaped_safetensors(&[&weights], DType::F32, device) }
         .map_err(|e| ModelError::invalid(&weights, e))?;
     let model = PrefixLm::new(&run.model, vb).map_err(|e| ModelError::invalid(&weights, e))?;
     Ok((model, run))
 }
 
 /// The trained LM in `dir` as generation and evaluation use it (one model, or ES-MoE's
-/// experts and gate on their base) and its run config.
-pub fn load_lm(dir: &Path) -> Result<(Box<dyn MotionLm>, RunConfig), ModelError> {
+/// experts and gate on their base), on `device`, run with `compute`, and its run config.
+pub fn load_lm(
+    dir: &Path,
+    device: &Device,
+    compute: Compute,
+) -> Result<(Box<dyn MotionLm>, RunConfig), ModelError> {
     let run: RunConfig = read_json(&dir.join("config.json"))?;
     if let ModelShape::EsMoe { base, moe, .. } = &run.train.model {
-        let lm = EsMoe::load(dir, &base.join(MODEL_FILE), &run.model, *moe)?;
+        let mut lm = EsMoe::load(dir, &base.join(MODEL_FILE), &run.model, *moe, device)?;
+        lm.set_compute(compute);
         return Ok((Box::new(lm), run));
     }
-    let (model, run) = load_model(dir)?;
-    Ok((Box::new(model), run))
+    let (model, run) = load_model(dir, device)?;
+    Ok((Box::new(model.with_compute(compute)), run))
 }
 
 /// The emotion label of every labelled clip of a corpus, by motion id.
@@ -406,11 +426,12 @@ fn clip_emotions(corpus_dir: &Path) -> Result<HashMap<String, String>, ModelErro
         .collect())
 }
 
-/// The run's tokenizer (or the one in `dir`, which must be the same checkpoint), for
-/// decoding its tokens.
+/// The run's tokenizer (or the one in `dir`, which must be the same checkpoint) on `device`,
+/// for decoding its tokens.
 pub fn run_tokenizer(
     run: &RunConfig,
     dir: Option<&Path>,
+    device: &Device,
 ) -> Result<tokenizer::model::MotionTokenizer, ModelError> {
     use tokenizer::model::MotionTokenizer;
     let dir = dir.unwrap_or(&run.tokenizer.dir);
@@ -424,15 +445,16 @@ pub fn run_tokenizer(
             ),
         ));
     }
-    MotionTokenizer::load(dir, &Device::Cpu).map_err(|e| ModelError::invalid(dir, e))
+    MotionTokenizer::load(dir, device).map_err(|e| ModelError::invalid(dir, e))
 }
 
-/// Train (or resume) the run `config` describes, calling `on_event` as it goes.
+/// Train (or resume) the run `config` describes on `device`, calling `on_event` as it goes.
 pub fn train(
     config: &TrainConfig,
+    device: &Device,
     on_event: &mut dyn FnMut(&TrainEvent),
 ) -> Result<TrainReport, ModelError> {
-    let mut run = Run::start(config)?;
+    let mut run = Run::start(config, device)?;
     let total = run.config.schedule.total;
     on_event(&TrainEvent::Started {
         from: run.state.step,
@@ -475,6 +497,7 @@ pub fn train(
         total_steps: total,
         eval,
         out: config.out.clone(),
+        device: run.config.device.clone(),
     })
 }
 
@@ -506,7 +529,9 @@ fn build_trainee(
     config: &TrainConfig,
     run: &RunConfig,
     data: &LmData,
+    device: &Device,
 ) -> Result<(Trainee, HashMap<String, candle_core::Var>), ModelError> {
+    let compute = config.compute;
     Ok(match &config.model {
         ModelShape::Lora {
             base,
@@ -518,23 +543,24 @@ fn build_trainee(
             distill_from,
             distillation,
         } => {
-            let adapter = LoraAdapter::new(&run.model, *lora, expert, config.hyper.seed)
+            let adapter = LoraAdapter::new(&run.model, *lora, expert, config.hyper.seed, device)
                 .map_err(ModelError::inference)?;
             if let Some(file) = init {
                 adapter.load(file)?;
             }
             let mut previous = Vec::new();
             for file in orthogonal_to {
-                previous.extend(adapter_a_matrices(file)?);
+                previous.extend(adapter_a_matrices(file, device)?);
             }
             let teacher = match distill_from {
-                Some(dir) => Some(load_model(dir)?.0),
+                Some(dir) => Some(load_model(dir, device)?.0.with_compute(compute)),
                 None => None,
             };
             let vars = adapter.vars();
             let lora = LoraRun {
                 adapter,
-                base: base_weights(&base.join(MODEL_FILE))?,
+                base: base_weights(&base.join(MODEL_FILE), device)?,
+                compute,
                 previous,
                 orthogonality: *orthogonality,
                 teacher,
@@ -554,7 +580,7 @@ fn build_trainee(
                 .flat_map(|e| &e.captions)
                 .map(|&c| data.text[c].as_slice())
                 .collect();
-            let trainer = EsMoeTrainer::new(
+            let mut trainer = EsMoeTrainer::new(
                 &run.model,
                 *moe,
                 &base.join(MODEL_FILE),
@@ -563,15 +589,17 @@ fn build_trainee(
                 &clip_emotions(&run.corpus)?,
                 &train_texts,
                 config.hyper.seed,
+                device,
             )?;
+            trainer.moe.set_compute(compute);
             let vars = trainer.vars();
             (Trainee::Moe(Box::new(trainer)), vars)
         }
         ModelShape::Preset(_) | ModelShape::Custom { .. } => {
             let (model, varmap) =
-                init_model(&run.model, config.hyper.seed).map_err(ModelError::inference)?;
+                init_model(&run.model, config.hyper.seed, device).map_err(ModelError::inference)?;
             let vars = varmap.data().lock().expect("varmap lock").clone();
-            (Trainee::Model(model), vars)
+            (Trainee::Model(model.with_compute(compute)), vars)
         }
     })
 }
@@ -579,7 +607,7 @@ fn build_trainee(
 impl Run {
     /// Load the data, resolve the run, build the model and optimiser, and restore the
     /// checkpoint in the output folder if there is one.
-    fn start(config: &TrainConfig) -> Result<Self, ModelError> {
+    fn start(config: &TrainConfig, device: &Device) -> Result<Self, ModelError> {
         let corpus = match &config.corpus {
             Some(c) => c.clone(),
             None => {
@@ -623,9 +651,10 @@ impl Run {
                 total,
                 final_ratio: config.hyper.final_lr_ratio,
             },
+            device: nn::device::device_name(device),
         };
         std::fs::create_dir_all(&config.out).map_err(|e| ModelError::io(&config.out, e))?;
-        let (trainee, vars) = build_trainee(config, &run, &data)?;
+        let (trainee, vars) = build_trainee(config, &run, &data, device)?;
         let (beta1, beta2) = config.betas;
         let adamw = AdamWConfig {
             beta1,
@@ -635,7 +664,7 @@ impl Run {
         };
         let mut opt = AdamW::new(&vars, adamw);
         let paths = Paths::new(&config.out);
-        let state = resume(&paths, &run, &vars, &mut opt)?;
+        let state = resume(&paths, &run, &vars, &mut opt, device)?;
         write_json(&paths.config, &run)?;
         Ok(Self {
             config: run,
@@ -788,12 +817,13 @@ impl Run {
     }
 }
 
-/// A LoRA run: the adapter being trained, the frozen base weights, the earlier adapters'
-/// `lora_A` matrices it is kept orthogonal to (with weight `orthogonality`), and the model it
-/// is distilled towards (with weight `distillation`).
+/// A LoRA run: the adapter being trained, the frozen base weights (merged models run with
+/// `compute`), the earlier adapters' `lora_A` matrices it is kept orthogonal to (with weight
+/// `orthogonality`), and the model it is distilled towards (with weight `distillation`).
 struct LoraRun {
     adapter: LoraAdapter,
     base: HashMap<String, Tensor>,
+    compute: Compute,
     previous: Vec<HashMap<String, Tensor>>,
     orthogonality: f64,
     teacher: Option<PrefixLm>,
@@ -806,7 +836,7 @@ impl LoraRun {
         &self,
         config: &PrefixLmConfig,
     ) -> candle_core::Result<(PrefixLm, HashMap<String, Tensor>)> {
-        self.adapter.merged_model(config, &self.base)
+        self.adapter.merged_model(config, &self.base, self.compute)
     }
 
     /// Loss of `batch` and the adapter's gradients.
@@ -872,6 +902,7 @@ fn resume(
     run: &RunConfig,
     vars: &HashMap<String, candle_core::Var>,
     opt: &mut AdamW,
+    device: &Device,
 ) -> Result<TrainState, ModelError> {
     let fresh = TrainState {
         step: 0,
@@ -885,14 +916,23 @@ fn resume(
         let _ = std::fs::remove_file(&paths.evals);
         return Ok(fresh);
     }
-    let asked = serde_json::to_value(run).ok();
-    check_same_run(&paths.config, "a run", |old: serde_json::Value| {
-        asked == Some(old)
+    // The same run on another device resumes: only what was computed must match. The old
+    // config is read as today's (a run recorded before devices and precisions were has the
+    // defaults: CPU, f32).
+    let comparable = |run: &RunConfig| {
+        let mut v = serde_json::to_value(run).ok();
+        if let Some(o) = v.as_mut().and_then(|v| v.as_object_mut()) {
+            o.remove("device");
+        }
+        v
+    };
+    check_same_run(&paths.config, "a run", |old: RunConfig| {
+        comparable(&old) == comparable(run)
     })?;
     let state: TrainState = read_json(paths.resume.state_path())?;
     let files = paths.resume.files(state.step);
     let (weights, moments) = (files.join(MODEL_FILE), files.join(OPTIMIZER_FILE));
-    let saved = base_weights(&weights)?;
+    let saved = base_weights(&weights, device)?;
     for (name, var) in vars {
         let t = saved
             .get(name)

@@ -87,7 +87,7 @@ fn tiny_run(tokens: &Path, out: &Path, budget: u64) -> TrainConfig {
 }
 
 fn run(config: &TrainConfig) -> TrainReport {
-    train(config, &mut |_| {}).unwrap()
+    train(config, &Device::Cpu, &mut |_| {}).unwrap()
 }
 
 #[test]
@@ -135,6 +135,17 @@ fn an_interrupted_run_resumes_to_the_same_weights() {
     parts.stop_after = Some(6);
     let first = run(&parts);
     assert_eq!(first.steps, 6);
+    // As a binary from before devices and precisions wrote it: the run still resumes.
+    let config_path = root.path().join("parts/config.json");
+    let mut old: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&config_path).unwrap()).unwrap();
+    old.as_object_mut().unwrap().remove("device").unwrap();
+    old["train"]
+        .as_object_mut()
+        .unwrap()
+        .remove("compute")
+        .unwrap();
+    std::fs::write(&config_path, serde_json::to_string(&old).unwrap()).unwrap();
     parts.stop_after = None;
     let second = run(&parts);
     assert_eq!(
@@ -167,7 +178,10 @@ fn an_interrupted_run_resumes_to_the_same_weights() {
     // A different configuration in the same folder is refused.
     let mut other = parts.clone();
     other.hyper.seed = 1;
-    assert!(train(&other, &mut |_| {}).is_err());
+    assert!(train(&other, &Device::Cpu, &mut |_| {}).is_err());
+    let mut other = parts.clone();
+    other.compute.precision = nn::device::Precision::Bf16;
+    assert!(train(&other, &Device::Cpu, &mut |_| {}).is_err());
 }
 
 #[test]

@@ -2,7 +2,7 @@
 
 use thiserror::Error;
 
-/// What went wrong: a tensor operation, or a checkpoint file (named).
+/// What went wrong: a tensor operation, a checkpoint file (named), or a device.
 #[derive(Debug, Error)]
 pub enum NnError {
     /// A tensor operation failed (shape or dtype mismatch, device error…).
@@ -11,4 +11,7 @@ pub enum NnError {
     /// A checkpoint file could not be read or written, or its content is wrong.
     #[error(transparent)]
     File(#[from] motionscale_core::FileError),
+    /// A device named on the command line cannot be opened (this build or this machine).
+    #[error("{0}")]
+    Device(String),
 }

@@ -1,5 +1,6 @@
 //! The CPU numerics every model of motionscale shares, below the models themselves:
 //!
+//! - [`device`]: the devices and precisions the command line names, each device opened once;
 //! - [`matmul`] (gemm with the AVX-512 kernels) and [`cpu_f32`] (f32 views of candle tensors);
 //! - [`conv_op`]: the fused 1-D convolution (im2col + gemm, ReLU and up-sampling fused in) of
 //!   the tokenizer and the evaluator;
@@ -17,6 +18,7 @@
 pub mod checkpoint;
 pub mod conv_op;
 pub mod cpu_f32;
+pub mod device;
 pub mod error;
 pub mod fast_exp;
 pub mod gradcheck;
@@ -32,20 +34,3 @@ pub mod seq_layout;
 
 pub use error::NnError;
 pub use model_error::ModelError;
-
-/// The device models load onto: the first CUDA GPU when built with `cuda` and one is
-/// present, else the CPU.
-///
-/// Opened once per process: each `Device::new_cuda` is a new device (its own context, handles
-/// and kernels), and candle refuses to combine tensors of two of them.
-pub fn default_device() -> candle_core::Device {
-    #[cfg(feature = "cuda")]
-    {
-        static DEVICE: std::sync::OnceLock<candle_core::Device> = std::sync::OnceLock::new();
-        DEVICE
-            .get_or_init(|| candle_core::Device::new_cuda(0).unwrap_or(candle_core::Device::Cpu))
-            .clone()
-    }
-    #[cfg(not(feature = "cuda"))]
-    candle_core::Device::Cpu
-}

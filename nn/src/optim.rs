@@ -2,9 +2,12 @@
 //! by every training loop of the workspace (tokenizers here, transformers downstream).
 //!
 //! candle-nn's `AdamW` keeps its moments private, so a run could not resume from a checkpoint
-//! with its optimiser state; this one stores the moments as plain `f32` vectors, updates them
-//! in one fused pass per parameter (PyTorch's `torch.optim.AdamW` arithmetic, bias
-//! corrections included) and saves them as safetensors (`m.<name>`, `v.<name>`, `step`).
+//! with its optimiser state; this one keeps f32 moments where the parameter lives, updates
+//! them with PyTorch's `torch.optim.AdamW` arithmetic (bias corrections included) and saves
+//! them as safetensors (`m.<name>`, `v.<name>`, `step`). For f32 parameters on the CPU the
+//! moments are plain vectors updated in one fused pass per parameter; elsewhere (a GPU) they
+//! are f32 tensors on the parameter's device, updated with tensor ops there (no copy through
+//! host memory).
 
 use crate::cpu_f32::{contiguous_f32, F32Values};
 use crate::error::NnError;
@@ -102,6 +105,31 @@ impl StepValues {
             });
     }
 
+    /// The same update in tensor ops on the parameter's device, from moments `mv` (`None`:
+    /// zero): the new moments; the parameter is set in place.
+    fn apply_tensors(
+        &self,
+        var: &Var,
+        mv: Option<&(Tensor, Tensor)>,
+        grad: &Tensor,
+    ) -> candle_core::Result<(Tensor, Tensor)> {
+        let (b1, b2) = self.beta;
+        let g = (grad.flatten_all()?.to_dtype(DType::F32)? * f64::from(self.scale))?;
+        let (m, v) = (
+            (&g * f64::from(1.0 - b1))?,
+            (g.sqr()? * f64::from(1.0 - b2))?,
+        );
+        let (m, v) = match mv {
+            Some((m0, v0)) => (((m0 * f64::from(b1))? + m)?, ((v0 * f64::from(b2))? + v)?),
+            None => (m, v),
+        };
+        let denom = ((v.sqrt()? / f64::from(self.bias2_sqrt))? + f64::from(self.eps))?;
+        let p = var.as_tensor().flatten_all()?.to_dtype(DType::F32)?;
+        let p = ((p * f64::from(self.decay))? - (m.div(&denom)? * f64::from(self.step_size))?)?;
+        var.set(&p.reshape(var.shape())?.to_dtype(var.dtype())?)?;
+        Ok((m, v))
+    }
+
     /// [`StepValues::chunk`] in 8-wide registers: its square roots and divisions are most of
     /// the optimiser's time. Exactly rounded either way (no FMA contraction), so the values do
     /// not depend on the path.
@@ -159,12 +187,57 @@ impl InplaceOp2 for Update<'_> {
     }
 }
 
+/// The first and second moments of one parameter.
+enum Moments {
+    /// f32 CPU parameters: updated by the fused pass.
+    Host { m: Vec<f32>, v: Vec<f32> },
+    /// Parameters elsewhere: f32 tensors `(m, v)` on the parameter's device (`None` while
+    /// both are zero, before the first step).
+    Device(Option<(Tensor, Tensor)>),
+}
+
+impl Moments {
+    /// Zero moments for `var`, where it lives.
+    fn zeros(var: &Var) -> Self {
+        let n = var.elem_count();
+        if var.device().is_cpu() && var.dtype() == DType::F32 {
+            Self::Host {
+                m: vec![0.0; n],
+                v: vec![0.0; n],
+            }
+        } else {
+            Self::Device(None)
+        }
+    }
+
+    /// `(m, v)` of `n` values as host vectors (for saving).
+    fn to_host(&self, n: usize) -> Result<(Vec<f32>, Vec<f32>), NnError> {
+        Ok(match self {
+            Self::Host { m, v } => (m.clone(), v.clone()),
+            Self::Device(Some((m, v))) => (m.to_vec1()?, v.to_vec1()?),
+            Self::Device(None) => (vec![0.0; n], vec![0.0; n]),
+        })
+    }
+
+    /// Replace the moments of `var` by saved values of its length.
+    fn restore(&mut self, var: &Var, m: Vec<f32>, v: Vec<f32>) -> Result<(), NnError> {
+        match self {
+            Self::Host { m: hm, v: hv } => (*hm, *hv) = (m, v),
+            Self::Device(moments) => {
+                let n = m.len();
+                let on = |x: Vec<f32>| Tensor::from_vec(x, n, var.device());
+                *moments = Some((on(m)?, on(v)?));
+            }
+        }
+        Ok(())
+    }
+}
+
 /// One parameter with its moments.
 struct Slot {
     name: String,
     var: Var,
-    m: Vec<f32>,
-    v: Vec<f32>,
+    moments: Moments,
 }
 
 /// AdamW over named variables.
@@ -175,20 +248,17 @@ pub struct AdamW {
 }
 
 impl AdamW {
-    /// An optimiser for `vars` (name → variable, e.g. `VarMap::data()`), sorted by name.
+    /// An optimiser for `vars` (name → variable, e.g. `VarMap::data()`), sorted by name;
+    /// the moments live on each variable's device.
     pub fn new(vars: &HashMap<String, Var>, config: AdamWConfig) -> Self {
         let mut names: Vec<&String> = vars.keys().collect();
         names.sort();
         let slots = names
             .into_iter()
-            .map(|name| {
-                let n = vars[name].elem_count();
-                Slot {
-                    name: name.clone(),
-                    var: vars[name].clone(),
-                    m: vec![0.0; n],
-                    v: vec![0.0; n],
-                }
+            .map(|name| Slot {
+                name: name.clone(),
+                var: vars[name].clone(),
+                moments: Moments::zeros(&vars[name]),
             })
             .collect();
         Self {
@@ -220,6 +290,15 @@ impl AdamW {
         // Sums of squares per fixed chunk in parallel, added in order: deterministic.
         let mut squares = Vec::new();
         for g in grads.iter().flatten() {
+            if !g.device().is_cpu() {
+                let sum = g
+                    .to_dtype(DType::F32)?
+                    .sqr()?
+                    .sum_all()?
+                    .to_scalar::<f32>()?;
+                squares.push(f64::from(sum));
+                continue;
+            }
             let g = F32Values::of(g)?;
             squares.extend(
                 g.par_chunks(CHUNK)
@@ -248,19 +327,19 @@ impl AdamW {
             let Some(grad) = grad else {
                 continue;
             };
-            let var = slot.var.as_tensor();
-            if var.device().is_cpu() && var.dtype() == DType::F32 {
-                let update = Update {
-                    moments: Mutex::new((&mut slot.m[..], &mut slot.v[..])),
-                    step,
-                };
-                var.inplace_op2(&grad.contiguous()?, &update)?;
-            } else {
-                let mut p = var.flatten_all()?.to_vec1::<f32>()?;
-                let g = grad.flatten_all()?.to_vec1::<f32>()?;
-                step.apply(&mut p, &mut slot.m, &mut slot.v, &g);
-                let shape = var.shape().clone();
-                slot.var.set(&Tensor::from_vec(p, shape, var.device())?)?;
+            match &mut slot.moments {
+                Moments::Host { m, v } => {
+                    let update = Update {
+                        moments: Mutex::new((&mut m[..], &mut v[..])),
+                        step,
+                    };
+                    slot.var
+                        .as_tensor()
+                        .inplace_op2(&grad.contiguous()?, &update)?;
+                }
+                Moments::Device(moments) => {
+                    *moments = Some(step.apply_tensors(&slot.var, moments.as_ref(), grad)?)
+                }
             }
         }
         Ok(norm)
@@ -270,14 +349,15 @@ impl AdamW {
     pub fn save(&self, path: &Path) -> Result<(), NnError> {
         let mut tensors = HashMap::new();
         for slot in &self.slots {
-            let n = slot.m.len();
+            let (m, v) = slot.moments.to_host(slot.var.elem_count())?;
+            let n = m.len();
             tensors.insert(
                 format!("m.{}", slot.name),
-                Tensor::from_slice(&slot.m, n, &Device::Cpu)?,
+                Tensor::from_vec(m, n, &Device::Cpu)?,
             );
             tensors.insert(
                 format!("v.{}", slot.name),
-                Tensor::from_slice(&slot.v, n, &Device::Cpu)?,
+                Tensor::from_vec(v, n, &Device::Cpu)?,
             );
         }
         // The step as two u32 halves: safetensors in candle has no u64 tensors.
@@ -297,18 +377,20 @@ impl AdamW {
                 .ok_or_else(|| file_error(format!("no tensor {key}")))
         };
         for slot in &mut self.slots {
-            for (kind, dst) in [("m", &mut slot.m), ("v", &mut slot.v)] {
+            let read = |kind: &str| -> Result<Vec<f32>, NnError> {
                 let key = format!("{kind}.{}", slot.name);
                 let values = get(&key)?.to_vec1::<f32>()?;
-                if values.len() != dst.len() {
+                if values.len() != slot.var.elem_count() {
                     return Err(file_error(format!(
                         "{key} has {} values, the variable {}",
                         values.len(),
-                        dst.len()
+                        slot.var.elem_count()
                     )));
                 }
-                *dst = values;
-            }
+                Ok(values)
+            };
+            let (m, v) = (read("m")?, read("v")?);
+            slot.moments.restore(&slot.var, m, v)?;
         }
         let halves = get("step")?.to_vec1::<u32>()?;
         self.step = u64::from(halves[0]) | (u64::from(halves[1]) << 32);
@@ -385,7 +467,7 @@ mod tests {
         let mut opt = AdamW::new(&vars, AdamWConfig::default());
         let norm = opt.step(&grads, 0.0, Some(1.0)).unwrap();
         assert!((norm - 5.0).abs() < 1e-6);
-        let m = &opt.slots[0].m;
+        let (m, _) = opt.slots[0].moments.to_host(2).unwrap();
         assert!((m[0] - 0.1 * 0.6).abs() < 1e-6 && (m[1] - 0.1 * 0.8).abs() < 1e-6);
     }
 
@@ -409,7 +491,54 @@ mod tests {
         let mut restored = AdamW::new(&vars, AdamWConfig::default());
         restored.load(&path).unwrap();
         assert_eq!(restored.steps(), 1);
-        assert_eq!(restored.slots[0].m, opt.slots[0].m);
-        assert_eq!(restored.slots[0].v, opt.slots[0].v);
+        assert_eq!(
+            restored.slots[0].moments.to_host(2).unwrap(),
+            opt.slots[0].moments.to_host(2).unwrap()
+        );
+    }
+
+    #[test]
+    fn moments_kept_as_tensors_update_as_the_fused_pass_does() {
+        // The path of parameters off the CPU, run here on CPU tensors, against the fused
+        // host pass: same parameters and moments after a few clipped steps.
+        let values: Vec<f32> = (0..300)
+            .map(|i| ((i * 37 % 101) as f32 - 50.0) / 40.0)
+            .collect();
+        let fresh = || Var::from_vec(values.clone(), (20, 15), &Device::Cpu).unwrap();
+        let (host, tensors) = (fresh(), fresh());
+        let config = AdamWConfig {
+            weight_decay: 0.1,
+            ..AdamWConfig::default()
+        };
+        let mut opt_host = AdamW::new(&HashMap::from([("w".into(), host.clone())]), config);
+        let mut opt_tensors = AdamW::new(&HashMap::from([("w".into(), tensors.clone())]), config);
+        opt_tensors.slots[0].moments = Moments::Device(None);
+        for step in 0..3 {
+            for (var, opt) in [(&host, &mut opt_host), (&tensors, &mut opt_tensors)] {
+                let grads = var
+                    .as_tensor()
+                    .powf(3.0)
+                    .unwrap()
+                    .sum_all()
+                    .unwrap()
+                    .backward()
+                    .unwrap();
+                opt.step(&grads, 1e-2 * (step + 1) as f64, Some(5.0))
+                    .unwrap();
+            }
+        }
+        let flat = |v: &Var| {
+            v.as_tensor()
+                .flatten_all()
+                .unwrap()
+                .to_vec1::<f32>()
+                .unwrap()
+        };
+        let worst = crate::gradcheck::max_abs_diff(&flat(&host), &flat(&tensors));
+        assert!(worst <= 1e-6, "parameters differ by {worst}");
+        let (mh, vh) = opt_host.slots[0].moments.to_host(300).unwrap();
+        let (mt, vt) = opt_tensors.slots[0].moments.to_host(300).unwrap();
+        assert!(crate::gradcheck::max_abs_diff(&mh, &mt) <= 1e-6);
+        assert!(crate::gradcheck::max_abs_diff(&vh, &vt) <= 1e-6);
     }
 }

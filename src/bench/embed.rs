@@ -3,7 +3,9 @@
 //! captions embedded by PyTorch + transformers (`scripts/pytorch_embed_text.py`) in this run,
 //! with the ratio.
 
+use crate::device_args::DeviceArgs;
 use anyhow::{bail, Context, Result};
+use nn::device::device_name;
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -39,6 +41,9 @@ pub struct BenchEmbedArgs {
     /// Also write the figures as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Where the encoder runs.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// `motionscale bench embed`.
@@ -47,7 +52,8 @@ pub fn bench_embed(args: BenchEmbedArgs) -> Result<ExitCode> {
         .encoder
         .clone()
         .unwrap_or_else(text::default_encoder_dir);
-    let encoder = text::BertEncoder::load(&dir).with_context(|| {
+    let device = args.device.open()?;
+    let encoder = text::BertEncoder::load(&dir, &device).with_context(|| {
         format!(
             "loading the encoder in {} (scripts/fetch-text-encoder.sh fetches it)",
             dir.display()
@@ -66,11 +72,12 @@ pub fn bench_embed(args: BenchEmbedArgs) -> Result<ExitCode> {
     })?;
     let ours = super::number(&timing, "median_s")?;
     let mut line = format!(
-        "caption embedding, {} ({}), {} captions ({tokens} tokens), batch {}, {} threads: {ours:.2} s, {:.0} captions/s, {:.0} tokens/s",
+        "caption embedding, {} ({}), {} captions ({tokens} tokens), batch {}, {}, {} threads: {ours:.2} s, {:.0} captions/s, {:.0} tokens/s",
         encoder.id(),
         dir.display(),
         captions.len(),
         args.batch,
+        device_name(&device),
         rayon::current_num_threads(),
         captions.len() as f64 / ours,
         tokens as f64 / ours
@@ -79,7 +86,7 @@ pub fn bench_embed(args: BenchEmbedArgs) -> Result<ExitCode> {
     let corpus = args.corpus.file_name().map(|n| n.to_string_lossy());
     let mut figures = serde_json::json!({"what": "caption embedding", "encoder": encoder.id(),
         "corpus": corpus, "captions": captions.len(), "tokens": tokens, "batch": args.batch,
-        "threads": rayon::current_num_threads(), "time": timing,
+        "device": device_name(&device), "threads": rayon::current_num_threads(), "time": timing,
         "captions_per_s": captions.len() as f64 / ours});
     if args.reference {
         let reference = reference(&args, &dir, &captions)?;

@@ -8,12 +8,14 @@
 //! 1e-3. With `--reference` the lengths are the reference's own (drawn by torch's generator
 //! with its seed), so both time the same sequences. BI-CTVAE's is `scripts/pytorch_ctvae.py`'s.
 
+use crate::device_args::DeviceArgs;
 use anyhow::{Context, Result};
 use candle_core::Device;
 use evaluator::model::{init_evaluator, labelled_cross_entropy, EvaluatorConfig, Padded};
 use experiments::ctvae::CtvaeConfig;
 use experiments::ctvae_train::{CtvaeTrainer, LossWeights, Sample};
 use motionscale_core::rng::SplitMix64;
+use nn::device::device_name;
 use nn::optim::{AdamW, AdamWConfig};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -42,6 +44,9 @@ pub struct BenchEvaluatorArgs {
     /// Also write the figures as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Where the evaluator trains.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// Arguments of `motionscale bench ctvae`.
@@ -71,6 +76,9 @@ pub struct BenchCtvaeArgs {
     /// Also write the figures as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Where BI-CTVAE trains.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// Frames and caption tokens of each clip as `pytorch_evaluator.py` draws them.
@@ -113,8 +121,14 @@ fn slices(rows: &[Vec<f32>]) -> Vec<&[f32]> {
     rows.iter().map(Vec::as_slice).collect()
 }
 
-/// Median seconds of our evaluator training step on clips of `frames` and captions of `tokens`.
-fn time_evaluator(args: &BenchEvaluatorArgs, frames: &[usize], tokens: &[usize]) -> Result<f64> {
+/// Median seconds of our evaluator training step on `device`, on clips of `frames` and
+/// captions of `tokens`.
+fn time_evaluator(
+    args: &BenchEvaluatorArgs,
+    device: &Device,
+    frames: &[usize],
+    tokens: &[usize],
+) -> Result<f64> {
     let config = EvaluatorConfig {
         feature_dim: ingest::hml263::FEATURE_DIM,
         text_dim: 384,
@@ -126,7 +140,7 @@ fn time_evaluator(args: &BenchEvaluatorArgs, frames: &[usize], tokens: &[usize])
         emotions: (0..6).map(|i| format!("e{i}")).collect(),
         actions: (0..12).map(|i| format!("a{i}")).collect(),
     };
-    let (net, varmap) = init_evaluator(config.clone(), 0, &Device::Cpu)?;
+    let (net, varmap) = init_evaluator(config.clone(), 0, device)?;
     let mut opt = AdamW::new(
         &varmap.data().lock().expect("varmap lock").clone(),
         AdamWConfig::default(),
@@ -143,16 +157,14 @@ fn time_evaluator(args: &BenchEvaluatorArgs, frames: &[usize], tokens: &[usize])
     let distinct = vec![vec![false; frames.len()]; frames.len()];
     let (motion_rows, text_rows) = (slices(&motions), slices(&texts));
     let timing = super::time(args.warmup, args.reps, 0.0, || {
-        let motion = net.encode_motion(&Padded::new(
-            &motion_rows,
-            config.feature_dim,
-            &Device::Cpu,
-        )?)?;
-        let text = net.encode_text(&Padded::new(&text_rows, config.text_dim, &Device::Cpu)?)?;
+        let motion = net.encode_motion(&Padded::new(&motion_rows, config.feature_dim, device)?)?;
+        let text = net.encode_text(&Padded::new(&text_rows, config.text_dim, device)?)?;
         let loss = (net.contrastive_loss(&text, &motion.embedding, &distinct)?
             + labelled_cross_entropy(&motion.emotion, &emotion)?
             + labelled_cross_entropy(&motion.action, &action)?)?;
         opt.step(&loss.backward()?, 1e-3, None)?;
+        // A GPU queues the update: the step ends when it has run.
+        device.synchronize()?;
         Ok(())
     })?;
     super::number(&timing, "median_s")
@@ -161,26 +173,29 @@ fn time_evaluator(args: &BenchEvaluatorArgs, frames: &[usize], tokens: &[usize])
 /// `motionscale bench evaluator`.
 pub fn evaluator(args: BenchEvaluatorArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
+    let device = args.device.open()?;
     let (frames, tokens) = if args.reference {
         reference_lengths(args.batch)?
     } else {
         own_lengths(args.batch)
     };
     let mean = |v: &[usize]| v.iter().sum::<usize>() as f64 / v.len() as f64;
-    let ours = time_evaluator(&args, &frames, &tokens)?;
+    let ours = time_evaluator(&args, &device, &frames, &tokens)?;
     let mut line = format!(
-        "evaluator training step, batch {}, hidden {}, {:.1} frames and {:.1} tokens per clip, {} threads: {:.3} s ({:.2} steps/s)",
+        "evaluator training step, batch {}, hidden {}, {:.1} frames and {:.1} tokens per clip, {}, {} threads: {:.3} s ({:.2} steps/s)",
         args.batch,
         args.hidden,
         mean(&frames),
         mean(&tokens),
+        device_name(&device),
         rayon::current_num_threads(),
         ours,
         1.0 / ours
     );
     let mut figures = serde_json::json!({"what": "evaluator training step", "batch": args.batch,
         "hidden": args.hidden, "mean_frames": mean(&frames), "mean_tokens": mean(&tokens),
-        "threads": rayon::current_num_threads(), "median_step_s": ours});
+        "device": device_name(&device), "threads": rayon::current_num_threads(),
+        "median_step_s": ours});
     if args.reference {
         let script = args.bench_dir.join("pytorch_evaluator.py");
         let (batch, hidden) = (args.batch.to_string(), args.hidden.to_string());
@@ -198,8 +213,8 @@ fn ctvae_lengths(batch: usize) -> Vec<usize> {
     (0..batch).map(|b| 60 + (7 * b) % 41).collect()
 }
 
-/// Median seconds of our BI-CTVAE training step at `shape`.
-fn time_ctvae(args: &BenchCtvaeArgs, shape: &str) -> Result<f64> {
+/// Median seconds of our BI-CTVAE training step at `shape` on `device`.
+fn time_ctvae(args: &BenchCtvaeArgs, shape: &str, device: &Device) -> Result<f64> {
     let classes: Vec<String> = (0..args.classes).map(|i| format!("c{i}")).collect();
     let config = match shape {
         "paper" => CtvaeConfig::paper(classes),
@@ -211,7 +226,7 @@ fn time_ctvae(args: &BenchCtvaeArgs, shape: &str) -> Result<f64> {
         latent: 1e-5,
         aux: 0.0,
     };
-    let mut trainer = CtvaeTrainer::new(config, weights, &vec![1.0; dim], 0)?;
+    let mut trainer = CtvaeTrainer::new(config, weights, &vec![1.0; dim], 0, device)?;
     let mut rng = SplitMix64::stream(3, 0);
     let samples: Vec<Sample> = ctvae_lengths(args.batch)
         .iter()
@@ -232,17 +247,20 @@ fn time_ctvae(args: &BenchCtvaeArgs, shape: &str) -> Result<f64> {
 /// `motionscale bench ctvae`.
 pub fn ctvae(args: BenchCtvaeArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
+    let device = args.device.open()?;
     let mut figures = Vec::new();
     for shape in &args.shapes {
-        let ours = time_ctvae(&args, shape)?;
+        let ours = time_ctvae(&args, shape, &device)?;
         let mut line = format!(
-            "BI-CTVAE training step, shape {shape}, batch {}, 60–100 frames, {} threads: {ours:.3} s ({:.2} steps/s)",
+            "BI-CTVAE training step, shape {shape}, batch {}, 60–100 frames, {}, {} threads: {ours:.3} s ({:.2} steps/s)",
             args.batch,
+            device_name(&device),
             rayon::current_num_threads(),
             1.0 / ours
         );
         let mut figure = serde_json::json!({"what": "BI-CTVAE training step", "shape": shape,
-            "batch": args.batch, "threads": rayon::current_num_threads(), "median_step_s": ours});
+            "batch": args.batch, "device": device_name(&device),
+            "threads": rayon::current_num_threads(), "median_step_s": ours});
         if args.reference {
             let (batch, classes) = (args.batch.to_string(), args.classes.to_string());
             let flags = ["--shape", shape, "--batch", &batch, "--classes", &classes];

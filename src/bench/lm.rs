@@ -6,9 +6,10 @@
 
 use super::time;
 use anyhow::{Context, Result};
+use candle_core::Device;
 use lm::accounting::{self, SequenceShape};
 use lm::generate::Sampling;
-use lm::prefix_lm::{init_model, LmBatch, PrefixLmConfig};
+use lm::prefix_lm::{init_model, Compute, LmBatch, PrefixLmConfig};
 use nn::optim::{AdamW, AdamWConfig};
 use serde_json::{json, Value};
 use std::path::PathBuf;
@@ -23,8 +24,9 @@ const TEXT_DIM: usize = 384;
 /// Arguments of `motionscale bench train`.
 #[derive(clap::Args, Debug)]
 pub struct BenchTrainArgs {
-    /// Model sizes as WIDTHxLAYERS (heads of width 64).
-    #[arg(long, value_delimiter = ',', default_value = "256x4,512x8")]
+    /// Model sizes as WIDTHxLAYERS (heads of width 64), on a GPU WIDTHxLAYERS@BATCH (default:
+    /// 256x4,512x8 on the CPU; ScaMo's 512x8@256,1024x24@128 on a GPU).
+    #[arg(long, value_delimiter = ',')]
     pub sizes: Vec<String>,
     /// Sequences per training step.
     #[arg(long, default_value_t = 32)]
@@ -56,9 +58,19 @@ pub struct BenchTrainArgs {
     /// Write all figures as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Where the model trains (on a GPU: the ScaMo shapes beside
+    /// `--gpu-reference-script`, see `bench::lm_gpu`).
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
+    /// Executor and precision (on a GPU the default precision is bf16, as the reference's).
+    #[command(flatten)]
+    pub compute: crate::lm_cmd::ComputeArgs,
+    /// The PyTorch reference on a GPU (eager bf16 and `torch.compile`).
+    #[arg(long, default_value = "../shared/bench/gpu/pytorch_prefix_lm_gpu.py")]
+    pub gpu_reference_script: PathBuf,
 }
 
-fn parse_size(s: &str) -> Result<(usize, usize)> {
+pub(super) fn parse_size(s: &str) -> Result<(usize, usize)> {
     let (d, l) = s.split_once('x').context("sizes look like 512x8")?;
     Ok((d.trim().parse()?, l.trim().parse()?))
 }
@@ -82,9 +94,18 @@ fn bench_batch(config: &PrefixLmConfig, batch: usize, seed: u64) -> Result<LmBat
     Ok(LmBatch::new(config, &texts, &motions))
 }
 
-fn bench_train_step(args: &BenchTrainArgs, d: usize, layers: usize) -> Result<Value> {
+/// One AdamW training step of a d×layers model at `batch` on `device`, timed; the figures
+/// as JSON (the MFU against `peak_gflops`).
+pub(super) fn bench_train_step(
+    args: &BenchTrainArgs,
+    (d, layers, batch): (usize, usize, usize),
+    device: &Device,
+    compute: Compute,
+    peak_gflops: f64,
+) -> Result<Value> {
     let config = PrefixLmConfig::new(d, layers, d / 64, CODES, TEXT_DIM);
-    let (model, varmap) = init_model(&config, 0)?;
+    let (model, varmap) = init_model(&config, 0, device)?;
+    let model = model.with_compute(compute);
     let vars = varmap.data().lock().expect("varmap lock").clone();
     let mut opt = AdamW::new(
         &vars,
@@ -95,13 +116,15 @@ fn bench_train_step(args: &BenchTrainArgs, d: usize, layers: usize) -> Result<Va
             weight_decay: 0.1,
         },
     );
-    let batch = bench_batch(&config, args.batch, 1)?;
+    let lm_batch = bench_batch(&config, batch, 1)?;
     let mut phases = [Vec::new(), Vec::new()];
     let st = time(args.warmup, args.reps, args.min_time, || {
         let t0 = Instant::now();
-        let (_, grads) = model.loss_and_grads(&batch)?;
+        let (_, grads) = model.loss_and_grads(&lm_batch)?;
+        device.synchronize()?;
         let t1 = Instant::now();
         opt.step(&grads, 3e-4, Some(1.0))?;
+        device.synchronize()?;
         let t2 = Instant::now();
         for (p, (a, b)) in phases.iter_mut().zip([(t0, t1), (t1, t2)]) {
             p.push((b - a).as_secs_f64());
@@ -115,11 +138,10 @@ fn bench_train_step(args: &BenchTrainArgs, d: usize, layers: usize) -> Result<Va
     };
     let [fwd_bwd, optim] = phases.each_mut().map(median);
     let step_s = st["median_s"].as_f64().expect("median");
-    let flops = args.batch as f64 * accounting::train_flops_exact(&config, SequenceShape::BENCH);
-    let six_n = args.batch as f64
-        * SequenceShape::BENCH.motion as f64
-        * accounting::flops_6n_per_token(&config);
-    let tokens = (args.batch * SequenceShape::BENCH.motion) as f64;
+    let flops = batch as f64 * accounting::train_flops_exact(&config, SequenceShape::BENCH);
+    let six_n =
+        batch as f64 * SequenceShape::BENCH.motion as f64 * accounting::flops_6n_per_token(&config);
+    let tokens = (batch * SequenceShape::BENCH.motion) as f64;
     let gflops = flops / step_s / 1e9;
     let params = accounting::param_count(&config);
     // On a busy machine: the step time if this process's CPU time were spread over all
@@ -128,11 +150,13 @@ fn bench_train_step(args: &BenchTrainArgs, d: usize, layers: usize) -> Result<Va
         st["own_cpu_s_per_call"].as_f64().unwrap_or(0.0) / rayon::current_num_threads() as f64;
     Ok(json!({
         "d_model": d, "n_layers": layers, "n_heads": d / 64, "ffn_hidden": config.ffn_hidden,
-        "vocab": config.vocab_size(), "batch": args.batch, "n_nv": params.n_nv, "n_v": params.n_v,
+        "vocab": config.vocab_size(), "batch": batch, "n_nv": params.n_nv, "n_v": params.n_v,
+        "device": nn::device::device_name(device), "precision": compute.precision.to_string(),
+        "executor": format!("{:?}", model.executor()?).to_lowercase(),
         "step_time": st, "phase_median_s": {"fwd_bwd": fwd_bwd, "opt": optim},
         "motion_tokens_per_s": tokens / step_s,
         "flops_per_step_exact": flops, "flops_per_step_6N": six_n,
-        "achieved_gflops_exact": gflops, "mfu": gflops / args.peak_gflops,
+        "achieved_gflops_exact": gflops, "mfu": gflops / peak_gflops,
         "cpu_time_equivalent": {"step_s": cpu_bound_s, "motion_tokens_per_s": tokens / cpu_bound_s,
                                 "gflops_exact": flops / cpu_bound_s / 1e9},
     }))
@@ -140,7 +164,7 @@ fn bench_train_step(args: &BenchTrainArgs, d: usize, layers: usize) -> Result<Va
 
 fn bench_generate(args: &BenchTrainArgs) -> Result<Value> {
     let config = PrefixLmConfig::new(256, 4, 4, CODES, TEXT_DIM);
-    let (model, _) = init_model(&config, 0)?;
+    let (model, _) = init_model(&config, 0, &Device::Cpu)?;
     let mut out = serde_json::Map::new();
     for batch in [1usize, 32] {
         let b = bench_batch(&config, batch, 2)?;
@@ -207,6 +231,11 @@ fn sgemm_now() -> Result<f64> {
 /// `motionscale bench train`.
 pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
+    let device = args.device.open()?;
+    if !device.is_cpu() {
+        return super::lm_gpu::train(&args, &device);
+    }
+    let compute = args.compute.compute();
     let mut report =
         json!({"peak_gflops": args.peak_gflops, "threads": rayon::current_num_threads()});
     let sgemm = sgemm_now()?;
@@ -217,9 +246,16 @@ pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
         rayon::current_num_threads()
     );
     let mut sizes = Vec::new();
-    for size in &args.sizes {
+    let cpu_sizes = ["256x4".to_string(), "512x8".to_string()];
+    let sizes_asked = if args.sizes.is_empty() {
+        &cpu_sizes[..]
+    } else {
+        &args.sizes[..]
+    };
+    for size in sizes_asked {
         let (d, layers) = parse_size(size)?;
-        let mut ours = bench_train_step(&args, d, layers)?;
+        let shape = (d, layers, args.batch);
+        let mut ours = bench_train_step(&args, shape, &device, compute, args.peak_gflops)?;
         let phases = &ours["phase_median_s"];
         println!(
             "train d{d}/{layers}L B{}: {:.0} motion tok/s, {:.1} GFLOP/s exact, MFU {:.1}% ({:.0} ms/step: forward + backward {:.0}, AdamW {:.0}; foreign load {:.2})",

@@ -6,6 +6,7 @@ mod fit;
 mod gru;
 mod ingest;
 mod lm;
+mod lm_gpu;
 mod tokenizer;
 
 use anyhow::{bail, Context, Result};
@@ -143,10 +144,56 @@ pub fn run_reference(script: &Path, args: &[&str]) -> Result<serde_json::Value> 
         .with_context(|| format!("reading the output of {}", script.display()))
 }
 
-/// Write `figures` as pretty JSON to `path` (atomically), when a path is given.
+/// The machine a bench ran on: CPU model and vendor, cache sizes, the vector instruction sets
+/// the kernels can choose from (detected at run time) and the one gemm takes, threads.
+fn machine() -> Value {
+    let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let field = |name: &str| {
+        cpuinfo
+            .lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split_once(':'))
+            .map(|(_, v)| v.trim().to_string())
+    };
+    let caches: Vec<Value> = (0..8)
+        .map_while(|i| {
+            let dir = format!("/sys/devices/system/cpu/cpu0/cache/index{i}");
+            let read = |f: &str| std::fs::read_to_string(format!("{dir}/{f}")).ok();
+            let (level, kind, size) = (read("level")?, read("type")?, read("size")?);
+            Some(
+                json!({"level": level.trim(), "type": kind.trim(), "size": size.trim(),
+                        "shared_by_cpus": read("shared_cpu_list").map(|s| s.trim().to_string())}),
+            )
+        })
+        .collect();
+    #[cfg(target_arch = "x86_64")]
+    let isa = json!({
+        "avx512f": std::arch::is_x86_feature_detected!("avx512f"),
+        "avx2": std::arch::is_x86_feature_detected!("avx2"),
+        "fma": std::arch::is_x86_feature_detected!("fma"),
+    });
+    #[cfg(not(target_arch = "x86_64"))]
+    let isa = json!({});
+    // gemm (x86-v4 feature on) takes its AVX-512 kernels where the CPU has them.
+    let gemm = match (isa["avx512f"].as_bool(), isa["avx2"].as_bool()) {
+        (Some(true), _) => "avx512",
+        (_, Some(true)) => "avx2",
+        _ => "scalar",
+    };
+    json!({"cpu_model": field("model name"), "vendor": field("vendor_id"), "caches": caches,
+           "isa": isa, "gemm_kernels": gemm, "threads": rayon::current_num_threads()})
+}
+
+/// Write `figures` as pretty JSON to `path` (atomically), when a path is given, with the
+/// machine they were measured on (`machine`; a list of figures goes under `figures`).
 pub fn write_json(path: Option<&PathBuf>, figures: &Value) -> Result<()> {
     if let Some(path) = path {
-        let text = serde_json::to_string_pretty(figures)?;
+        let mut figures = match figures {
+            Value::Object(_) => figures.clone(),
+            _ => json!({ "figures": figures }),
+        };
+        figures["machine"] = machine();
+        let text = serde_json::to_string_pretty(&figures)?;
         motionscale_core::write_atomic(path, text.as_bytes())
             .with_context(|| format!("writing {}", path.display()))?;
     }

@@ -5,8 +5,10 @@
 //! FLOPs follow the reference's rule: (conv + linear multiply-accumulates of one forward) × 2
 //! × 3; the VQ distance matmul (no gradient) is not counted, as there.
 
-use anyhow::{bail, Result};
+use crate::device_args::DeviceArgs;
+use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
+use nn::device::device_name;
 use serde_json::json;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -30,9 +32,13 @@ pub struct BenchTokenizerArgs {
     /// Timed steps (the median is reported).
     #[arg(long, default_value_t = 5)]
     pub reps: usize,
-    /// Also run shared/bench/pytorch_vqvae.py (needs torch) and print the ratio.
+    /// Also run shared/bench/pytorch_vqvae.py (needs torch) and print the ratio; on a GPU,
+    /// --gpu-reference-script on the same GPU.
     #[arg(long)]
     pub reference: bool,
+    /// The PyTorch reference on a GPU (the same model, imported from --bench-dir).
+    #[arg(long, default_value = "scripts/pytorch_vqvae_gpu.py")]
+    pub gpu_reference_script: PathBuf,
     /// Folder of the PyTorch reference scripts.
     #[arg(long, default_value = "../shared/bench")]
     pub bench_dir: PathBuf,
@@ -42,6 +48,9 @@ pub struct BenchTokenizerArgs {
     /// Also write the figures as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Where the tokenizer trains.
+    #[command(flatten)]
+    pub device: DeviceArgs,
 }
 
 /// One timed configuration.
@@ -60,22 +69,28 @@ fn reference_config(quantizer: &str) -> Result<TokenizerConfig> {
     })
 }
 
-fn time_ours(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> Result<Timing> {
+fn time_ours(
+    quantizer: &str,
+    batch: usize,
+    args: &BenchTokenizerArgs,
+    device: &Device,
+) -> Result<Timing> {
     let config = reference_config(quantizer)?;
     let conv = config.conv.clone();
-    let device = Device::Cpu;
     let mut model =
-        MotionTokenizer::new(config, vec![0.0; FEATURES], vec![1.0; FEATURES], &device, 0)?;
+        MotionTokenizer::new(config, vec![0.0; FEATURES], vec![1.0; FEATURES], device, 0)?;
     let train = TrainConfig {
         lr: 2e-4,
         ..TrainConfig::default()
     };
     let mut optimizer = optimizer_for(&model, &train);
-    let x = Tensor::randn(0f32, 1.0, (batch, train.window, FEATURES), &device)?;
+    let x = Tensor::randn(0f32, 1.0, (batch, train.window, FEATURES), device)?;
     let mut times = Vec::with_capacity(args.reps);
     for step in 0..args.warmup + args.reps {
         let started = Instant::now();
         optimizer_step(&mut model, &mut optimizer, &x, train.lr, &train, step == 0)?;
+        // A GPU queues the update: the step ends when it has run.
+        device.synchronize()?;
         if step >= args.warmup {
             times.push(started.elapsed().as_secs_f64());
         }
@@ -95,22 +110,32 @@ fn time_ours(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> Result
     })
 }
 
-fn time_reference(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> Result<Timing> {
-    let json = super::run_reference(
-        &args.bench_dir.join("pytorch_vqvae.py"),
-        &[
-            "--quant",
-            quantizer,
-            "--batch",
-            &batch.to_string(),
-            "--threads",
-            "2",
-            "--warmup",
-            &args.warmup.to_string(),
-            "--reps",
-            &args.reps.to_string(),
-        ],
-    )?;
+fn time_reference(
+    quantizer: &str,
+    batch: usize,
+    args: &BenchTokenizerArgs,
+    device: &Device,
+) -> Result<Timing> {
+    let (batch, warmup, reps) = (
+        batch.to_string(),
+        args.warmup.to_string(),
+        args.reps.to_string(),
+    );
+    let bench_dir = args
+        .bench_dir
+        .to_str()
+        .context("--bench-dir is not UTF-8")?;
+    let mut flags = vec![
+        "--quant", quantizer, "--batch", &batch, "--warmup", &warmup, "--reps", &reps,
+    ];
+    let script = if device.is_cpu() {
+        flags.extend(["--threads", "2"]);
+        args.bench_dir.join("pytorch_vqvae.py")
+    } else {
+        flags.extend(["--bench-dir", bench_dir]);
+        args.gpu_reference_script.clone()
+    };
+    let json = super::run_reference(&script, &flags)?;
     Ok(Timing {
         steps_per_s: super::number(&json, "steps_per_s")?,
         flops_per_step: super::number(&json, "model_flops_per_step")?,
@@ -120,8 +145,10 @@ fn time_reference(quantizer: &str, batch: usize, args: &BenchTokenizerArgs) -> R
 /// `motionscale bench tokenizer`.
 pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
+    let device = args.device.open()?;
     println!(
-        "tokenizer training step, width 512, 64 × 263 windows, {} threads, fp32 peak {:.0} GFLOP/s",
+        "tokenizer training step, width 512, 64 × 263 windows, {}, {} threads, fp32 peak {:.0} GFLOP/s",
+        device_name(&device),
         rayon::current_num_threads(),
         args.peak_gflops
     );
@@ -131,7 +158,7 @@ pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
     let mut figures = Vec::new();
     for quantizer in &args.quantizers {
         for &batch in &args.batches {
-            let ours = time_ours(quantizer, batch, &args)?;
+            let ours = time_ours(quantizer, batch, &args, &device)?;
             let gflops = ours.flops_per_step * ours.steps_per_s / 1e9;
             let mut line = format!(
                 "{quantizer} batch {batch:>3}: {:.3} steps/s, {:.0} frames/s, {:.0} nominal GFLOP/s ({:.0}% of peak)",
@@ -141,11 +168,12 @@ pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
                 100.0 * gflops / args.peak_gflops
             );
             let mut figure = json!({"what": "tokenizer training step", "quantizer": quantizer,
-                "batch": batch, "threads": rayon::current_num_threads(),
+                "batch": batch, "device": device_name(&device),
+                "threads": rayon::current_num_threads(),
                 "steps_per_s": ours.steps_per_s, "gflops": gflops,
                 "flops_per_step": ours.flops_per_step});
             if args.reference {
-                let theirs = time_reference(quantizer, batch, &args)?;
+                let theirs = time_reference(quantizer, batch, &args, &device)?;
                 if (theirs.flops_per_step / ours.flops_per_step - 1.0).abs() > 1e-6 {
                     bail!(
                         "FLOP counts differ: ours {} vs PyTorch {} per step",

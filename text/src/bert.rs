@@ -26,15 +26,9 @@ enum Backend {
 }
 
 impl BertEncoder {
-    /// Load the encoder in `dir` onto [`nn::default_device`]. Its id is the folder name
-    /// plus a hash of the three files.
-    pub fn load(dir: &Path) -> Result<Self, ModelError> {
-        Self::load_on(dir, &nn::default_device())
-    }
-
     /// Load the encoder in `dir` onto `device`: on the CPU it runs [`BertCpu`], elsewhere
-    /// candle's `BertModel`.
-    pub fn load_on(dir: &Path, device: &Device) -> Result<Self, ModelError> {
+    /// candle's `BertModel`. Its id is the folder name plus a hash of the three files.
+    pub fn load(dir: &Path, device: &Device) -> Result<Self, ModelError> {
         Self::load_backend(dir, device, device.is_cpu())
     }
 
@@ -170,7 +164,7 @@ mod tests {
         let Some(dir) = dir else {
             return;
         };
-        let fused = BertEncoder::load_on(&dir, &Device::Cpu).unwrap();
+        let fused = BertEncoder::load(&dir, &Device::Cpu).unwrap();
         assert!(matches!(fused.model, Backend::Cpu(_)));
         let candle = BertEncoder::load_backend(&dir, &Device::Cpu, false).unwrap();
         let captions = captions();

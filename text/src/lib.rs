@@ -10,8 +10,8 @@
 //! `tokenizer.json` and `model.safetensors` into [`default_encoder_dir`]). Any Hugging Face
 //! BERT or T5 folder loads the same way, e.g. after
 //! `huggingface-cli download sentence-transformers/all-MiniLM-L6-v2 config.json tokenizer.json model.safetensors --local-dir DIR`.
-//! The `cuda` feature (off by default) builds candle with CUDA and encoders load onto the
-//! first GPU (`nn::default_device`).
+//! Encoders load onto the device their caller names (the binary's `--device`); the `cuda`
+//! feature (off by default) builds candle with CUDA.
 
 pub mod bert;
 pub mod bert_cpu;

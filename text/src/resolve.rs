@@ -4,6 +4,7 @@
 //! ([`resolve_encoder`]).
 
 use crate::{default_encoder_dir, BertEncoder, FallbackEncoder, T5Encoder, TextEncoder};
+use candle_core::Device;
 use ingest::corpus::manifest::Manifest;
 use nn::ModelError;
 use std::path::{Path, PathBuf};
@@ -27,12 +28,13 @@ pub enum EncoderChoice {
 }
 
 impl EncoderChoice {
-    /// Load the chosen encoder for `corpus`. The fallback is built from the corpus captions and
-    /// saved beside its embeddings, so later stages load (and train) the same table.
-    pub fn load(&self, corpus: &Path) -> Result<Box<dyn TextEncoder>, ModelError> {
+    /// Load the chosen encoder for `corpus`, a transformer onto `device`. The fallback (a
+    /// table lookup, no device) is built from the corpus captions and saved beside its
+    /// embeddings, so later stages load (and train) the same table.
+    pub fn load(&self, corpus: &Path, device: &Device) -> Result<Box<dyn TextEncoder>, ModelError> {
         match self {
-            Self::Bert(dir) => Ok(Box::new(BertEncoder::load(dir)?)),
-            Self::T5(dir) => Ok(Box::new(T5Encoder::load(dir)?)),
+            Self::Bert(dir) => Ok(Box::new(BertEncoder::load(dir, device)?)),
+            Self::T5(dir) => Ok(Box::new(T5Encoder::load(dir, device)?)),
             Self::Default => {
                 let dir = default_encoder_dir();
                 if !dir.join("model.safetensors").is_file() {
@@ -47,7 +49,7 @@ impl EncoderChoice {
                                carry no meaning until a model learns them",
                     });
                 }
-                Ok(Box::new(BertEncoder::load(&dir)?))
+                Ok(Box::new(BertEncoder::load(&dir, device)?))
             }
             Self::Fallback { dim, seed } => {
                 let fallback = FallbackEncoder::for_corpus(corpus, *dim, *seed)?;
@@ -60,17 +62,19 @@ impl EncoderChoice {
 
 /// The encoder whose embeddings of `corpus` carry the id `encoder_id`, to embed new captions
 /// the same way: the BERT folder `dir` when given, else the fallback table saved beside those
-/// embeddings, else the fetched MiniLM. An encoder with another id is refused.
+/// embeddings, else the fetched MiniLM (a BERT encoder loads onto `device`). An encoder with
+/// another id is refused.
 pub fn encoder_for(
     corpus: &Path,
     encoder_id: &str,
     dir: Option<&Path>,
+    device: &Device,
 ) -> Result<Box<dyn TextEncoder>, ModelError> {
     let saved = corpus.join("text").join(encoder_id).join("encoder");
     let encoder: Box<dyn TextEncoder> = match dir {
-        Some(d) => Box::new(BertEncoder::load(d)?),
+        Some(d) => Box::new(BertEncoder::load(d, device)?),
         None if saved.is_dir() => Box::new(FallbackEncoder::load(&saved)?),
-        None => Box::new(BertEncoder::load(&default_encoder_dir())?),
+        None => Box::new(BertEncoder::load(&default_encoder_dir(), device)?),
     };
     if encoder.id() != encoder_id {
         return Err(ModelError::Argument(format!(

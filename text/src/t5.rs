@@ -23,14 +23,9 @@ pub struct T5Encoder {
 }
 
 impl T5Encoder {
-    /// Load the encoder in `dir` onto [`nn::default_device`]. Its id is the folder name
-    /// plus a hash of the three files.
-    pub fn load(dir: &Path) -> Result<Self, ModelError> {
-        Self::load_on(dir, &nn::default_device())
-    }
-
-    /// Load the encoder in `dir` onto `device`.
-    pub fn load_on(dir: &Path, device: &Device) -> Result<Self, ModelError> {
+    /// Load the encoder in `dir` onto `device`. Its id is the folder name plus a hash of the
+    /// three files.
+    pub fn load(dir: &Path, device: &Device) -> Result<Self, ModelError> {
         let config: Config = transformer::read_config(dir)?;
         let tokenizer = transformer::read_tokenizer(dir, config.pad_token_id as u32)?;
         let (vb, weights) = transformer::read_weights(dir, device)?;

@@ -90,10 +90,8 @@ pub fn real_tokens(
     hidden: &Tensor,
     encodings: &[&Encoding],
 ) -> Result<Vec<TokenEmbeddings>, ModelError> {
-    let hidden = hidden
-        .to_device(&Device::Cpu)
-        .and_then(|h| h.to_vec3::<f32>())
-        .map_err(ModelError::inference)?;
+    // `to_vec3` copies from any device.
+    let hidden = hidden.to_vec3::<f32>().map_err(ModelError::inference)?;
     let dim = hidden
         .first()
         .and_then(|rows| rows.first())

@@ -212,7 +212,7 @@ fn minilm_embeddings_match_single_encodes() {
     let Some(dir) = common::minilm_dir() else {
         return;
     };
-    let encoder = text::BertEncoder::load(&dir).unwrap();
+    let encoder = text::BertEncoder::load(&dir, &candle_core::Device::Cpu).unwrap();
     let tmp = tempfile::tempdir().unwrap();
     let corpus = demo_corpus(tmp.path());
     let report = embed_corpus(&corpus, &encoder, 4, &|_, _| {}).unwrap();

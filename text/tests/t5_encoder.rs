@@ -90,10 +90,13 @@ fn tiny_t5_encodes_real_tokens_in_order() {
     let dir = tmp.path().join("tiny-t5");
     std::fs::create_dir(&dir).unwrap();
     write_model(&dir);
-    let encoder = T5Encoder::load(&dir).unwrap();
+    let encoder = T5Encoder::load(&dir, &Device::Cpu).unwrap();
     assert_eq!(encoder.dim(), D_MODEL);
     assert!(encoder.id().starts_with("tiny-t5-"), "{}", encoder.id());
-    assert_eq!(T5Encoder::load(&dir).unwrap().id(), encoder.id());
+    assert_eq!(
+        T5Encoder::load(&dir, &Device::Cpu).unwrap().id(),
+        encoder.id()
+    );
 
     let texts = [
         "A person walks forward.",
@@ -138,12 +141,12 @@ fn wrong_weight_shapes_name_the_weights_file() {
     let tmp = tempfile::tempdir().unwrap();
     write_model(tmp.path());
     std::fs::write(tmp.path().join("config.json"), config(24).to_string()).unwrap();
-    let err = T5Encoder::load(tmp.path())
+    let err = T5Encoder::load(tmp.path(), &Device::Cpu)
         .err()
         .expect("shape mismatch fails");
     assert!(err.to_string().contains("model.safetensors"), "{err}");
     std::fs::remove_file(tmp.path().join("tokenizer.json")).unwrap();
-    let err = T5Encoder::load(tmp.path())
+    let err = T5Encoder::load(tmp.path(), &Device::Cpu)
         .err()
         .expect("missing tokenizer fails");
     assert!(err.to_string().contains("tokenizer.json"), "{err}");

@@ -1,6 +1,7 @@
 //! The MiniLM encoder against the Python `transformers` reference
 //! (`fixtures/minilm_reference.json`, made by `fixtures/make_minilm_reference.py`).
 
+use candle_core::Device;
 use nn::ModelError;
 use serde::Deserialize;
 use text::{BertEncoder, TextEncoder};
@@ -41,7 +42,7 @@ fn minilm_matches_python_reference() {
     let Some(dir) = common::minilm_dir() else {
         return;
     };
-    let encoder = BertEncoder::load(&dir).unwrap();
+    let encoder = BertEncoder::load(&dir, &Device::Cpu).unwrap();
     assert_eq!(encoder.dim(), 384);
     assert!(
         encoder.id().starts_with("all-MiniLM-L6-v2-"),
@@ -83,7 +84,7 @@ fn minilm_matches_python_reference() {
 #[test]
 fn missing_files_are_named() {
     let tmp = tempfile::tempdir().unwrap();
-    let err = BertEncoder::load(tmp.path())
+    let err = BertEncoder::load(tmp.path(), &Device::Cpu)
         .err()
         .expect("empty folder fails");
     assert!(matches!(err, ModelError::Missing { .. }), "{err}");
@@ -104,7 +105,7 @@ fn missing_files_are_named() {
         tmp.path().join("model.safetensors"),
     )
     .unwrap();
-    let err = BertEncoder::load(tmp.path())
+    let err = BertEncoder::load(tmp.path(), &Device::Cpu)
         .err()
         .expect("shape mismatch fails");
     assert!(err.to_string().contains("model.safetensors"), "{err}");

@@ -40,6 +40,7 @@ impl From<nn::NnError> for TokenizerError {
         match e {
             nn::NnError::Candle(e) => Self::Candle(e),
             nn::NnError::File(e) => e.into(),
+            nn::NnError::Device(m) => Self::Argument(m),
         }
     }
 }

@@ -67,6 +67,9 @@ pub struct EvalReport {
     pub entropy: f64,
     /// exp(entropy): the exponential entropy (perplexity) of code usage.
     pub perplexity: f64,
+    /// Device the tokenizer ran on (`cpu`, `cuda:N`); empty in older reports.
+    #[serde(default)]
+    pub device: String,
 }
 
 /// Token ids of every clip of `corpus` in `splits` (all splits when empty), in corpus order.
@@ -94,15 +97,16 @@ pub fn tokenize_corpus(
     Ok(out)
 }
 
-/// Tokenize every clip of `corpus` with the checkpoint in `tokenizer_dir` (on the CPU) and
-/// write the token set to `out` (manifest last); `on_clip` sees (done, total).
+/// Tokenize every clip of `corpus` with the checkpoint in `tokenizer_dir` (loaded onto
+/// `device`) and write the token set to `out` (manifest last); `on_clip` sees (done, total).
 pub fn write_token_set(
     tokenizer_dir: &Path,
     corpus: &Corpus,
     out: &Path,
+    device: &Device,
     on_clip: impl FnMut(usize, usize),
 ) -> Result<TokenManifest, TokenizerError> {
-    let tokenizer = MotionTokenizer::load(tokenizer_dir, &Device::Cpu)?;
+    let tokenizer = MotionTokenizer::load(tokenizer_dir, device)?;
     let clips = tokenize_corpus(&tokenizer, corpus, &[], on_clip)?;
     let config = tokenizer.config();
     let info = TokenizerInfo {
@@ -232,5 +236,6 @@ pub fn evaluate(
         used_codes: usage.counts().iter().filter(|&&c| c > 0).count(),
         entropy: usage.entropy(),
         perplexity: usage.perplexity(),
+        device: nn::device::device_name(tokenizer.device()),
     })
 }

@@ -6,7 +6,7 @@
 //! plus the training state:
 //!
 //! ```text
-//! DIR/train.json             TrainConfig + corpus (what `--resume` must match)
+//! DIR/train.json             TrainConfig + corpus (what `--resume` must match), device
 //! DIR/state.json             step, VQ generator state, last losses (the commit record)
 //! DIR/resume/<step>/         that step's tokenizer files and optimizer.safetensors (AdamW)
 //! DIR/log.jsonl              one line per validation: step, lr, train and val losses
@@ -97,6 +97,10 @@ pub struct TrainSpec {
     pub tokenizer: TokenizerConfig,
     /// Hyper-parameters.
     pub train: TrainConfig,
+    /// Device training last ran on (`cpu`, `cuda:N`: a resume may change it); empty in older
+    /// files.
+    #[serde(default)]
+    pub device: String,
 }
 
 /// `DIR/state.json`.
@@ -166,6 +170,7 @@ pub fn train(
         corpus: corpus_dir.to_path_buf(),
         tokenizer,
         train: config.clone(),
+        device: nn::device::device_name(device),
     };
     let corpus = Corpus::open(corpus_dir).map_err(|e| corpus_error(corpus_dir, e))?;
     let resume = ResumeFiles::new(out);
@@ -285,11 +290,19 @@ fn resume_or_start(
 ) -> Result<(MotionTokenizer, TrainState), TokenizerError> {
     let spec_path = out.join("train.json");
     let state_path = resume.state_path();
+    // The same run may go on on another device.
     check_same_run(&spec_path, "a tokenizer run", |saved: TrainSpec| {
-        &saved == spec
+        TrainSpec {
+            device: spec.device.clone(),
+            ..saved
+        } == *spec
     })?;
     if spec_path.exists() && state_path.exists() {
         let state: TrainState = read_json(state_path)?;
+        if state.step < spec.train.steps {
+            // Training goes on, maybe on another device: the spec names this run's.
+            write_json(&spec_path, spec)?;
+        }
         truncate_log(out, state.step)?;
         let mut model = MotionTokenizer::load(&resume.files(state.step), device)?;
         model.set_vq_rng_state(state.vq_rng);

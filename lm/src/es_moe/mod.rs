@@ -30,8 +30,8 @@
 
 pub mod train;
 
-use crate::lora::{add_deltas, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
-use crate::prefix_lm::{PrefixLm, PrefixLmConfig};
+use crate::lora::{add_deltas, base_weights, merged_lm, LoraAdapter, LoraConfig, ADAPTER_FILE};
+use crate::prefix_lm::{Compute, PrefixLm, PrefixLmConfig};
 use crate::MotionLm;
 use candle_core::{DType, Device, Result, Tensor, Var, D};
 use candle_nn::{Init, Linear, Module, VarBuilder, VarMap};
@@ -212,6 +212,8 @@ struct Gate {
     keys: Vec<Tensor>,
     text_dim: usize,
     cged_dim: usize,
+    /// Where the gate's weights live (the base model's device).
+    device: Device,
 }
 
 /// Fill every `.weight` matrix of `varmap` with PyTorch's `nn.Linear` default,
@@ -228,7 +230,7 @@ fn seeded_init(varmap: &VarMap, seed: u64) -> Result<()> {
         let values: Vec<f32> = (0..out * inp)
             .map(|_| rng.range(-bound, bound) as f32)
             .collect();
-        var.set(&Tensor::from_vec(values, (out, inp), &Device::Cpu)?)?;
+        var.set(&Tensor::from_vec(values, (out, inp), var.device())?)?;
     }
     Ok(())
 }
@@ -254,7 +256,13 @@ pub fn orthogonal_keys(n: usize, dim: usize, seed: u64) -> Vec<Vec<f32>> {
 }
 
 impl Gate {
-    fn new(c: &EsMoeConfig, text_dim: usize, emotions: usize, seed: u64) -> Result<Self> {
+    fn new(
+        c: &EsMoeConfig,
+        text_dim: usize,
+        emotions: usize,
+        seed: u64,
+        device: &Device,
+    ) -> Result<Self> {
         if c.key_dim < c.max_experts {
             candle_core::bail!(
                 "{} orthogonal keys need a key width of at least that (got {})",
@@ -263,7 +271,7 @@ impl Gate {
             )
         }
         let varmap = VarMap::new();
-        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu).pp("gate");
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, device).pp("gate");
         let d = c.cged_dim;
         let (cged, input, emotion) = if c.cged {
             (
@@ -285,7 +293,7 @@ impl Gate {
             .into_iter()
             .enumerate()
         {
-            vars[&format!("gate.keys.{j}")].set(&Tensor::new(key, &Device::Cpu)?)?;
+            vars[&format!("gate.keys.{j}")].set(&Tensor::new(key, device)?)?;
         }
         Ok(Self {
             varmap,
@@ -297,6 +305,7 @@ impl Gate {
             keys,
             text_dim,
             cged_dim: d,
+            device: device.clone(),
         })
     }
 
@@ -307,9 +316,9 @@ impl Gate {
             .map(|t| {
                 let n = t.len() / self.text_dim;
                 if n == 0 {
-                    return Tensor::zeros(self.cged_dim, DType::F32, &Device::Cpu);
+                    return Tensor::zeros(self.cged_dim, DType::F32, &self.device);
                 }
-                let x = Tensor::from_slice(t, (n, self.text_dim), &Device::Cpu)?;
+                let x = Tensor::from_slice(t, (n, self.text_dim), &self.device)?;
                 let tokens = match (&self.cged, &self.input) {
                     (Some(cged), _) => cged.forward(&x)?,
                     (None, Some(input)) => input.forward(&x)?,
@@ -356,22 +365,25 @@ pub struct EsMoe {
     base: HashMap<String, Tensor>,
     experts: Vec<LoraAdapter>,
     gate: Gate,
+    /// How the merged models run.
+    compute: Compute,
 }
 
 impl EsMoe {
     /// The model of a run folder (`adapter.safetensors`, `gate.safetensors`, `moe.json`) on
-    /// the base weights in `base_file`.
+    /// the base weights in `base_file`, loaded onto `device`.
     pub fn load(
         dir: &Path,
         base_file: &Path,
         model: &PrefixLmConfig,
         config: EsMoeConfig,
+        device: &Device,
     ) -> std::result::Result<Self, ModelError> {
         let manifest: MoeManifest = read_json(&dir.join(MANIFEST_FILE))?;
         let mut moe = Self::build(
             model,
             config,
-            base_weights(base_file)?,
+            base_weights(base_file, device)?,
             manifest.emotions.clone(),
             0,
         )?;
@@ -380,7 +392,7 @@ impl EsMoe {
         Ok(moe)
     }
 
-    /// A model with no expert yet; gate initialised from `seed`.
+    /// A model with no expert yet on the device of `base`; gate initialised from `seed`.
     fn build(
         model: &PrefixLmConfig,
         config: EsMoeConfig,
@@ -388,7 +400,12 @@ impl EsMoe {
         emotions: Vec<String>,
         seed: u64,
     ) -> std::result::Result<Self, ModelError> {
-        let gate = Gate::new(&config, model.text_dim, emotions.len(), seed)
+        let device = base
+            .get("head.weight")
+            .ok_or_else(|| ModelError::Argument("ES-MoE base: no head.weight".into()))?
+            .device()
+            .clone();
+        let gate = Gate::new(&config, model.text_dim, emotions.len(), seed, &device)
             .map_err(|e| ModelError::Argument(format!("ES-MoE gate: {e}")))?;
         Ok(Self {
             config,
@@ -400,6 +417,7 @@ impl EsMoe {
             base,
             experts: Vec::new(),
             gate,
+            compute: Compute::default(),
         })
     }
 
@@ -407,8 +425,9 @@ impl EsMoe {
     fn load_parts(&mut self, dir: &Path, names: &[String]) -> std::result::Result<(), ModelError> {
         let adapters = dir.join(ADAPTER_FILE);
         for name in names {
-            let expert = LoraAdapter::new(&self.model, self.config.lora, name, 0)
-                .map_err(ModelError::inference)?;
+            let expert =
+                LoraAdapter::new(&self.model, self.config.lora, name, 0, &self.gate.device)
+                    .map_err(ModelError::inference)?;
             expert.load(&adapters)?;
             self.experts.push(expert);
         }
@@ -456,7 +475,7 @@ impl EsMoe {
             centroids.push(again);
         }
         let values: Vec<f32> = centroids.concat();
-        let dict = Tensor::from_vec(values, (k, e), &Device::Cpu)?;
+        let dict = Tensor::from_vec(values, (k, e), &self.gate.device)?;
         self.gate.vars()["gate.cged.dictionary"].set(&dict)
     }
 
@@ -475,7 +494,7 @@ impl EsMoe {
             .zip(masked)
             .flat_map(|(s, m)| top_k_mask(s, m, self.config.top_k))
             .collect();
-        let mask = Tensor::from_vec(mask, (values.len(), n), &Device::Cpu)?;
+        let mask = Tensor::from_vec(mask, (values.len(), n), &self.gate.device)?;
         candle_nn::ops::softmax(&(scores + mask)?, D::Minus1)
     }
 
@@ -507,8 +526,17 @@ impl EsMoe {
             .zip(deltas.iter().cloned())
             .collect();
         let merged = add_deltas(&self.base, &updates)?;
-        let vb = VarBuilder::from_tensors(merged.clone(), DType::F32, &Device::Cpu);
-        Ok((PrefixLm::new(&self.model, vb)?, merged))
+        Ok((merged_lm(&self.model, &merged, self.compute)?, merged))
+    }
+
+    /// Run the merged models with `compute`.
+    pub fn set_compute(&mut self, compute: Compute) {
+        self.compute = compute;
+    }
+
+    /// The device of the base, the experts and the gate.
+    pub fn device(&self) -> &Device {
+        &self.gate.device
     }
 }
 

@@ -72,14 +72,16 @@ impl EsMoeTrainer {
         emotions: &HashMap<String, String>,
         train_texts: &[&[f32]],
         seed: u64,
+        device: &Device,
     ) -> std::result::Result<Self, ModelError> {
         let mut moe = match previous {
-            Some(dir) => EsMoe::load(dir, base_file, model, config)?,
+            Some(dir) => EsMoe::load(dir, base_file, model, config, device)?,
             None => {
                 let mut classes: Vec<String> = emotions.values().cloned().collect();
                 classes.sort();
                 classes.dedup();
-                let moe = EsMoe::build(model, config, base_weights(base_file)?, classes, seed)?;
+                let base = base_weights(base_file, device)?;
+                let moe = EsMoe::build(model, config, base, classes, seed)?;
                 if config.cged {
                     moe.fit_dictionary(train_texts, seed)
                         .map_err(ModelError::inference)?;
@@ -103,8 +105,9 @@ impl EsMoeTrainer {
                     )));
                 }
                 let index = moe.experts.len() as u64;
-                let adapter = LoraAdapter::new(model, config.lora, expert, seed ^ (index << 32))
-                    .map_err(ModelError::inference)?;
+                let adapter =
+                    LoraAdapter::new(model, config.lora, expert, seed ^ (index << 32), device)
+                        .map_err(ModelError::inference)?;
                 moe.experts.push(adapter);
                 moe.manifest.experts.push(expert.to_string());
             }
@@ -215,10 +218,10 @@ impl EsMoeTrainer {
         if let Some(h) = &h {
             let mut objective = match &weights {
                 Some(w) => {
-                    let c = Tensor::from_vec(contributions, (items.len(), n), &Device::Cpu)?;
+                    let c = Tensor::from_vec(contributions, (items.len(), n), moe.device())?;
                     (w * c)?.sum_all()?
                 }
-                None => Tensor::zeros((), DType::F32, &Device::Cpu)?,
+                None => Tensor::zeros((), DType::F32, moe.device())?,
             };
             if let (Some(head), true) = (&moe.gate.emotion, moe.config.emotion_weight > 0.0) {
                 let (rows, labels): (Vec<u32>, Vec<u32>) = items
@@ -229,11 +232,11 @@ impl EsMoeTrainer {
                     })
                     .unzip();
                 if !rows.is_empty() {
-                    let idx = Tensor::new(rows, &Device::Cpu)?;
+                    let idx = Tensor::new(rows, moe.device())?;
                     let logits = head.forward(&h.index_select(&idx, 0)?)?;
                     let ce = candle_nn::loss::cross_entropy(
                         &logits,
-                        &Tensor::new(labels, &Device::Cpu)?,
+                        &Tensor::new(labels, moe.device())?,
                     )?;
                     emotion = ce.to_scalar()?;
                     objective = (objective + (ce * moe.config.emotion_weight)?)?;
@@ -263,7 +266,7 @@ mod tests {
     use super::*;
     use crate::es_moe::{orthogonal_keys, top_k_mask};
     use crate::lora::LoraConfig;
-    use crate::prefix_lm::{init_model, PrefixLm};
+    use crate::prefix_lm::{init_model, Compute, Executor, PrefixLm};
     use crate::MotionLm;
     use candle_nn::VarBuilder;
     use nn::checkpoint::var_tensors;
@@ -282,7 +285,7 @@ mod tests {
     /// emotion labels for three of them.
     fn fixture() -> Fixture {
         let config = PrefixLmConfig::new(16, 1, 2, 12, 6);
-        let (_, varmap) = init_model(&config, 1).unwrap();
+        let (_, varmap) = init_model(&config, 1, &Device::Cpu).unwrap();
         let base = tempfile::tempdir().unwrap();
         varmap.save(base.path().join("model.safetensors")).unwrap();
         let mut rng = SplitMix64(3);
@@ -331,6 +334,7 @@ mod tests {
                 &self.emotions,
                 &texts,
                 7,
+                &Device::Cpu,
             )
             .unwrap()
         }
@@ -349,6 +353,25 @@ mod tests {
             dictionary_size: 3,
             emotion_weight: 0.5,
             ..EsMoeConfig::default()
+        }
+    }
+
+    /// The B matrices of `expert` drawn from U(−0.3, 0.3) with `seed` (in name order).
+    fn random_b(expert: &LoraAdapter, seed: u64) {
+        let mut rng = SplitMix64(seed);
+        let vars = expert.vars();
+        let mut names: Vec<&String> = vars
+            .keys()
+            .filter(|n| n.ends_with("lora_B.weight"))
+            .collect();
+        names.sort();
+        for name in names {
+            let var = &vars[name];
+            let v: Vec<f32> = (0..var.elem_count())
+                .map(|_| rng.range(-0.3, 0.3) as f32)
+                .collect();
+            var.set(&Tensor::from_vec(v, var.dims(), &Device::Cpu).unwrap())
+                .unwrap();
         }
     }
 
@@ -431,7 +454,7 @@ mod tests {
     fn a_new_expert_leaves_the_base_model_unchanged() {
         let f = fixture();
         let t = f.trainer(None, "e0", small());
-        let weights = base_weights(&f.base.path().join("model.safetensors")).unwrap();
+        let weights = base_weights(&f.base.path().join("model.safetensors"), &Device::Cpu).unwrap();
         let vb = VarBuilder::from_tensors(weights, DType::F32, &Device::Cpu);
         let base = PrefixLm::new(&f.config, vb).unwrap();
         let batch = LmBatch::new(&f.config, &[&f.texts[0]], &[(&f.tokens[0], true)]);
@@ -491,16 +514,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let t = second_step(&f, dir.path());
         // Non-zero B for the new expert too, so both experts' weights matter.
-        let mut rng = SplitMix64(9);
-        for (name, var) in t.moe.experts[1].vars() {
-            if name.ends_with("lora_B.weight") {
-                let v: Vec<f32> = (0..var.elem_count())
-                    .map(|_| rng.range(-0.3, 0.3) as f32)
-                    .collect();
-                var.set(&Tensor::from_vec(v, var.dims(), &Device::Cpu).unwrap())
-                    .unwrap();
-            }
-        }
+        random_b(&t.moe.experts[1], 9);
         let examples = f.examples();
         let lambda = small().emotion_weight;
         let loss = |t: &EsMoeTrainer| {
@@ -531,5 +545,48 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn expert_and_gate_gradients_agree_on_both_executors() {
+        let f = fixture();
+        let dir = tempfile::tempdir().unwrap();
+        let mut t = second_step(&f, dir.path());
+        random_b(&t.moe.experts[1], 11);
+        let examples = f.examples();
+        let lambda = small().emotion_weight;
+        let mut run = |executor| {
+            t.moe.set_compute(Compute {
+                executor: Some(executor),
+                ..Compute::default()
+            });
+            let (loss, grads) = t.loss_and_grads(&examples, None).unwrap();
+            let grads: HashMap<String, Vec<f32>> = t
+                .vars()
+                .into_iter()
+                .filter_map(|(n, v)| Some((n, values(grads.get(v.as_tensor())?))))
+                .collect();
+            (loss.total(lambda), grads)
+        };
+        let ((l_cpu, g_cpu), (l_graph, g_graph)) = (run(Executor::Cpu), run(Executor::Graph));
+        assert!(
+            (l_cpu - l_graph).abs() <= 1e-5 * l_cpu.abs(),
+            "{l_cpu} vs {l_graph}"
+        );
+        assert_eq!(g_cpu.len(), g_graph.len());
+        let mut worst = 0f32;
+        for (name, c) in &g_cpu {
+            let scale = c.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
+            let d = nn::gradcheck::max_abs_diff(&g_graph[name], c) / scale;
+            assert!(
+                d <= 1e-5,
+                "{name}: gradients differ by {d:.2e} of their scale"
+            );
+            worst = worst.max(d);
+        }
+        eprintln!(
+            "ES-MoE graph vs cpu: loss {l_graph} vs {l_cpu}, {} gradients within {worst:.2e} (relative)",
+            g_cpu.len()
+        );
     }
 }

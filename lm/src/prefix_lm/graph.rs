@@ -1,0 +1,428 @@
+//! The graph executor of the prefix LM: the model written in candle's differentiable ops, so
+//! it runs on any device and dtype and `loss.backward()` gives its gradients. Never candle's
+//! fused `rms_norm`, `softmax_last_dim` or `rope` (they have no backward: gradients silently
+//! stop there, see `../shared/docs/pitfalls.md`).
+//!
+//! The packed rows of a [`SeqLayout`] (motion rows, then text rows, no padding) go through the
+//! norms, projections and FFN as they are; attention scatters them into a dense
+//! (sequence, slot) grid with a zero row for padding slots, masks with the layout's rule, and
+//! gathers the real rows back.
+//!
+//! Precision: the residual stream, norms, softmax and loss are f32; with bf16 the matrix
+//! products take bf16 operands (weights cast from their f32 masters on every call, so the
+//! gradients reach the masters in f32), as PyTorch's autocast does.
+
+use super::{ExtraLoss, LmBatch, PrefixLm};
+use candle_core::backprop::GradStore;
+use candle_core::{DType, Device, Result, Tensor, Var, D};
+use candle_nn::ops::{rms_norm_slow, silu, softmax};
+use nn::lm_kernels::IGNORE;
+use nn::seq_layout::SeqLayout;
+
+/// Additive mask of a score that may not be attended to: finite, so a padding row with no
+/// allowed column stays finite (its output is dropped).
+const MASKED: f32 = -1e9;
+
+/// The weights as one call uses them: matrices in the compute dtype, the rest f32.
+struct GraphWeights {
+    tok_emb: Tensor,
+    proj_w: Tensor,
+    proj_b: Tensor,
+    /// Per block: n1, Wqkv, Wo, n2, W13, W2.
+    blocks: Vec<[Tensor; 6]>,
+    norm: Tensor,
+    head: Tensor,
+}
+
+impl GraphWeights {
+    /// `tensors` (in [`PrefixLm::tensors`] order) cast for `dtype` products.
+    fn cast(tensors: &[Tensor], dtype: DType) -> Result<Self> {
+        let f32 = |t: &Tensor| t.to_dtype(DType::F32);
+        let mat = |t: &Tensor| t.to_dtype(dtype);
+        let n = tensors.len();
+        let blocks = tensors[3..n - 2]
+            .chunks(6)
+            .map(|b| {
+                Ok([
+                    f32(&b[0])?,
+                    mat(&b[1])?,
+                    mat(&b[2])?,
+                    f32(&b[3])?,
+                    mat(&b[4])?,
+                    mat(&b[5])?,
+                ])
+            })
+            .collect::<Result<_>>()?;
+        Ok(Self {
+            tok_emb: f32(&tensors[0])?,
+            proj_w: mat(&tensors[1])?,
+            proj_b: f32(&tensors[2])?,
+            blocks,
+            norm: f32(&tensors[n - 2])?,
+            head: mat(&tensors[n - 1])?,
+        })
+    }
+}
+
+/// `x · Wᵀ` of f32 rows with `W` in its compute dtype; f32 out.
+fn linear(x: &Tensor, w: &Tensor) -> Result<Tensor> {
+    x.to_dtype(w.dtype())?.matmul(&w.t()?)?.to_dtype(DType::F32)
+}
+
+/// Rotary tables, one row per slot, and the additive mask of one attention call.
+struct AttentionInputs {
+    cos: Tensor,
+    sin: Tensor,
+    /// `(batch, 1, queries, keys)`.
+    mask: Tensor,
+}
+
+impl AttentionInputs {
+    /// Tables for the query slots `queries` (each `(sequence, slot)`) of `layout`, keys
+    /// `0..keys` of each sequence.
+    fn new(
+        model: &PrefixLm,
+        layout: &SeqLayout,
+        queries: (usize, usize),
+        keys: usize,
+        device: &Device,
+    ) -> Result<Self> {
+        let (from, to) = queries;
+        let half = model.config.head_dim() / 2;
+        let rows = layout.batch * (to - from);
+        let (mut cos, mut sin) = (
+            Vec::with_capacity(rows * half),
+            Vec::with_capacity(rows * half),
+        );
+        let mut mask = Vec::with_capacity(rows * keys);
+        for b in 0..layout.batch {
+            for s in from..to {
+                let (c, si) = model.rope.at(layout.position(b, s));
+                cos.extend_from_slice(c);
+                sin.extend_from_slice(si);
+                mask.extend((0..keys).map(|j| if layout.allowed(b, s, j) { 0.0 } else { MASKED }));
+            }
+        }
+        Ok(Self {
+            cos: Tensor::from_vec(cos, (rows, 1, half), device)?,
+            sin: Tensor::from_vec(sin, (rows, 1, half), device)?,
+            mask: Tensor::from_vec(mask, (layout.batch, 1, to - from, keys), device)?,
+        })
+    }
+
+    /// `x` (`rows × heads × head_dim`, f32) rotated to each row's position (rotate-half).
+    fn rotate(&self, x: &Tensor) -> Result<Tensor> {
+        let half = x.dim(D::Minus1)? / 2;
+        let (x1, x2) = (x.narrow(2, 0, half)?, x.narrow(2, half, half)?);
+        let r1 = (x1.broadcast_mul(&self.cos)? - x2.broadcast_mul(&self.sin)?)?;
+        let r2 = (x2.broadcast_mul(&self.cos)? + x1.broadcast_mul(&self.sin)?)?;
+        Tensor::cat(&[&r1, &r2], 2)
+    }
+}
+
+/// One forward call: the model, its weights as cast, and the product dtype.
+struct Pass<'a> {
+    model: &'a PrefixLm,
+    w: GraphWeights,
+    dtype: DType,
+}
+
+impl Pass<'_> {
+    fn eps(&self) -> f32 {
+        self.model.config.norm_eps as f32
+    }
+
+    /// Split QKV rows (`batch · slots × 3d`, slot-major per sequence) into rotated queries,
+    /// rotated keys and values, each `(batch, heads, slots, head_dim)` in the product dtype.
+    fn heads(&self, qkv: &Tensor, at: &AttentionInputs, batch: usize) -> Result<[Tensor; 3]> {
+        let c = &self.model.config;
+        let (d, h, hd) = (c.d_model, c.n_heads, c.head_dim());
+        let rows = qkv.dim(0)?;
+        let part = |k: usize| qkv.narrow(1, k * d, d)?.reshape((rows, h, hd));
+        let grid = |x: Tensor| {
+            x.reshape((batch, rows / batch, h, hd))?
+                .transpose(1, 2)?
+                .contiguous()?
+                .to_dtype(self.dtype)
+        };
+        Ok([
+            grid(at.rotate(&part(0)?)?)?,
+            grid(at.rotate(&part(1)?)?)?,
+            grid(part(2)?)?,
+        ])
+    }
+
+    /// Softmax attention of `q` against `k`, `v` (`(batch, heads, ·, head_dim)`) under the
+    /// mask; the output as rows (`batch · queries × d`, f32).
+    fn attend(&self, q: &Tensor, k: &Tensor, v: &Tensor, mask: &Tensor) -> Result<Tensor> {
+        let c = &self.model.config;
+        let (b, _, n, _) = q.dims4()?;
+        let scale = 1.0 / (c.head_dim() as f64).sqrt();
+        let scores = (q.matmul(&k.t()?)?.to_dtype(DType::F32)? * scale)?.broadcast_add(mask)?;
+        let probs = softmax(&scores, D::Minus1)?.to_dtype(self.dtype)?;
+        probs
+            .matmul(v)?
+            .to_dtype(DType::F32)?
+            .transpose(1, 2)?
+            .reshape((b * n, c.d_model))
+    }
+
+    /// The block's FFN and attention around `attention` (QKV rows → attention output rows).
+    fn block(
+        &self,
+        i: usize,
+        h: Tensor,
+        attention: impl FnOnce(&Tensor) -> Result<Tensor>,
+    ) -> Result<Tensor> {
+        let [n1, wqkv, wo, n2, w13, w2] = &self.w.blocks[i];
+        let f = self.model.config.ffn_hidden;
+        let qkv = linear(&rms_norm_slow(&h, n1, self.eps())?, wqkv)?;
+        let h = (&h + linear(&attention(&qkv)?, wo)?)?;
+        let ab = linear(&rms_norm_slow(&h, n2, self.eps())?, w13)?;
+        let act = (silu(&ab.narrow(1, 0, f)?)? * ab.narrow(1, f, f)?)?;
+        &h + linear(&act, w2)?
+    }
+
+    /// `text · Wᵀ + b` of text rows (`rows × E`).
+    fn project_text(&self, text: &[f32], device: &Device) -> Result<Tensor> {
+        let e = self.model.config.text_dim;
+        let text = Tensor::from_slice(text, (text.len() / e, e), device)?;
+        linear(&text, &self.w.proj_w)?.broadcast_add(&self.w.proj_b)
+    }
+
+    /// Embedding rows of `tokens`.
+    fn embed(&self, tokens: &[u32], device: &Device) -> Result<Tensor> {
+        self.w.tok_emb.embedding(&Tensor::new(tokens, device)?)
+    }
+
+    /// The last block's output of every real row of `batch` (motion rows, then text rows).
+    fn hidden(&self, batch: &LmBatch) -> Result<Tensor> {
+        let (l, device) = (&batch.layout, self.w.head.device());
+        let mut parts = vec![self.embed(&batch.inputs, device)?];
+        if !batch.text.is_empty() {
+            parts.push(self.project_text(&batch.text, device)?);
+        }
+        let mut h = Tensor::cat(&parts, 0)?;
+        let slots = l.slots();
+        let at = AttentionInputs::new(self.model, l, (0, slots), slots, device)?;
+        // Dense (sequence, slot) order of the rows, padding slots reading an extra zero row.
+        let order: Vec<u32> = (0..l.batch)
+            .flat_map(|b| (0..slots).map(move |s| l.row(b, s).unwrap_or(l.rows()) as u32))
+            .collect();
+        let mut back = vec![0u32; l.rows()];
+        for (i, &r) in order.iter().enumerate() {
+            if (r as usize) < l.rows() {
+                back[r as usize] = i as u32;
+            }
+        }
+        let (order, back) = (Tensor::new(order, device)?, Tensor::new(back, device)?);
+        let d3 = 3 * self.model.config.d_model;
+        for i in 0..self.w.blocks.len() {
+            h = self.block(i, h, |qkv| {
+                let zero = Tensor::zeros((1, d3), DType::F32, device)?;
+                let dense = Tensor::cat(&[qkv, &zero], 0)?.index_select(&order, 0)?;
+                let [q, k, v] = self.heads(&dense, &at, l.batch)?;
+                self.attend(&q, &k, &v, &at.mask)?.index_select(&back, 0)
+            })?;
+        }
+        Ok(h)
+    }
+
+    /// `RMSNorm(h; norm) · headᵀ` (f32 logits).
+    fn head(&self, h: &Tensor) -> Result<Tensor> {
+        linear(&rms_norm_slow(h, &self.w.norm, self.eps())?, &self.w.head)
+    }
+
+    /// Logits of every real motion row.
+    fn motion_logits(&self, batch: &LmBatch) -> Result<Tensor> {
+        let h = self.hidden(batch)?;
+        self.head(&h.narrow(0, 0, batch.inputs.len())?)
+    }
+}
+
+/// A pass over `model`'s own weights.
+fn pass(model: &PrefixLm) -> Result<Pass<'_>> {
+    let tensors: Vec<Tensor> = model.tensors().into_iter().cloned().collect();
+    pass_over(model, &tensors)
+}
+
+fn pass_over<'a>(model: &'a PrefixLm, tensors: &[Tensor]) -> Result<Pass<'a>> {
+    let dtype = model.compute.precision.compute_dtype();
+    Ok(Pass {
+        model,
+        w: GraphWeights::cast(tensors, dtype)?,
+        dtype,
+    })
+}
+
+/// The rows of `batch`'s motion slots that have a target, and those targets.
+fn target_rows(batch: &LmBatch) -> (Vec<u32>, Vec<u32>) {
+    batch
+        .targets
+        .iter()
+        .enumerate()
+        .filter(|(_, &t)| t != IGNORE)
+        .map(|(r, &t)| (r as u32, t))
+        .unzip()
+}
+
+/// [`PrefixLm::forward`].
+pub(super) fn forward(model: &PrefixLm, batch: &LmBatch) -> Result<Tensor> {
+    model.check(&batch.layout)?;
+    pass(model)?.motion_logits(batch)
+}
+
+/// [`PrefixLm::target_log_probs`].
+pub(super) fn target_log_probs(model: &PrefixLm, batch: &LmBatch) -> Result<Vec<f32>> {
+    model.check(&batch.layout)?;
+    let p = pass(model)?;
+    let mut out = vec![f32::NAN; batch.inputs.len()];
+    let (rows, targets) = target_rows(batch);
+    if rows.is_empty() {
+        return Ok(out);
+    }
+    let device = model.device();
+    let h = p.hidden(batch)?;
+    let picked = h.index_select(&Tensor::new(rows.as_slice(), device)?, 0)?;
+    let log_probs = candle_nn::ops::log_softmax(&p.head(&picked)?, D::Minus1)?
+        .gather(&Tensor::new(targets, device)?.unsqueeze(1)?, 1)?
+        .flatten_all()?
+        .to_vec1::<f32>()?;
+    for (r, lp) in rows.into_iter().zip(log_probs) {
+        out[r as usize] = lp;
+    }
+    Ok(out)
+}
+
+/// [`PrefixLm::loss_and_grads`] and [`PrefixLm::loss_and_grads_with`]: mean cross-entropy
+/// (plus `extra`'s term) and the gradient of every weight, keyed by the model's tensors.
+pub(super) fn loss_and_grads(
+    model: &PrefixLm,
+    batch: &LmBatch,
+    extra: Option<&ExtraLoss<'_>>,
+) -> Result<(f32, GradStore)> {
+    model.check(&batch.layout)?;
+    // Every weight a leaf of the graph: candle keeps the gradients of variables only, and a
+    // merged LoRA weight is an intermediate tensor.
+    let own = model.tensors();
+    let leaves: Vec<Tensor> = own
+        .iter()
+        .map(|t| match t.is_variable() {
+            true => Ok((*t).clone()),
+            false => Ok(Var::from_tensor(t)?.into_inner()),
+        })
+        .collect::<Result<_>>()?;
+    let p = pass_over(model, &leaves)?;
+    let device = model.device();
+    let (rows, targets) = target_rows(batch);
+    let hidden = p.hidden(batch)?;
+    let motion = hidden.narrow(0, 0, batch.inputs.len())?;
+    let (loss, objective) = match extra {
+        None => {
+            let picked = motion.index_select(&Tensor::new(rows.as_slice(), device)?, 0)?;
+            let ce = cross_entropy(&p.head(&picked)?, &targets, device)?;
+            (ce.to_scalar::<f32>()?, ce)
+        }
+        Some(extra) => {
+            let logits = p.head(&motion)?;
+            let picked = logits.index_select(&Tensor::new(rows.as_slice(), device)?, 0)?;
+            let ce = cross_entropy(&picked, &targets, device)?;
+            let mut loss = ce.to_scalar::<f32>()?;
+            let objective = match extra(&logits.flatten_all()?.to_vec1::<f32>()?) {
+                // Σ logits ⊙ G has gradient G with respect to the logits.
+                Some((term, g)) => {
+                    loss += term;
+                    let g = Tensor::from_vec(g, logits.shape(), device)?;
+                    (ce + (logits * g)?.sum_all()?)?
+                }
+                None => ce,
+            };
+            (loss, objective)
+        }
+    };
+    let grads = objective.backward()?;
+    let mut store = GradStore::default();
+    for (t, leaf) in own.into_iter().zip(&leaves) {
+        if let Some(g) = grads.get(leaf) {
+            store.insert(t, g.clone());
+        }
+    }
+    Ok((loss, store))
+}
+
+/// Mean cross-entropy of f32 `logits` rows against `targets` (0 without targets).
+fn cross_entropy(logits: &Tensor, targets: &[u32], device: &Device) -> Result<Tensor> {
+    if targets.is_empty() {
+        return logits.sum_all()? * 0.0;
+    }
+    candle_nn::loss::cross_entropy(logits, &Tensor::new(targets, device)?)
+}
+
+/// Each layer's rotated keys and values so far, `(batch, heads, slots, head_dim)`.
+pub(super) struct GraphCache {
+    layers: Vec<Option<(Tensor, Tensor)>>,
+}
+
+impl GraphCache {
+    /// An empty cache for `layers` blocks.
+    pub(super) fn new(layers: usize) -> Self {
+        Self {
+            layers: vec![None; layers],
+        }
+    }
+
+    /// Slots filled so far.
+    fn filled(&self) -> Result<usize> {
+        match &self.layers[0] {
+            Some((k, _)) => k.dim(2),
+            None => Ok(0),
+        }
+    }
+}
+
+/// [`PrefixLm::forward_cached`] (arguments checked there).
+pub(super) fn forward_cached(
+    model: &PrefixLm,
+    cache: &mut GraphCache,
+    layout: &SeqLayout,
+    text: &[f32],
+    tokens: &[u32],
+    (from, to): (usize, usize),
+) -> Result<Tensor> {
+    if cache.filled()? != from {
+        candle_core::bail!("the cache holds {} slots, not {from}", cache.filled()?)
+    }
+    let (p, n_new, device) = (layout.prefix_slots, to - from, model.device());
+    let pass = pass(model)?;
+    // New rows sequence-major: the new text slots' projections, then the new motion slots.
+    let per_seq = to - from.max(p);
+    let mut parts = vec![pass.embed(tokens, device)?];
+    let mut pick = Vec::with_capacity(layout.batch * n_new);
+    let text_base = (layout.batch * per_seq) as u32;
+    for b in 0..layout.batch {
+        pick.extend((from..to.min(p)).map(|s| text_base + (b * p + s) as u32));
+        pick.extend((0..per_seq).map(|t| (b * per_seq + t) as u32));
+    }
+    if from < p {
+        parts.push(pass.project_text(text, device)?);
+    }
+    let rows = Tensor::cat(&parts, 0)?;
+    let mut h = rows.index_select(&Tensor::new(pick, device)?, 0)?;
+    let at = AttentionInputs::new(model, layout, (from, to), to, device)?;
+    for (i, layer) in cache.layers.iter_mut().enumerate() {
+        h = pass.block(i, h, |qkv| {
+            let [q, k, v] = pass.heads(qkv, &at, layout.batch)?;
+            let (k, v) = match layer.take() {
+                Some((ck, cv)) => (Tensor::cat(&[&ck, &k], 2)?, Tensor::cat(&[&cv, &v], 2)?),
+                None => (k, v),
+            };
+            let out = pass.attend(&q, &k, &v, &at.mask)?;
+            *layer = Some((k, v));
+            Ok(out)
+        })?;
+    }
+    let last: Vec<u32> = (0..layout.batch)
+        .map(|b| (b * n_new + n_new - 1) as u32)
+        .collect();
+    pass.head(&h.index_select(&Tensor::new(last, device)?, 0)?)
+}
