@@ -8,7 +8,8 @@
 //! n_nv, n_v, vocab, d_model, layers, heads, tokens, train_loss, test_loss, norm_test_loss,
 //! wall_s, flops` (the names `motionscale fit` reads by default), then `seed, git_revision,
 //! hostname, device, precision` and `index, model, vocab_nominal, tokens_planned, steps,
-//! flops_6n, epochs, flags`.
+//! flops_6n, epochs, flags`, then the validation-selected evaluation's `best_step,
+//! best_test_loss, best_norm_test_loss` (0 / NaN without validation clips).
 
 use crate::plan::IsoFlopPlan;
 use crate::SweepError;
@@ -82,6 +83,19 @@ pub struct RunRow {
     pub epochs: f64,
     /// The plan's flags, `;`-separated.
     pub flags: String,
+    /// Step of the evaluation with the lowest validation cross-entropy (0: no validation).
+    #[serde(default)]
+    pub best_step: u64,
+    /// Test cross-entropy at that step (NaN: no validation).
+    #[serde(default = "nan")]
+    pub best_test_loss: f64,
+    /// Test L_u at that step (NaN: no validation).
+    #[serde(default = "nan")]
+    pub best_norm_test_loss: f64,
+}
+
+fn nan() -> f64 {
+    f64::NAN
 }
 
 fn cpu() -> String {
@@ -107,7 +121,7 @@ pub enum Cell<'a> {
 pub type Column = (&'static str, DataType, fn(&RunRow) -> Cell<'_>);
 
 /// Every column of the table, in order.
-pub const COLUMNS: [Column; 27] = [
+pub const COLUMNS: [Column; 30] = [
     ("run_id", DataType::Utf8, |r| Cell::Str(&r.run_id)),
     ("budget", DataType::Float64, |r| Cell::F64(r.budget)),
     ("n_nv", DataType::UInt64, |r| Cell::U64(r.n_nv)),
@@ -143,6 +157,13 @@ pub const COLUMNS: [Column; 27] = [
     ("flops_6n", DataType::Float64, |r| Cell::F64(r.flops_6n)),
     ("epochs", DataType::Float64, |r| Cell::F64(r.epochs)),
     ("flags", DataType::Utf8, |r| Cell::Str(&r.flags)),
+    ("best_step", DataType::UInt64, |r| Cell::U64(r.best_step)),
+    ("best_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.best_test_loss)
+    }),
+    ("best_norm_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.best_norm_test_loss)
+    }),
 ];
 
 /// The Arrow schema of `results.parquet` (no nulls).
@@ -318,6 +339,22 @@ mod tests {
             flops_6n: 1.1e12,
             epochs: 0.5,
             flags: "exceeds-data".into(),
+            best_step: 3 + i,
+            best_test_loss: 1.25,
+            best_norm_test_loss: -0.5,
+        }
+    }
+
+    #[test]
+    fn a_table_from_before_devices_and_validation_reads_with_the_defaults() {
+        let path =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/results/scaling-law/results.csv");
+        let rows = read_csv(&path).unwrap();
+        assert_eq!(rows.len(), 154);
+        for r in &rows {
+            assert_eq!((r.device.as_str(), r.precision.as_str()), ("cpu", "f32"));
+            assert_eq!(r.best_step, 0);
+            assert!(r.best_test_loss.is_nan() && r.best_norm_test_loss.is_nan());
         }
     }
 

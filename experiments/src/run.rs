@@ -213,6 +213,9 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
             .map(|f| f.as_str())
             .collect::<Vec<_>>()
             .join(";"),
+        best_step: e.best.as_ref().map_or(0, |b| b.step),
+        best_test_loss: e.best.as_ref().map_or(f64::NAN, |b| b.test.cross_entropy),
+        best_norm_test_loss: e.best.as_ref().map_or(f64::NAN, |b| b.test.normalized_loss),
     }
 }
 

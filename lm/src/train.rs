@@ -9,7 +9,8 @@
 //! OUT/state.json            step, tokens seen, executed FLOPs, data position (written last:
 //!                           it commits the checkpoint)
 //! OUT/resume/<step>/        that step's model.safetensors and optimizer.safetensors (AdamW)
-//! OUT/eval.json             the latest evaluation; OUT/evals.jsonl every evaluation
+//! OUT/eval.json             the latest evaluation (test, validation, and the validation-selected
+//!                           evaluation so far); OUT/evals.jsonl every evaluation
 //! ```
 //!
 //! A run is a pure function of its config: batch k is fixed by the seed, every kernel reduces
@@ -307,6 +308,21 @@ pub struct TrainState {
     /// Steps summed in `loss_sum`.
     #[serde(default)]
     pub loss_steps: u64,
+    /// The evaluation with the lowest validation cross-entropy so far.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub best: Option<BestEval>,
+}
+
+/// The validation-selected checkpoint: the evaluation whose validation cross-entropy is the
+/// lowest so far (the earliest of equals), with its test losses.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BestEval {
+    /// Step of that evaluation.
+    pub step: u64,
+    /// Its validation cross-entropy.
+    pub val_cross_entropy: f64,
+    /// Its test losses.
+    pub test: SplitLoss,
 }
 
 /// `OUT/eval.json`: one evaluation with the accounting of the run so far.
@@ -320,6 +336,13 @@ pub struct EvalRecord {
     pub train_loss: f64,
     /// Test losses (cross-entropy, L_u, unigram entropy…).
     pub test: SplitLoss,
+    /// Validation losses (none when the run has no validation clips).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub val: Option<SplitLoss>,
+    /// The validation-selected evaluation so far, this one included (none without
+    /// validation clips).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub best: Option<BestEval>,
     /// C = 6·(N_nv + N_v)·D.
     pub flops_6n: f64,
     /// Exact FLOPs of the real (unpadded) slots.
@@ -475,7 +498,7 @@ pub fn train(
         let scheduled = step % every(config.eval_every) == 0 || step == total;
         if scheduled || done {
             let mean = run.state.loss_sum / run.state.loss_steps.max(1) as f64;
-            let record = run.evaluate(mean)?;
+            let record = run.evaluate(mean, scheduled)?;
             // An evaluation only because `stop_after` ends the run early keeps the window:
             // the resumed run's next evaluation then averages the same steps as it would have.
             if scheduled {
@@ -732,8 +755,10 @@ impl Run {
         })
     }
 
-    /// Evaluate the test split and record it in `eval.json` and `evals.jsonl`.
-    fn evaluate(&self, train_loss: f64) -> Result<EvalRecord, ModelError> {
+    /// Evaluate the test (and validation) split and record it in `eval.json` and
+    /// `evals.jsonl`; a `scheduled` evaluation may become the validation-selected one (one only
+    /// because `stop_after` ends the run early may not: a resumed run would not have made it).
+    fn evaluate(&mut self, train_loss: f64, scheduled: bool) -> Result<EvalRecord, ModelError> {
         // A LoRA run evaluates the base with the adapter as it now stands merged in.
         let merged;
         let (lm, expert_weights): (&dyn MotionLm, _) = match &self.trainee {
@@ -747,13 +772,34 @@ impl Run {
             }
             Trainee::Moe(t) => (&t.moe, Some(self.expert_weights(&t.moe)?)),
         };
-        let test = evaluate(lm, &self.data, "test", self.config.train.hyper.batch_size)?;
+        let batch = self.config.train.hyper.batch_size;
+        let test = evaluate(lm, &self.data, "test", batch)?;
+        let val = match self.data.split("val").is_empty() {
+            true => None,
+            false => Some(evaluate(lm, &self.data, "val", batch)?),
+        };
+        if let (Some(v), true) = (&val, scheduled) {
+            if self
+                .state
+                .best
+                .as_ref()
+                .is_none_or(|b| v.cross_entropy < b.val_cross_entropy)
+            {
+                self.state.best = Some(BestEval {
+                    step: self.state.step,
+                    val_cross_entropy: v.cross_entropy,
+                    test: test.clone(),
+                });
+            }
+        }
         let params = self.config.accounting.params;
         let record = EvalRecord {
             step: self.state.step,
             tokens_seen: self.state.tokens_seen,
             train_loss,
             test,
+            val,
+            best: self.state.best.clone(),
             flops_6n: accounting::budget(&self.config.model, self.state.tokens_seen as f64),
             flops_exact: self.state.flops_exact,
             n_nv: params.n_nv,
@@ -911,6 +957,7 @@ fn resume(
         data_position: 0,
         loss_sum: 0.0,
         loss_steps: 0,
+        best: None,
     };
     if !paths.resume.state_path().is_file() {
         let _ = std::fs::remove_file(&paths.evals);

@@ -50,7 +50,12 @@ fn fixture(root: &Path) -> (PathBuf, PathBuf) {
         let n = 6 + rng.index(7);
         clips.push(TokenClip {
             motion_id: id.clone(),
-            split: if train { "train" } else { "test" }.into(),
+            split: match (train, clips.len() % 3) {
+                (true, _) => "train",
+                (false, 0) => "val",
+                _ => "test",
+            }
+            .into(),
             tokens: (0..n).map(|_| rng.index(CODES) as u32).collect(),
         });
     }
@@ -175,6 +180,22 @@ fn an_interrupted_run_resumes_to_the_same_weights() {
         let same = resumed.iter().find(|r| r["step"] == e["step"]).unwrap();
         assert_eq!(same["train_loss"], e["train_loss"], "step {}", e["step"]);
     }
+    // The validation-selected evaluation is the one of lowest validation loss, resumed alike.
+    assert_eq!(second.eval.best, full.eval.best);
+    let best = full
+        .eval
+        .best
+        .as_ref()
+        .expect("the fixture has validation clips");
+    let lowest = whole
+        .iter()
+        .min_by(|a, b| {
+            let ce = |e: &serde_json::Value| e["val"]["cross_entropy"].as_f64().unwrap();
+            ce(a).total_cmp(&ce(b))
+        })
+        .unwrap();
+    assert_eq!(lowest["step"], best.step);
+    assert_eq!(lowest["test"]["cross_entropy"], best.test.cross_entropy);
     // A different configuration in the same folder is refused.
     let mut other = parts.clone();
     other.hyper.seed = 1;
