@@ -192,26 +192,30 @@ fn bench_generate(args: &BenchTrainArgs) -> Result<Value> {
     Ok(Value::Object(out))
 }
 
+/// The PyTorch references' flags of a d×layers model (heads of width 64) at `batch`.
+pub(super) fn shape_flags(d: usize, layers: usize, batch: usize) -> Vec<String> {
+    [
+        ("--d", d),
+        ("--layers", layers),
+        ("--heads", d / 64),
+        ("--batch", batch),
+    ]
+    .iter()
+    .flat_map(|(flag, v)| [flag.to_string(), v.to_string()])
+    .collect()
+}
+
 fn run_reference(args: &BenchTrainArgs, mode: &str, d: usize, layers: usize) -> Result<Value> {
-    super::run_reference(
-        &args.reference_script,
-        &[
-            "--mode",
-            mode,
-            "--d",
-            &d.to_string(),
-            "--layers",
-            &layers.to_string(),
-            "--heads",
-            &(d / 64).to_string(),
-            "--batch",
-            &args.batch.to_string(),
-            "--threads",
-            &args.threads.to_string(),
-            "--min-time",
-            &args.min_time.to_string(),
-        ],
-    )
+    let mut flags = shape_flags(d, layers, args.batch);
+    flags.extend([
+        "--mode".into(),
+        mode.into(),
+        "--threads".into(),
+        args.threads.to_string(),
+    ]);
+    flags.extend(["--min-time".into(), args.min_time.to_string()]);
+    let flags: Vec<&str> = flags.iter().map(String::as_str).collect();
+    super::run_reference(&args.reference_script, &flags)
 }
 
 /// candle's sgemm on 2048² now (context for the MFU figures on a shared machine).

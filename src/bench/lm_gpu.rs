@@ -4,7 +4,7 @@
 //! `../shared/bench/gpu/pytorch_prefix_lm_gpu.py` on the same GPU in the same run, eager bf16
 //! and `torch.compile`, with both ratios.
 
-use super::lm::{bench_train_step, parse_size, BenchTrainArgs};
+use super::lm::{bench_train_step, parse_size, shape_flags, BenchTrainArgs};
 use anyhow::{bail, Context, Result};
 use candle_core::Device;
 use nn::device::Precision;
@@ -44,23 +44,18 @@ fn reference(
     compile: bool,
 ) -> Result<Value> {
     let mut command = std::process::Command::new("python3");
-    command.arg(script).args([
-        "--device",
-        "cuda",
-        "--dtype",
-        "bf16",
-        "--d",
-        &d.to_string(),
-        "--layers",
-        &layers.to_string(),
-        "--heads",
-        &(d / 64).to_string(),
-        "--batch",
-        &batch.to_string(),
-        "--vocab-codes",
-        "1024",
-        "--phases",
-    ]);
+    command
+        .arg(script)
+        .args(shape_flags(d, layers, batch))
+        .args([
+            "--device",
+            "cuda",
+            "--dtype",
+            "bf16",
+            "--vocab-codes",
+            "1024",
+            "--phases",
+        ]);
     if compile {
         command.arg("--compile");
     }
