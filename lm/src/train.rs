@@ -966,15 +966,13 @@ fn resume(
     // The same run on another device resumes: only what was computed must match. The old
     // config is read as today's (a run recorded before devices and precisions were has the
     // defaults: CPU, f32).
-    let comparable = |run: &RunConfig| {
-        let mut v = serde_json::to_value(run).ok();
-        if let Some(o) = v.as_mut().and_then(|v| v.as_object_mut()) {
-            o.remove("device");
-        }
-        v
-    };
+    // Compared as written (TrainConfig skips its per-invocation fields).
     check_same_run(&paths.config, "a run", |old: RunConfig| {
-        comparable(&old) == comparable(run)
+        let old = RunConfig {
+            device: run.device.clone(),
+            ..old
+        };
+        serde_json::to_value(&old).ok() == serde_json::to_value(run).ok()
     })?;
     let state: TrainState = read_json(paths.resume.state_path())?;
     let files = paths.resume.files(state.step);

@@ -358,9 +358,11 @@ fn cross_entropy(logits: &Tensor, targets: &[u32], device: &Device) -> Result<Te
     candle_nn::loss::cross_entropy(logits, &Tensor::new(targets, device)?)
 }
 
-/// Each layer's rotated keys and values so far, `(batch, heads, slots, head_dim)`.
+/// Each layer's rotated keys and values so far, `(batch, heads, slots, head_dim)`, and the
+/// weights as the first step cast them (every later step multiplies by the same).
 pub(super) struct GraphCache {
     layers: Vec<Option<(Tensor, Tensor)>>,
+    weights: Option<GraphWeights>,
 }
 
 impl GraphCache {
@@ -368,6 +370,7 @@ impl GraphCache {
     pub(super) fn new(layers: usize) -> Self {
         Self {
             layers: vec![None; layers],
+            weights: None,
         }
     }
 
@@ -393,7 +396,14 @@ pub(super) fn forward_cached(
         candle_core::bail!("the cache holds {} slots, not {from}", cache.filled()?)
     }
     let (p, n_new, device) = (layout.prefix_slots, to - from, model.device());
-    let pass = pass(model)?;
+    let pass = match cache.weights.take() {
+        Some(w) => Pass {
+            model,
+            w,
+            dtype: model.compute.precision.compute_dtype(),
+        },
+        None => pass(model)?,
+    };
     // New rows sequence-major: the new text slots' projections, then the new motion slots.
     let per_seq = to - from.max(p);
     let mut parts = vec![pass.embed(tokens, device)?];
@@ -424,5 +434,7 @@ pub(super) fn forward_cached(
     let last: Vec<u32> = (0..layout.batch)
         .map(|b| (b * n_new + n_new - 1) as u32)
         .collect();
-    pass.head(&h.index_select(&Tensor::new(last, device)?, 0)?)
+    let logits = pass.head(&h.index_select(&Tensor::new(last, device)?, 0)?)?;
+    cache.weights = Some(pass.w);
+    Ok(logits)
 }
