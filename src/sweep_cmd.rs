@@ -4,6 +4,7 @@
 use crate::tokenizer_cmd::TrainFlags;
 use anyhow::{bail, Context, Result};
 use clap::Parser;
+use experiments::data_ladder::{self, DataSource};
 use experiments::local::{self, LocalOptions};
 use experiments::plan::{self, PlanRequest, TrainSettings, VocabSource};
 use experiments::slurm::{self, SlurmOptions};
@@ -81,6 +82,17 @@ pub struct PlanArgs {
     /// Training seeds of the --repeat points, comma-separated.
     #[arg(long, value_delimiter = ',', requires = "repeat")]
     pub seeds: Vec<u64>,
+    /// The unique-data axis: every point at each fraction of the train hours, e.g.
+    /// `1/8,1/4,1/2,1` (nested subsets drawn by source clip, mirrors and segments together;
+    /// val and test stay whole; run ids end in `-d<source>-<fraction>`).
+    #[arg(long, value_delimiter = ',', value_parser = data_ladder::parse_fraction)]
+    pub data_fractions: Vec<f64>,
+    /// The clips the --data-fractions draw from: real (captured), synth or all.
+    #[arg(long, default_value = "all", requires = "data_fractions")]
+    pub data_source: DataSource,
+    /// Seed of the clip order of the --data-fractions (recorded in the plan).
+    #[arg(long, default_value_t = 0, requires = "data_fractions")]
+    pub data_seed: u64,
     /// Output plan file (.toml).
     #[arg(long)]
     pub out: PathBuf,
@@ -174,6 +186,9 @@ impl PlanArgs {
             extend: self.extend.as_deref().map(IsoFlopPlan::read).transpose()?,
             repeat: self.repeat.clone(),
             repeat_seeds: self.seeds.clone(),
+            data_fractions: self.data_fractions.clone(),
+            data_source: self.data_source,
+            data_seed: self.data_seed,
         })
     }
 }
@@ -183,13 +198,13 @@ pub fn plan_cmd(args: PlanArgs) -> Result<ExitCode> {
     let plan = plan::plan(&args.request()?)?;
     plan.write(&args.out)?;
     println!(
-        "{:>4}  {:<26} {:>9} {:>10} {:>6} {:>10} {:>9} {:>12} {:>7}  flags",
+        "{:>4}  {:<36} {:>9} {:>10} {:>6} {:>10} {:>9} {:>12} {:>7}  flags",
         "row", "run", "C", "model", "V", "N_nv", "N_v", "D", "epochs"
     );
     for p in &plan.points {
         let flags: Vec<&str> = p.flags.iter().map(|f| f.as_str()).collect();
         println!(
-            "{:>4}  {:<26} {:>9.2e} {:>10} {:>6} {:>10} {:>9} {:>12} {:>7.2}  {}",
+            "{:>4}  {:<36} {:>9.2e} {:>10} {:>6} {:>10} {:>9} {:>12} {:>7.2}  {}",
             p.index,
             p.run_id,
             p.budget,
@@ -206,6 +221,16 @@ pub fn plan_cmd(args: PlanArgs) -> Result<ExitCode> {
         println!(
             "vocabulary {} ({} codes): {} train clips, {} train tokens per epoch",
             v.codebook, v.codebook_size, v.train_clips, v.train_tokens
+        );
+    }
+    for d in &plan.data {
+        println!(
+            "data {}: {} train clips, {:.2} h ({:.0}% synthetic), seed {}",
+            d.name,
+            d.train_clips,
+            d.hours,
+            100.0 * d.synth_hours / d.hours,
+            d.seed
         );
     }
     for c in &plan.centres {

@@ -40,16 +40,19 @@ fn make_plan(corpus: &Path, budgets: &str, out: &Path) -> IsoFlopPlan {
 
 /// Python: both tables of a sweep folder as JSON rows, after checking they agree.
 const TABLES: &str = r#"
-import csv, json, sys, pyarrow.parquet as pq
+import csv, json, math, sys, pyarrow.parquet as pq
 runs = sys.argv[1]
 rows = pq.read_table(f"{runs}/results.parquet").to_pylist()
 with open(f"{runs}/results.csv") as f:
     text = list(csv.DictReader(f))
 assert len(text) == len(rows), (len(text), len(rows))
+same = lambda a, b: a == b or (math.isnan(a) and math.isnan(b))
 for t, r in zip(text, rows):
     for k, v in r.items():
-        assert (t[k] == v) if isinstance(v, str) else (float(t[k]) == float(v)), (k, t[k], v)
-print(json.dumps(rows))
+        assert (t[k] == v) if isinstance(v, str) else same(float(t[k]), float(v)), (k, t[k], v)
+# NaN (not recorded) as JSON's null, as serde_json writes it.
+nulled = [{k: None if isinstance(v, float) and math.isnan(v) else v for k, v in r.items()} for r in rows]
+print(json.dumps(nulled))
 "#;
 
 /// The rows of both tables (which must agree), or none before the first rebuild.
@@ -352,4 +355,198 @@ fn a_plan_centred_on_an_earlier_fit_brackets_n_opt_warns_past_the_ladder_and_lim
         .count();
     assert_eq!(dropped.points.len() + listed, plan.points.len());
     assert!(listed > 0);
+}
+
+/// The demo's captured clips and 40 synthetic ones, mirrored, with fallback caption
+/// embeddings: both origins in train and test.
+fn mixed_corpus(tmp: &Path) -> std::path::PathBuf {
+    let (inputs, corpus) = (tmp.join("inputs"), tmp.join("corpus"));
+    demo_inputs(&inputs);
+    let bvh = format!("bvh:{}", inputs.display());
+    motionscale_ok(&[
+        "ingest",
+        "--source",
+        &bvh,
+        "--source",
+        "synth:40:2",
+        "--mirror",
+        "--out",
+        arg(&corpus),
+    ]);
+    motionscale_ok(&[
+        "embed-text",
+        "--corpus",
+        arg(&corpus),
+        "--fallback",
+        "--fallback-dim",
+        "32",
+    ]);
+    corpus
+}
+
+/// `sweep plan` of cpu-50K at 3e10 on one trained vocabulary at `fractions` of `source`.
+fn data_plan(corpus: &Path, fractions: &str, source: &str, out: &Path) -> IsoFlopPlan {
+    motionscale_ok(&[
+        "sweep",
+        "plan",
+        "--corpus",
+        arg(corpus),
+        "--budgets",
+        "3e10",
+        "--models",
+        "cpu-50K",
+        "--vocabs",
+        "256",
+        "--tokenizer-flags=--width 32 --batch 8 --steps 30",
+        "--batch",
+        "8",
+        "--checkpoint-every",
+        "10",
+        "--data-fractions",
+        fractions,
+        "--data-source",
+        source,
+        "--out",
+        arg(out),
+    ]);
+    IsoFlopPlan::read(out).expect("the plan reads back")
+}
+
+#[test]
+fn a_data_ladder_trains_nested_subsets_and_reports_test_losses_per_origin() {
+    let tmp = tempfile::tempdir().unwrap();
+    let corpus = mixed_corpus(tmp.path());
+    let plan_path = tmp.path().join("plan.toml");
+    let plan = data_plan(&corpus, "1/2,1", "all", &plan_path);
+    let names: Vec<&str> = plan.data.iter().map(|d| d.name.as_str()).collect();
+    assert_eq!(names, ["all-1_2", "all-1"]);
+    let ids: Vec<&str> = plan.points.iter().map(|p| p.run_id.as_str()).collect();
+    assert_eq!(
+        ids,
+        ["c3e10-cpu-50K-v256-dall-1_2", "c3e10-cpu-50K-v256-dall-1"]
+    );
+    let (half, whole) = (&plan.points[0], &plan.points[1]);
+    let (u_half, u_whole) = (half.unique_tokens(&plan), whole.unique_tokens(&plan));
+    assert_eq!(
+        u_whole, plan.vocabularies[0].train_tokens,
+        "1 is the whole split"
+    );
+    assert!(
+        u_half < u_whole && 2 * u_half > u_whole * 4 / 5,
+        "{u_half} of {u_whole}"
+    );
+    assert!((half.epochs - half.tokens as f64 / u_half as f64).abs() < 1e-12);
+    let (h_half, h_whole) = (plan.data[0].hours, plan.data[1].hours);
+    assert!(
+        h_half >= h_whole / 2.0 && h_half < h_whole,
+        "{h_half} h of {h_whole} h"
+    );
+
+    let runs = tmp.path().join("runs");
+    motionscale_ok(&[
+        "sweep",
+        "run",
+        "--plan",
+        arg(&plan_path),
+        "--out",
+        arg(&runs),
+    ]);
+    let list = |name: &str, split: &str| -> Vec<String> {
+        let path = runs.join("data").join(name).join(format!("{split}.txt"));
+        std::fs::read_to_string(path)
+            .unwrap()
+            .lines()
+            .map(String::from)
+            .collect()
+    };
+    let (train_half, train_whole) = (list("all-1_2", "train"), list("all-1", "train"));
+    assert!(
+        train_half.iter().all(|id| train_whole.contains(id)),
+        "nested"
+    );
+    for id in &train_half {
+        let mirror = id.strip_prefix('M').map_or(format!("M{id}"), String::from);
+        assert!(train_half.contains(&mirror), "{id} without its mirror");
+    }
+    assert_eq!(
+        list("all-1_2", "test"),
+        list("all-1", "test"),
+        "test stays whole"
+    );
+
+    let rows = table_rows(&runs);
+    assert_eq!(rows.len(), 2);
+    for (row, point) in rows.iter().zip(&plan.points) {
+        assert_eq!(row.data, point.data.clone().unwrap());
+        assert_eq!(
+            (row.data_source.as_str(), row.unique_tokens),
+            ("all", point.unique_tokens(&plan))
+        );
+        assert!(
+            row.synth_share > 0.5 && row.synth_share < 1.0,
+            "{}",
+            row.synth_share
+        );
+        let eval: serde_json::Value =
+            read_json(&runs.join(&row.run_id).join("train").join("eval.json"));
+        let test = &eval["test"];
+        let part = |o: &str, k: &str| test["by_origin"][o][k].as_f64().unwrap();
+        assert_eq!(
+            (row.real_test_loss, row.synth_test_loss),
+            (
+                part("real", "cross_entropy"),
+                part("synth", "cross_entropy")
+            )
+        );
+        assert_eq!(row.real_norm_test_loss, part("real", "normalized_loss"));
+        // Per origin, weighted by their code targets, the mix.
+        let (tr, ts) = (part("real", "code_targets"), part("synth", "code_targets"));
+        assert_eq!(tr + ts, test["code_targets"].as_f64().unwrap());
+        for k in ["cross_entropy", "normalized_loss"] {
+            let mix = (part("real", k) * tr + part("synth", k) * ts) / (tr + ts);
+            assert!(
+                (mix - test[k].as_f64().unwrap()).abs() < 1e-9,
+                "{k}: {mix} vs {}",
+                test[k]
+            );
+        }
+        assert!(row.best_real_norm_test_loss.is_finite() && row.best_synth_test_loss.is_finite());
+    }
+    assert_eq!(
+        rows[1].test_loss,
+        {
+            // The whole-split point equals a plain (no --data-fractions) point's training.
+            let plain = tmp.path().join("plain.toml");
+            make_plan(&corpus, "3e10", &plain);
+            let r = tmp.path().join("plain-runs");
+            let plain_plan = IsoFlopPlan::read(&plain).unwrap();
+            assert_eq!(plain_plan.points[0].tokens, plan.points[1].tokens);
+            motionscale_ok(&["sweep", "run", "--plan", arg(&plain), "--out", arg(&r)]);
+            table_rows(&r)[0].test_loss
+        },
+        "the lists of fraction 1 select the same clips as the corpus's splits"
+    );
+
+    let real_plan = data_plan(&corpus, "1", "real", &tmp.path().join("real.toml"));
+    assert_eq!(real_plan.data[0].name, "real-1");
+    assert_eq!(real_plan.data[0].synth_hours, 0.0);
+    assert!(real_plan.points[0].unique_tokens(&real_plan) < u_whole);
+    let out = motionscale(&[
+        "sweep",
+        "plan",
+        "--corpus",
+        arg(&corpus),
+        "--budgets",
+        "3e10",
+        "--models",
+        "cpu-50K",
+        "--vocabs",
+        "256",
+        "--data-fractions",
+        "3/2",
+        "--out",
+        arg(&tmp.path().join("bad.toml")),
+    ]);
+    assert_eq!(code(&out), 1, "{}", text(&out));
+    assert!(text(&out).contains("(0, 1]"), "{}", text(&out));
 }

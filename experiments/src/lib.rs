@@ -22,6 +22,7 @@ pub mod codebook_sweep;
 pub mod continual;
 pub mod ctvae;
 pub mod ctvae_train;
+pub mod data_ladder;
 pub mod error;
 pub mod local;
 pub mod plan;

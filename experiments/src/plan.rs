@@ -49,8 +49,10 @@
 //! (`kind = "token_set"`) is used as it is.
 
 use crate::centring::{self, Centre};
+use crate::data_ladder::{self, DataSource, DataSubset};
 use crate::SweepError;
 use ingest::corpus::manifest::Manifest;
+use ingest::corpus::reader::ClipMeta;
 use ingest::corpus::Corpus;
 use lm::accounting;
 use lm::prefix_lm::{PrefixLmConfig, PRESETS};
@@ -83,7 +85,10 @@ pub struct IsoFlopPlan {
     pub train: TrainSettings,
     /// The vocabularies, one per codebook size.
     pub vocabularies: Vec<Vocabulary>,
-    /// Every (budget, model, vocabulary) point, in index order.
+    /// The train-split subsets of the unique-data axis (`--data-fractions`), by name.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub data: Vec<DataSubset>,
+    /// Every (budget, model, vocabulary, data) point, in index order.
     pub points: Vec<PlanPoint>,
     /// Each budget's predicted N_opt, when the sizes were centred on an earlier fit.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -249,6 +254,13 @@ pub struct PlanPoint {
     /// Training seed of a repeat (`run_id` ends in `-s<seed>`); `[train]`'s seed otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub seed: Option<u64>,
+    /// The train subset it learns from (a [`DataSubset::name`]; `run_id` has `-d<name>`);
+    /// the whole train split otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub data: Option<String>,
+    /// Loss positions of one epoch of its subset (with `data`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unique_tokens: Option<u64>,
 }
 
 impl PointFlag {
@@ -271,6 +283,12 @@ impl PlanPoint {
     /// The seed this point trains with, in `plan`.
     pub fn seed(&self, plan: &IsoFlopPlan) -> u64 {
         self.seed.unwrap_or(plan.train.hyper.seed)
+    }
+
+    /// Loss positions of one epoch of the data it learns from, in `plan`.
+    pub fn unique_tokens(&self, plan: &IsoFlopPlan) -> u64 {
+        self.unique_tokens
+            .unwrap_or_else(|| plan.vocabulary(self.codebook).map_or(0, |v| v.train_tokens))
     }
 }
 
@@ -299,6 +317,13 @@ pub struct PlanRequest {
     pub repeat: Vec<String>,
     /// Training seeds of the repeats.
     pub repeat_seeds: Vec<u64>,
+    /// The unique-data axis: fractions of the train hours (each point at each), none for the
+    /// whole split only.
+    pub data_fractions: Vec<f64>,
+    /// The clips the fractions draw from.
+    pub data_source: DataSource,
+    /// Seed of the clip order of the fractions.
+    pub data_seed: u64,
 }
 
 /// Sizes per budget, taken from the model list around an earlier fit's N_opt.
@@ -377,20 +402,23 @@ fn lm_targets(tokens: usize, max: usize) -> u64 {
     keep as u64 + u64::from(keep == tokens)
 }
 
-/// Train clips and their loss positions per epoch for a vocabulary, from its token set or,
-/// before tokenizing, from the corpus clip lengths and the tokenizer's down-sampling.
+/// Train clips (by id) and their loss positions per epoch for a vocabulary, from its token
+/// set or, before tokenizing, from the corpus clip lengths and the tokenizer's down-sampling.
 fn train_data(
     source: &VocabSource,
     codebook: usize,
     corpus: &Path,
     max_motion: usize,
-) -> Result<(usize, Vec<u64>), SweepError> {
-    let from_corpus = |downsample: usize| -> Result<Vec<u64>, SweepError> {
+) -> Result<(usize, Vec<(String, u64)>), SweepError> {
+    let from_corpus = |downsample: usize| -> Result<Vec<(String, u64)>, SweepError> {
         let c = Corpus::open(corpus).map_err(|e| SweepError::invalid(corpus, e))?;
         Ok(c.clips()
             .iter()
             .filter(|clip| clip.split == "train")
-            .map(|clip| lm_targets(clip.num_frames as usize / downsample, max_motion))
+            .map(|clip| {
+                let targets = lm_targets(clip.num_frames as usize / downsample, max_motion);
+                (clip.motion_id.clone(), targets)
+            })
             .collect())
     };
     let (codes, nominal, targets) = match source {
@@ -399,7 +427,7 @@ fn train_data(
             let t = &set.manifest.tokenizer;
             let targets = set
                 .split("train")
-                .map(|c| lm_targets(c.tokens.len(), max_motion))
+                .map(|c| (c.motion_id.clone(), lm_targets(c.tokens.len(), max_motion)))
                 .collect();
             (t.codebook_size, t.nominal_codebook, targets)
         }
@@ -430,6 +458,41 @@ fn train_data(
 /// Run folder name of a point: `c<budget>-<model>-v<codebook>`, e.g. `c3e12-cpu-800K-v1024`.
 pub fn run_id(budget: f64, model: &str, codebook: usize) -> String {
     format!("c{budget:e}-{model}-v{codebook}")
+}
+
+/// The subsets of `request`'s data fractions of the corpus `clips`.
+fn data_subsets(request: &PlanRequest, clips: &[ClipMeta]) -> Result<Vec<DataSubset>, SweepError> {
+    let mut subsets = Vec::new();
+    for &fraction in &request.data_fractions {
+        let subset = data_ladder::describe(clips, request.data_source, fraction, request.data_seed);
+        if subset.train_clips == 0 {
+            return Err(SweepError::Argument(format!(
+                "--data-source {}: the corpus has no such train clips",
+                request.data_source
+            )));
+        }
+        subsets.push(subset);
+    }
+    Ok(subsets)
+}
+
+/// Loss positions of one epoch of each subset (by name) for a vocabulary's per-clip targets.
+fn subset_tokens(
+    subsets: &[DataSubset],
+    targets: &[(String, u64)],
+    clips: &[ClipMeta],
+) -> Vec<u64> {
+    let by_id: std::collections::HashMap<&str, u64> =
+        targets.iter().map(|(id, t)| (id.as_str(), *t)).collect();
+    subsets
+        .iter()
+        .map(|s| {
+            data_ladder::select(clips, s.source, s.fraction, s.seed)
+                .iter()
+                .filter_map(|c| by_id.get(c.motion_id.as_str()))
+                .sum()
+        })
+        .collect()
 }
 
 /// Plan every (budget, model, vocabulary) point of `request`.
@@ -463,7 +526,14 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
         .expect("resolve_encoder found it in the manifest");
     let models = expand_models(&request.models)?;
     let settings = &request.train;
-    let mut vocabularies = Vec::new();
+    let clips = match request.data_fractions.is_empty() {
+        true => Vec::new(),
+        false => Corpus::open(&corpus)
+            .and_then(|c| c.clip_metadata())
+            .map_err(|e| SweepError::invalid(&corpus, e))?,
+    };
+    let data = data_subsets(request, &clips)?;
+    let (mut vocabularies, mut unique) = (Vec::new(), Vec::new());
     for (codebook, source) in &request.vocabularies {
         let source = absolute_source(source)?;
         let (codebook_size, targets) = train_data(
@@ -472,14 +542,20 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
             &corpus,
             settings.hyper.max_motion_tokens,
         )?;
+        unique.push(subset_tokens(&data, &targets, &clips));
         vocabularies.push(Vocabulary {
             codebook: *codebook,
             codebook_size,
             train_clips: targets.len() as u64,
-            train_tokens: targets.iter().sum(),
+            train_tokens: targets.iter().map(|(_, t)| t).sum(),
             source,
         });
     }
+    // Without fractions every point learns from the whole train split.
+    let subsets: Vec<Option<usize>> = match data.is_empty() {
+        true => vec![None],
+        false => (0..data.len()).map(Some).collect(),
+    };
     let mut warnings = Vec::new();
     let mut centres = Vec::new();
     let mut points = Vec::new();
@@ -500,8 +576,13 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
             }
         };
         for name in &names {
-            for vocab in &vocabularies {
-                let mut point = plan_point(budget, name, vocab, settings, text_dim)?;
+            for ((vocab, unique), &subset) in vocabularies
+                .iter()
+                .zip(&unique)
+                .flat_map(|v| subsets.iter().map(move |s| (v, s)))
+            {
+                let of = subset.map(|i| (&data[i], unique[i]));
+                let mut point = plan_point(budget, name, vocab, of, settings, text_dim)?;
                 match request.max_epochs {
                     Some(limit) if point.epochs > limit.epochs && limit.drop => {
                         warnings.push(format!(
@@ -528,6 +609,7 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
         warnings,
         train: settings.clone(),
         vocabularies,
+        data,
         points,
         centres,
     };
@@ -540,11 +622,13 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
     Ok(plan)
 }
 
-/// The point of `budget`, model `name` and `vocab` (index 0; the caller numbers it).
+/// The point of `budget`, model `name` and `vocab`, on `data` (a subset and its loss
+/// positions per epoch) or the whole train split (index 0; the caller numbers it).
 fn plan_point(
     budget: f64,
     name: &str,
     vocab: &Vocabulary,
+    data: Option<(&DataSubset, u64)>,
     settings: &TrainSettings,
     text_dim: usize,
 ) -> Result<PlanPoint, SweepError> {
@@ -553,16 +637,21 @@ fn plan_point(
     let tokens = accounting::tokens_for_budget(&config, budget).round() as u64;
     let per_step = settings.hyper.batch_size as f64 * vocab.train_tokens as f64
         / vocab.train_clips.max(1) as f64;
+    let unique = data.map_or(vocab.train_tokens, |(_, u)| u);
     let mut flags = Vec::new();
-    if tokens > vocab.train_tokens {
+    if tokens > unique {
         flags.push(PointFlag::ExceedsData);
     }
     if (tokens as f64) < per_step {
         flags.push(PointFlag::BelowOneStep);
     }
+    let mut id = run_id(budget, name, vocab.codebook);
+    if let Some((subset, _)) = data {
+        id = format!("{id}-d{}", subset.name);
+    }
     Ok(PlanPoint {
         index: 0,
-        run_id: run_id(budget, name, vocab.codebook),
+        run_id: id,
         budget,
         model: name.to_string(),
         codebook: vocab.codebook,
@@ -572,9 +661,11 @@ fn plan_point(
         n_nv: params.n_nv,
         n_v: params.n_v,
         tokens,
-        epochs: tokens as f64 / vocab.train_tokens.max(1) as f64,
+        epochs: tokens as f64 / unique.max(1) as f64,
         flags,
         seed: None,
+        data: data.map(|(s, _)| s.name.clone()),
+        unique_tokens: data.map(|(_, u)| u),
     })
 }
 
@@ -662,6 +753,15 @@ impl IsoFlopPlan {
                 None => plan.vocabularies.push(vocab),
             }
         }
+        for subset in new.data {
+            match plan.data.iter().find(|d| d.name == subset.name) {
+                Some(old) if *old != subset => {
+                    return differs(format!("data subset {} (its seed or clips)", subset.name))
+                }
+                Some(_) => {}
+                None => plan.data.push(subset),
+            }
+        }
         plan.warnings.extend(new.warnings);
         plan.centres.extend(new.centres);
         for mut point in new.points {
@@ -722,6 +822,7 @@ impl IsoFlopPlan {
             && self.text_dim == base.text_dim
             && self.train == base.train
             && self.vocabularies.starts_with(&base.vocabularies)
+            && self.data.starts_with(&base.data)
             && self.points.starts_with(&base.points)
     }
 
@@ -754,20 +855,33 @@ impl IsoFlopPlan {
             if let Err(e) = model_shape(&p.model) {
                 return bad(format!("point {}: {e}", p.run_id));
             }
+            if let Some(name) = &p.data {
+                if self.data.iter().all(|d| d.name != *name) {
+                    return bad(format!("point {}: no data subset {name}", p.run_id));
+                }
+            }
         }
         Ok(())
     }
 
-    /// The training configuration of `point` writing into `out`, reading `tokens`.
+    /// The data subset named `name`.
+    pub fn subset(&self, name: &str) -> Option<&DataSubset> {
+        self.data.iter().find(|d| d.name == name)
+    }
+
+    /// The training configuration of `point` writing into `out`, reading `tokens` and, for a
+    /// point on a data subset, the split lists in `splits`.
     pub fn train_config(
         &self,
         point: &PlanPoint,
         tokens: &Path,
+        splits: Option<&Path>,
         out: &Path,
     ) -> Result<TrainConfig, SweepError> {
         let s = &self.train;
         let mut c = TrainConfig::new(tokens, model_shape(&point.model)?, point.tokens, out);
         c.corpus = Some(self.corpus.clone());
+        c.splits = splits.map(Path::to_path_buf);
         c.text_encoder = Some(self.text_encoder.clone());
         c.hyper = s.hyper.clone();
         c.hyper.seed = point.seed(self);
@@ -842,6 +956,8 @@ mod tests {
             epochs: 5290.0,
             flags,
             seed: None,
+            data: None,
+            unique_tokens: None,
         };
         IsoFlopPlan {
             format: FORMAT.into(),
@@ -867,6 +983,7 @@ mod tests {
                     },
                 ),
             ],
+            data: Vec::new(),
             points: vec![
                 point(0, 256, vec![PointFlag::ExceedsData]),
                 point(
@@ -967,7 +1084,7 @@ mod tests {
         assert_eq!((plan.points[3].index, plan.points[4].seed(&plan)), (3, 2));
         assert_eq!(plan.points[0].seed(&plan), plan.train.hyper.seed);
         let config = plan
-            .train_config(&plan.points[3], Path::new("/t"), Path::new("/o"))
+            .train_config(&plan.points[3], Path::new("/t"), None, Path::new("/o"))
             .unwrap();
         assert_eq!(config.hyper.seed, 1, "a repeat trains with its own seed");
         assert!(plan.extends(&base) && !base.extends(&plan));

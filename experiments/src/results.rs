@@ -87,15 +87,70 @@ pub struct RunRow {
     #[serde(default)]
     pub best_step: u64,
     /// Test cross-entropy at that step (NaN: no validation).
-    #[serde(default = "nan")]
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
     pub best_test_loss: f64,
     /// Test L_u at that step (NaN: no validation).
-    #[serde(default = "nan")]
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
     pub best_norm_test_loss: f64,
+    /// The train subset (`sweep plan --data-fractions`; empty: the whole train split).
+    #[serde(default)]
+    pub data: String,
+    /// The clips the subset draws from (`real`, `synth`, `all`).
+    #[serde(default = "all")]
+    pub data_source: String,
+    /// Its share of the source's train hours.
+    #[serde(default = "one")]
+    pub data_fraction: f64,
+    /// Loss positions of one epoch of the data trained on, U (D / U = epochs; 0: not recorded).
+    #[serde(default)]
+    pub unique_tokens: u64,
+    /// Train hours of the subset, mirrored copies included (NaN: not recorded).
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub hours: f64,
+    /// Synthetic share of those hours (NaN: not recorded).
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub synth_share: f64,
+    /// Test cross-entropy on the captured clips (NaN: the test split has one origin).
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub real_test_loss: f64,
+    /// Test L_u on the captured clips.
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub real_norm_test_loss: f64,
+    /// Test cross-entropy on the synthetic clips.
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub synth_test_loss: f64,
+    /// Test L_u on the synthetic clips.
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub synth_norm_test_loss: f64,
+    /// Captured clips' test cross-entropy at the validation-selected step.
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub best_real_test_loss: f64,
+    /// Captured clips' test L_u at the validation-selected step.
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub best_real_norm_test_loss: f64,
+    /// Synthetic clips' test cross-entropy at the validation-selected step.
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub best_synth_test_loss: f64,
+    /// Synthetic clips' test L_u at the validation-selected step.
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub best_synth_norm_test_loss: f64,
+}
+
+fn all() -> String {
+    "all".into()
+}
+
+fn one() -> f64 {
+    1.0
 }
 
 fn nan() -> f64 {
     f64::NAN
+}
+
+/// A float that JSON wrote as `null` (serde_json's NaN) reads back as NaN.
+fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
 fn cpu() -> String {
@@ -121,7 +176,7 @@ pub enum Cell<'a> {
 pub type Column = (&'static str, DataType, fn(&RunRow) -> Cell<'_>);
 
 /// Every column of the table, in order.
-pub const COLUMNS: [Column; 30] = [
+pub const COLUMNS: [Column; 44] = [
     ("run_id", DataType::Utf8, |r| Cell::Str(&r.run_id)),
     ("budget", DataType::Float64, |r| Cell::F64(r.budget)),
     ("n_nv", DataType::UInt64, |r| Cell::U64(r.n_nv)),
@@ -163,6 +218,42 @@ pub const COLUMNS: [Column; 30] = [
     }),
     ("best_norm_test_loss", DataType::Float64, |r| {
         Cell::F64(r.best_norm_test_loss)
+    }),
+    ("data", DataType::Utf8, |r| Cell::Str(&r.data)),
+    ("data_source", DataType::Utf8, |r| Cell::Str(&r.data_source)),
+    ("data_fraction", DataType::Float64, |r| {
+        Cell::F64(r.data_fraction)
+    }),
+    ("unique_tokens", DataType::UInt64, |r| {
+        Cell::U64(r.unique_tokens)
+    }),
+    ("hours", DataType::Float64, |r| Cell::F64(r.hours)),
+    ("synth_share", DataType::Float64, |r| {
+        Cell::F64(r.synth_share)
+    }),
+    ("real_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.real_test_loss)
+    }),
+    ("real_norm_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.real_norm_test_loss)
+    }),
+    ("synth_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.synth_test_loss)
+    }),
+    ("synth_norm_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.synth_norm_test_loss)
+    }),
+    ("best_real_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.best_real_test_loss)
+    }),
+    ("best_real_norm_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.best_real_norm_test_loss)
+    }),
+    ("best_synth_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.best_synth_test_loss)
+    }),
+    ("best_synth_norm_test_loss", DataType::Float64, |r| {
+        Cell::F64(r.best_synth_norm_test_loss)
     }),
 ];
 
@@ -342,6 +433,20 @@ mod tests {
             best_step: 3 + i,
             best_test_loss: 1.25,
             best_norm_test_loss: -0.5,
+            data: "real-1_4".into(),
+            data_source: "real".into(),
+            data_fraction: 0.25,
+            unique_tokens: 2000,
+            hours: 0.75,
+            synth_share: 0.0,
+            real_test_loss: 5.0,
+            real_norm_test_loss: 0.25,
+            synth_test_loss: 6.0,
+            synth_norm_test_loss: -0.25,
+            best_real_test_loss: 4.75,
+            best_real_norm_test_loss: 0.0,
+            best_synth_test_loss: 5.75,
+            best_synth_norm_test_loss: -0.75,
         }
     }
 
@@ -355,6 +460,9 @@ mod tests {
             assert_eq!((r.device.as_str(), r.precision.as_str()), ("cpu", "f32"));
             assert_eq!(r.best_step, 0);
             assert!(r.best_test_loss.is_nan() && r.best_norm_test_loss.is_nan());
+            assert_eq!((r.data.as_str(), r.data_source.as_str()), ("", "all"));
+            assert_eq!((r.data_fraction, r.unique_tokens), (1.0, 0));
+            assert!(r.hours.is_nan() && r.real_norm_test_loss.is_nan());
         }
     }
 
@@ -413,5 +521,17 @@ mod tests {
             read_row(dir.path(), "c1e12-cpu-50K-v3").unwrap(),
             Some(row(3))
         );
+        // NaN (no validation clips, one origin) is JSON's null and reads back as NaN.
+        let unrecorded = RunRow {
+            hours: f64::NAN,
+            best_test_loss: f64::NAN,
+            ..row(4)
+        };
+        write_row(dir.path(), &unrecorded).unwrap();
+        let back = read_row(dir.path(), "c1e12-cpu-50K-v4").unwrap().unwrap();
+        assert!(back.hours.is_nan() && back.best_test_loss.is_nan());
+        let csv_path = dir.path().join("results.csv");
+        std::fs::write(&csv_path, to_csv(&[unrecorded]).unwrap()).unwrap();
+        assert!(read_csv(&csv_path).unwrap()[0].hours.is_nan());
     }
 }

@@ -6,23 +6,27 @@
 //! RUNS/<run_id>/wall.json    training seconds of earlier, interrupted attempts
 //! RUNS/<run_id>/error.json   why the last attempt failed (removed when one starts)
 //! RUNS/<run_id>/result.json  the row, written last by temp + rename: the point is done
+//! RUNS/data/<subset>/        a data subset's split lists, shared by its points
 //! ```
 //!
 //! A re-run resumes the training checkpoint; a checkpoint left inconsistent by a kill while
 //! it was written is discarded and the point trained again from the start, which gives the
 //! same weights (training is a pure function of its config).
 
+use crate::data_ladder::{self, DataSource};
 use crate::plan::{IsoFlopPlan, PlanPoint};
 use crate::prepare::prepare_vocabulary;
 use crate::results::{self, read_row, run_dir, RunRow};
 use crate::SweepError;
 use candle_core::Device;
+use ingest::corpus::{Corpus, Origin};
+use lm::test_loss::SplitLoss;
 use lm::train::{train, TrainEvent, TrainReport};
 use motionscale_core::lock::FileLock;
 use motionscale_core::{write_json, FileError};
 use nn::ModelError;
 use serde::{Deserialize, Serialize};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -116,9 +120,10 @@ fn train_point(
         .vocabulary(point.codebook)
         .expect("validated plans list every point's vocabulary");
     let tokens = prepare_vocabulary(plan, vocab, runs, device, log)?;
+    let splits = prepare_data(plan, point, runs)?;
     let dir = run_dir(runs, &point.run_id);
     let train_dir = dir.join("train");
-    let config = plan.train_config(point, &tokens, &train_dir)?;
+    let config = plan.train_config(point, &tokens, splits.as_deref(), &train_dir)?;
     let wall_path = dir.join("wall.json");
     let before = match std::fs::read_to_string(&wall_path) {
         Ok(text) => {
@@ -176,10 +181,51 @@ fn train_point(
     Ok(row(plan, point, &report, wall_s))
 }
 
+/// The split lists of `point`'s data subset in `RUNS/data/<name>/`, written first (none for a
+/// point on the whole train split).
+fn prepare_data(
+    plan: &IsoFlopPlan,
+    point: &PlanPoint,
+    runs: &Path,
+) -> Result<Option<PathBuf>, SweepError> {
+    let Some(name) = &point.data else {
+        return Ok(None);
+    };
+    let subset = plan
+        .subset(name)
+        .expect("validated plans list every point's subset");
+    let dir = data_ladder::lists_dir(runs, name);
+    if dir.is_dir() {
+        return Ok(Some(dir));
+    }
+    let clips = Corpus::open(&plan.corpus)
+        .and_then(|c| c.clip_metadata())
+        .map_err(|e| SweepError::invalid(&plan.corpus, e))?;
+    data_ladder::write_lists(runs, &clips, subset).map(Some)
+}
+
+/// Cross-entropy and L_u of `loss` on its clips of `origin` (NaN when it has one origin).
+fn origin_losses(loss: Option<&SplitLoss>, origin: Origin) -> (f64, f64) {
+    loss.and_then(|l| l.by_origin.get(&origin))
+        .map_or((f64::NAN, f64::NAN), |l| {
+            (l.cross_entropy, l.normalized_loss)
+        })
+}
+
 /// The results row of a finished point.
 fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64) -> RunRow {
     let e = &report.eval;
     let vocab = plan.vocabulary(point.codebook).expect("validated plan");
+    let subset = point.data.as_deref().and_then(|n| plan.subset(n));
+    let best = e.best.as_ref().map(|b| &b.test);
+    let (real, synth) = (
+        origin_losses(Some(&e.test), Origin::Real),
+        origin_losses(Some(&e.test), Origin::Synth),
+    );
+    let (best_real, best_synth) = (
+        origin_losses(best, Origin::Real),
+        origin_losses(best, Origin::Synth),
+    );
     RunRow {
         run_id: point.run_id.clone(),
         budget: point.budget,
@@ -216,6 +262,20 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
         best_step: e.best.as_ref().map_or(0, |b| b.step),
         best_test_loss: e.best.as_ref().map_or(f64::NAN, |b| b.test.cross_entropy),
         best_norm_test_loss: e.best.as_ref().map_or(f64::NAN, |b| b.test.normalized_loss),
+        data: point.data.clone().unwrap_or_default(),
+        data_source: subset.map_or(DataSource::All, |s| s.source).to_string(),
+        data_fraction: subset.map_or(1.0, |s| s.fraction),
+        unique_tokens: point.unique_tokens(plan),
+        hours: subset.map_or(f64::NAN, |s| s.hours),
+        synth_share: subset.map_or(f64::NAN, |s| s.synth_hours / s.hours),
+        real_test_loss: real.0,
+        real_norm_test_loss: real.1,
+        synth_test_loss: synth.0,
+        synth_norm_test_loss: synth.1,
+        best_real_test_loss: best_real.0,
+        best_real_norm_test_loss: best_real.1,
+        best_synth_test_loss: best_synth.0,
+        best_synth_norm_test_loss: best_synth.1,
     }
 }
 

@@ -12,6 +12,7 @@ use nn::ModelError;
 use text::embed::{clip_captions, CaptionEmbeddings};
 
 use ingest::corpus::split::SplitAssignment;
+use ingest::corpus::{Corpus, Origin};
 use motionscale_core::rng::SplitMix64;
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
@@ -29,6 +30,8 @@ pub struct Example {
     pub tokens: Vec<u32>,
     /// Whether the clip ends here (EOS is a target).
     pub ends: bool,
+    /// Captured or synthetic motion (test losses are also reported per origin).
+    pub origin: Origin,
 }
 
 impl Example {
@@ -64,6 +67,18 @@ pub struct LmData {
     pub splits: BTreeMap<String, Vec<Example>>,
 }
 
+/// The origin of every clip of the corpus in `corpus_dir`, by motion id.
+fn clip_origins(corpus_dir: &Path) -> Result<HashMap<String, Origin>, ModelError> {
+    let invalid = |e: ingest::IngestError| ModelError::invalid(corpus_dir, e);
+    let corpus = Corpus::open(corpus_dir).map_err(invalid)?;
+    Ok(corpus
+        .clip_metadata()
+        .map_err(invalid)?
+        .into_iter()
+        .map(|m| (m.motion_id, Origin::of(&m.source)))
+        .collect())
+}
+
 /// A 64-bit value mixing `a` and `b` (for per-epoch and per-item generators).
 fn mix(a: u64, b: u64) -> u64 {
     SplitMix64(a ^ b.wrapping_mul(0x9E37_79B9_7F4A_7C15)).next_u64()
@@ -84,6 +99,7 @@ impl LmData {
         let encoder = text::resolve_encoder(corpus_dir, encoder)?;
         let embeddings = CaptionEmbeddings::open(corpus_dir, &encoder)?;
         let captions = clip_captions(corpus_dir)?;
+        let origins = clip_origins(corpus_dir)?;
         let wanted = set
             .clips
             .iter()
@@ -101,6 +117,13 @@ impl LmData {
             let clip_captions = captions.get(&clip.motion_id).ok_or_else(|| {
                 ModelError::Corpus(format!(
                     "{}: clip {} of the token set is not in the corpus",
+                    corpus_dir.display(),
+                    clip.motion_id
+                ))
+            })?;
+            let origin = *origins.get(&clip.motion_id).ok_or_else(|| {
+                ModelError::Corpus(format!(
+                    "{}: clip {} has captions but no metadata row",
                     corpus_dir.display(),
                     clip.motion_id
                 ))
@@ -131,6 +154,7 @@ impl LmData {
                     captions: ids,
                     tokens: clip.tokens[..keep].to_vec(),
                     ends: keep == clip.tokens.len(),
+                    origin,
                 });
         }
         Ok(Self {

@@ -10,9 +10,11 @@
 
 use crate::lm_data::LmData;
 use crate::MotionLm;
+use ingest::corpus::Origin;
 use nn::lm_kernels::IGNORE;
 use nn::ModelError;
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 
 /// Losses of a model on one split.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -33,17 +35,10 @@ pub struct SplitLoss {
     pub unigram_cross_entropy: f64,
     /// Entropy of the smoothed train unigram distribution.
     pub unigram_entropy: f64,
-}
-
-/// L_u of targets with model log-probabilities `log_probs` under the unigram `unigram`:
-/// `−mean(log p − log p_u(target))`.
-pub fn normalized_loss(log_probs: &[f64], targets: &[u32], unigram: &[f64]) -> f64 {
-    let sum: f64 = log_probs
-        .iter()
-        .zip(targets)
-        .map(|(lp, &t)| lp - unigram[t as usize].ln())
-        .sum();
-    -sum / targets.len().max(1) as f64
+    /// The same losses over the split's clips of each origin, when it has both (their
+    /// code-target-weighted means are the split's).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub by_origin: BTreeMap<Origin, SplitLoss>,
 }
 
 /// Entropy of a distribution (nats).
@@ -54,8 +49,56 @@ pub fn entropy(p: &[f64]) -> f64 {
         .sum::<f64>()
 }
 
+/// Running sums of one group of evaluated clips (the split, or its clips of one origin).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct LossSums {
+    clips: u64,
+    /// Σ log p over the code targets.
+    code_log_prob: f64,
+    /// Σ log p_u over the same targets.
+    code_unigram_log_prob: f64,
+    /// Σ (log p − log p_u) over the same targets (L_u summed in target order).
+    code_excess: f64,
+    code_targets: u64,
+    /// Σ −log p over every target, EOS included.
+    nll: f64,
+    targets: u64,
+}
+
+impl LossSums {
+    /// Add one target of log-probability `log_prob`; `unigram` is p_u of a code target.
+    fn add(&mut self, log_prob: f64, unigram: Option<f64>) {
+        self.nll -= log_prob;
+        self.targets += 1;
+        if let Some(p) = unigram {
+            self.code_log_prob += log_prob;
+            self.code_unigram_log_prob += p.ln();
+            self.code_excess += log_prob - p.ln();
+            self.code_targets += 1;
+        }
+    }
+
+    /// The losses of these sums (means over the code targets).
+    fn finish(&self, split: &str, unigram_entropy: f64) -> SplitLoss {
+        let t = self.code_targets.max(1) as f64;
+        let (cross_entropy, unigram_cross_entropy) =
+            (-self.code_log_prob / t, -self.code_unigram_log_prob / t);
+        SplitLoss {
+            split: split.to_string(),
+            clips: self.clips,
+            code_targets: self.code_targets,
+            cross_entropy,
+            cross_entropy_with_eos: self.nll / self.targets.max(1) as f64,
+            normalized_loss: -self.code_excess / t,
+            unigram_cross_entropy,
+            unigram_entropy,
+            by_origin: BTreeMap::new(),
+        }
+    }
+}
+
 /// Losses of `lm` on every clip of `split` (first captions), `batch` clips per pass (one
-/// when every caption has its own model).
+/// when every caption has its own model); with clips of both origins, also per origin.
 pub fn evaluate(
     lm: &dyn MotionLm,
     data: &LmData,
@@ -69,8 +112,9 @@ pub fn evaluate(
         )));
     }
     let codebook = data.codebook_size() as u32;
-    let (mut code_lp, mut code_targets, mut all_nll, mut all) =
-        (Vec::new(), Vec::new(), 0f64, 0u64);
+    let unigram = data.unigram.smoothed_probabilities("train");
+    // The split's sums in clip order (as before origins were told apart), and per origin.
+    let (mut mix, mut by_origin) = (LossSums::default(), BTreeMap::<Origin, LossSums>::new());
     let batch = if lm.per_caption() { 1 } else { batch.max(1) };
     for chunk in items.chunks(batch) {
         let b = data.batch(lm.config(), chunk);
@@ -78,41 +122,48 @@ pub fn evaluate(
             .for_caption(data.text_of(&chunk[0]))
             .and_then(|model| model.target_log_probs(&b))
             .map_err(ModelError::inference)?;
-        for (&t, &l) in b.targets.iter().zip(&lp) {
-            if t == IGNORE {
-                continue;
-            }
-            all_nll -= f64::from(l);
-            all += 1;
-            if t < codebook {
-                code_lp.push(f64::from(l));
-                code_targets.push(t);
+        let mut start = 0;
+        for (item, &n) in chunk.iter().zip(&b.layout.motion_lens) {
+            let slots = start..start + n;
+            start += n;
+            let sums = by_origin.entry(item.0.origin).or_default();
+            sums.clips += 1;
+            mix.clips += 1;
+            for (&t, &l) in b.targets[slots.clone()].iter().zip(&lp[slots]) {
+                if t != IGNORE {
+                    let code = (t < codebook).then(|| unigram[t as usize]);
+                    sums.add(f64::from(l), code);
+                    mix.add(f64::from(l), code);
+                }
             }
         }
     }
-    let unigram = data.unigram.smoothed_probabilities("train");
-    let t = code_targets.len().max(1) as f64;
-    let cross_entropy = -code_lp.iter().sum::<f64>() / t;
-    let unigram_cross_entropy = -code_targets
-        .iter()
-        .map(|&c| unigram[c as usize].ln())
-        .sum::<f64>()
-        / t;
-    Ok(SplitLoss {
-        split: split.to_string(),
-        clips: items.len() as u64,
-        code_targets: code_targets.len() as u64,
-        cross_entropy,
-        cross_entropy_with_eos: all_nll / all.max(1) as f64,
-        normalized_loss: normalized_loss(&code_lp, &code_targets, &unigram),
-        unigram_cross_entropy,
-        unigram_entropy: entropy(&unigram),
-    })
+    let unigram_entropy = entropy(&unigram);
+    let mut loss = mix.finish(split, unigram_entropy);
+    if by_origin.len() > 1 {
+        loss.by_origin = by_origin
+            .iter()
+            .map(|(origin, s)| (*origin, s.finish(split, unigram_entropy)))
+            .collect();
+    }
+    Ok(loss)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The sums of code targets `targets` with model log-probabilities `log_probs`.
+    fn sums(log_probs: &[f64], targets: &[u32], unigram: &[f64]) -> LossSums {
+        let mut s = LossSums {
+            clips: 1,
+            ..LossSums::default()
+        };
+        for (&lp, &t) in log_probs.iter().zip(targets) {
+            s.add(lp, Some(unigram[t as usize]));
+        }
+        s
+    }
 
     #[test]
     fn normalized_loss_of_a_toy_distribution_by_hand() {
@@ -128,15 +179,47 @@ mod tests {
         )
         .unwrap()
         .smoothed_probabilities("train");
-        let lu = normalized_loss(&[0.6f64.ln(), 0.2f64.ln()], &[0, 2], &unigram);
+        let loss = sums(&[0.6f64.ln(), 0.2f64.ln()], &[0, 2], &unigram).finish("test", 0.0);
+        let lu = loss.normalized_loss;
         assert!((lu + 1.2f64.ln()).abs() < 1e-12, "{lu}");
         assert!((lu - (-0.182_321_556_793_954_6)).abs() < 1e-12);
+        assert!((loss.cross_entropy - loss.unigram_cross_entropy - lu).abs() < 1e-15);
         // A model that predicts the unigram itself scores exactly 0.
         let lp: Vec<f64> = [0u32, 2, 1]
             .iter()
             .map(|&t| unigram[t as usize].ln())
             .collect();
-        assert!(normalized_loss(&lp, &[0, 2, 1], &unigram).abs() < 1e-15);
+        let own = sums(&lp, &[0, 2, 1], &unigram).finish("test", 0.0);
+        assert!(own.normalized_loss.abs() < 1e-15);
         assert!((entropy(&[0.5, 0.5]) - 2f64.ln()).abs() < 1e-15);
+    }
+
+    #[test]
+    fn per_origin_losses_weighted_by_their_targets_give_the_mix() {
+        let unigram = [0.5, 0.3, 0.2];
+        let real = (vec![-0.2, -1.5, -0.9, -2.2, -0.1], vec![0u32, 1, 2, 0, 1]);
+        let synth = (vec![-3.0, -0.05], vec![2u32, 2]);
+        let mut mix = LossSums::default();
+        for (lp, t) in [&real, &synth] {
+            for (&l, &t) in lp.iter().zip(t) {
+                mix.add(l, Some(unigram[t as usize]));
+            }
+        }
+        // An EOS target (no unigram) counts in the EOS-inclusive loss only.
+        mix.add(-0.7, None);
+        let (r, s) = (
+            sums(&real.0, &real.1, &unigram).finish("test", 1.0),
+            sums(&synth.0, &synth.1, &unigram).finish("test", 1.0),
+        );
+        let m = mix.finish("test", 1.0);
+        assert_eq!(m.code_targets, r.code_targets + s.code_targets);
+        let weighted = |f: fn(&SplitLoss) -> f64| {
+            (f(&r) * r.code_targets as f64 + f(&s) * s.code_targets as f64)
+                / (r.code_targets + s.code_targets) as f64
+        };
+        assert!((weighted(|l| l.cross_entropy) - m.cross_entropy).abs() < 1e-12);
+        assert!((weighted(|l| l.normalized_loss) - m.normalized_loss).abs() < 1e-12);
+        assert!((weighted(|l| l.unigram_cross_entropy) - m.unigram_cross_entropy).abs() < 1e-12);
+        assert!((m.cross_entropy_with_eos - (m.cross_entropy * 7.0 + 0.7) / 8.0).abs() < 1e-12);
     }
 }

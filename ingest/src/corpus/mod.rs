@@ -16,6 +16,36 @@ pub use reader::Corpus;
 
 pub use crate::source::CaptionSpan;
 use crate::source::Labels;
+use serde::{Deserialize, Serialize};
+
+/// Where a clip's motion comes from: captured (every source kind but `synth`) or generated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Origin {
+    /// Motion capture (`bvh`, `joints`, `amass`, `hml3d`).
+    Real,
+    /// Procedural motion (`synth`).
+    Synth,
+}
+
+impl Origin {
+    /// The origin of a clip of source kind `source` (the `source` column).
+    pub fn of(source: &str) -> Self {
+        if source == crate::pipeline::SourceKind::Synth.name() {
+            Self::Synth
+        } else {
+            Self::Real
+        }
+    }
+
+    /// `real` or `synth`, as tables and file names spell it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Real => "real",
+            Self::Synth => "synth",
+        }
+    }
+}
 
 /// One clip of the corpus: a row of a shard.
 #[derive(Debug, Clone, PartialEq)]
