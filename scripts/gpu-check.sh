@@ -76,7 +76,7 @@ share() { # $1 = processes
 share 1; share 8
 
 echo "== 5. sweep over the GPU"
-M sweep plan --corpus corpus --token-sets 256=tokens --vocabs 256 --budgets 3e11,1e12 \
+M sweep plan --corpus corpus --token-sets 256=tokens --vocabs 256 --budgets 3e10,1e11 \
   --models 32x1,64x1,64x2 --batch 16 --out plan.toml > /dev/null || FAIL=1
 M sweep run --plan plan.toml --out sweep --devices $D --jobs-per-device 3 || FAIL=1
 cp sweep/results.csv "$OUT/sweep-results.csv" 2>/dev/null
