@@ -32,7 +32,7 @@ source "$REPO/scripts/cuda-env.sh"
 cuda_env || return $?
 nvidia-smi -L; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$OUT/gpu.txt"
 python3 -c 'import torch; print("torch", torch.__version__, "cuda", torch.version.cuda)' | tee "$OUT/torch.txt"
-echo "binary: $("$BIN" --version) $(git -C "$REPO" describe --always --dirty 2>/dev/null)" | tee "$OUT/binary.txt"
+echo "binary: $("$BIN" --version)" | tee "$OUT/binary.txt"
 M() { echo "+ motionscale $*" >&2; "$BIN" "$@"; }
 D=cuda:0
 FAIL=0

@@ -22,10 +22,20 @@ use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+/// `--version`: the package version and the source revision the binary was built from (the
+/// one its result rows record).
+fn version() -> &'static str {
+    static VERSION: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    VERSION.get_or_init(|| {
+        let revision = experiments::run::git_revision();
+        format!("{} ({revision})", env!("CARGO_PKG_VERSION"))
+    })
+}
+
 #[derive(Parser)]
 #[command(
     name = "motionscale",
-    version,
+    version = version(),
     about = "Motion corpora, motion tokenizers and the scaling laws of text-to-motion transformers",
     long_about = "motionscale turns heterogeneous motion capture into a HumanML3D-conformant \
                   text-motion corpus (Parquet shards + manifest + mean/std + rejects), and \
