@@ -3,10 +3,12 @@
 //! fused `rms_norm`, `softmax_last_dim` or `rope` (they have no backward: gradients silently
 //! stop there, see `../shared/docs/pitfalls.md`).
 //!
-//! The packed rows of a [`SeqLayout`] (motion rows, then text rows, no padding) go through the
-//! norms, projections and FFN as they are; attention scatters them into a dense
-//! (sequence, slot) grid with a zero row for padding slots, masks with the layout's rule, and
-//! gathers the real rows back.
+//! The model runs on the dense (sequence, slot) grid of a [`SeqLayout`], padding slots
+//! included (masked as keys, their own outputs dropped): a row gather per block would cost a
+//! scatter-add in the backward, which candle's GPU kernel runs one index at a time. Motion
+//! tokens enter as a one-hot product with the embedding (its gradient is one matrix product,
+//! where `embedding` would scatter-add by id), text rows by a gather of the (constant)
+//! caption embeddings, and the loss is a masked mean over the grid's target rows.
 //!
 //! Precision: the residual stream, norms, softmax and loss are f32; with bf16 the matrix
 //! products take bf16 operands (weights cast from their f32 masters on every call, so the
@@ -190,42 +192,50 @@ impl Pass<'_> {
         linear(&text, &self.w.proj_w)?.broadcast_add(&self.w.proj_b)
     }
 
-    /// Embedding rows of `tokens`.
+    /// Embedding rows of `tokens` (decoding: no backward).
     fn embed(&self, tokens: &[u32], device: &Device) -> Result<Tensor> {
         self.w.tok_emb.embedding(&Tensor::new(tokens, device)?)
     }
 
-    /// The last block's output of every real row of `batch` (motion rows, then text rows).
-    fn hidden(&self, batch: &LmBatch) -> Result<Tensor> {
+    /// The block inputs of the grid: one-hot motion tokens times the embedding, plus the
+    /// projected captions on real text slots; zero on padding slots.
+    fn inputs(&self, batch: &LmBatch, grid: &Grid, device: &Device) -> Result<Tensor> {
+        let vocab = self.w.tok_emb.dim(0)? as u32;
+        let one_hot = grid
+            .tokens
+            .unsqueeze(1)?
+            .broadcast_eq(&Tensor::arange(0, vocab, device)?.unsqueeze(0)?)?
+            .to_dtype(DType::F32)?;
+        let h = one_hot.matmul(&self.w.tok_emb)?;
+        if batch.text.is_empty() {
+            return Ok(h);
+        }
+        let e = self.model.config.text_dim;
+        let text = Tensor::cat(
+            &[
+                Tensor::from_slice(&batch.text, (batch.text.len() / e, e), device)?,
+                Tensor::zeros((1, e), DType::F32, device)?,
+            ],
+            0,
+        )?
+        .index_select(&grid.text_rows, 0)?;
+        let projected = linear(&text, &self.w.proj_w)?.broadcast_add(&self.w.proj_b)?;
+        h + projected.broadcast_mul(&grid.text_mask)?
+    }
+
+    /// The last block's output of every slot of `batch`'s grid, and the grid.
+    fn hidden(&self, batch: &LmBatch) -> Result<(Tensor, Grid)> {
         let (l, device) = (&batch.layout, self.w.head.device());
-        let mut parts = vec![self.embed(&batch.inputs, device)?];
-        if !batch.text.is_empty() {
-            parts.push(self.project_text(&batch.text, device)?);
-        }
-        let mut h = Tensor::cat(&parts, 0)?;
-        let slots = l.slots();
-        let at = AttentionInputs::new(self.model, l, (0, slots), slots, device)?;
-        // Dense (sequence, slot) order of the rows, padding slots reading an extra zero row.
-        let order: Vec<u32> = (0..l.batch)
-            .flat_map(|b| (0..slots).map(move |s| l.row(b, s).unwrap_or(l.rows()) as u32))
-            .collect();
-        let mut back = vec![0u32; l.rows()];
-        for (i, &r) in order.iter().enumerate() {
-            if (r as usize) < l.rows() {
-                back[r as usize] = i as u32;
-            }
-        }
-        let (order, back) = (Tensor::new(order, device)?, Tensor::new(back, device)?);
-        let d3 = 3 * self.model.config.d_model;
+        let grid = Grid::new(batch, device)?;
+        let mut h = self.inputs(batch, &grid, device)?;
+        let at = AttentionInputs::new(self.model, l, (0, l.slots()), l.slots(), device)?;
         for i in 0..self.w.blocks.len() {
             h = self.block(i, h, |qkv| {
-                let zero = Tensor::zeros((1, d3), DType::F32, device)?;
-                let dense = Tensor::cat(&[qkv, &zero], 0)?.index_select(&order, 0)?;
-                let [q, k, v] = self.heads(&dense, &at, l.batch)?;
-                self.attend(&q, &k, &v, &at.mask)?.index_select(&back, 0)
+                let [q, k, v] = self.heads(qkv, &at, l.batch)?;
+                self.attend(&q, &k, &v, &at.mask)
             })?;
         }
-        Ok(h)
+        Ok((h, grid))
     }
 
     /// `RMSNorm(h; norm) · headᵀ` (f32 logits).
@@ -233,10 +243,87 @@ impl Pass<'_> {
         linear(&rms_norm_slow(h, &self.w.norm, self.eps())?, &self.w.head)
     }
 
-    /// Logits of every real motion row.
+    /// Logits of every real motion row, in the layout's row order.
     fn motion_logits(&self, batch: &LmBatch) -> Result<Tensor> {
-        let h = self.hidden(batch)?;
-        self.head(&h.narrow(0, 0, batch.inputs.len())?)
+        let (h, grid) = self.hidden(batch)?;
+        self.head(&h.index_select(&grid.all_motion_rows()?, 0)?)
+    }
+}
+
+/// Where a batch's real slots sit in its dense (sequence, slot) grid.
+struct Grid {
+    /// Per grid row: its motion input token, or the vocabulary size (no one-hot column) on a
+    /// text or padding slot.
+    tokens: Tensor,
+    /// Per grid row: the caption row it reads, or the zero row after them.
+    text_rows: Tensor,
+    /// Per grid row: 1 on a real text slot, else 0 (`rows × 1`, f32).
+    text_mask: Tensor,
+    /// The grid row of each motion row of the layout.
+    motion_grid_rows: Vec<u32>,
+    device: Device,
+}
+
+impl Grid {
+    fn new(batch: &LmBatch, device: &Device) -> Result<Self> {
+        let l = &batch.layout;
+        let (slots, motion) = (l.slots(), l.motion_rows());
+        let vocab_end = u32::MAX;
+        let (mut tokens, mut text_rows, mut text_mask) = (Vec::new(), Vec::new(), Vec::new());
+        let mut motion_grid_rows = vec![0u32; motion];
+        for b in 0..l.batch {
+            for s in 0..slots {
+                let (mut token, mut text, mut mask) = (vocab_end, (l.rows() - motion) as u32, 0f32);
+                match l.row(b, s) {
+                    Some(r) if r < motion => {
+                        token = batch.inputs[r];
+                        motion_grid_rows[r] = tokens.len() as u32;
+                    }
+                    Some(r) => (text, mask) = ((r - motion) as u32, 1.0),
+                    None => {}
+                }
+                tokens.push(token);
+                text_rows.push(text);
+                text_mask.push(mask);
+            }
+        }
+        let rows = tokens.len();
+        Ok(Self {
+            tokens: Tensor::new(tokens, device)?,
+            text_rows: Tensor::new(text_rows, device)?,
+            text_mask: Tensor::from_vec(text_mask, (rows, 1), device)?,
+            motion_grid_rows,
+            device: device.clone(),
+        })
+    }
+
+    /// The grid rows of the layout's motion rows `rows`.
+    fn motion_rows(&self, rows: &[u32]) -> Result<Tensor> {
+        let picked: Vec<u32> = rows
+            .iter()
+            .map(|&r| self.motion_grid_rows[r as usize])
+            .collect();
+        Tensor::new(picked, &self.device)
+    }
+
+    /// The grid rows of every motion row of the layout, in its order.
+    fn all_motion_rows(&self) -> Result<Tensor> {
+        Tensor::new(self.motion_grid_rows.as_slice(), &self.device)
+    }
+
+    /// Per grid row, the target of a motion row with one (else 0) and its weight (1, else
+    /// 0), from the layout's motion `rows` and their `targets`.
+    fn targets(&self, rows: &[u32], targets: &[u32]) -> Result<(Tensor, Tensor)> {
+        let n = self.tokens.dim(0)?;
+        let (mut dense, mut weight) = (vec![0u32; n], vec![0f32; n]);
+        for (&r, &t) in rows.iter().zip(targets) {
+            let g = self.motion_grid_rows[r as usize] as usize;
+            (dense[g], weight[g]) = (t, 1.0);
+        }
+        Ok((
+            Tensor::new(dense, &self.device)?,
+            Tensor::new(weight, &self.device)?,
+        ))
     }
 }
 
@@ -282,8 +369,8 @@ pub(super) fn target_log_probs(model: &PrefixLm, batch: &LmBatch) -> Result<Vec<
         return Ok(out);
     }
     let device = model.device();
-    let h = p.hidden(batch)?;
-    let picked = h.index_select(&Tensor::new(rows.as_slice(), device)?, 0)?;
+    let (h, grid) = p.hidden(batch)?;
+    let picked = h.index_select(&grid.motion_rows(&rows)?, 0)?;
     let log_probs = candle_nn::ops::log_softmax(&p.head(&picked)?, D::Minus1)?
         .gather(&Tensor::new(targets, device)?.unsqueeze(1)?, 1)?
         .flatten_all()?
@@ -315,16 +402,16 @@ pub(super) fn loss_and_grads(
     let p = pass_over(model, &leaves)?;
     let device = model.device();
     let (rows, targets) = target_rows(batch);
-    let hidden = p.hidden(batch)?;
-    let motion = hidden.narrow(0, 0, batch.inputs.len())?;
+    let (hidden, grid) = p.hidden(batch)?;
     let (loss, objective) = match extra {
         None => {
-            let picked = motion.index_select(&Tensor::new(rows.as_slice(), device)?, 0)?;
-            let ce = cross_entropy(&p.head(&picked)?, &targets, device)?;
+            // Over the whole grid, so that the backward has no row scatter.
+            let (dense, weight) = grid.targets(&rows, &targets)?;
+            let ce = masked_cross_entropy(&p.head(&hidden)?, &dense, &weight, targets.len())?;
             (ce.to_scalar::<f32>()?, ce)
         }
         Some(extra) => {
-            let logits = p.head(&motion)?;
+            let logits = p.head(&hidden.index_select(&grid.all_motion_rows()?, 0)?)?;
             let picked = logits.index_select(&Tensor::new(rows.as_slice(), device)?, 0)?;
             let ce = cross_entropy(&picked, &targets, device)?;
             let mut loss = ce.to_scalar::<f32>()?;
@@ -348,6 +435,25 @@ pub(super) fn loss_and_grads(
         }
     }
     Ok((loss, store))
+}
+
+/// Mean cross-entropy of the f32 `logits` rows of weight 1 against their `targets` (`n` of
+/// them; 0 without any).
+fn masked_cross_entropy(
+    logits: &Tensor,
+    targets: &Tensor,
+    weight: &Tensor,
+    n: usize,
+) -> Result<Tensor> {
+    if n == 0 {
+        return logits.sum_all()? * 0.0;
+    }
+    let log_probs = candle_nn::ops::log_softmax(logits, D::Minus1)?
+        .gather(&targets.unsqueeze(1)?, 1)?
+        .squeeze(1)?;
+    (log_probs * weight)?
+        .sum_all()?
+        .affine(-1.0 / n as f64, 0.0)
 }
 
 /// Mean cross-entropy of f32 `logits` rows against `targets` (0 without targets).
