@@ -18,7 +18,8 @@
 #
 # SHARED: a copy of ../shared/bench (the PyTorch references) where the device machine can read
 # it (`../shared` does not travel there: copy it into a git-excluded folder and carry it).
-# Env: SKIP_BENCH=1 skips step 3 (the slowest, torch.compile included). Everything lands in
+# Env: SKIP_BENCH=1 skips step 3 (the slowest, torch.compile included), SKIP_TOKENIZER_BENCH=1
+# its tokenizer part, SKIP_SWEEP=1 step 5. Everything lands in
 # $OUT (gpu-check.log, gpu-check.md, the JSON of every step).
 set -uo pipefail
 OUT=${OUT:-$PWD/gpu-check-out}
@@ -60,8 +61,10 @@ echo "== 3. benches beside PyTorch"
 if [ -z "${SKIP_BENCH-}" ]; then
   (cd "$REPO" && M bench train --device $D --reference --json "$OUT/bench-train.json" \
     --gpu-reference-script "$SHARED/bench/gpu/pytorch_prefix_lm_gpu.py") || FAIL=1
-  (cd "$REPO" && M bench tokenizer --device $D --reference --json "$OUT/bench-tokenizer.json" \
-    --bench-dir "$SHARED/bench") || FAIL=1
+  if [ -z "${SKIP_TOKENIZER_BENCH-}" ]; then
+    (cd "$REPO" && M bench tokenizer --device $D --reference --json "$OUT/bench-tokenizer.json" \
+      --bench-dir "$SHARED/bench") || FAIL=1
+  fi
 fi
 
 echo "== 4. sharing one GPU"
@@ -76,10 +79,12 @@ share() { # $1 = processes
 share 1; share 8
 
 echo "== 5. sweep over the GPU"
+[ -n "${SKIP_SWEEP-}" ] || {
 M sweep plan --corpus corpus --token-sets 256=tokens --vocabs 256 --budgets 3e10,1e11 \
   --models 32x1,64x1,64x2 --batch 16 --out plan.toml > /dev/null || FAIL=1
 M sweep run --plan plan.toml --out sweep --devices $D --jobs-per-device 3 || FAIL=1
 cp sweep/results.csv "$OUT/sweep-results.csv" 2>/dev/null
+}
 
 python3 - "$OUT" <<'EOF' || FAIL=1
 import csv, glob, json, os, sys
@@ -127,7 +132,9 @@ share = {n: sum(json.load(open(f))["train"][0]["motion_tokens_per_s"] for f in g
 if share[1] and share[8]:
     row("8 runs d256/4L B32 sharing the GPU", f"{share[8]/share[1]:.1f}× one run",
         f"aggregate {share[8]:.0f} vs {share[1]:.0f} motion tok/s (PyTorch eager 8.5×, candle composed 1.7× in ../shared/bench/gpu)")
-if os.path.exists(f"{out}/sweep-results.csv"):
+if os.environ.get("SKIP_SWEEP"):
+    pass
+elif os.path.exists(f"{out}/sweep-results.csv"):
     res = list(csv.DictReader(open(f"{out}/sweep-results.csv")))
     check("sweep run --devices cuda:0", len(res) >= 6 and all(r["device"] == "cuda:0" for r in res),
           f"{len(res)} rows, devices {sorted({r['device'] for r in res})}")
