@@ -152,13 +152,12 @@ pub fn select(clips: &[ClipMeta], source: DataSource, fraction: f64, seed: u64) 
 /// The plan's record of the subset of `source`, `fraction` and `seed` of `clips`.
 pub fn describe(clips: &[ClipMeta], source: DataSource, fraction: f64, seed: u64) -> DataSubset {
     let chosen = select(clips, source, fraction, seed);
+    // A fold from +0 (an empty `sum` of floats is −0).
     let hours = |keep: fn(&ClipMeta) -> bool| {
         chosen
             .iter()
             .filter(|c| keep(c))
-            .map(|c| seconds(c))
-            .sum::<f64>()
-            / 3600.0
+            .fold(0.0, |h, c| h + seconds(c) / 3600.0)
     };
     DataSubset {
         name: subset_name(source, fraction),
@@ -333,6 +332,7 @@ mod tests {
         let clips = corpus();
         let s = describe(&clips, DataSource::Real, 0.5, 7);
         assert_eq!((s.name.as_str(), s.synth_hours), ("real-1_2", 0.0));
+        assert!(s.synth_hours.is_sign_positive(), "+0, not −0");
         let all = describe(&clips, DataSource::All, 1.0, 7);
         assert_eq!(all.name, "all-1");
         let synth: f64 = clips
