@@ -69,6 +69,10 @@ pub struct FitArgs {
     /// Epochs-over-unique-tokens column, for --repeated-data [default: epochs].
     #[arg(long, value_name = "COL")]
     pub epochs_col: Option<String>,
+    /// Synthetic share of each run's unique data, for --repeated-data's exchange rate (fitted
+    /// when the shares differ, e.g. a real-only and a mixed data ladder) [default: synth_share].
+    #[arg(long, value_name = "COL")]
+    pub synth_share_col: Option<String>,
     /// Fit without the runs of the budget group at C (FLOPs) and score the prediction on
     /// them: predicted vs trained N_opt and loss, inside or outside the 95% interval.
     #[arg(long, value_name = "C")]
@@ -80,7 +84,8 @@ pub struct FitArgs {
     pub vocab: Option<f64>,
     /// Also fit Muennighoff et al.'s data-constrained L(N, D') (effective data
     /// D' = U + U·R*·(1 − e^(−R/R*)), R = epochs − 1) with R* fitted, and compare it with the
-    /// plain fit by the error on each budget left out in turn.
+    /// plain fit by the error on each budget left out in turn. With a synthetic-share column
+    /// whose values differ, also the exchange rate ρ: the unique data counts as U·(1 − s + ρ·s).
     #[arg(long)]
     pub repeated_data: bool,
     /// Grouping tolerance in log10 C, used without a group column.
@@ -141,6 +146,7 @@ impl FitArgs {
                 width: col(&self.width_col, &d.width.name),
                 group: col(&self.group_col, &d.group.name),
                 epochs: col(&self.epochs_col, &d.epochs.name),
+                synth_share: col(&self.synth_share_col, &d.synth_share.name),
                 seed: col(&self.seed_col, &d.seed.name),
             },
             group_tol_dex: self.group_tol,

@@ -505,13 +505,17 @@ fn checks_of_the_law(f: &Fits) -> String {
     if let Some(r) = &f.repeated_data {
         let _ = write!(
             s,
-            "<h3>Data-constrained L(N, D')</h3><p>R* = {}, α = {}, β = {} ({} of {} runs repeat data, up to {:.1} epochs).{}</p>",
+            "<h3>Data-constrained L(N, D')</h3><p>R* = {}, α = {}, β = {} ({} of {} runs repeat data, up to {:.1} epochs).{}{}</p>",
             esc(&estimate_text(&r.r_star)),
             esc(&estimate_text(&r.law.alpha)),
             esc(&estimate_text(&r.law.beta)),
             r.repeated_runs,
             r.n_runs,
             r.max_epochs,
+            r.exchange.as_ref().map_or(String::new(), |rho| format!(
+                " A synthetic token is worth {} captured tokens.",
+                esc(&estimate_text(rho))
+            )),
             r.held_out.as_ref().map_or(String::new(), |h| format!(
                 " Leave-one-budget-out RMS log error: plain {}, data-constrained {}.",
                 sig(h.plain_rms),

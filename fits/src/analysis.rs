@@ -502,6 +502,55 @@ mod tests {
     }
 
     #[test]
+    fn data_constrained_fit_recovers_the_exchange_rate_of_synthetic_data() {
+        let law = Law {
+            e: 1.2,
+            a: 60.0,
+            b: 400.0,
+            alpha: 0.35,
+            beta: 0.3,
+        };
+        let (r_star, rho) = (6.0f64, 0.3f64);
+        // A captured-only ladder and a half-synthetic one, each at two corpus sizes.
+        let mut csv =
+            String::from("budget,n_nv,tokens,test_loss,norm_test_loss,epochs,synth_share\n");
+        for (unique, share) in [(5e6, 0.0), (2e7, 0.0), (1e7, 0.5), (4e7, 0.5)] {
+            for c in [1e13, 1e14, 1e15] {
+                for k in 0..5 {
+                    let n = 10f64.powf(4.0 + 0.5 * k as f64);
+                    let d = c / (6.0 * n);
+                    let kk = 1.0 - share + rho * share;
+                    let (ln_dp, _) = repeated::effective_data(d * kk, unique * kk, r_star.ln());
+                    let loss =
+                        law.e + law.a / n.powf(law.alpha) + law.b / ln_dp.exp().powf(law.beta);
+                    let _ = writeln!(csv, "{c},{n},{d},{loss},{loss},{},{share}", d / unique);
+                }
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("results.csv");
+        std::fs::write(&path, csv).unwrap();
+        let opts = FitOptions {
+            repeated_data: true,
+            ..quick()
+        };
+        let fits = fit_table(&Table::read(&path).unwrap(), &opts).unwrap();
+        let r = fits.repeated_data.as_ref().expect("fitted");
+        let exchange = r.exchange.as_ref().expect("two source mixes: ρ is fitted");
+        assert!((exchange.value / rho - 1.0).abs() < 0.05, "ρ {exchange:?}");
+        assert!(
+            (r.r_star.value / r_star - 1.0).abs() < 0.05,
+            "R* {:?}",
+            r.r_star
+        );
+        assert!(
+            (r.law.beta.value - law.beta).abs() < 0.01,
+            "{:?}",
+            r.law.beta
+        );
+    }
+
+    #[test]
     fn data_constrained_fit_recovers_r_star_and_wins_on_held_out_budgets() {
         let law = Law {
             e: 1.2,
@@ -529,6 +578,7 @@ mod tests {
         let fits = fit_table(&table(&dir, &rows), &opts).unwrap();
         let r = fits.repeated_data.as_ref().expect("fitted");
         assert!(r.max_epochs > 100.0 && r.repeated_runs > 10, "{r:?}");
+        assert_eq!(r.exchange, None, "one source: no exchange rate");
         assert!(
             (r.r_star.value / r_star - 1.0).abs() < 0.02,
             "R* {:?}",

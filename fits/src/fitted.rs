@@ -64,6 +64,9 @@ pub struct ColumnSpec {
     pub group: ColumnChoice,
     /// Epochs over the unique training tokens (default `epochs`; the data-constrained fit).
     pub epochs: ColumnChoice,
+    /// Synthetic share of the unique training data (default `synth_share`; the exchange rate
+    /// of the data-constrained fit).
+    pub synth_share: ColumnChoice,
     /// Training seed (default `seed`): rows differing only in it are averaged for the minima.
     pub seed: ColumnChoice,
 }
@@ -82,6 +85,7 @@ impl Default for ColumnSpec {
             width: d("d_model"),
             group: d("budget"),
             epochs: d("epochs"),
+            synth_share: d("synth_share"),
             seed: d("seed"),
         }
     }
@@ -390,6 +394,11 @@ pub struct RepeatedData {
     pub law: LawEstimates,
     /// R*.
     pub r_star: Estimate,
+    /// Effective captured tokens per synthetic token, ρ: the unique data counts as
+    /// U·(1 − s + ρ·s) for a synthetic share s (Hernandez et al. 2021's effective data
+    /// transferred, as a ratio). Fitted only when the runs' synthetic shares differ.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exchange: Option<Estimate>,
     /// Runs fitted.
     pub n_runs: usize,
     /// Runs that saw some token more than once (epochs > 1).

@@ -4,6 +4,11 @@
 //! R* (the repetitions after which extra epochs are worth 1/e of fresh data) is fitted with the
 //! other five parameters (Huber on log residuals, L-BFGS, bootstrap intervals), and both this
 //! fit and the plain one are scored on each budget left out in turn.
+//!
+//! With a second source, the exchange rate ρ (effective captured tokens per synthetic token)
+//! is fitted too: a run whose unique data is a share s synthetic counts U·k and D·k with
+//! k = 1 − s + ρ·s (each epoch passes over both sources; R is unchanged), so that
+//! ln D' gains ln k. It is identified only when the runs' synthetic shares differ.
 
 use crate::fitted::{FitOptions, Fits, HeldOutError, LawEstimates, RepeatedData};
 use crate::isoflop;
@@ -25,17 +30,44 @@ pub struct DataRuns {
     pub u: Vec<f64>,
     /// ln L.
     pub ln_l: Vec<f64>,
+    /// Synthetic share of the unique data, s (zeros: one source).
+    pub synth: Vec<f64>,
 }
 
 impl DataRuns {
-    /// From positive N, D, U and L.
+    /// From positive N, D, U and L, one source.
     pub fn new(n: &[f64], d: &[f64], u: &[f64], loss: &[f64]) -> Self {
         Self {
             ln_n: n.iter().map(|v| v.ln()).collect(),
             d: d.to_vec(),
             u: u.to_vec(),
             ln_l: loss.iter().map(|v| v.ln()).collect(),
+            synth: vec![0.0; n.len()],
         }
+    }
+
+    /// The same runs with synthetic shares `synth`.
+    pub fn with_synthetic_shares(self, synth: &[f64]) -> Self {
+        Self {
+            synth: synth.to_vec(),
+            ..self
+        }
+    }
+
+    /// Whether the shares differ enough (by 0.05) for ρ to be identified.
+    fn mixes_sources(&self) -> bool {
+        let (lo, hi) = self
+            .synth
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(lo, hi), &s| (lo.min(s), hi.max(s)));
+        hi - lo > 0.05
+    }
+
+    /// ln k and d(ln k)/d(ln ρ) of run `i` at ln ρ.
+    fn exchange(&self, i: usize, ln_rho: f64) -> (f64, f64) {
+        let (s, rho) = (self.synth[i], ln_rho.exp());
+        let k = 1.0 - s + rho * s;
+        (k.ln(), rho * s / k)
     }
 
     /// Number of runs.
@@ -55,14 +87,15 @@ impl DataRuns {
             d: pick(&self.d),
             u: pick(&self.u),
             ln_l: pick(&self.ln_l),
+            synth: pick(&self.synth),
         }
     }
 
-    /// Log-space residuals at θ = (a, b, e, α, β, ln R*), prediction − observation.
-    fn residuals(&self, t: &[f64; 6]) -> Vec<f64> {
+    /// Log-space residuals at θ = (a, b, e, α, β, ln R*, ln ρ), prediction − observation.
+    fn residuals(&self, t: &[f64; 7]) -> Vec<f64> {
         (0..self.len())
             .map(|i| {
-                let (ln_dp, _) = effective_data(self.d[i], self.u[i], t[5]);
+                let ln_dp = effective_data(self.d[i], self.u[i], t[5]).0 + self.exchange(i, t[6]).0;
                 let terms = [t[0] - t[3] * self.ln_n[i], t[1] - t[4] * ln_dp, t[2]];
                 lse3(terms).0 - self.ln_l[i]
             })
@@ -90,13 +123,17 @@ pub fn effective_data(d: f64, u: f64, ln_r_star: f64) -> (f64, f64) {
     (dp.ln(), d_dp / dp)
 }
 
-/// Σ Huber_δ of the log residuals at θ = (a, b, e, α, β, ln R*); writes the gradient.
-pub fn objective(runs: &DataRuns, delta: f64, theta: &[f64; 6], grad: &mut [f64; 6]) -> f64 {
-    *grad = [0.0; 6];
-    let [a, b, e, alpha, beta, r] = *theta;
+/// Σ Huber_δ of the log residuals at θ = (a, b, e, α, β, ln R*, ln ρ); writes the gradient
+/// (none for ln ρ when the runs have one source mix: it is not identified, and stays put).
+pub fn objective(runs: &DataRuns, delta: f64, theta: &[f64; 7], grad: &mut [f64; 7]) -> f64 {
+    *grad = [0.0; 7];
+    let [a, b, e, alpha, beta, r, ln_rho] = *theta;
+    let fit_rho = runs.mixes_sources();
     let mut total = 0.0;
     for i in 0..runs.len() {
         let (ln_dp, dln_dp) = effective_data(runs.d[i], runs.u[i], r);
+        let (ln_k, dln_k) = runs.exchange(i, ln_rho);
+        let ln_dp = ln_dp + ln_k;
         let (lse, w) = lse3([a - alpha * runs.ln_n[i], b - beta * ln_dp, e]);
         let (h, dh) = huber(lse - runs.ln_l[i], delta);
         total += h;
@@ -106,15 +143,18 @@ pub fn objective(runs: &DataRuns, delta: f64, theta: &[f64; 6], grad: &mut [f64;
         grad[3] -= dh * w[0] * runs.ln_n[i];
         grad[4] -= dh * w[1] * ln_dp;
         grad[5] -= dh * w[1] * beta * dln_dp;
+        if fit_rho {
+            grad[6] -= dh * w[1] * beta * dln_k;
+        }
     }
     total
 }
 
-/// Starts: the plain fit's optimum and the coarse grid, each with several R*.
-fn starts(plain: &[f64; 5]) -> Vec<[f64; 6]> {
-    let with_r = |t: &[f64; 5], rs: &[f64]| -> Vec<[f64; 6]> {
+/// Starts: the plain fit's optimum and the coarse grid, each with several R* (ρ = 1).
+fn starts(plain: &[f64; 5]) -> Vec<[f64; 7]> {
+    let with_r = |t: &[f64; 5], rs: &[f64]| -> Vec<[f64; 7]> {
         rs.iter()
-            .map(|r| [t[0], t[1], t[2], t[3], t[4], r.ln()])
+            .map(|r| [t[0], t[1], t[2], t[3], t[4], r.ln(), 0.0])
             .collect()
     };
     let mut out = with_r(plain, &[0.5, 1.0, 2.0, 5.0, 15.0, 50.0, 200.0]);
@@ -125,7 +165,7 @@ fn starts(plain: &[f64; 5]) -> Vec<[f64; 6]> {
 }
 
 /// The best end point of L-BFGS from every start (`None` if none is finite).
-fn best_of(runs: &DataRuns, opts: &FitOptions, starts: &[[f64; 6]]) -> Option<Minimum<6>> {
+fn best_of(runs: &DataRuns, opts: &FitOptions, starts: &[[f64; 7]]) -> Option<Minimum<7>> {
     let delta = opts.huber_delta;
     starts
         .par_iter()
@@ -154,10 +194,13 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
             "no run repeats data (at most {max_epochs:.2} epochs): R* cannot be fitted"
         ));
     }
-    let data = DataRuns::new(&runs.n, d, &u, &runs.param_loss.1);
+    let mut data = DataRuns::new(&runs.n, d, &u, &runs.param_loss.1);
+    if let Some(shares) = &runs.synth_share {
+        data = data.with_synthetic_shares(shares);
+    }
     let best = best_of(&data, opts, &starts(&plain.theta))
         .ok_or("the objective is not finite at any start")?;
-    let draws: Vec<[f64; 6]> = (0..opts.bootstrap)
+    let draws: Vec<[f64; 7]> = (0..opts.bootstrap)
         .into_par_iter()
         .filter_map(|i| {
             let mut rng = SplitMix64::stream(opts.seed, i as u64);
@@ -193,6 +236,7 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
             Some(_) => Estimate::exact(value[5]),
             None => est(5),
         },
+        exchange: data.mixes_sources().then(|| est(6)),
         n_runs: data.len(),
         repeated_runs,
         max_epochs,
@@ -204,9 +248,17 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
     })
 }
 
-/// θ → (E, A, B, α, β, R*).
-fn natural(t: &[f64; 6]) -> [f64; 6] {
-    [t[2].exp(), t[0].exp(), t[1].exp(), t[3], t[4], t[5].exp()]
+/// θ → (E, A, B, α, β, R*, ρ).
+fn natural(t: &[f64; 7]) -> [f64; 7] {
+    [
+        t[2].exp(),
+        t[0].exp(),
+        t[1].exp(),
+        t[3],
+        t[4],
+        t[5].exp(),
+        t[6].exp(),
+    ]
 }
 
 /// Leave each budget out, refit both forms on the rest (from the full-data optima and the
@@ -216,7 +268,7 @@ fn held_out(
     data: &DataRuns,
     opts: &FitOptions,
     plain: &[f64; 5],
-    repeated: &[f64; 6],
+    repeated: &[f64; 7],
 ) -> Option<HeldOutError> {
     let groups = isoflop::group_rows(&runs.c, runs.group.as_deref(), opts.group_tol_dex);
     if groups.len() < 3 {
@@ -286,20 +338,21 @@ mod tests {
             &[2e7, 1e7, 1e7, 1e7],
             &[2.1, 1.9, 2.0, 1.8],
         );
-        let theta = [6.0, 5.5, 0.4, 0.33, 0.27, 1.5];
+        let runs = runs.with_synthetic_shares(&[0.0, 0.5, 0.4, 1.0]);
+        let theta = [6.0, 5.5, 0.4, 0.33, 0.27, 1.5, -0.7];
         // Huber with a huge δ is r²/2: the objective and the residuals agree.
         let half_sq: f64 = runs.residuals(&theta).iter().map(|r| 0.5 * r * r).sum();
-        let mut g = [0.0; 6];
+        let mut g = [0.0; 7];
         assert!((objective(&runs, f64::MAX, &theta, &mut g) - half_sq).abs() < 1e-12);
         for delta in [1e-3, 10.0] {
-            let mut g = [0.0; 6];
+            let mut g = [0.0; 7];
             objective(&runs, delta, &theta, &mut g);
-            for k in 0..6 {
+            for k in 0..7 {
                 let h = 1e-6;
                 let (mut tp, mut tm) = (theta, theta);
                 tp[k] += h;
                 tm[k] -= h;
-                let mut s = [0.0; 6];
+                let mut s = [0.0; 7];
                 let fd = (objective(&runs, delta, &tp, &mut s)
                     - objective(&runs, delta, &tm, &mut s))
                     / (2.0 * h);

@@ -93,6 +93,7 @@ mod tests {
             width: None,
             group: None,
             epochs: None,
+            synth_share: None,
             seed: Some(vec![0.0, 1.0, 2.0, 0.0]),
             columns: BTreeMap::new(),
             notes: Vec::new(),

@@ -428,6 +428,13 @@ fn extras(f: &Fits, s: &mut String) {
             r.n_runs,
             r.max_epochs
         );
+        if let Some(rho) = &r.exchange {
+            let _ = writeln!(
+                s,
+                "  exchange rate: a synthetic token is worth {} captured tokens",
+                estimate_text(rho)
+            );
+        }
         if let Some(note) = &r.note {
             let _ = writeln!(s, "  note: {note}");
         }

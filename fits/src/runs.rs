@@ -30,6 +30,8 @@ pub struct Runs {
     pub group: Option<Vec<f64>>,
     /// Epochs over the unique training tokens (the data-constrained fit's input).
     pub epochs: Option<Vec<f64>>,
+    /// Synthetic share of each run's unique data, in [0, 1] (the exchange rate's input).
+    pub synth_share: Option<Vec<f64>>,
     /// Training seed (runs repeated with other seeds are averaged for the minima).
     pub seed: Option<Vec<f64>>,
     /// Role → column used (`None`: not used).
@@ -56,6 +58,35 @@ fn positive(t: &Table, name: &str, values: &[f64]) -> Result<(), FitError> {
             column: name.into(),
             row: row + 1,
             problem: format!("{} must be > 0 (it goes on a log scale)", values[row]),
+        }),
+    }
+}
+
+/// The synthetic-share column: `None` when absent or not recorded on every row (NaN, with a
+/// note); a value outside [0, 1] is an error.
+fn shares(
+    t: &Table,
+    col: &ColumnChoice,
+    notes: &mut Vec<String>,
+) -> Result<Option<Vec<f64>>, FitError> {
+    let Some(values) = optional(t, col, "--synth-share-col")? else {
+        return Ok(None);
+    };
+    if let Some(row) = values.iter().position(|v| v.is_nan()) {
+        notes.push(format!(
+            "{:?} is not recorded at row {} (a run on the whole train split): no exchange rate",
+            col.name,
+            row + 1
+        ));
+        return Ok(None);
+    }
+    match values.iter().position(|v| !(0.0..=1.0).contains(v)) {
+        None => Ok(Some(values)),
+        Some(row) => Err(FitError::BadCell {
+            path: t.path().to_path_buf(),
+            column: col.name.clone(),
+            row: row + 1,
+            problem: format!("{} is not a share in [0, 1]", values[row]),
         }),
     }
 }
@@ -127,6 +158,11 @@ impl Runs {
         };
         let group = optional(t, &cs.group, "--group-col")?;
         let seed = optional(t, &cs.seed, "--seed-col")?;
+        let synth_share = shares(t, &cs.synth_share, &mut notes)?;
+        columns.insert(
+            "synth_share".into(),
+            synth_share.as_ref().map(|_| cs.synth_share.name.clone()),
+        );
         columns.insert("seed".into(), seed.as_ref().map(|_| cs.seed.name.clone()));
         columns.insert(
             "group".into(),
@@ -154,6 +190,7 @@ impl Runs {
             width,
             group,
             epochs,
+            synth_share,
             seed,
             columns,
             notes,
@@ -185,6 +222,7 @@ impl Runs {
             width: pick_opt(&self.width),
             group: pick_opt(&self.group),
             epochs: pick_opt(&self.epochs),
+            synth_share: pick_opt(&self.synth_share),
             seed: pick_opt(&self.seed),
             columns: self.columns.clone(),
             notes: self.notes.clone(),
@@ -293,6 +331,7 @@ mod tests {
             width: Some(vec![64.0, 32.0]),
             group: None,
             epochs: Some(vec![2.0, 4.0]),
+            synth_share: None,
             seed: None,
             columns,
             notes: Vec::new(),
