@@ -25,7 +25,7 @@ use std::sync::Arc;
 pub const RESULT_FILE: &str = "result.json";
 
 /// The result of one finished point.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RunRow {
     /// Run folder name.
     pub run_id: String,
@@ -256,6 +256,18 @@ pub const COLUMNS: [Column; 44] = [
         Cell::F64(r.best_synth_norm_test_loss)
     }),
 ];
+
+impl PartialEq for RunRow {
+    /// Column by column; a float the run did not record (NaN) equals another such.
+    fn eq(&self, other: &Self) -> bool {
+        COLUMNS
+            .iter()
+            .all(|(_, _, get)| match (get(self), get(other)) {
+                (Cell::F64(a), Cell::F64(b)) => a == b || (a.is_nan() && b.is_nan()),
+                (a, b) => a == b,
+            })
+    }
+}
 
 /// The Arrow schema of `results.parquet` (no nulls).
 pub fn schema() -> Arc<Schema> {
@@ -530,6 +542,8 @@ mod tests {
         write_row(dir.path(), &unrecorded).unwrap();
         let back = read_row(dir.path(), "c1e12-cpu-50K-v4").unwrap().unwrap();
         assert!(back.hours.is_nan() && back.best_test_loss.is_nan());
+        assert_eq!(back, unrecorded, "not recorded equals not recorded");
+        assert_ne!(back, row(4));
         let csv_path = dir.path().join("results.csv");
         std::fs::write(&csv_path, to_csv(&[unrecorded]).unwrap()).unwrap();
         assert!(read_csv(&csv_path).unwrap()[0].hours.is_nan());

@@ -69,9 +69,10 @@ fn shares(
     col: &ColumnChoice,
     notes: &mut Vec<String>,
 ) -> Result<Option<Vec<f64>>, FitError> {
-    let Some(values) = optional(t, col, "--synth-share-col")? else {
+    if !(t.has(&col.name) || col.explicit) {
         return Ok(None);
-    };
+    }
+    let values = t.numbers_or_nan(&col.name, "--synth-share-col")?;
     if let Some(row) = values.iter().position(|v| v.is_nan()) {
         notes.push(format!(
             "{:?} is not recorded at row {} (a run on the whole train split): no exchange rate",
@@ -376,6 +377,32 @@ mod tests {
         assert_eq!((k.n.clone(), k.loss.clone()), (vec![24_672.0], vec![-3.3]));
         let err = r.of_vocabulary(4375.0).unwrap_err();
         assert!(err.contains("[240.0, 1000.0]"), "{err}");
+    }
+
+    #[test]
+    fn synthetic_shares_read_when_every_run_records_one() {
+        let dir = tempfile::tempdir().unwrap();
+        let read = |shares: [&str; 2]| {
+            let path = dir.path().join("results.csv");
+            let csv = format!(
+                "budget,n_nv,tokens,norm_test_loss,synth_share\n1e12,1e5,1e6,-2,{}\n1e12,2e5,5e5,-2.1,{}\n",
+                shares[0], shares[1]
+            );
+            std::fs::write(&path, csv).unwrap();
+            Runs::read(&Table::read(&path).unwrap(), &FitOptions::default())
+        };
+        assert_eq!(
+            read(["0.5", "0"]).unwrap().synth_share,
+            Some(vec![0.5, 0.0])
+        );
+        let unrecorded = read(["NaN", "0.5"]).unwrap();
+        assert_eq!(unrecorded.synth_share, None);
+        assert!(unrecorded
+            .notes
+            .iter()
+            .any(|n| n.contains("not recorded at row 1")));
+        let e = read(["0.5", "1.5"]).unwrap_err().to_string();
+        assert!(e.contains("synth_share") && e.contains("[0, 1]"), "{e}");
     }
 
     #[test]

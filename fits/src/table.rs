@@ -141,6 +141,15 @@ impl Table {
     /// Column `name` as finite numbers; the error names the row of the first bad cell.
     /// `flag` is the command-line flag that picks this column (for the error message).
     pub fn numbers(&self, name: &str, flag: &str) -> Result<Vec<f64>, FitError> {
+        self.parse_numbers(name, flag, false)
+    }
+
+    /// Column `name` as numbers, NaN allowed (a value the sweep did not record).
+    pub fn numbers_or_nan(&self, name: &str, flag: &str) -> Result<Vec<f64>, FitError> {
+        self.parse_numbers(name, flag, true)
+    }
+
+    fn parse_numbers(&self, name: &str, flag: &str, nan: bool) -> Result<Vec<f64>, FitError> {
         let idx =
             self.names
                 .iter()
@@ -165,7 +174,7 @@ impl Table {
                     .map_err(|_| bad(row, format!("{t:?} is not a number")))?,
                 (None, None) => return Err(bad(row, "empty cell".into())),
             };
-            if v.is_finite() {
+            if v.is_finite() || (nan && v.is_nan()) {
                 Ok(v)
             } else {
                 Err(bad(row, format!("{v} is not finite")))
