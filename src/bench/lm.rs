@@ -137,6 +137,20 @@ pub(super) fn bench_train_step(
         v[v.len() / 2]
     };
     let [fwd_bwd, optim] = phases.each_mut().map(median);
+    // On a GPU, the forward pass alone (motion logits), for the forward/backward split.
+    let forward = match device.is_cuda() {
+        true => {
+            let mut times = Vec::new();
+            for _ in 0..args.warmup + args.reps.max(3) {
+                let t0 = Instant::now();
+                model.forward(&lm_batch)?;
+                device.synchronize()?;
+                times.push(t0.elapsed().as_secs_f64());
+            }
+            Some(median(&mut times))
+        }
+        false => None,
+    };
     let step_s = st["median_s"].as_f64().expect("median");
     let flops = batch as f64 * accounting::train_flops_exact(&config, SequenceShape::BENCH);
     let six_n =
@@ -153,7 +167,7 @@ pub(super) fn bench_train_step(
         "vocab": config.vocab_size(), "batch": batch, "n_nv": params.n_nv, "n_v": params.n_v,
         "device": nn::device::device_name(device), "precision": compute.precision.to_string(),
         "executor": format!("{:?}", model.executor()?).to_lowercase(),
-        "step_time": st, "phase_median_s": {"fwd_bwd": fwd_bwd, "opt": optim},
+        "step_time": st, "phase_median_s": {"fwd_bwd": fwd_bwd, "opt": optim, "fwd": forward},
         "motion_tokens_per_s": tokens / step_s,
         "flops_per_step_exact": flops, "flops_per_step_6N": six_n,
         "achieved_gflops_exact": gflops, "mfu": gflops / peak_gflops,
