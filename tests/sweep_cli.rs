@@ -16,7 +16,19 @@ use std::time::{Duration, Instant};
 
 /// `sweep plan` on `corpus` with budgets `budgets`: one model, two trained vocabularies.
 fn make_plan(corpus: &Path, budgets: &str, out: &Path) -> IsoFlopPlan {
-    motionscale_ok(&[
+    tiny_plan(corpus, budgets, "256,1024", &[], out)
+}
+
+/// `sweep plan` of cpu-50K on `corpus` at `budgets` and trained vocabularies `vocabs`, with
+/// `extra` flags.
+fn tiny_plan(
+    corpus: &Path,
+    budgets: &str,
+    vocabs: &str,
+    extra: &[&str],
+    out: &Path,
+) -> IsoFlopPlan {
+    let mut args = vec![
         "sweep",
         "plan",
         "--corpus",
@@ -26,7 +38,7 @@ fn make_plan(corpus: &Path, budgets: &str, out: &Path) -> IsoFlopPlan {
         "--models",
         "cpu-50K",
         "--vocabs",
-        "256,1024",
+        vocabs,
         "--tokenizer-flags=--width 32 --batch 8 --steps 30",
         "--batch",
         "8",
@@ -34,7 +46,9 @@ fn make_plan(corpus: &Path, budgets: &str, out: &Path) -> IsoFlopPlan {
         "10",
         "--out",
         arg(out),
-    ]);
+    ];
+    args.extend_from_slice(extra);
+    motionscale_ok(&args);
     IsoFlopPlan::read(out).expect("the plan reads back")
 }
 
@@ -386,30 +400,8 @@ fn mixed_corpus(tmp: &Path) -> std::path::PathBuf {
 
 /// `sweep plan` of cpu-50K at 3e10 on one trained vocabulary at `fractions` of `source`.
 fn data_plan(corpus: &Path, fractions: &str, source: &str, out: &Path) -> IsoFlopPlan {
-    motionscale_ok(&[
-        "sweep",
-        "plan",
-        "--corpus",
-        arg(corpus),
-        "--budgets",
-        "3e10",
-        "--models",
-        "cpu-50K",
-        "--vocabs",
-        "256",
-        "--tokenizer-flags=--width 32 --batch 8 --steps 30",
-        "--batch",
-        "8",
-        "--checkpoint-every",
-        "10",
-        "--data-fractions",
-        fractions,
-        "--data-source",
-        source,
-        "--out",
-        arg(out),
-    ]);
-    IsoFlopPlan::read(out).expect("the plan reads back")
+    let data = ["--data-fractions", fractions, "--data-source", source];
+    tiny_plan(corpus, "3e10", "256", &data, out)
 }
 
 #[test]

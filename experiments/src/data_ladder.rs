@@ -149,9 +149,9 @@ pub fn select(clips: &[ClipMeta], source: DataSource, fraction: f64, seed: u64) 
     chosen
 }
 
-/// The plan's record of the subset of `source`, `fraction` and `seed` of `clips`.
-pub fn describe(clips: &[ClipMeta], source: DataSource, fraction: f64, seed: u64) -> DataSubset {
-    let chosen = select(clips, source, fraction, seed);
+/// The plan's record of the subset of `source`, `fraction` and `seed` whose train clips
+/// ([`select`]) are `chosen`.
+pub fn describe(chosen: &[&ClipMeta], source: DataSource, fraction: f64, seed: u64) -> DataSubset {
     // A fold from +0 (an empty `sum` of floats is −0).
     let hours = |keep: fn(&ClipMeta) -> bool| {
         chosen
@@ -330,10 +330,12 @@ mod tests {
     #[test]
     fn subsets_are_described_named_and_written_as_split_lists() {
         let clips = corpus();
-        let s = describe(&clips, DataSource::Real, 0.5, 7);
+        let described =
+            |source, fraction| describe(&select(&clips, source, fraction, 7), source, fraction, 7);
+        let s = described(DataSource::Real, 0.5);
         assert_eq!((s.name.as_str(), s.synth_hours), ("real-1_2", 0.0));
         assert!(s.synth_hours.is_sign_positive(), "+0, not −0");
-        let all = describe(&clips, DataSource::All, 1.0, 7);
+        let all = described(DataSource::All, 1.0);
         assert_eq!(all.name, "all-1");
         let synth: f64 = clips
             .iter()
@@ -363,7 +365,7 @@ mod tests {
         assert_eq!(again, dir);
         let assigned = ingest::corpus::split::SplitAssignment::from_dir(Some(&dir)).unwrap();
         assert_eq!(assigned.split_of(&train[0], "train"), Some("train"));
-        let none = describe(&clips, DataSource::Synth, 1.0, 7);
+        let none = described(DataSource::Synth, 1.0);
         let only_real: Vec<ClipMeta> = clips.into_iter().filter(|c| c.source != "synth").collect();
         let e = write_lists(runs.path(), &only_real, &none).unwrap_err();
         assert!(e.to_string().contains("no synth train clips"), "{e}");

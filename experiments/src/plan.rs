@@ -460,39 +460,73 @@ pub fn run_id(budget: f64, model: &str, codebook: usize) -> String {
     format!("c{budget:e}-{model}-v{codebook}")
 }
 
-/// The subsets of `request`'s data fractions of the corpus `clips`.
-fn data_subsets(request: &PlanRequest, clips: &[ClipMeta]) -> Result<Vec<DataSubset>, SweepError> {
+/// The subsets of `request`'s data fractions of the corpus `clips`, each with its train
+/// clips' ids.
+fn data_subsets<'a>(
+    request: &PlanRequest,
+    clips: &'a [ClipMeta],
+) -> Result<Vec<(DataSubset, Vec<&'a str>)>, SweepError> {
+    let (source, seed) = (request.data_source, request.data_seed);
     let mut subsets = Vec::new();
     for &fraction in &request.data_fractions {
-        let subset = data_ladder::describe(clips, request.data_source, fraction, request.data_seed);
-        if subset.train_clips == 0 {
+        let chosen = data_ladder::select(clips, source, fraction, seed);
+        if chosen.is_empty() {
             return Err(SweepError::Argument(format!(
-                "--data-source {}: the corpus has no such train clips",
-                request.data_source
+                "--data-source {source}: the corpus has no such train clips"
             )));
         }
-        subsets.push(subset);
+        let ids = chosen.iter().map(|c| c.motion_id.as_str()).collect();
+        subsets.push((data_ladder::describe(&chosen, source, fraction, seed), ids));
     }
     Ok(subsets)
 }
 
-/// Loss positions of one epoch of each subset (by name) for a vocabulary's per-clip targets.
-fn subset_tokens(
-    subsets: &[DataSubset],
-    targets: &[(String, u64)],
-    clips: &[ClipMeta],
-) -> Vec<u64> {
+/// Loss positions of one epoch of each subset (its train clips' ids) for a vocabulary's
+/// per-clip targets.
+fn subset_tokens(subsets: &[(DataSubset, Vec<&str>)], targets: &[(String, u64)]) -> Vec<u64> {
     let by_id: std::collections::HashMap<&str, u64> =
         targets.iter().map(|(id, t)| (id.as_str(), *t)).collect();
     subsets
         .iter()
-        .map(|s| {
-            data_ladder::select(clips, s.source, s.fraction, s.seed)
-                .iter()
-                .filter_map(|c| by_id.get(c.motion_id.as_str()))
-                .sum()
-        })
+        .map(|(_, ids)| ids.iter().filter_map(|id| by_id.get(id)).sum())
         .collect()
+}
+
+/// Vocabularies, data subsets, and each vocabulary's loss positions per epoch of each subset.
+type VocabulariesAndData = (Vec<Vocabulary>, Vec<DataSubset>, Vec<Vec<u64>>);
+
+/// The vocabularies of `request` with their train data in `corpus`, the data subsets, and
+/// each vocabulary's loss positions per epoch of each subset.
+fn vocabularies_and_data(
+    request: &PlanRequest,
+    corpus: &Path,
+) -> Result<VocabulariesAndData, SweepError> {
+    let clips = match request.data_fractions.is_empty() {
+        true => Vec::new(),
+        false => Corpus::open(corpus)
+            .and_then(|c| c.clip_metadata())
+            .map_err(|e| SweepError::invalid(corpus, e))?,
+    };
+    let data = data_subsets(request, &clips)?;
+    let (mut vocabularies, mut unique) = (Vec::new(), Vec::new());
+    for (codebook, source) in &request.vocabularies {
+        let source = absolute_source(source)?;
+        let max_motion = request.train.hyper.max_motion_tokens;
+        let (codebook_size, targets) = train_data(&source, *codebook, corpus, max_motion)?;
+        unique.push(subset_tokens(&data, &targets));
+        vocabularies.push(Vocabulary {
+            codebook: *codebook,
+            codebook_size,
+            train_clips: targets.len() as u64,
+            train_tokens: targets.iter().map(|(_, t)| t).sum(),
+            source,
+        });
+    }
+    Ok((
+        vocabularies,
+        data.into_iter().map(|(d, _)| d).collect(),
+        unique,
+    ))
 }
 
 /// Plan every (budget, model, vocabulary) point of `request`.
@@ -526,31 +560,7 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
         .expect("resolve_encoder found it in the manifest");
     let models = expand_models(&request.models)?;
     let settings = &request.train;
-    let clips = match request.data_fractions.is_empty() {
-        true => Vec::new(),
-        false => Corpus::open(&corpus)
-            .and_then(|c| c.clip_metadata())
-            .map_err(|e| SweepError::invalid(&corpus, e))?,
-    };
-    let data = data_subsets(request, &clips)?;
-    let (mut vocabularies, mut unique) = (Vec::new(), Vec::new());
-    for (codebook, source) in &request.vocabularies {
-        let source = absolute_source(source)?;
-        let (codebook_size, targets) = train_data(
-            &source,
-            *codebook,
-            &corpus,
-            settings.hyper.max_motion_tokens,
-        )?;
-        unique.push(subset_tokens(&data, &targets, &clips));
-        vocabularies.push(Vocabulary {
-            codebook: *codebook,
-            codebook_size,
-            train_clips: targets.len() as u64,
-            train_tokens: targets.iter().map(|(_, t)| t).sum(),
-            source,
-        });
-    }
+    let (vocabularies, data, unique) = vocabularies_and_data(request, &corpus)?;
     // Without fractions every point learns from the whole train split.
     let subsets: Vec<Option<usize>> = match data.is_empty() {
         true => vec![None],

@@ -503,13 +503,7 @@ mod tests {
 
     #[test]
     fn data_constrained_fit_recovers_the_exchange_rate_of_synthetic_data() {
-        let law = Law {
-            e: 1.2,
-            a: 60.0,
-            b: 400.0,
-            alpha: 0.35,
-            beta: 0.3,
-        };
+        let law = repetition_law();
         let (r_star, rho) = (6.0f64, 0.3f64);
         // A captured-only ladder and a half-synthetic one, each at two corpus sizes.
         let mut csv =
@@ -550,15 +544,20 @@ mod tests {
         );
     }
 
-    #[test]
-    fn data_constrained_fit_recovers_r_star_and_wins_on_held_out_budgets() {
-        let law = Law {
+    /// The law the data-constrained tests draw their runs from.
+    fn repetition_law() -> Law {
+        Law {
             e: 1.2,
             a: 60.0,
             b: 400.0,
             alpha: 0.35,
             beta: 0.3,
-        };
+        }
+    }
+
+    #[test]
+    fn data_constrained_fit_recovers_r_star_and_wins_on_held_out_budgets() {
+        let law = repetition_law();
         let (unique, r_star) = (2e7, 6.0f64);
         let mut rows = Vec::new();
         for c in [1e13, 3e13, 1e14, 3e14, 1e15] {
