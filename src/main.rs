@@ -11,6 +11,7 @@ mod fit;
 mod generate_batch;
 mod lm_cmd;
 mod memory;
+mod planner_cmd;
 mod quickstart;
 mod report;
 mod report_page;
@@ -122,6 +123,9 @@ enum SweepCommand {
     Submit(sweep_cmd::SubmitArgs),
     /// Rebuild results.csv / results.parquet from every run's result.json.
     Collect(sweep_cmd::CollectArgs),
+    /// Replay a planning policy (active, grid, random) on a finished table: the target's
+    /// interval and error against compute spent, on real runs only.
+    Replay(planner_cmd::ReplayArgs),
 }
 
 #[derive(Subcommand)]
@@ -264,6 +268,7 @@ fn main() -> ExitCode {
         Command::Sweep(SweepCommand::Status(args)) => sweep_cmd::status_cmd(args),
         Command::Sweep(SweepCommand::Submit(args)) => sweep_cmd::submit_cmd(args),
         Command::Sweep(SweepCommand::Collect(args)) => sweep_cmd::collect_cmd(args),
+        Command::Sweep(SweepCommand::Replay(args)) => planner_cmd::replay_cmd(args),
         Command::Report(args) => report::report(args),
     };
     match result {

@@ -44,6 +44,7 @@ pub fn report(args: ReportArgs) -> Result<ExitCode> {
         sweep: None,
         fits: None,
         predictions: Vec::new(),
+        replay: None,
     };
     for input in &args.inputs {
         add_input(&mut study, input)?;
@@ -80,17 +81,45 @@ fn add_input(study: &mut Study, input: &Path) -> Result<()> {
     if input.join("fits.json").is_file() {
         return add_json(study, &input.join("fits.json"));
     }
+    if input.join("replay.csv").is_file() {
+        return add_replay(study, input);
+    }
     bail!(
-        "{}: neither a corpus (manifest.json), a sweep folder (plan.toml) nor a fit (fits.json)",
+        "{}: neither a corpus (manifest.json), a sweep folder (plan.toml), a fit (fits.json) nor a planner replay (replay.csv)",
         input.display()
     )
+}
+
+/// A `sweep replay` folder: its summary and charts.
+fn add_replay(study: &mut Study, dir: &Path) -> Result<()> {
+    let path = dir.join("summary.json");
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let summary = parse(
+        serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?,
+        &path,
+        "a `sweep replay` summary",
+    )?;
+    let charts = ["replay-width.svg", "replay-error.svg"]
+        .iter()
+        .map(|f| {
+            std::fs::read_to_string(dir.join(f))
+                .with_context(|| format!("reading {}", dir.join(f).display()))
+        })
+        .collect::<Result<_>>()?;
+    let replay = crate::report_page::Replay {
+        dir: dir.to_path_buf(),
+        summary,
+        charts,
+    };
+    set_once(&mut study.replay, replay, dir)
 }
 
 /// Put `value` in `slot`, or fail when an earlier input already filled it.
 fn set_once<T>(slot: &mut Option<T>, value: T, input: &Path) -> Result<()> {
     if slot.is_some() {
         bail!(
-            "{}: a report takes one input of each kind (corpus, sweep, fit)",
+            "{}: a report takes one input of each kind (corpus, sweep, fit, replay)",
             input.display()
         );
     }

@@ -26,14 +26,25 @@ figure{margin:16px 0}figcaption{font-size:14px;color:#444}\
 svg{max-width:100%;height:auto;display:block}code{font-size:14px}";
 
 /// The section ids and titles, in page order.
-const SECTIONS: [(&str, &str); 6] = [
+const SECTIONS: [(&str, &str); 7] = [
     ("corpus", "Corpus"),
     ("tokenizers", "Tokenizers"),
     ("sweep", "Sweep status"),
     ("isoflop", "IsoFLOP curves"),
     ("laws", "Scaling laws"),
     ("predictions", "Predictions"),
+    ("planner", "Sweep planner"),
 ];
+
+/// A `sweep replay` folder: its summary and its charts (SVG documents).
+pub struct Replay {
+    /// The folder.
+    pub dir: PathBuf,
+    /// Its `summary.json`.
+    pub summary: fits::replay::ReplaySummary,
+    /// `replay-width.svg` and `replay-error.svg`.
+    pub charts: Vec<String>,
+}
 
 /// An IsoFLOP sweep as its folder holds it.
 pub struct Sweep {
@@ -61,6 +72,8 @@ pub struct Study {
     pub fits: Option<(PathBuf, Fits)>,
     /// A prediction (or why there is none) at each budget.
     pub predictions: Vec<(f64, Result<Prediction, String>)>,
+    /// A replay of the sweep planner.
+    pub replay: Option<Replay>,
 }
 
 /// The whole page.
@@ -82,7 +95,11 @@ pub fn page(study: &Study) -> Result<String> {
                 Some((path, f)) => laws(&path.display().to_string(), f)?,
                 None => absent("fit"),
             },
-            _ => predictions(study),
+            "predictions" => predictions(study),
+            _ => study
+                .replay
+                .as_ref()
+                .map_or_else(|| absent("replay folder (`sweep replay --out`)"), planner),
         };
         let _ = writeln!(
             body,
@@ -118,6 +135,7 @@ pub fn contents(study: &Study) -> Vec<&'static str> {
         study.fits.is_some(),
         study.fits.is_some(),
         !study.predictions.is_empty(),
+        study.replay.is_some(),
     ];
     SECTIONS
         .iter()
@@ -125,6 +143,54 @@ pub fn contents(study: &Study) -> Vec<&'static str> {
         .filter(|(_, p)| *p)
         .map(|((_, title), _)| *title)
         .collect()
+}
+
+/// The planner's replay: each policy's summary against the full table, and its curves.
+fn planner(r: &Replay) -> String {
+    let s = &r.summary;
+    let opt = |v: Option<f64>| v.map_or("never".to_string(), |v| format!("{v:.3}"));
+    let rows = s.policies.iter().map(|p| {
+        let cells = vec![
+            p.policy.clone(),
+            p.orders.to_string(),
+            format!("{:.3}", p.final_share),
+            format!("{:.3}", p.final_width),
+            format!("{:.3}", p.final_error),
+            format!(
+                "{} ({}/{})",
+                opt(p.share_to_full_width),
+                p.orders_reaching_full_width,
+                p.orders
+            ),
+            format!("{:.3}", p.mean_width),
+            format!("{:.3}", p.mean_error),
+        ];
+        (None, cells)
+    });
+    let head = [
+        "policy",
+        "orders",
+        "compute at end (share)",
+        "width at end",
+        "error at end",
+        "share to the full table's width",
+        "mean width",
+        "mean error",
+    ];
+    format!(
+        "<p>Replay of <code>{}</code> from <code>{}</code>: target {} at C* = {} (truth {:.4}); the full table's 95% interval is {:.4} wide; every policy starts from {} runs ({:.1}% of the compute) and stops at {:.0}%.</p>{}{}",
+        esc(&r.dir.display().to_string()),
+        esc(&s.results),
+        esc(&s.target),
+        sig(s.target_budget),
+        s.truth,
+        s.full_table.width,
+        s.start_runs,
+        100.0 * s.start_share,
+        100.0 * s.max_compute_share,
+        table("", &head, rows),
+        r.charts.iter().map(|c| format!("<figure>{c}</figure>")).collect::<String>()
+    )
 }
 
 /// `s` with the HTML special characters escaped.

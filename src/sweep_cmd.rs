@@ -93,6 +93,23 @@ pub struct PlanArgs {
     /// Seed of the clip order of the --data-fractions (recorded in the plan).
     #[arg(long, default_value_t = 0, requires = "data_fractions")]
     pub data_seed: u64,
+    /// Propose the K runs (from --budgets × --models × --vocabs) that most narrow the
+    /// --target's interval at --target-budget per FLOP, given the runs of the --extend plan
+    /// trained so far (`sweep replay` judges the policy); the output extends that plan.
+    #[arg(long, value_name = "K", requires_all = ["target_budget", "fits", "extend"])]
+    pub next: Option<usize>,
+    /// With --next: the budget C* whose target is narrowed (above every trained budget).
+    #[arg(long, requires = "next")]
+    pub target_budget: Option<f64>,
+    /// With --next: n_opt (log10 N_opt) or loss (at N_opt).
+    #[arg(long, default_value = "n_opt", value_parser = fits::planner::Target::parse)]
+    pub target: fits::planner::Target,
+    /// With --next: the most FLOPs the proposed runs may cost together.
+    #[arg(long, requires = "next")]
+    pub max_compute: Option<f64>,
+    /// With --next: the results table of the trained runs (default: the table --fits read).
+    #[arg(long, requires = "next")]
+    pub results: Option<PathBuf>,
     /// Output plan file (.toml).
     #[arg(long)]
     pub out: PathBuf,
@@ -131,7 +148,7 @@ impl PlanArgs {
         }
     }
 
-    fn request(&self) -> Result<PlanRequest> {
+    pub(crate) fn request(&self) -> Result<PlanRequest> {
         let flags = TokenizerFlagsLine::try_parse_from(self.tokenizer_flags.split_whitespace())
             .with_context(|| format!("--tokenizer-flags {:?}", self.tokenizer_flags))?
             .flags;
@@ -189,13 +206,17 @@ impl PlanArgs {
             data_fractions: self.data_fractions.clone(),
             data_source: self.data_source,
             data_seed: self.data_seed,
+            only: Vec::new(),
         })
     }
 }
 
 /// `motionscale sweep plan`.
 pub fn plan_cmd(args: PlanArgs) -> Result<ExitCode> {
-    let plan = plan::plan(&args.request()?)?;
+    let plan = match args.next {
+        Some(k) => crate::planner_cmd::next_plan(&args, k)?,
+        None => plan::plan(&args.request()?)?,
+    };
     plan.write(&args.out)?;
     println!(
         "{:>4}  {:<36} {:>9} {:>10} {:>6} {:>10} {:>9} {:>12} {:>7}  flags",

@@ -324,6 +324,8 @@ pub struct PlanRequest {
     pub data_source: DataSource,
     /// Seed of the clip order of the fractions.
     pub data_seed: u64,
+    /// Keep only these run ids of the grid (the active planner's picks); empty keeps all.
+    pub only: Vec<String>,
 }
 
 /// Sizes per budget, taken from the model list around an earlier fit's N_opt.
@@ -593,6 +595,9 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
             {
                 let of = subset.map(|i| (&data[i], unique[i]));
                 let mut point = plan_point(budget, name, vocab, of, settings, text_dim)?;
+                if !(request.only.is_empty() || request.only.contains(&point.run_id)) {
+                    continue;
+                }
                 match request.max_epochs {
                     Some(limit) if point.epochs > limit.epochs && limit.drop => {
                         warnings.push(format!(

@@ -129,7 +129,7 @@ pub fn parabola_minimum(
 }
 
 /// The lowest loss at each distinct x, sorted by x.
-fn envelope(x: &[f64], loss: &[f64]) -> Vec<[f64; 2]> {
+pub(crate) fn envelope(x: &[f64], loss: &[f64]) -> Vec<[f64; 2]> {
     let mut pts: Vec<[f64; 2]> = x.iter().zip(loss).map(|(&a, &b)| [a, b]).collect();
     pts.sort_by(|p, q| p[0].total_cmp(&q[0]).then(p[1].total_cmp(&q[1])));
     pts.dedup_by(|later, first| later[0] == first[0]);

@@ -149,6 +149,19 @@ impl Table {
         self.parse_numbers(name, flag, true)
     }
 
+    /// Column `name` as text (numbers as written), `None` when the table has no such column.
+    pub fn labels(&self, name: &str) -> Option<Vec<String>> {
+        let idx = self.names.iter().position(|n| n == name)?;
+        Some(match &self.columns[idx] {
+            Cells::Numbers(v) => v
+                .iter()
+                .map(|c| c.map_or_else(String::new, |x| x.to_string()))
+                .collect(),
+            Cells::Text(v) => v.iter().map(|c| c.clone().unwrap_or_default()).collect(),
+            Cells::Other(_) => vec![String::new(); self.rows],
+        })
+    }
+
     fn parse_numbers(&self, name: &str, flag: &str, nan: bool) -> Result<Vec<f64>, FitError> {
         let idx =
             self.names

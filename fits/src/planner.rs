@@ -1,0 +1,703 @@
+//! The active sweep planner: a posterior over what the IsoFLOP pipeline extrapolates to a
+//! target budget C* (log10 N_opt, or the loss at N_opt), and the runs that shrink its interval
+//! most per FLOP ("Spend Less, Fit Better", arXiv 2604.22753: sequential design by expected
+//! reduction of the extrapolation's uncertainty).
+//!
+//! The posterior is a residual bootstrap of the pipeline `fit` runs: each budget's envelope
+//! parabola is refitted on its fitted values plus residuals drawn from the pooled parabola
+//! residuals — the parabolas' misfit, several times the seed noise in our sweeps, so seed noise
+//! alone would understate it — the interior vertices give the law in log C, and the law's own
+//! scatter at C* is added as s·t_dof·√(1 + 1/k + (x* − x̄)²/Sxx). A proposal's value is the
+//! expected interval width after it, over its predictive outcomes (3-point Gauss–Hermite), per
+//! FLOP it costs; a budget without a parabola is entered with the three sizes nearest its
+//! predicted vertex, since fewer sizes there change nothing.
+
+use crate::isoflop::{envelope, group_budget, group_rows};
+use crate::ols::{distinct, Line, Parabola};
+use motionscale_core::rng::SplitMix64;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// An interval the draws cannot bound (no law in over 2.5% of them) counts as this wide.
+pub const WIDTH_CAP: f64 = 10.0;
+
+/// Budgets within this many decades are one budget group (as `fit`'s default).
+const GROUP_TOL_DEX: f64 = 0.05;
+
+/// The quantity the planner narrows, both extrapolated to the target budget.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Target {
+    /// log10 of the compute-optimal N (the `n_opt_vs_c` law), in decades.
+    NOpt,
+    /// The loss at N_opt (the log law), in the loss column's units.
+    Loss,
+}
+
+impl Target {
+    /// Parses `n_opt` or `loss`.
+    pub fn parse(name: &str) -> Result<Self, String> {
+        match name {
+            "n_opt" => Ok(Self::NOpt),
+            "loss" => Ok(Self::Loss),
+            "hour_value" => Err(
+                "--target hour_value: not available yet (the planner narrows n_opt or loss)".into(),
+            ),
+            other => Err(format!("--target {other:?}: expected n_opt or loss")),
+        }
+    }
+
+    /// The name `parse` reads.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::NOpt => "n_opt",
+            Self::Loss => "loss",
+        }
+    }
+
+    /// Units of the target's interval width.
+    pub fn unit(self) -> &'static str {
+        match self {
+            Self::NOpt => "decades",
+            Self::Loss => "nats",
+        }
+    }
+
+    /// What one budget's parabola contributes to the law.
+    fn of_vertex(self, p: &Parabola) -> f64 {
+        match self {
+            Self::NOpt => p.vertex(),
+            Self::Loss => p.at(p.vertex()),
+        }
+    }
+}
+
+/// One trained run as the planner sees it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Observation {
+    /// Budget C of its group.
+    pub budget: f64,
+    /// Model size N.
+    pub n: f64,
+    /// Vocabulary size, when runs differ in it.
+    pub vocab: Option<f64>,
+    /// Loss (the fit's loss column).
+    pub loss: f64,
+}
+
+/// A run the planner may propose.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Candidate {
+    /// Run id.
+    pub id: String,
+    /// Budget C.
+    pub budget: f64,
+    /// Model size N.
+    pub n: f64,
+    /// Vocabulary size, when runs differ in it.
+    pub vocab: Option<f64>,
+    /// FLOPs it costs.
+    pub cost: f64,
+}
+
+/// Posterior settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Settings {
+    /// Bootstrap draws.
+    pub draws: usize,
+    /// Seed of the draws (draw i uses stream i, the same for every candidate compared).
+    pub seed: u64,
+    /// Smallest loss noise assumed (the seed noise), used while no parabola has residuals.
+    pub misfit_floor: f64,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Self {
+            draws: 200,
+            seed: 0,
+            misfit_floor: 0.01,
+        }
+    }
+}
+
+/// JSON has no infinities (they are written as null): null reads back as +∞.
+pub fn infinite_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::INFINITY))
+}
+
+/// null reads back as −∞ (a lower bound).
+fn neg_infinite_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NEG_INFINITY))
+}
+
+/// null reads back as NaN (a median between −∞ and +∞).
+fn nan_if_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
+}
+
+/// The target's posterior: median and 95% interval over the bootstrap draws.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Posterior {
+    /// Median.
+    #[serde(deserialize_with = "nan_if_null")]
+    pub median: f64,
+    /// 2.5% quantile (draws without a law count as −∞ or +∞).
+    #[serde(deserialize_with = "neg_infinite_if_null")]
+    pub low: f64,
+    /// 97.5% quantile.
+    #[serde(deserialize_with = "infinite_if_null")]
+    pub high: f64,
+    /// high − low (infinite when the draws cannot bound it).
+    #[serde(deserialize_with = "infinite_if_null")]
+    pub width: f64,
+    /// Draws that had a law (three interior vertices).
+    pub valid: usize,
+    /// Draws made.
+    pub draws: usize,
+}
+
+impl Posterior {
+    /// The width, at most [`WIDTH_CAP`].
+    pub fn capped_width(&self) -> f64 {
+        self.width.min(WIDTH_CAP)
+    }
+}
+
+/// One budget group of the observations.
+#[derive(Debug, Clone)]
+struct BudgetFit {
+    /// log10 C.
+    x: f64,
+    /// log10 N of the envelope (lowest loss per N), ascending.
+    lx: Vec<f64>,
+    /// The envelope's parabola (three distinct N or more).
+    parabola: Option<Parabola>,
+}
+
+impl BudgetFit {
+    /// The parabola when convex.
+    fn convex(&self) -> Option<&Parabola> {
+        self.parabola.as_ref().filter(|p| p.curvature() > 0.0)
+    }
+
+    /// The parabola when its vertex is a minimum inside the sampled sizes.
+    fn interior(&self) -> Option<&Parabola> {
+        let (lo, hi) = (self.lx[0], self.lx[self.lx.len() - 1]);
+        self.convex().filter(|p| (lo..=hi).contains(&p.vertex()))
+    }
+}
+
+/// Where budgets without a parabola are predicted from: the vertices' lines in log C.
+#[derive(Debug, Clone)]
+struct Surrogate {
+    vertex: Line,
+    loss: Line,
+    curvature: f64,
+    sd: f64,
+}
+
+/// The fitted state behind draws and predictions.
+#[derive(Debug, Clone)]
+struct Model {
+    budgets: Vec<BudgetFit>,
+    /// Pooled parabola residuals, scaled by √(n / dof).
+    pool: Vec<f64>,
+    /// Predictive noise of one run: the residuals' RMS, at least the floor.
+    sigma: f64,
+    floor: f64,
+    /// (vocabulary, log10 C, mean excess over that budget's parabola).
+    offsets: Vec<(f64, f64, f64)>,
+    surrogate: Option<Surrogate>,
+}
+
+impl Model {
+    fn new(obs: &[Observation], floor: f64) -> Self {
+        let c: Vec<f64> = obs.iter().map(|o| o.budget).collect();
+        let budgets: Vec<BudgetFit> = group_rows(&c, None, GROUP_TOL_DEX)
+            .iter()
+            .map(|rows| {
+                let n: Vec<f64> = rows.iter().map(|&i| obs[i].n).collect();
+                let l: Vec<f64> = rows.iter().map(|&i| obs[i].loss).collect();
+                let (lx, y): (Vec<f64>, Vec<f64>) = envelope(&n, &l)
+                    .iter()
+                    .map(|p| (p[0].log10(), p[1]))
+                    .unzip();
+                let parabola = Parabola::fit(&lx, &y);
+                BudgetFit {
+                    x: group_budget(&c, rows).log10(),
+                    lx,
+                    parabola,
+                }
+            })
+            .collect();
+        let pool: Vec<f64> = budgets
+            .iter()
+            .filter_map(|b| b.parabola.as_ref().filter(|p| p.ols.dof > 0))
+            .flat_map(|p| {
+                let scale = (p.ols.residuals.len() as f64 / p.ols.dof as f64).sqrt();
+                p.ols.residuals.iter().map(move |r| r * scale)
+            })
+            .collect();
+        let rms = (pool.iter().map(|r| r * r).sum::<f64>() / pool.len().max(1) as f64).sqrt();
+        let mut model = Self {
+            budgets,
+            pool,
+            sigma: rms.max(floor),
+            floor,
+            offsets: Vec::new(),
+            surrogate: None,
+        };
+        model.offsets = model.vocabulary_offsets(obs);
+        model.surrogate = model.surrogate();
+        model
+    }
+
+    /// Each vocabulary's loss above its budget's parabola, by budget: (vocabulary, log10 C,
+    /// mean excess there). The best vocabulary changes with the budget, so the excess is read
+    /// off a line in log C (`offset`).
+    fn vocabulary_offsets(&self, obs: &[Observation]) -> Vec<(f64, f64, f64)> {
+        let mut sums: Vec<(f64, f64, f64, usize)> = Vec::new();
+        for o in obs {
+            let Some(v) = o.vocab else { continue };
+            let Some(b) = self.budget_at(o.budget) else {
+                continue;
+            };
+            let Some(p) = b.convex() else { continue };
+            let excess = o.loss - p.at(o.n.log10());
+            match sums.iter_mut().find(|s| s.0 == v && s.1 == b.x) {
+                Some(s) => (s.2, s.3) = (s.2 + excess, s.3 + 1),
+                None => sums.push((v, b.x, excess, 1)),
+            }
+        }
+        sums.into_iter()
+            .map(|(v, x, s, k)| (v, x, s / k as f64))
+            .collect()
+    }
+
+    fn surrogate(&self) -> Option<Surrogate> {
+        let inner: Vec<(f64, &Parabola)> = self
+            .budgets
+            .iter()
+            .filter_map(|b| Some((b.x, b.interior()?)))
+            .collect();
+        let x: Vec<f64> = inner.iter().map(|(x, _)| *x).collect();
+        let vertex: Vec<f64> = inner.iter().map(|(_, p)| p.vertex()).collect();
+        let loss: Vec<f64> = inner.iter().map(|(_, p)| p.at(p.vertex())).collect();
+        let mut curvatures: Vec<f64> = inner.iter().map(|(_, p)| p.curvature()).collect();
+        curvatures.sort_by(f64::total_cmp);
+        let loss = Line::fit(&x, &loss)?;
+        let sd = match loss.ols.dof {
+            0 => self.sigma,
+            dof => (loss.ols.residuals.iter().map(|r| r * r).sum::<f64>() / dof as f64).sqrt(),
+        };
+        Some(Surrogate {
+            vertex: Line::fit(&x, &vertex)?,
+            loss,
+            curvature: curvatures[curvatures.len() / 2],
+            sd: sd.hypot(self.sigma),
+        })
+    }
+
+    fn budget_at(&self, c: f64) -> Option<&BudgetFit> {
+        let x = c.log10();
+        self.budgets
+            .iter()
+            .find(|b| (b.x - x).abs() <= GROUP_TOL_DEX)
+    }
+
+    /// The expected excess of `vocab` at `c`: the line in log C through its budgets' excess
+    /// (their mean with one budget; 0 for a vocabulary not seen yet).
+    fn offset(&self, vocab: Option<f64>, c: f64) -> f64 {
+        let Some(v) = vocab else { return 0.0 };
+        let (x, y): (Vec<f64>, Vec<f64>) = self
+            .offsets
+            .iter()
+            .filter(|o| o.0 == v)
+            .map(|o| (o.1, o.2))
+            .unzip();
+        match Line::fit(&x, &y) {
+            Some(line) => line.at(c.log10()),
+            None => y.iter().sum::<f64>() / y.len().max(1) as f64,
+        }
+    }
+
+    /// Predictive mean and SD of a run's loss; `None` when nothing predicts its budget yet.
+    fn predict(&self, c: &Candidate) -> Option<(f64, f64)> {
+        let u = c.n.log10();
+        let offset = self.offset(c.vocab, c.budget);
+        if let Some(p) = self.budget_at(c.budget).and_then(|b| b.convex()) {
+            return Some((p.at(u) + offset, self.sigma));
+        }
+        let s = self.surrogate.as_ref()?;
+        let x = c.budget.log10();
+        let mean = s.loss.at(x) + s.curvature * (u - s.vertex.at(x)).powi(2) + offset;
+        Some((mean, s.sd))
+    }
+
+    fn noise(&self, rng: &mut SplitMix64) -> f64 {
+        match self.pool.len() {
+            0 => self.floor * rng.normal(),
+            len => self.pool[rng.index(len)],
+        }
+    }
+
+    /// One bootstrap draw of the target at log10 C* = `x_star`; `None` without a law.
+    fn draw(&self, target: Target, x_star: f64, rng: &mut SplitMix64) -> Option<f64> {
+        let mut points: Vec<(f64, f64)> = Vec::new();
+        for b in &self.budgets {
+            let Some(p) = &b.parabola else { continue };
+            let y: Vec<f64> = b.lx.iter().map(|&u| p.at(u) + self.noise(rng)).collect();
+            let refit = BudgetFit {
+                x: b.x,
+                lx: b.lx.clone(),
+                parabola: Parabola::fit(&b.lx, &y),
+            };
+            if let Some(q) = refit.interior() {
+                points.push((b.x, target.of_vertex(q)));
+            }
+        }
+        if points.len() < 3 {
+            return None;
+        }
+        let (x, y): (Vec<f64>, Vec<f64>) = points.into_iter().unzip();
+        let line = Line::fit(&x, &y)?;
+        let k = x.len() as f64;
+        let mean = x.iter().sum::<f64>() / k;
+        let sxx: f64 = x.iter().map(|v| (v - mean).powi(2)).sum();
+        let dof = line.ols.dof;
+        let s = (line.ols.residuals.iter().map(|r| r * r).sum::<f64>() / dof as f64).sqrt();
+        let lever = (1.0 + 1.0 / k + (x_star - mean).powi(2) / sxx).sqrt();
+        Some(line.at(x_star) + s * lever * student_t(rng, dof))
+    }
+}
+
+/// A Student-t draw with `dof` degrees of freedom (z / √(χ²/dof)).
+fn student_t(rng: &mut SplitMix64, dof: usize) -> f64 {
+    let chi2: f64 = (0..dof).map(|_| rng.normal().powi(2)).sum();
+    rng.normal() / (chi2 / dof as f64).sqrt()
+}
+
+/// The `q` quantile (linear interpolation) of sorted `v`.
+fn quantile(v: &[f64], q: f64) -> f64 {
+    let at = q * (v.len() - 1) as f64;
+    let (i, f) = (at.floor() as usize, at.fract());
+    match v.get(i + 1) {
+        Some(&next) if f > 0.0 && next != v[i] => v[i] + f * (next - v[i]),
+        _ => v[i],
+    }
+}
+
+/// The posterior of `target` at budget `c_star` given `obs`.
+pub fn posterior(obs: &[Observation], target: Target, c_star: f64, s: &Settings) -> Posterior {
+    posterior_of(&Model::new(obs, s.misfit_floor), target, c_star, s)
+}
+
+fn posterior_of(model: &Model, target: Target, c_star: f64, s: &Settings) -> Posterior {
+    let x_star = c_star.log10();
+    let mut values = Vec::with_capacity(s.draws);
+    let mut missing = 0;
+    for i in 0..s.draws {
+        let mut rng = SplitMix64::stream(s.seed, i as u64);
+        match model.draw(target, x_star, &mut rng) {
+            Some(v) if v.is_finite() => values.push(v),
+            _ => missing += 1,
+        }
+    }
+    let valid = values.len();
+    // A draw without a law could be anywhere: half below every value, half above.
+    values.extend((0..missing).map(|i| match i % 2 {
+        0 => f64::NEG_INFINITY,
+        _ => f64::INFINITY,
+    }));
+    values.sort_by(f64::total_cmp);
+    if values.is_empty() {
+        values.push(f64::NAN);
+    }
+    let (low, high) = (quantile(&values, 0.025), quantile(&values, 0.975));
+    Posterior {
+        median: quantile(&values, 0.5),
+        low,
+        high,
+        width: high - low,
+        valid,
+        draws: s.draws,
+    }
+}
+
+/// One proposal: runs trained together, what they cost and what they are expected to buy.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Proposal {
+    /// Indices into the candidates.
+    pub runs: Vec<usize>,
+    /// FLOPs.
+    pub cost: f64,
+    /// The interval's width before it (capped at [`WIDTH_CAP`]).
+    pub width_before: f64,
+    /// Expected width after it.
+    pub expected_width: f64,
+    /// Why it was chosen.
+    pub why: String,
+}
+
+/// Gauss–Hermite nodes (in predictive SDs) and weights for the expectation over outcomes.
+const NODES: [(f64, f64); 3] = [
+    (-1.732_050_807_568_877_2, 1.0 / 6.0),
+    (0.0, 2.0 / 3.0),
+    (1.732_050_807_568_877_2, 1.0 / 6.0),
+];
+
+/// The runs that, trained in order, most reduce the target's interval per FLOP: `k` proposals
+/// from `candidates` within `max_compute` FLOPs, each chosen after the earlier ones are
+/// imagined trained at their predicted loss.
+pub fn propose(
+    obs: &[Observation],
+    candidates: &[Candidate],
+    target: Target,
+    c_star: f64,
+    k: usize,
+    max_compute: f64,
+    s: &Settings,
+) -> Vec<Proposal> {
+    let mut known = obs.to_vec();
+    let mut open: Vec<usize> = (0..candidates.len()).collect();
+    let mut spent = 0.0;
+    let mut out = Vec::new();
+    while out.len() < k {
+        let model = Model::new(&known, s.misfit_floor);
+        let Some(best) = best_action(
+            &model,
+            &known,
+            candidates,
+            &open,
+            target,
+            c_star,
+            max_compute - spent,
+            s,
+        ) else {
+            break;
+        };
+        for &i in &best.runs {
+            let (mean, _) = model
+                .predict(&candidates[i])
+                .expect("scored actions are predictable");
+            known.push(observed(&candidates[i], mean));
+        }
+        open.retain(|i| !best.runs.contains(i));
+        spent += best.cost;
+        out.push(best);
+    }
+    out
+}
+
+/// The observation a candidate gives with `loss`.
+pub fn observed(c: &Candidate, loss: f64) -> Observation {
+    Observation {
+        budget: c.budget,
+        n: c.n,
+        vocab: c.vocab,
+        loss,
+    }
+}
+
+/// The best next action among the `open` candidates costing at most `room` FLOPs.
+#[allow(clippy::too_many_arguments)]
+fn best_action(
+    model: &Model,
+    known: &[Observation],
+    candidates: &[Candidate],
+    open: &[usize],
+    target: Target,
+    c_star: f64,
+    room: f64,
+    s: &Settings,
+) -> Option<Proposal> {
+    let before = posterior_of(model, target, c_star, s).capped_width();
+    let actions: Vec<(Vec<usize>, String)> = actions(model, known, candidates, open)
+        .into_iter()
+        .filter(|(runs, _)| runs.iter().map(|&i| candidates[i].cost).sum::<f64>() <= room)
+        .collect();
+    let scored: Vec<Proposal> = actions
+        .into_par_iter()
+        .filter_map(|(runs, what)| {
+            let after = expected_width(model, known, candidates, &runs, target, c_star, s)?;
+            let cost: f64 = runs.iter().map(|&i| candidates[i].cost).sum();
+            let why = format!(
+                "{what}: interval {before:.3} → {after:.3} {} expected ({:+.3} per 10^12 FLOPs)",
+                target.unit(),
+                (after - before) / cost * 1e12
+            );
+            Some(Proposal {
+                runs,
+                cost,
+                width_before: before,
+                expected_width: after,
+                why,
+            })
+        })
+        .collect();
+    let rate = |p: &Proposal| (p.width_before - p.expected_width) / p.cost;
+    match scored.iter().any(|p| rate(p) > 0.0) {
+        true => scored
+            .into_iter()
+            .max_by(|a, b| rate(a).total_cmp(&rate(b))),
+        // Nothing narrows it: the least harm, the cheapest among equals.
+        false => scored.into_iter().min_by(|a, b| {
+            a.expected_width
+                .total_cmp(&b.expected_width)
+                .then(a.cost.total_cmp(&b.cost))
+        }),
+    }
+}
+
+/// Expected capped width after training `runs`, over their predictive outcomes.
+fn expected_width(
+    model: &Model,
+    known: &[Observation],
+    candidates: &[Candidate],
+    runs: &[usize],
+    target: Target,
+    c_star: f64,
+    s: &Settings,
+) -> Option<f64> {
+    let predicted: Vec<(f64, f64)> = runs
+        .iter()
+        .map(|&i| model.predict(&candidates[i]))
+        .collect::<Option<_>>()?;
+    let mut with = known.to_vec();
+    let mut expected = 0.0;
+    for (z, w) in NODES {
+        with.truncate(known.len());
+        for (&i, (mean, sd)) in runs.iter().zip(&predicted) {
+            with.push(observed(&candidates[i], mean + z * sd));
+        }
+        expected += w * posterior(&with, target, c_star, s).capped_width();
+    }
+    Some(expected)
+}
+
+/// The actions open: single runs at budgets with a parabola; elsewhere the sizes that give the
+/// budget its first parabola, nearest the predicted vertex (with why each is considered).
+fn actions(
+    model: &Model,
+    known: &[Observation],
+    candidates: &[Candidate],
+    open: &[usize],
+) -> Vec<(Vec<usize>, String)> {
+    let mut out = Vec::new();
+    let budgets: Vec<f64> = open.iter().map(|&i| candidates[i].budget).collect();
+    for group in group_rows(&budgets, None, GROUP_TOL_DEX) {
+        let here: Vec<usize> = group.iter().map(|&g| open[g]).collect();
+        let c = candidates[here[0]].budget;
+        if model.budget_at(c).is_some_and(|b| b.parabola.is_some()) {
+            out.extend(here.iter().map(|&i| {
+                let what = format!("{} on the parabola at {c:.3e}", candidates[i].id);
+                (vec![i], what)
+            }));
+            continue;
+        }
+        let seen: Vec<f64> = known
+            .iter()
+            .filter(|o| (o.budget.log10() - c.log10()).abs() <= GROUP_TOL_DEX)
+            .map(|o| o.n)
+            .collect();
+        let need = 3usize.saturating_sub(distinct(&seen));
+        let centre = match &model.surrogate {
+            Some(s) => s.vertex.at(c.log10()),
+            None => {
+                let mut lx: Vec<f64> = here.iter().map(|&i| candidates[i].n.log10()).collect();
+                lx.sort_by(f64::total_cmp);
+                lx[lx.len() / 2]
+            }
+        };
+        let mut pick: Vec<usize> = Vec::new();
+        let mut by_distance = here.clone();
+        by_distance.sort_by(|&a, &b| {
+            let d = |i: usize| (candidates[i].n.log10() - centre).abs();
+            d(a).total_cmp(&d(b)).then(
+                model
+                    .offset(candidates[a].vocab, c)
+                    .total_cmp(&model.offset(candidates[b].vocab, c)),
+            )
+        });
+        for i in by_distance {
+            let n = candidates[i].n;
+            if !seen.contains(&n) && !pick.iter().any(|&j| candidates[j].n == n) {
+                pick.push(i);
+            }
+            if pick.len() == need {
+                break;
+            }
+        }
+        if need > 0 && pick.len() == need {
+            let what = format!(
+                "{} sizes at {c:.3e} (no parabola there yet) around the predicted vertex N = {:.3e}",
+                need,
+                10f64.powf(centre)
+            );
+            out.push((pick, what));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::{isoflop_runs, CHINCHILLA};
+
+    fn runs(budgets: &[f64]) -> Vec<(Candidate, f64)> {
+        isoflop_runs(&CHINCHILLA, budgets, 7, 0.01, 0.0, 3)
+            .iter()
+            .enumerate()
+            .map(|(i, r)| {
+                let c = Candidate {
+                    id: format!("r{i}"),
+                    budget: r.c,
+                    n: r.n,
+                    vocab: None,
+                    cost: r.c,
+                };
+                (c, r.loss)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn more_budgets_narrow_the_posterior_around_the_law() {
+        let s = Settings::default();
+        let all = runs(&[1e18, 3e18, 1e19, 3e19, 1e20, 3e20]);
+        let obs = |k: usize| -> Vec<Observation> {
+            all[..7 * k].iter().map(|(c, l)| observed(c, *l)).collect()
+        };
+        let few = posterior(&obs(3), Target::NOpt, 1e21, &s);
+        let many = posterior(&obs(6), Target::NOpt, 1e21, &s);
+        assert!(many.width < few.width, "{few:?} vs {many:?}");
+        let truth = CHINCHILLA.n_opt(1e21).log10();
+        assert!(many.low < truth && truth < many.high, "{many:?} vs {truth}");
+        assert!(posterior(&obs(2), Target::NOpt, 1e21, &s)
+            .width
+            .is_infinite());
+    }
+
+    #[test]
+    fn a_new_budget_is_entered_with_three_sizes_around_its_predicted_vertex() {
+        let s = Settings {
+            draws: 64,
+            ..Settings::default()
+        };
+        let all = runs(&[1e18, 3e18, 1e19, 3e19]);
+        let obs: Vec<Observation> = all[..21].iter().map(|(c, l)| observed(c, *l)).collect();
+        let open: Vec<Candidate> = all[21..].iter().map(|(c, _)| c.clone()).collect();
+        let p = propose(&obs, &open, Target::NOpt, 1e21, 2, f64::INFINITY, &s);
+        assert_eq!(p[0].runs.len(), 3, "{p:?}");
+        let mut sizes: Vec<usize> = p[0].runs.clone();
+        sizes.sort();
+        // The ladder's middle three of seven (the grid is centred on the true vertex).
+        assert_eq!(sizes, [2, 3, 4], "{}", p[0].why);
+        assert!(p[0].expected_width < p[0].width_before);
+        assert_eq!(p[1].runs.len(), 1, "then single sizes on the new parabola");
+        let cheap = propose(&obs, &open, Target::NOpt, 1e21, 2, 1e19, &s);
+        assert!(cheap.is_empty(), "nothing fits in 1e19 FLOPs: {cheap:?}");
+    }
+}
