@@ -76,10 +76,17 @@ pub struct Study {
     pub replay: Option<Replay>,
 }
 
+/// The sections on the page: the planner's only when a replay was given.
+fn shown(study: &Study) -> impl Iterator<Item = (&'static str, &'static str)> + '_ {
+    SECTIONS
+        .into_iter()
+        .filter(|(id, _)| *id != "planner" || study.replay.is_some())
+}
+
 /// The whole page.
 pub fn page(study: &Study) -> Result<String> {
     let mut body = String::new();
-    for (id, title) in SECTIONS {
+    for (id, title) in shown(study) {
         let inner = match id {
             "corpus" => corpus(study),
             "tokenizers" => tokenizers(study),
@@ -96,10 +103,7 @@ pub fn page(study: &Study) -> Result<String> {
                 None => absent("fit"),
             },
             "predictions" => predictions(study),
-            _ => study
-                .replay
-                .as_ref()
-                .map_or_else(|| absent("replay folder (`sweep replay --out`)"), planner),
+            _ => study.replay.as_ref().map_or_else(String::new, planner),
         };
         let _ = writeln!(
             body,
@@ -111,8 +115,7 @@ pub fn page(study: &Study) -> Result<String> {
         .iter()
         .map(|p| format!("<code>{}</code>", esc(&p.display().to_string())))
         .collect();
-    let nav: String = SECTIONS
-        .iter()
+    let nav: String = shown(study)
         .map(|(id, title)| format!("<a href=\"#{id}\">{title}</a>"))
         .collect();
     Ok(format!(
