@@ -2,11 +2,12 @@
 //! predictions at a compute budget.
 
 use anyhow::{bail, Context, Result};
+use fits::data_value::{predict_data, Hours};
 use fits::fitted::{ColumnChoice, ColumnSpec, FitOptions};
 use fits::parametric::StartGrid;
 use fits::report::{estimate_text, sig};
-use fits::{Laws, PredictOptions, Prediction, Table};
-use std::path::PathBuf;
+use fits::{Fits, Laws, PredictOptions, Prediction, Table};
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -222,13 +223,92 @@ pub struct PredictArgs {
     /// Fixed codebook size V (N_v = V·d instead of the N_v law).
     #[arg(long)]
     pub vocab: Option<f64>,
+    /// The corpus's hours per source, `real=H,synth=H`: the data question, answered by the
+    /// fit's data-constrained law (`fit --repeated-data`) — the optimum at this budget and
+    /// these hours, and what +1 h and +10 h of each source are worth.
+    #[arg(long, value_name = "real=H,synth=H", value_parser = parse_hours, requires = "fits")]
+    pub hours: Option<Hours>,
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
 }
 
+/// `real=H,synth=H` (either may be left out: 0 hours).
+fn parse_hours(text: &str) -> Result<Hours, String> {
+    let mut h = Hours {
+        real: 0.0,
+        synth: 0.0,
+    };
+    for part in text.split(',') {
+        let (source, value) = part
+            .split_once('=')
+            .ok_or_else(|| format!("{part:?}: want real=H or synth=H"))?;
+        let value: f64 = value
+            .parse()
+            .map_err(|_| format!("{part:?}: {value:?} is not a number of hours"))?;
+        match source {
+            "real" => h.real = value,
+            "synth" => h.synth = value,
+            other => return Err(format!("{other:?}: the sources are real and synth")),
+        }
+    }
+    Ok(h)
+}
+
+/// `predict --hours`: the data question.
+fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCode> {
+    let fits: Fits =
+        serde_json::from_slice(&std::fs::read(path).with_context(|| path.display().to_string())?)
+            .with_context(|| format!("{}: not a fits.json of `motionscale fit`", path.display()))?;
+    let Some(rd) = &fits.repeated_data else {
+        bail!(
+            "{}: no data-constrained law (fit with --repeated-data on a table with an epochs column)",
+            path.display()
+        );
+    };
+    let p = predict_data(rd, args.budget, hours)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&p)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "C = {} with {} h real + {} h synthetic ({} unique tokens, vocabulary {}):",
+        sig(p.budget),
+        p.hours.real,
+        p.hours.synth,
+        sig(p.unique_tokens),
+        p.vocab.map_or("mixed".into(), |v| format!("{v:.0}"))
+    );
+    for (name, e) in [
+        ("N_opt", &p.n_opt),
+        ("D", &p.d),
+        ("epochs", &p.epochs),
+        ("loss", &p.loss),
+    ] {
+        println!("  {name:<8} {}", estimate_text(e));
+    }
+    println!("  N_v {} ; 6·(N + N_v)·D / C = {:.4}", sig(p.n_v), p.spends);
+    for v in &p.hour_values {
+        println!(
+            "  +{} h {:<5}: loss {} ; worth {}× compute",
+            v.hours,
+            v.source,
+            estimate_text(&v.loss_change),
+            estimate_text(&v.compute_equivalent)
+        );
+    }
+    for v in &p.verdicts {
+        println!("  {v}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 /// `motionscale predict`.
 pub fn predict(args: PredictArgs) -> Result<ExitCode> {
+    if let (Some(h), Some(path)) = (args.hours, &args.fits) {
+        return predict_hours(path, &args, h);
+    }
     let laws = match (&args.fits, args.preset) {
         (Some(path), _) => Laws::read(path)?,
         (None, Some(Preset::Scamo)) => Laws::scamo(),

@@ -256,3 +256,59 @@ fn fit_holds_out_a_budget_fits_both_conventions_and_says_what_it_cannot_fit() {
     );
     assert!(stdout.contains("parametric L(N, D)"), "{stdout}");
 }
+
+#[test]
+fn predict_hours_needs_a_data_constrained_law() {
+    let tmp = tempfile::tempdir().unwrap();
+    let csv = tmp.path().join("chinchilla.csv");
+    synth::write_epoch_csv(&csv, &synth::chinchilla_standin(5)).unwrap();
+    let out = tmp.path().join("fits");
+    motionscale_ok(&[
+        "fit",
+        "--results",
+        arg(&csv),
+        "--n-col",
+        "Model Size",
+        "--d-col",
+        "Training Tokens",
+        "--c-col",
+        "Training FLOP",
+        "--loss-col",
+        "loss",
+        "--bootstrap",
+        "0",
+        "--out",
+        arg(&out),
+    ]);
+    let fits = out.join("fits.json");
+    let run = motionscale(&[
+        "predict",
+        "--fits",
+        arg(&fits),
+        "--budget",
+        "1e22",
+        "--hours",
+        "real=20,synth=10",
+    ]);
+    assert_eq!(code(&run), 1, "{}", text(&run));
+    assert!(
+        text(&run).contains("no data-constrained law"),
+        "{}",
+        text(&run)
+    );
+    let bad = motionscale(&[
+        "predict",
+        "--fits",
+        arg(&fits),
+        "--budget",
+        "1e22",
+        "--hours",
+        "mocap=3",
+    ]);
+    assert_eq!(code(&bad), 1, "{}", text(&bad));
+    assert!(
+        text(&bad).contains("the sources are real and synth"),
+        "{}",
+        text(&bad)
+    );
+}

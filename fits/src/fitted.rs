@@ -416,6 +416,21 @@ pub struct RepeatedData {
     /// How to read R* (set when it is far beyond the repetitions the runs have).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub note: Option<String>,
+    /// The bootstrap refits, (E, A, B, α, β, R*, ρ) each: `predict --hours` carries them
+    /// through to its intervals.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub draws: Vec<[f64; 7]>,
+    /// The runs' unique loss positions per hour of motion (median over runs; needs the
+    /// `hours` column): turns hours into U.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tokens_per_hour: Option<f64>,
+    /// log10 N_v = c0 + c1·log10 N over the runs (one vocabulary: N_v grows with the width),
+    /// so that a predicted N spends C = 6·(N + N_v)·D.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nv_line: Option<[f64; 2]>,
+    /// The runs' vocabulary size, when they share one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vocab: Option<f64>,
 }
 
 /// One predicted quantity against the held-out runs.

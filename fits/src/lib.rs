@@ -3,6 +3,7 @@
 //! a grid of starts with bootstrap intervals (approach 3), predictions at a budget, and plots.
 
 pub mod analysis;
+pub mod data_value;
 mod error;
 mod fastmath;
 pub mod fitted;

@@ -14,6 +14,7 @@ use crate::fitted::{FitOptions, Fits, HeldOutError, LawEstimates, RepeatedData};
 use crate::isoflop;
 use crate::laws::Estimate;
 use crate::lbfgs::{minimize, Minimum};
+use crate::ols::Line;
 use crate::parametric::{self, huber, lse3, LogRuns, StartGrid};
 use crate::runs::Runs;
 use motionscale_core::rng::SplitMix64;
@@ -245,6 +246,21 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
         bootstrap: [opts.bootstrap, draws.len()],
         held_out: held_out(runs, &data, opts, &plain.theta, &best.x),
         note,
+        tokens_per_hour: runs.hours.as_ref().map(|h| {
+            let mut per: Vec<f64> = u.iter().zip(h).map(|(u, h)| u / h).collect();
+            per.sort_by(f64::total_cmp);
+            per[per.len() / 2]
+        }),
+        nv_line: runs.nv.as_ref().and_then(|nv| {
+            let lx: Vec<f64> = runs.n.iter().map(|v| v.log10()).collect();
+            let ly: Vec<f64> = nv.iter().map(|v| v.log10()).collect();
+            Line::fit(&lx, &ly).map(|l| [l.intercept, l.slope])
+        }),
+        vocab: runs
+            .v
+            .as_ref()
+            .and_then(|v| v.iter().all(|&k| k == v[0]).then(|| v[0])),
+        draws,
     })
 }
 

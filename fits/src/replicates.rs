@@ -95,6 +95,7 @@ mod tests {
             epochs: None,
             synth_share: None,
             seed: Some(vec![0.0, 1.0, 2.0, 0.0]),
+            hours: None,
             columns: BTreeMap::new(),
             notes: Vec::new(),
         };

@@ -34,6 +34,9 @@ pub struct Runs {
     pub synth_share: Option<Vec<f64>>,
     /// Training seed (runs repeated with other seeds are averaged for the minima).
     pub seed: Option<Vec<f64>>,
+    /// Hours of motion in each run's unique data (the sweep's `hours` column; `None` unless
+    /// recorded on every row): the data-constrained fit's tokens per hour.
+    pub hours: Option<Vec<f64>>,
     /// Role → column used (`None`: not used).
     pub columns: BTreeMap<String, Option<String>>,
     /// Defaults substituted or computed.
@@ -160,6 +163,12 @@ impl Runs {
         let group = optional(t, &cs.group, "--group-col")?;
         let seed = optional(t, &cs.seed, "--seed-col")?;
         let synth_share = shares(t, &cs.synth_share, &mut notes)?;
+        let hours = match t.has("hours") {
+            true => Some(t.numbers_or_nan("hours", "the sweep's `hours` column")?)
+                .filter(|h| h.iter().all(|v| v.is_finite() && *v > 0.0)),
+            false => None,
+        };
+        columns.insert("hours".into(), hours.as_ref().map(|_| "hours".into()));
         columns.insert(
             "synth_share".into(),
             synth_share.as_ref().map(|_| cs.synth_share.name.clone()),
@@ -193,6 +202,7 @@ impl Runs {
             epochs,
             synth_share,
             seed,
+            hours,
             columns,
             notes,
         })
@@ -224,6 +234,7 @@ impl Runs {
             group: pick_opt(&self.group),
             epochs: pick_opt(&self.epochs),
             synth_share: pick_opt(&self.synth_share),
+            hours: pick_opt(&self.hours),
             seed: pick_opt(&self.seed),
             columns: self.columns.clone(),
             notes: self.notes.clone(),
@@ -334,6 +345,7 @@ mod tests {
             epochs: Some(vec![2.0, 4.0]),
             synth_share: None,
             seed: None,
+            hours: None,
             columns,
             notes: Vec::new(),
         }

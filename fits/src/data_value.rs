@@ -1,0 +1,414 @@
+//! What another hour of motion is worth at a budget: the data-constrained law (Muennighoff et
+//! al. 2023, with the exchange rate of synthetic data, `repeated`) turned into the
+//! compute-optimal model for C FLOPs and H hours per source, the loss it reaches, and the
+//! marginal value of +1 h and +10 h of each source — in loss, and in the compute that would buy
+//! the same loss at today's hours. Every quantity is recomputed for each bootstrap refit, and
+//! its 95% interval is the percentile interval over them.
+
+use crate::fitted::RepeatedData;
+use crate::laws::Estimate;
+use crate::parametric::with_draws;
+use crate::repeated::effective_data;
+use serde::{Deserialize, Serialize};
+
+/// Hours of each source in the corpus.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Hours {
+    /// Captured (real) motion.
+    pub real: f64,
+    /// Synthetic motion.
+    pub synth: f64,
+}
+
+/// One law: (E, A, B, α, β, R*, ρ), with the conversions the fit recorded.
+#[derive(Debug, Clone, Copy)]
+struct Law {
+    theta: [f64; 7],
+    tokens_per_hour: f64,
+    nv_line: Option<[f64; 2]>,
+}
+
+/// The compute-optimal point of one law at (C, hours).
+#[derive(Debug, Clone, Copy)]
+struct Optimum {
+    n: f64,
+    n_v: f64,
+    d: f64,
+    loss: f64,
+}
+
+impl Law {
+    /// N_v of a model of N parameters (0 without the fit's line).
+    fn n_v(&self, n: f64) -> f64 {
+        self.nv_line
+            .map_or(0.0, |[c0, c1]| 10f64.powf(c0 + c1 * n.log10()))
+    }
+
+    fn loss(&self, n: f64, d: f64, h: Hours) -> f64 {
+        let [e, a, b, alpha, beta, r_star, rho] = self.theta;
+        let total = h.real + h.synth;
+        let u = total * self.tokens_per_hour;
+        let share = h.synth / total;
+        let k = 1.0 - share + rho * share;
+        let d_eff = effective_data(d, u, r_star.ln()).0.exp() * k;
+        e + a / n.powf(alpha) + b / d_eff.powf(beta)
+    }
+
+    /// The loss of N at budget C (D = C / (6·(N + N_v))).
+    fn at(&self, c: f64, n: f64, h: Hours) -> Optimum {
+        let n_v = self.n_v(n);
+        let d = c / (6.0 * (n + n_v));
+        Optimum {
+            n,
+            n_v,
+            d,
+            loss: self.loss(n, d, h),
+        }
+    }
+
+    /// The best N at C: a scan over log N, then golden-section refinement.
+    fn optimum(&self, c: f64, h: Hours) -> Optimum {
+        let (lo, hi) = (1.0, (c / 6.0).sqrt().log10() + 3.0);
+        let f = |x: f64| self.at(c, 10f64.powf(x), h).loss;
+        let steps = 200;
+        let at = |i: usize| lo + (hi - lo) * i as f64 / steps as f64;
+        let best = (0..=steps)
+            .min_by(|&i, &j| f(at(i)).total_cmp(&f(at(j))))
+            .unwrap_or(0);
+        let (mut a, mut b) = (at(best.saturating_sub(1)), at((best + 1).min(steps)));
+        let g = (5f64.sqrt() - 1.0) / 2.0;
+        for _ in 0..80 {
+            let (x1, x2) = (b - g * (b - a), a + g * (b - a));
+            if f(x1) < f(x2) {
+                b = x2;
+            } else {
+                a = x1;
+            }
+        }
+        self.at(c, 10f64.powf(0.5 * (a + b)), h)
+    }
+
+    /// The budget C' at which today's hours reach `loss` (∞ when no budget does).
+    fn compute_for(&self, loss: f64, c: f64, h: Hours) -> f64 {
+        let (mut lo, mut hi) = (
+            c.ln() - 3.0 * std::f64::consts::LN_10,
+            c.ln() + 12.0 * std::f64::consts::LN_10,
+        );
+        if self.optimum(hi.exp(), h).loss > loss {
+            return f64::INFINITY;
+        }
+        for _ in 0..60 {
+            let mid = 0.5 * (lo + hi);
+            match self.optimum(mid.exp(), h).loss > loss {
+                true => lo = mid,
+                false => hi = mid,
+            }
+        }
+        (0.5 * (lo + hi)).exp()
+    }
+}
+
+/// The value of more hours of one source.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HourValue {
+    /// `real` or `synth`.
+    pub source: String,
+    /// Hours added.
+    pub hours: f64,
+    /// Loss change at the budget, the model re-optimised (negative: better).
+    pub loss_change: Estimate,
+    /// C'/C: the compute that reaches the same loss at today's hours, as a multiple of C
+    /// (∞ when no budget does: the data, not the compute, limits the loss).
+    pub compute_equivalent: Estimate,
+}
+
+/// `predict --hours`: the optimum at (C, hours) and what more hours are worth.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DataPrediction {
+    /// The budget C.
+    pub budget: f64,
+    /// The corpus's hours per source.
+    pub hours: Hours,
+    /// Unique loss positions U of the corpus (hours × the fit's tokens per hour).
+    pub unique_tokens: f64,
+    /// The vocabulary every run of the fit shared (the law is for it).
+    pub vocab: Option<f64>,
+    /// Compute-optimal N (the fit's N column).
+    pub n_opt: Estimate,
+    /// N_v at N_opt.
+    pub n_v: f64,
+    /// D = C / (6·(N_opt + N_v)).
+    pub d: Estimate,
+    /// D / U.
+    pub epochs: Estimate,
+    /// The loss there (the fit's parametric loss column).
+    pub loss: Estimate,
+    /// 6·(N_opt + N_v)·D / C.
+    pub spends: f64,
+    /// +1 h and +10 h of each source.
+    pub hour_values: Vec<HourValue>,
+    /// What the intervals allow one to act on.
+    pub verdicts: Vec<String>,
+}
+
+/// The laws of `rd`: its point estimate, then its bootstrap refits.
+fn laws(rd: &RepeatedData) -> Result<Vec<Law>, String> {
+    let tokens_per_hour = rd
+        .tokens_per_hour
+        .ok_or("the data-constrained fit has no tokens per hour (refit a table with the sweep's `hours` column)")?;
+    let rho = rd.exchange.as_ref().map_or(1.0, |e| e.value);
+    let l = &rd.law;
+    let point = [
+        l.e.value,
+        l.a.value,
+        l.b.value,
+        l.alpha.value,
+        l.beta.value,
+        rd.r_star.value,
+        rho,
+    ];
+    let exchange_fitted = rd.exchange.is_some();
+    Ok(std::iter::once(point)
+        .chain(rd.draws.iter().map(|d| {
+            let mut t = *d;
+            if !exchange_fitted {
+                t[6] = 1.0;
+            }
+            t
+        }))
+        .map(|theta| Law {
+            theta,
+            tokens_per_hour,
+            nv_line: rd.nv_line,
+        })
+        .collect())
+}
+
+/// An estimate from the point law's value (first) and the refits'.
+fn estimate(values: &[f64]) -> Estimate {
+    with_draws(values[0], &values[1..])
+}
+
+/// The optimum at `budget` and `hours`, and the value of +1 h and +10 h per source.
+pub fn predict_data(
+    rd: &RepeatedData,
+    budget: f64,
+    hours: Hours,
+) -> Result<DataPrediction, String> {
+    if !(budget.is_finite() && budget > 0.0) {
+        return Err(format!(
+            "--budget {budget}: must be a positive number of FLOPs"
+        ));
+    }
+    if !(hours.real >= 0.0 && hours.synth >= 0.0 && hours.real + hours.synth > 0.0) {
+        return Err(format!(
+            "--hours real={},synth={}: need some hours, none negative",
+            hours.real, hours.synth
+        ));
+    }
+    let laws = laws(rd)?;
+    let optima: Vec<Optimum> = laws.iter().map(|l| l.optimum(budget, hours)).collect();
+    let u = (hours.real + hours.synth) * laws[0].tokens_per_hour;
+    let of = |f: fn(&Optimum) -> f64| estimate(&optima.iter().map(f).collect::<Vec<_>>());
+    let mut hour_values = Vec::new();
+    for (source, add) in [
+        (
+            "real",
+            Hours {
+                real: 1.0,
+                synth: 0.0,
+            },
+        ),
+        (
+            "synth",
+            Hours {
+                real: 0.0,
+                synth: 1.0,
+            },
+        ),
+    ] {
+        for more in [1.0, 10.0] {
+            let h = Hours {
+                real: hours.real + more * add.real,
+                synth: hours.synth + more * add.synth,
+            };
+            let (mut dl, mut ratio) = (Vec::new(), Vec::new());
+            for (law, base) in laws.iter().zip(&optima) {
+                let better = law.optimum(budget, h).loss;
+                dl.push(better - base.loss);
+                ratio.push(law.compute_for(better, budget, hours) / budget);
+            }
+            hour_values.push(HourValue {
+                source: source.into(),
+                hours: more,
+                loss_change: estimate(&dl),
+                compute_equivalent: estimate(&ratio),
+            });
+        }
+    }
+    let p = &optima[0];
+    let n_opt = of(|o| o.n);
+    Ok(DataPrediction {
+        budget,
+        hours,
+        unique_tokens: u,
+        vocab: rd.vocab,
+        verdicts: verdicts(&n_opt, &hour_values, rd.draws.len()),
+        n_opt,
+        n_v: p.n_v,
+        d: of(|o| o.d),
+        epochs: estimate(&optima.iter().map(|o| o.d / u).collect::<Vec<_>>()),
+        loss: of(|o| o.loss),
+        spends: 6.0 * (p.n + p.n_v) * p.d / budget,
+        hour_values,
+    })
+}
+
+/// Plain sentences on what the intervals allow.
+fn verdicts(n_opt: &Estimate, values: &[HourValue], draws: usize) -> Vec<String> {
+    if draws == 0 {
+        return vec![
+            "the fit kept no bootstrap refits: no intervals, nothing here is pinned".into(),
+        ];
+    }
+    let mut out = Vec::new();
+    if let (Some(lo), Some(hi)) = (n_opt.ci_low, n_opt.ci_high) {
+        let decades = (hi / lo).log10();
+        out.push(match decades > 1.0 {
+            true => format!("N_opt's 95% interval spans {decades:.1} decades: too wide to act on"),
+            false => format!("N_opt's 95% interval spans {decades:.2} decades"),
+        });
+    }
+    for v in values.iter().filter(|v| v.hours == 1.0) {
+        let (Some(lo), Some(hi)) = (v.loss_change.ci_low, v.loss_change.ci_high) else {
+            continue;
+        };
+        out.push(match lo < 0.0 && hi > 0.0 {
+            true => format!("+1 h of {} motion: the sign of its value is not resolved (its interval contains 0)", v.source),
+            false => format!("+1 h of {} motion: its value is resolved (interval [{lo:.4}, {hi:.4}])", v.source),
+        });
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fitted::LawEstimates;
+    use crate::lbfgs::Termination;
+
+    /// A fit with known parameters (E, A, B, α, β, R*, ρ) and three refits around them.
+    fn fit(theta: [f64; 7]) -> RepeatedData {
+        let jitter = |f: f64| {
+            let mut t = theta;
+            t[3] *= f;
+            t[4] *= f;
+            t
+        };
+        RepeatedData {
+            law: LawEstimates::from_fn(|k| Estimate::exact(theta[k])),
+            r_star: Estimate::exact(theta[5]),
+            exchange: Some(Estimate::exact(theta[6])),
+            n_runs: 0,
+            repeated_runs: 0,
+            max_epochs: 0.0,
+            objective: 0.0,
+            termination: Termination::Gradient,
+            bootstrap: [3, 3],
+            held_out: None,
+            note: None,
+            draws: vec![jitter(0.98), theta, jitter(1.02)],
+            tokens_per_hour: Some(36_000.0),
+            nv_line: Some([1.0, 0.5]),
+            vocab: Some(1000.0),
+        }
+    }
+
+    const THETA: [f64; 7] = [1.2, 60.0, 400.0, 0.34, 0.28, 15.0, 0.4];
+
+    #[test]
+    fn the_optimum_spends_the_budget_and_beats_its_neighbours() {
+        let rd = fit(THETA);
+        let h = Hours {
+            real: 20.0,
+            synth: 10.0,
+        };
+        let p = predict_data(&rd, 1e15, h).unwrap();
+        assert!((p.spends - 1.0).abs() < 0.05, "{}", p.spends);
+        let law = laws(&rd).unwrap()[0];
+        for f in [0.8, 1.25] {
+            assert!(law.at(1e15, p.n_opt.value * f, h).loss > p.loss.value);
+        }
+        assert!((p.unique_tokens - 30.0 * 36_000.0).abs() < 1e-6);
+        assert!((p.epochs.value - p.d.value / p.unique_tokens).abs() < 1e-9);
+        let (lo, hi) = (p.n_opt.ci_low.unwrap(), p.n_opt.ci_high.unwrap());
+        assert!(lo <= p.n_opt.value && p.n_opt.value <= hi);
+    }
+
+    #[test]
+    fn an_hour_of_real_motion_is_worth_more_than_one_of_synthetic_at_rho_below_one() {
+        let p = predict_data(
+            &fit(THETA),
+            1e15,
+            Hours {
+                real: 20.0,
+                synth: 10.0,
+            },
+        )
+        .unwrap();
+        let value = |source: &str, hours: f64| {
+            p.hour_values
+                .iter()
+                .find(|v| v.source == source && v.hours == hours)
+                .unwrap()
+                .clone()
+        };
+        let (real, synth) = (value("real", 1.0), value("synth", 1.0));
+        assert!(real.loss_change.value < synth.loss_change.value && synth.loss_change.value < 0.0);
+        assert!(value("real", 10.0).loss_change.value < real.loss_change.value);
+        // More data is worth more than 1× compute, and the real hour more than the synthetic.
+        assert!(real.compute_equivalent.value > synth.compute_equivalent.value);
+        assert!(synth.compute_equivalent.value > 1.0);
+        // The equivalent compute at today's hours reaches the same loss.
+        let law = laws(&fit(THETA)).unwrap()[0];
+        let h = Hours {
+            real: 20.0,
+            synth: 10.0,
+        };
+        let target = law
+            .optimum(
+                1e15,
+                Hours {
+                    real: 21.0,
+                    synth: 10.0,
+                },
+            )
+            .loss;
+        let c = real.compute_equivalent.value * 1e15;
+        assert!((law.optimum(c, h).loss - target).abs() < 1e-6);
+    }
+
+    #[test]
+    fn bad_budgets_and_hours_and_fits_without_hours_say_so() {
+        let rd = fit(THETA);
+        let h = Hours {
+            real: 1.0,
+            synth: 0.0,
+        };
+        assert!(predict_data(&rd, -1.0, h).unwrap_err().contains("--budget"));
+        let none = Hours {
+            real: 0.0,
+            synth: 0.0,
+        };
+        assert!(predict_data(&rd, 1e15, none)
+            .unwrap_err()
+            .contains("need some hours"));
+        let no_rate = RepeatedData {
+            tokens_per_hour: None,
+            ..rd
+        };
+        assert!(predict_data(&no_rate, 1e15, h)
+            .unwrap_err()
+            .contains("tokens per hour"));
+    }
+}
