@@ -110,6 +110,13 @@ fn fit_runs(t: &Table, runs: &Runs, opts: &FitOptions) -> Result<Fits, FitError>
         ));
         None
     };
+    let loss_shape = (interior.len() >= 3).then(|| {
+        let pts: Vec<[f64; 2]> = interior
+            .iter()
+            .filter_map(|b| Some([b.min.budget.log10(), b.min.loss_opt?]))
+            .collect();
+        crate::loss_shape::compare(&pts)
+    });
     let parametric = parametric_fit(runs, opts, &mut skipped, &mut warnings)?;
     if power_laws.is_empty() && log_law.is_none() && parametric.is_none() {
         return Err(FitError::TooFew {
@@ -155,6 +162,7 @@ fn fit_runs(t: &Table, runs: &Runs, opts: &FitOptions) -> Result<Fits, FitError>
         plots: Vec::new(),
         total_n: None,
         repeated_data: None,
+        loss_shape,
         holdout: None,
     })
 }

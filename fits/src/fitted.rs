@@ -348,6 +348,10 @@ pub struct Fits {
     /// The data-constrained parametric fit (`--repeated-data`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub repeated_data: Option<RepeatedData>,
+    /// The loss law's shape: straight, curved or with a floor, each scored by leaving each
+    /// interior minimum out (three minima or more).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss_shape: Option<crate::loss_shape::LossShape>,
     /// The held-out budget's prediction against its runs (`--holdout-budget`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub holdout: Option<Holdout>,

@@ -11,6 +11,7 @@ pub mod holdout;
 pub mod isoflop;
 pub mod laws;
 pub mod lbfgs;
+pub mod loss_shape;
 pub mod ols;
 pub mod parametric;
 pub mod planner;

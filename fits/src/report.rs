@@ -331,6 +331,25 @@ pub fn summary(f: &Fits) -> String {
             r2_text(law.fit.r2)
         );
     }
+    if let Some(shape) = &f.loss_shape {
+        for form in &shape.forms {
+            let lobo = form
+                .lobo_rms
+                .map_or("not scored (too few minima)".into(), |v| format!("{v:.4}"));
+            let params: Vec<String> = form.params.iter().map(|v| format!("{v:.4}")).collect();
+            let _ = writeln!(
+                s,
+                "loss shape {}: [{}] (x̄ = {:.3}), RMS {:.4}, leave-one-budget-out RMS {lobo}",
+                form.form,
+                params.join(", "),
+                form.centre,
+                form.rms
+            );
+        }
+        if let Some(c) = &shape.chosen {
+            let _ = writeln!(s, "loss shape chosen by leave-one-budget-out error: {c}");
+        }
+    }
     if let Some(p) = &f.parametric {
         let _ = writeln!(
             s,
