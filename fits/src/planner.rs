@@ -162,6 +162,14 @@ impl Posterior {
     pub fn capped_width(&self) -> f64 {
         self.width.min(WIDTH_CAP)
     }
+
+    /// What the planner narrows: the capped width plus [`WIDTH_CAP`] × the share of draws
+    /// without a law, so that while the interval is unbounded the runs that make the law
+    /// exist in more draws still count.
+    pub fn spread(&self) -> f64 {
+        let missing = (self.draws - self.valid) as f64 / self.draws.max(1) as f64;
+        self.capped_width() + WIDTH_CAP * missing
+    }
 }
 
 /// One budget group of the observations.
@@ -432,13 +440,18 @@ pub struct Proposal {
     pub runs: Vec<usize>,
     /// FLOPs.
     pub cost: f64,
-    /// The interval's width before it (capped at [`WIDTH_CAP`]).
+    /// The interval's spread before it ([`Posterior::spread`]).
     pub width_before: f64,
-    /// Expected width after it.
+    /// Expected spread after it.
     pub expected_width: f64,
     /// Why it was chosen.
     pub why: String,
 }
+
+/// Sizes further than this from a budget's vertex (in decades) are not proposed there: a
+/// parabola describes the loss near its minimum only, and far out its prediction — and so the
+/// value it assigns a run — is not to be trusted.
+const SIZE_WINDOW_DEX: f64 = 0.75;
 
 /// Gauss–Hermite nodes (in predictive SDs) and weights for the expectation over outcomes.
 const NODES: [(f64, f64); 3] = [
@@ -447,9 +460,9 @@ const NODES: [(f64, f64); 3] = [
     (1.732_050_807_568_877_2, 1.0 / 6.0),
 ];
 
-/// The runs that, trained in order, most reduce the target's interval per FLOP: `k` proposals
-/// from `candidates` within `max_compute` FLOPs, each chosen after the earlier ones are
-/// imagined trained at their predicted loss.
+/// The runs that, trained in order, most reduce the target's interval per FLOP: up to `k`
+/// proposals from `candidates` within `max_compute` FLOPs, each chosen after the earlier ones
+/// are imagined trained at their predicted loss; fewer when no run is expected to narrow it.
 pub fn propose(
     obs: &[Observation],
     candidates: &[Candidate],
@@ -512,7 +525,7 @@ fn best_action(
     room: f64,
     s: &Settings,
 ) -> Option<Proposal> {
-    let before = posterior_of(model, target, c_star, s).capped_width();
+    let before = posterior_of(model, target, c_star, s).spread();
     let actions: Vec<(Vec<usize>, String)> = actions(model, known, candidates, open)
         .into_iter()
         .filter(|(runs, _)| runs.iter().map(|&i| candidates[i].cost).sum::<f64>() <= room)
@@ -523,7 +536,7 @@ fn best_action(
             let after = expected_width(model, known, candidates, &runs, target, c_star, s)?;
             let cost: f64 = runs.iter().map(|&i| candidates[i].cost).sum();
             let why = format!(
-                "{what}: interval {before:.3} → {after:.3} {} expected ({:+.3} per 10^12 FLOPs)",
+                "{what}: spread (capped width + 10 × share of draws without a law) {before:.3} → {after:.3} {} expected ({:+.3} per 10^12 FLOPs)",
                 target.unit(),
                 (after - before) / cost * 1e12
             );
@@ -536,21 +549,16 @@ fn best_action(
             })
         })
         .collect();
+    // Nothing that narrows the target is worth its cost: the planner stops there.
     let rate = |p: &Proposal| (p.width_before - p.expected_width) / p.cost;
-    match scored.iter().any(|p| rate(p) > 0.0) {
-        true => scored
-            .into_iter()
-            .max_by(|a, b| rate(a).total_cmp(&rate(b))),
-        // Nothing narrows it: the least harm, the cheapest among equals.
-        false => scored.into_iter().min_by(|a, b| {
-            a.expected_width
-                .total_cmp(&b.expected_width)
-                .then(a.cost.total_cmp(&b.cost))
-        }),
-    }
+    scored
+        .into_iter()
+        .filter(|p| rate(p) > 0.0)
+        .max_by(|a, b| rate(a).total_cmp(&rate(b)))
 }
 
-/// Expected capped width after training `runs`, over their predictive outcomes.
+/// Expected spread (the capped width and the share of draws without a law) after training
+/// `runs`, over their predictive outcomes.
 fn expected_width(
     model: &Model,
     known: &[Observation],
@@ -571,7 +579,7 @@ fn expected_width(
         for (&i, (mean, sd)) in runs.iter().zip(&predicted) {
             with.push(observed(&candidates[i], mean + z * sd));
         }
-        expected += w * posterior(&with, target, c_star, s).capped_width();
+        expected += w * posterior(&with, target, c_star, s).spread();
     }
     Some(expected)
 }
@@ -589,8 +597,12 @@ fn actions(
     for group in group_rows(&budgets, None, GROUP_TOL_DEX) {
         let here: Vec<usize> = group.iter().map(|&g| open[g]).collect();
         let c = candidates[here[0]].budget;
-        if model.budget_at(c).is_some_and(|b| b.parabola.is_some()) {
-            out.extend(here.iter().map(|&i| {
+        if let Some(b) = model.budget_at(c).filter(|b| b.parabola.is_some()) {
+            let vertex = b.convex().map(|p| p.vertex());
+            let near = |i: &&usize| {
+                vertex.is_none_or(|v| (candidates[**i].n.log10() - v).abs() <= SIZE_WINDOW_DEX)
+            };
+            out.extend(here.iter().filter(near).map(|&i| {
                 let what = format!("{} on the parabola at {c:.3e}", candidates[i].id);
                 (vec![i], what)
             }));
