@@ -368,8 +368,18 @@ pub fn next_plan(args: &PlanArgs, k: usize) -> Result<IsoFlopPlan> {
     let settings = Settings::default();
     let now = planner::posterior(&obs, args.target, c_star, &settings);
     println!(
-        "planner: {} trained runs of the plan; {} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {} ({} candidates)",
-        obs.len(), args.target.name(), now.median, now.low, now.high, now.width, args.target.unit(), pool.len()
+        "planner: {} trained runs of the plan; {} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {}, {} of {} draws with a law, spread {:.3} ({} candidates)",
+        obs.len(),
+        args.target.name(),
+        now.median,
+        now.low,
+        now.high,
+        now.width,
+        args.target.unit(),
+        now.valid,
+        now.draws,
+        now.spread(),
+        pool.len()
     );
     let room = args.max_compute.unwrap_or(f64::INFINITY);
     let proposals = planner::propose(&obs, &pool, args.target, c_star, k, room, &settings);
