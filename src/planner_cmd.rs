@@ -186,16 +186,7 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
         full.high,
         full.width
     );
-    let mut curves: Vec<(&str, Vec<Vec<ReplayStep>>)> = Vec::new();
-    for &policy in &args.policy {
-        let orders = match policy {
-            Policy::Random => args.seeds,
-            _ => 1,
-        };
-        let c: Vec<Vec<ReplayStep>> = (0..orders).map(|o| table.replay(policy, o)).collect();
-        eprintln!("replay: {} done ({} curve(s))", policy.name(), c.len());
-        curves.push((policy.name(), c));
-    }
+    let curves = run_policies(&table, &args);
     let start: f64 = table.start.iter().map(|&i| table.pool[i].cost).sum();
     let levels: Vec<f64> = (0..100)
         .map(|k| start + (table.max_compute - start) * k as f64 / 99.0)
@@ -231,6 +222,32 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
     {
         chart.write(&args.out.join(stem))?;
     }
+    print_summary(&summary);
+    println!("→ {}", args.out.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Each policy's curves (one per random order for `random`).
+fn run_policies<'a>(
+    table: &ReplayTable,
+    args: &'a ReplayArgs,
+) -> Vec<(&'a str, Vec<Vec<ReplayStep>>)> {
+    args.policy
+        .iter()
+        .map(|&policy| {
+            let orders = match policy {
+                Policy::Random => args.seeds,
+                _ => 1,
+            };
+            let c: Vec<Vec<ReplayStep>> = (0..orders).map(|o| table.replay(policy, o)).collect();
+            eprintln!("replay: {} done ({} curve(s))", policy.name(), c.len());
+            (policy.name(), c)
+        })
+        .collect()
+}
+
+/// The summary table `sweep replay` prints.
+fn print_summary(summary: &replay::ReplaySummary) {
     println!(
         "{:<8} {:>6} {:>11} {:>11} {:>11} {:>16} {:>11} {:>11}",
         "policy",
@@ -266,8 +283,6 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
             100.0 * b.error
         );
     }
-    println!("→ {}", args.out.display());
-    Ok(ExitCode::SUCCESS)
 }
 
 /// The fit `--next` narrows, checked to have the target's law.
@@ -294,15 +309,15 @@ fn fit_with_law(path: &Path, target: Target) -> Result<fits::Fits> {
     Ok(fits)
 }
 
-/// `sweep plan --next K`: the base plan (--extend) extended by the K proposals.
-pub fn next_plan(args: &PlanArgs, k: usize) -> Result<IsoFlopPlan> {
-    let (Some(c_star), Some(fits_path), Some(base_path)) =
-        (args.target_budget, &args.fits, &args.extend)
-    else {
-        bail!("--next needs --target-budget, --fits and --extend");
-    };
-    let fit = fit_with_law(fits_path, args.target)?;
-    let base = IsoFlopPlan::read(base_path)?;
+/// The trained runs of `base` on the grid's data subset, as the planner sees them; the error
+/// says why they cannot support a law at C*.
+fn trained_runs(
+    args: &PlanArgs,
+    fit: &fits::Fits,
+    base: &IsoFlopPlan,
+    subset: Option<&String>,
+    c_star: f64,
+) -> Result<Vec<Observation>> {
     let results = args
         .results
         .clone()
@@ -315,18 +330,11 @@ pub fn next_plan(args: &PlanArgs, k: usize) -> Result<IsoFlopPlan> {
         .flatten()
         .unwrap_or_else(|| "norm_test_loss".into());
     let (rows, losses) = replay::read_runs(&Table::read(&results)?, &loss_col)?;
-    let mut request = args.request()?;
-    request.centring = None;
-    request.extend = None;
-    let grid = plan::plan(&request)?;
-    let in_base = |id: &str| base.points.iter().any(|p| p.run_id == id);
-    // The study's subset: the data of the grid's points (trained rows of other subsets differ).
-    let subset = grid.points.first().and_then(|p| p.data.clone());
     let obs: Vec<Observation> = (0..rows.len())
         .filter(|&i| {
             base.points
                 .iter()
-                .any(|p| p.run_id == rows[i].id && p.data == subset)
+                .any(|p| p.run_id == rows[i].id && p.data.as_ref() == subset)
         })
         .map(|i| planner::observed(&rows[i], losses[i]))
         .collect();
@@ -345,46 +353,53 @@ pub fn next_plan(args: &PlanArgs, k: usize) -> Result<IsoFlopPlan> {
             listed(&trained)
         );
     }
-    let candidates: Vec<(usize, Candidate)> = grid
-        .points
+    Ok(obs)
+}
+
+/// The grid's runnable points below C* that `base` does not have, as candidates.
+fn candidates(grid: &IsoFlopPlan, base: &IsoFlopPlan, c_star: f64) -> Vec<Candidate> {
+    grid.points
         .iter()
-        .enumerate()
-        .filter(|(_, p)| p.runnable() && !in_base(&p.run_id) && p.budget < c_star)
-        .map(|(i, p)| {
-            let v = grid.vocabulary(p.codebook).map(|v| v.codebook_size as f64);
-            (
-                i,
-                Candidate {
-                    id: p.run_id.clone(),
-                    budget: p.budget,
-                    n: p.n_nv as f64,
-                    vocab: v,
-                    cost: p.budget,
-                },
-            )
+        .filter(|p| {
+            p.runnable() && p.budget < c_star && !base.points.iter().any(|b| b.run_id == p.run_id)
         })
-        .collect();
-    let pool: Vec<Candidate> = candidates.iter().map(|(_, c)| c.clone()).collect();
+        .map(|p| Candidate {
+            id: p.run_id.clone(),
+            budget: p.budget,
+            n: p.n_nv as f64,
+            vocab: grid.vocabulary(p.codebook).map(|v| v.codebook_size as f64),
+            cost: p.budget,
+        })
+        .collect()
+}
+
+/// `sweep plan --next K`: the base plan (--extend) extended by the K proposals.
+pub fn next_plan(args: &PlanArgs, k: usize) -> Result<IsoFlopPlan> {
+    let (Some(c_star), Some(fits_path), Some(base_path)) =
+        (args.target_budget, &args.fits, &args.extend)
+    else {
+        bail!("--next needs --target-budget, --fits and --extend");
+    };
+    let fit = fit_with_law(fits_path, args.target)?;
+    let base = IsoFlopPlan::read(base_path)?;
+    let mut request = args.request()?;
+    request.centring = None;
+    request.extend = None;
+    let grid = plan::plan(&request)?;
+    // The study's subset: the data of the grid's points (trained rows of other subsets differ).
+    let subset = grid.points.first().and_then(|p| p.data.clone());
+    let obs = trained_runs(args, &fit, &base, subset.as_ref(), c_star)?;
+    let pool = candidates(&grid, &base, c_star);
     let settings = Settings::default();
     let now = planner::posterior(&obs, args.target, c_star, &settings);
     println!(
         "planner: {} trained runs of the plan; {} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {}, {} of {} draws with a law, spread {:.3} ({} candidates)",
-        obs.len(),
-        args.target.name(),
-        now.median,
-        now.low,
-        now.high,
-        now.width,
-        args.target.unit(),
-        now.valid,
-        now.draws,
-        now.spread(),
-        pool.len()
+        obs.len(), args.target.name(), now.median, now.low, now.high, now.width, args.target.unit(), now.valid, now.draws, now.spread(), pool.len()
     );
     let room = args.max_compute.unwrap_or(f64::INFINITY);
     let proposals = planner::propose(&obs, &pool, args.target, c_star, k, room, &settings);
     if proposals.is_empty() {
-        bail!("no candidate fits --max-compute or is predictable from the trained runs");
+        bail!("no candidate fits --max-compute, is predictable from the trained runs, or is expected to narrow the interval");
     }
     for (i, p) in proposals.iter().enumerate() {
         let ids: Vec<&str> = p.runs.iter().map(|&j| pool[j].id.as_str()).collect();
