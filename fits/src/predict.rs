@@ -380,8 +380,37 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
             .warnings
             .push("the loss law carries no standard errors: no interval".into());
     }
+    let wide = {
+        let p = &prediction;
+        let param = p.parametric.as_ref();
+        [
+            ("N_nv", p.n_nv.as_ref()),
+            ("N_v", p.n_v.as_ref()),
+            ("D", p.d.as_ref()),
+            ("the parametric N_opt", param.map(|q| &q.n_opt)),
+            ("the parametric D_opt", param.map(|q| &q.d_opt)),
+        ]
+        .into_iter()
+        .filter_map(|(name, e)| too_wide(name, e?))
+        .collect::<Vec<_>>()
+    };
+    prediction.warnings.extend(wide);
     prediction.consistency = checks;
     Ok(prediction)
+}
+
+/// A plain statement when `e`'s 95% interval spans more than a decade: a prediction that
+/// cannot be acted on should say so.
+fn too_wide(name: &str, e: &Estimate) -> Option<String> {
+    let (lo, hi) = (e.ci_low?, e.ci_high?);
+    let decades = if lo > 0.0 {
+        (hi / lo).log10()
+    } else {
+        f64::INFINITY
+    };
+    (decades > 1.0).then(|| {
+        format!("{name}'s 95% interval spans {decades:.1} decades ([{lo:.3e}, {hi:.3e}]): too wide to act on")
+    })
 }
 
 /// The FSQ vocabulary of the vocabulary parameters `n_v` at `width` (V = N_v / d, rounded to
@@ -581,6 +610,26 @@ pub fn parametric_at(p: &Parametric, c: f64) -> ParametricPrediction {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_interval_wider_than_a_decade_is_called_too_wide_to_act_on() {
+        let e = |lo: f64, hi: f64| Estimate {
+            value: 1.0,
+            se: None,
+            ci_low: Some(lo),
+            ci_high: Some(hi),
+        };
+        let wide = too_wide("N_nv", &e(1e4, 1e8)).unwrap();
+        assert!(
+            wide.contains("4.0 decades") && wide.contains("too wide"),
+            "{wide}"
+        );
+        assert!(too_wide("N_nv", &e(-1.0, 1e8))
+            .unwrap()
+            .contains("inf decades"));
+        assert_eq!(too_wide("N_nv", &e(1e5, 5e5)), None);
+        assert_eq!(too_wide("N_nv", &Estimate::exact(3.0)), None);
+    }
 
     #[test]
     fn fsq_sets_round_in_log2() {
