@@ -281,34 +281,17 @@ fn predict_hours_needs_a_data_constrained_law() {
         arg(&out),
     ]);
     let fits = out.join("fits.json");
-    let run = motionscale(&[
-        "predict",
-        "--fits",
-        arg(&fits),
-        "--budget",
-        "1e22",
-        "--hours",
-        "real=20,synth=10",
-    ]);
-    assert_eq!(code(&run), 1, "{}", text(&run));
-    assert!(
-        text(&run).contains("no data-constrained law"),
-        "{}",
-        text(&run)
-    );
-    let bad = motionscale(&[
-        "predict",
-        "--fits",
-        arg(&fits),
-        "--budget",
-        "1e22",
-        "--hours",
-        "mocap=3",
-    ]);
-    assert_eq!(code(&bad), 1, "{}", text(&bad));
-    assert!(
-        text(&bad).contains("the sources are real and synth"),
-        "{}",
-        text(&bad)
-    );
+    let predict = |hours: &str| {
+        motionscale(&[
+            "predict",
+            "--fits",
+            arg(&fits),
+            "--budget",
+            "1e22",
+            "--hours",
+            hours,
+        ])
+    };
+    fails_with(&predict("real=20,synth=10"), "no data-constrained law");
+    fails_with(&predict("mocap=3"), "the sources are real and synth");
 }

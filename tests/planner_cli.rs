@@ -93,30 +93,12 @@ fn planner_bad_inputs_name_what_is_missing() {
             arg(&out),
         ])
     };
-    let below = replay("1e17", &csv);
-    assert_eq!(code(&below), 1, "{}", text(&below));
-    assert!(
-        text(&below).contains("is not above the table's budgets"),
-        "{}",
-        text(&below)
-    );
-    let no_truth = replay("1e21", &csv);
-    assert_eq!(code(&no_truth), 1);
-    assert!(
-        text(&no_truth).contains("pass --truth"),
-        "{}",
-        text(&no_truth)
-    );
+    fails_with(&replay("1e17", &csv), "is not above the table's budgets");
+    fails_with(&replay("1e21", &csv), "pass --truth");
 
     let one = tmp.path().join("one.csv");
     write_table(&one, &[1e18]);
-    let single = replay("1e21", &one);
-    assert_eq!(code(&single), 1);
-    assert!(
-        text(&single).contains("1 budget(s) below"),
-        "{}",
-        text(&single)
-    );
+    fails_with(&replay("1e21", &one), "1 budget(s) below");
 
     // A fit of two budgets has no N_opt law for `--next` to narrow.
     let two = tmp.path().join("two.csv");
@@ -147,10 +129,5 @@ fn planner_bad_inputs_name_what_is_missing() {
         "--out",
         arg(&tmp.path().join("next.toml")),
     ]);
-    assert_eq!(code(&next), 1, "{}", text(&next));
-    assert!(
-        text(&next).contains("no N_opt ∝ C^b law (n_opt_vs_c)"),
-        "{}",
-        text(&next)
-    );
+    fails_with(&next, "no N_opt ∝ C^b law (n_opt_vs_c)");
 }

@@ -623,15 +623,14 @@ fn actions(
             }
         };
         let mut pick: Vec<usize> = Vec::new();
-        let mut by_distance = here.clone();
-        by_distance.sort_by(|&a, &b| {
-            let d = |i: usize| (candidates[i].n.log10() - centre).abs();
-            d(a).total_cmp(&d(b)).then(
-                model
-                    .offset(candidates[a].vocab, c)
-                    .total_cmp(&model.offset(candidates[b].vocab, c)),
-            )
-        });
+        // The vocabulary excess of each open run here, once (it is a line fit).
+        let key = |i: usize| {
+            let d = (candidates[i].n.log10() - centre).abs();
+            (d, model.offset(candidates[i].vocab, c), i)
+        };
+        let mut keyed: Vec<(f64, f64, usize)> = here.iter().map(|&i| key(i)).collect();
+        keyed.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
+        let by_distance = keyed.into_iter().map(|(_, _, i)| i);
         for i in by_distance {
             let n = candidates[i].n;
             if !seen.contains(&n) && !pick.iter().any(|&j| candidates[j].n == n) {

@@ -266,6 +266,27 @@ pub fn sig(v: f64) -> String {
     }
 }
 
+/// The loss-shape forms and the one chosen, a line each.
+fn loss_shape_lines(shape: &crate::loss_shape::LossShape, s: &mut String) {
+    for form in &shape.forms {
+        let lobo = form
+            .lobo_rms
+            .map_or("not scored (too few minima)".into(), |v| format!("{v:.4}"));
+        let params: Vec<String> = form.params.iter().map(|v| format!("{v:.4}")).collect();
+        let _ = writeln!(
+            s,
+            "loss shape {}: [{}] (x̄ = {:.3}), RMS {:.4}, leave-one-budget-out RMS {lobo}",
+            form.form,
+            params.join(", "),
+            form.centre,
+            form.rms
+        );
+    }
+    if let Some(c) = &shape.chosen {
+        let _ = writeln!(s, "loss shape chosen by leave-one-budget-out error: {c}");
+    }
+}
+
 /// A short human summary of a fit.
 pub fn summary(f: &Fits) -> String {
     let mut s = String::new();
@@ -332,23 +353,7 @@ pub fn summary(f: &Fits) -> String {
         );
     }
     if let Some(shape) = &f.loss_shape {
-        for form in &shape.forms {
-            let lobo = form
-                .lobo_rms
-                .map_or("not scored (too few minima)".into(), |v| format!("{v:.4}"));
-            let params: Vec<String> = form.params.iter().map(|v| format!("{v:.4}")).collect();
-            let _ = writeln!(
-                s,
-                "loss shape {}: [{}] (x̄ = {:.3}), RMS {:.4}, leave-one-budget-out RMS {lobo}",
-                form.form,
-                params.join(", "),
-                form.centre,
-                form.rms
-            );
-        }
-        if let Some(c) = &shape.chosen {
-            let _ = writeln!(s, "loss shape chosen by leave-one-budget-out error: {c}");
-        }
+        loss_shape_lines(shape, &mut s);
     }
     if let Some(p) = &f.parametric {
         let _ = writeln!(

@@ -41,6 +41,12 @@ pub fn code(out: &Output) -> i32 {
         .unwrap_or_else(|| panic!("killed: {}", text(out)))
 }
 
+/// Assert that a finished command exited 1 and said `needle` (stdout or stderr).
+pub fn fails_with(out: &Output, needle: &str) {
+    assert_eq!(code(out), 1, "{}", text(out));
+    assert!(text(out).contains(needle), "{}", text(out));
+}
+
 /// stdout and stderr of a command as text.
 pub fn text(out: &Output) -> String {
     format!(
