@@ -448,9 +448,10 @@ pub struct Proposal {
     pub why: String,
 }
 
-/// Sizes further than this from a budget's vertex (in decades) are not proposed there: a
-/// parabola describes the loss near its minimum only, and far out its prediction — and so the
-/// value it assigns a run — is not to be trusted.
+/// Sizes further than this from a budget's vertex (in decades; its own interior minimum, else
+/// the law's vertex there) are not proposed there: a parabola describes the loss near its
+/// minimum only, and far out its prediction — and so the value it assigns a run — is not to be
+/// trusted.
 const SIZE_WINDOW_DEX: f64 = 0.75;
 
 /// Gauss–Hermite nodes (in predictive SDs) and weights for the expectation over outcomes.
@@ -598,7 +599,12 @@ fn actions(
         let here: Vec<usize> = group.iter().map(|&g| open[g]).collect();
         let c = candidates[here[0]].budget;
         if let Some(b) = model.budget_at(c).filter(|b| b.parabola.is_some()) {
-            let vertex = b.convex().map(|p| p.vertex());
+            // Where the budget has no minimum of its own, the law's vertex stands in: a run
+            // far from it would only bend an ill-posed parabola.
+            let vertex = b.interior().map(|p| p.vertex()).or_else(|| {
+                let law = model.surrogate.as_ref().map(|s| s.vertex.at(c.log10()));
+                law.or_else(|| b.convex().map(|p| p.vertex()))
+            });
             let near = |i: &&usize| {
                 vertex.is_none_or(|v| (candidates[**i].n.log10() - v).abs() <= SIZE_WINDOW_DEX)
             };
@@ -710,5 +716,32 @@ mod tests {
         assert_eq!(p[1].runs.len(), 1, "then single sizes on the new parabola");
         let cheap = propose(&obs, &open, Target::NOpt, 1e21, 2, 1e19, &s);
         assert!(cheap.is_empty(), "nothing fits in 1e19 FLOPs: {cheap:?}");
+    }
+
+    #[test]
+    fn a_budget_without_a_minimum_is_offered_sizes_near_the_laws_vertex_only() {
+        let all = runs(&[1e18, 3e18, 1e19, 3e19]);
+        // 1e18 has three sizes around its vertex, the middle one worst: no minimum there.
+        let mut obs: Vec<Observation> = all[7..].iter().map(|(c, l)| observed(c, *l)).collect();
+        for (k, bump) in [(2, 0.0), (3, 0.05), (4, 0.0)] {
+            obs.push(observed(&all[k].0, all[k].1 + bump));
+        }
+        let far = Candidate {
+            id: "far".into(),
+            n: all[3].0.n * 1e3,
+            ..all[3].0.clone()
+        };
+        let open_runs = [all[1].0.clone(), all[5].0.clone(), far];
+        let model = Model::new(&obs, Settings::default().misfit_floor);
+        assert!(model.budget_at(1e18).unwrap().interior().is_none());
+        let offered: Vec<usize> = actions(&model, &obs, &open_runs, &[0, 1, 2])
+            .iter()
+            .flat_map(|(runs, _)| runs.clone())
+            .collect();
+        assert_eq!(
+            offered,
+            [0, 1],
+            "three decades off the law's vertex is not offered"
+        );
     }
 }
