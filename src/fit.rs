@@ -83,12 +83,18 @@ pub struct FitArgs {
     /// to set beside its IsoFLOP law.
     #[arg(long, value_name = "K")]
     pub vocab: Option<f64>,
-    /// Also fit Muennighoff et al.'s data-constrained L(N, D') (effective data
-    /// D' = U + U·R*·(1 − e^(−R/R*)), R = epochs − 1) with R* fitted, and compare it with the
-    /// plain fit by the error on each budget left out in turn. With a synthetic-share column
+    /// Also fit Muennighoff et al.'s data-constrained L(N', D') (effective data
+    /// D' = U + U·R*_D·(1 − e^(−R/R*_D)), R = epochs − 1; effective parameters N' likewise past
+    /// U_N, the size the law allots the unique data seen) with R*_D and R*_N fitted, and
+    /// compare it with the plain fit by the error on each budget left out in turn. With a synthetic-share column
     /// whose values differ, also the exchange rate ρ: the unique data counts as U·(1 − s + ρ·s).
     #[arg(long)]
     pub repeated_data: bool,
+    /// With --repeated-data: effective parameters too, N' = U_N + U_N·R*_N·(1 − e^(−R_N/R*_N))
+    /// past U_N = (αA/(βB))^(1/α)·U_D^(β/α), the size the law allots the unique tokens seen
+    /// (R_N = N/U_N − 1), with R*_N fitted (Muennighoff et al. 2023).
+    #[arg(long, requires = "repeated_data")]
+    pub effective_params: bool,
     /// Grouping tolerance in log10 C, used without a group column.
     #[arg(long, default_value_t = 0.05, value_name = "DEX")]
     pub group_tol: f64,
@@ -160,6 +166,7 @@ impl FitArgs {
             holdout_budget: self.holdout_budget,
             vocab: self.vocab,
             repeated_data: self.repeated_data,
+            effective_params: self.effective_params,
             ..FitOptions::default()
         })
     }

@@ -574,8 +574,14 @@ fn checks_of_the_law(f: &Fits) -> String {
     if let Some(r) = &f.repeated_data {
         let _ = write!(
             s,
-            "<h3>Data-constrained L(N, D')</h3><p>R* = {}, α = {}, β = {} ({} of {} runs repeat data, up to {:.1} epochs).{}{}</p>",
+            "<h3>Data-constrained L({}, D')</h3><p>R*_D = {}{}, α = {}, β = {} ({} of {} runs repeat data, up to {:.1} epochs).{}{}</p>",
+            if r.r_star_n.is_some() { "N'" } else { "N" },
             esc(&estimate_text(&r.r_star)),
+            r.r_star_n.as_ref().map_or(String::new(), |rn| format!(
+                ", R*_N = {} ({} runs larger than U_N)",
+                esc(&estimate_text(rn)),
+                r.past_base_size
+            )),
             esc(&estimate_text(&r.law.alpha)),
             esc(&estimate_text(&r.law.beta)),
             r.repeated_runs,

@@ -552,6 +552,46 @@ mod tests {
         );
     }
 
+    #[test]
+    fn data_constrained_fit_recovers_r_star_d_r_star_n_and_the_exchange_rate() {
+        let law = repetition_law();
+        // (E, A, B, α, β, R*_D, ρ, R*_N): U_N ≈ 7e-3·U_D^0.86, 1.2e4 for 2e7 unique tokens, so
+        // the larger sizes are far past it.
+        let truth = [law.e, law.a, law.b, law.alpha, law.beta, 6.0, 0.3, 5.0];
+        let mut csv =
+            String::from("budget,n_nv,tokens,test_loss,norm_test_loss,epochs,synth_share\n");
+        for (unique, share) in [(5e6, 0.0), (2e7, 0.0), (1e7, 0.5), (4e7, 0.5)] {
+            for c in [1e13, 1e14, 1e15] {
+                for k in 0..5 {
+                    let n = 10f64.powf(4.0 + 0.5 * k as f64);
+                    let d = c / (6.0 * n);
+                    let loss = repeated::loss_at(&truth, n, d, unique, share);
+                    let _ = writeln!(csv, "{c},{n},{d},{loss},{loss},{},{share}", d / unique);
+                }
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("results.csv");
+        std::fs::write(&path, csv).unwrap();
+        let opts = FitOptions {
+            repeated_data: true,
+            effective_params: true,
+            ..quick()
+        };
+        let fits = fit_table(&Table::read(&path).unwrap(), &opts).unwrap();
+        let r = fits.repeated_data.as_ref().expect("fitted");
+        let r_star_n = r.r_star_n.as_ref().expect("R*_N is fitted");
+        assert!(r.past_base_size > 20 && r.note_n.is_none(), "{r:?}");
+        for (name, got, want) in [
+            ("R*_D", r.r_star.value, 6.0),
+            ("R*_N", r_star_n.value, 5.0),
+            ("ρ", r.exchange.as_ref().unwrap().value, 0.3),
+        ] {
+            assert!((got / want - 1.0).abs() < 0.05, "{name}: {got} vs {want}");
+        }
+        assert!((r.law.alpha.value - law.alpha).abs() < 0.01, "{:?}", r.law);
+    }
+
     /// The law the data-constrained tests draw their runs from.
     fn repetition_law() -> Law {
         Law {

@@ -8,7 +8,7 @@
 use crate::fitted::RepeatedData;
 use crate::laws::Estimate;
 use crate::parametric::with_draws;
-use crate::repeated::effective_data;
+use crate::repeated::loss_at;
 use serde::{Deserialize, Serialize};
 
 /// Hours of each source in the corpus.
@@ -20,10 +20,10 @@ pub struct Hours {
     pub synth: f64,
 }
 
-/// One law: (E, A, B, α, β, R*, ρ), with the conversions the fit recorded.
+/// One law: (E, A, B, α, β, R*_D, ρ, R*_N), with the conversions the fit recorded.
 #[derive(Debug, Clone, Copy)]
 struct Law {
-    theta: [f64; 7],
+    theta: [f64; 8],
     tokens_per_hour: f64,
     nv_line: Option<[f64; 2]>,
 }
@@ -45,13 +45,14 @@ impl Law {
     }
 
     fn loss(&self, n: f64, d: f64, h: Hours) -> f64 {
-        let [e, a, b, alpha, beta, r_star, rho] = self.theta;
         let total = h.real + h.synth;
-        let u = total * self.tokens_per_hour;
-        let share = h.synth / total;
-        let k = 1.0 - share + rho * share;
-        let d_eff = effective_data(d, u, r_star.ln()).0.exp() * k;
-        e + a / n.powf(alpha) + b / d_eff.powf(beta)
+        loss_at(
+            &self.theta,
+            n,
+            d,
+            total * self.tokens_per_hour,
+            h.synth / total,
+        )
     }
 
     /// The loss of N at budget C (D = C / (6·(N + N_v))).
@@ -166,6 +167,7 @@ fn laws(rd: &RepeatedData) -> Result<Vec<Law>, String> {
         l.beta.value,
         rd.r_star.value,
         rho,
+        rd.r_star_n.as_ref().map_or(f64::INFINITY, |r| r.value),
     ];
     let exchange_fitted = rd.exchange.is_some();
     Ok(std::iter::once(point)
@@ -297,8 +299,9 @@ mod tests {
     use crate::fitted::LawEstimates;
     use crate::lbfgs::Termination;
 
-    /// A fit with known parameters (E, A, B, α, β, R*, ρ) and three refits around them.
-    fn fit(theta: [f64; 7]) -> RepeatedData {
+    /// A fit with known parameters (E, A, B, α, β, R*_D, ρ, R*_N) and three refits around
+    /// them.
+    fn fit(theta: [f64; 8]) -> RepeatedData {
         let jitter = |f: f64| {
             let mut t = theta;
             t[3] *= f;
@@ -308,6 +311,9 @@ mod tests {
         RepeatedData {
             law: LawEstimates::from_fn(|k| Estimate::exact(theta[k])),
             r_star: Estimate::exact(theta[5]),
+            r_star_n: Some(Estimate::exact(theta[7])),
+            past_base_size: 0,
+            note_n: None,
             exchange: Some(Estimate::exact(theta[6])),
             n_runs: 0,
             repeated_runs: 0,
@@ -324,7 +330,9 @@ mod tests {
         }
     }
 
-    const THETA: [f64; 7] = [1.2, 60.0, 400.0, 0.34, 0.28, 15.0, 0.4];
+    // A = βB/α: the law allocates U_N = U^(β/α) = U^0.82 parameters to U unique tokens
+    // (8.9e4 for 10^6), so that R*_N = 5 bites above 5e5.
+    const THETA: [f64; 8] = [1.2, 330.0, 400.0, 0.34, 0.28, 15.0, 0.4, 5.0];
 
     #[test]
     fn the_optimum_spends_the_budget_and_beats_its_neighbours() {
@@ -347,9 +355,11 @@ mod tests {
 
     #[test]
     fn an_hour_of_real_motion_is_worth_more_than_one_of_synthetic_at_rho_below_one() {
+        // Below the budgets where N' and D' saturate and compute stops buying loss.
+        const C: f64 = 1e14;
         let p = predict_data(
             &fit(THETA),
-            1e15,
+            C,
             Hours {
                 real: 20.0,
                 synth: 10.0,
@@ -367,7 +377,10 @@ mod tests {
         assert!(real.loss_change.value < synth.loss_change.value && synth.loss_change.value < 0.0);
         assert!(value("real", 10.0).loss_change.value < real.loss_change.value);
         // More data is worth more than 1× compute, and the real hour more than the synthetic.
-        assert!(real.compute_equivalent.value > synth.compute_equivalent.value);
+        assert!(
+            real.compute_equivalent.value > synth.compute_equivalent.value,
+            "{real:?} {synth:?}"
+        );
         assert!(synth.compute_equivalent.value > 1.0);
         // The equivalent compute at today's hours reaches the same loss.
         let law = laws(&fit(THETA)).unwrap()[0];
@@ -377,14 +390,14 @@ mod tests {
         };
         let target = law
             .optimum(
-                1e15,
+                C,
                 Hours {
                     real: 21.0,
                     synth: 10.0,
                 },
             )
             .loss;
-        let c = real.compute_equivalent.value * 1e15;
+        let c = real.compute_equivalent.value * C;
         assert!((law.optimum(c, h).loss - target).abs() < 1e-6);
     }
 

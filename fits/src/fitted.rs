@@ -120,6 +120,8 @@ pub struct FitOptions {
     pub vocab: Option<f64>,
     /// Also fit the data-constrained L(N, D') of Muennighoff et al. (needs an epochs column).
     pub repeated_data: bool,
+    /// In it, the effective parameters N' too (R*_N fitted).
+    pub effective_params: bool,
 }
 
 impl Default for FitOptions {
@@ -137,6 +139,7 @@ impl Default for FitOptions {
             holdout_budget: None,
             vocab: None,
             repeated_data: false,
+            effective_params: false,
         }
     }
 }
@@ -396,8 +399,18 @@ pub struct RepeatedData {
     /// The law's parameters.
     #[serde(flatten)]
     pub law: LawEstimates,
-    /// R*.
+    /// R*_D, the repetitions of data after which extra epochs are worth 1/e of fresh data.
     pub r_star: Estimate,
+    /// R*_N, the same for parameters past U_N, the size the law allocates to the unique data
+    /// (absent unless asked for: then no parameter is in excess).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub r_star_n: Option<Estimate>,
+    /// Runs whose N exceeds U_N at the optimum (those that identify R*_N).
+    #[serde(default)]
+    pub past_base_size: usize,
+    /// How to read R*_N (set when it is far beyond the excess the runs have).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub note_n: Option<String>,
     /// Effective captured tokens per synthetic token, ρ: the unique data counts as
     /// U·(1 − s + ρ·s) for a synthetic share s (Hernandez et al. 2021's effective data
     /// transferred, as a ratio). Fitted only when the runs' synthetic shares differ.
@@ -420,10 +433,15 @@ pub struct RepeatedData {
     /// How to read R* (set when it is far beyond the repetitions the runs have).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub note: Option<String>,
-    /// The bootstrap refits, (E, A, B, α, β, R*, ρ) each: `predict --hours` carries them
-    /// through to its intervals.
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub draws: Vec<[f64; 7]>,
+    /// The bootstrap refits, (E, A, B, α, β, R*_D, ρ, R*_N) each: `predict --hours` carries
+    /// them through to its intervals.
+    #[serde(
+        default,
+        skip_serializing_if = "Vec::is_empty",
+        serialize_with = "refits_with_r_star_n_if_fitted",
+        deserialize_with = "refits_with_r_star_n_or_without"
+    )]
+    pub draws: Vec<[f64; 8]>,
     /// The runs' unique loss positions per hour of motion (median over runs; needs the
     /// `hours` column): turns hours into U.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -469,4 +487,40 @@ pub struct Holdout {
     pub checks: Vec<HoldoutCheck>,
     /// Predictions that could not be made, and why.
     pub missing: Vec<String>,
+}
+
+/// Refits as 8 parameters, or as 7 where R*_N was not fitted (it is ∞, which JSON cannot hold).
+fn refits_with_r_star_n_if_fitted<S: serde::Serializer>(
+    draws: &[[f64; 8]],
+    s: S,
+) -> Result<S::Ok, S::Error> {
+    use serde::ser::SerializeSeq;
+    let mut seq = s.serialize_seq(Some(draws.len()))?;
+    for t in draws {
+        let kept = if t[7].is_finite() { 8 } else { 7 };
+        seq.serialize_element(&t[..kept])?;
+    }
+    seq.end()
+}
+
+/// Refits of 8 parameters, or of 7 (R*_N not fitted, read as ∞: no parameter in excess).
+fn refits_with_r_star_n_or_without<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<Vec<[f64; 8]>, D::Error> {
+    use serde::de::Error;
+    let rows: Vec<Vec<f64>> = Vec::deserialize(d)?;
+    rows.into_iter()
+        .map(|r| {
+            let mut t = [f64::INFINITY; 8];
+            match r.len() {
+                7 | 8 => {
+                    t[..r.len()].copy_from_slice(&r);
+                    Ok(t)
+                }
+                n => Err(D::Error::custom(format!(
+                    "a refit has {n} parameters; expected 8 (E, A, B, α, β, R*_D, ρ, R*_N) or 7 (before R*_N)"
+                ))),
+            }
+        })
+        .collect()
 }

@@ -5,6 +5,12 @@
 //! other five parameters (Huber on log residuals, L-BFGS, bootstrap intervals), and both this
 //! fit and the plain one are scored on each budget left out in turn.
 //!
+//! Their effective parameters too: the law's own A, B, α, β allocate
+//! U_N = (αA/(βB))^(1/α)·U_D^(β/α) parameters to the U_D = min(D, U) unique tokens seen (the
+//! compute-optimal split at D = U_D); parameters past U_N are worth less, as repeated tokens
+//! are: N' = U_N + U_N·R*_N·(1 − e^(−R_N/R*_N)) with R_N = N/U_N − 1 replaces N. U_N moves with
+//! the law's parameters, and the gradient follows it.
+//!
 //! With a second source, the exchange rate ρ (effective captured tokens per synthetic token)
 //! is fitted too: a run whose unique data is a share s synthetic counts U·k and D·k with
 //! k = 1 − s + ρ·s (each epoch passes over both sources; R is unchanged), so that
@@ -33,6 +39,8 @@ pub struct DataRuns {
     pub ln_l: Vec<f64>,
     /// Synthetic share of the unique data, s (zeros: one source).
     pub synth: Vec<f64>,
+    /// Whether parameters past U_N count as N' (R*_N is fitted), else in full.
+    pub effective_params: bool,
 }
 
 impl DataRuns {
@@ -44,6 +52,15 @@ impl DataRuns {
             u: u.to_vec(),
             ln_l: loss.iter().map(|v| v.ln()).collect(),
             synth: vec![0.0; n.len()],
+            effective_params: false,
+        }
+    }
+
+    /// The same runs with the effective parameters N' (R*_N fitted) or without.
+    pub fn with_effective_params(self, on: bool) -> Self {
+        Self {
+            effective_params: on,
+            ..self
         }
     }
 
@@ -89,18 +106,39 @@ impl DataRuns {
             u: pick(&self.u),
             ln_l: pick(&self.ln_l),
             synth: pick(&self.synth),
+            effective_params: self.effective_params,
         }
     }
 
-    /// Log-space residuals at θ = (a, b, e, α, β, ln R*, ln ρ), prediction − observation.
-    fn residuals(&self, t: &[f64; 7]) -> Vec<f64> {
+    /// Log-space residuals at θ, prediction − observation.
+    fn residuals(&self, t: &[f64; 8]) -> Vec<f64> {
         (0..self.len())
-            .map(|i| {
-                let ln_dp = effective_data(self.d[i], self.u[i], t[5]).0 + self.exchange(i, t[6]).0;
-                let terms = [t[0] - t[3] * self.ln_n[i], t[1] - t[4] * ln_dp, t[2]];
-                lse3(terms).0 - self.ln_l[i]
-            })
+            .map(|i| lse3(self.point(i, t).terms(t)).0 - self.ln_l[i])
             .collect()
+    }
+
+    /// Run `i` under the law θ.
+    fn point(&self, i: usize, t: &[f64; 8]) -> Point {
+        let (ln_k, dln_k) = self.exchange(i, t[6]);
+        let mut t = *t;
+        if !self.effective_params {
+            t[7] = f64::INFINITY;
+        }
+        Point::new(self.ln_n[i], self.d[i], self.u[i], (ln_k, dln_k), &t)
+    }
+
+    /// Runs whose N exceeds U_N under θ (those that identify R*_N).
+    fn past_base_size(&self, t: &[f64; 8]) -> usize {
+        (0..self.len())
+            .filter(|&i| self.ln_n[i] > self.point(i, t).ln_un)
+            .count()
+    }
+
+    /// The largest N/U_N − 1 of the runs under θ (0 when none exceeds U_N).
+    fn largest_excess_size(&self, t: &[f64; 8]) -> f64 {
+        (0..self.len())
+            .map(|i| (self.ln_n[i] - self.point(i, t).ln_un).exp() - 1.0)
+            .fold(0.0, f64::max)
     }
 
     /// The plain runs (D' = D).
@@ -113,60 +151,170 @@ impl DataRuns {
     }
 }
 
-/// ln D' and d(ln D')/d(ln R*) for one run.
-pub fn effective_data(d: f64, u: f64, ln_r_star: f64) -> (f64, f64) {
-    let r_star = ln_r_star.exp();
-    let r = (d / u - 1.0).max(0.0);
-    let x = r / r_star;
-    let decay = (-x).exp();
-    let dp = d.min(u) + u * r_star * (1.0 - decay);
-    let d_dp = u * r_star * ((1.0 - decay) - x * decay);
-    (dp.ln(), d_dp / dp)
+/// One run under a law θ = (ln A, ln B, ln E, α, β, ln R*_D, ln ρ, ln R*_N), the coordinates
+/// the fit moves in: its effective data and parameters, and how they move with θ.
+#[derive(Debug, Clone, Copy)]
+struct Point {
+    /// ln D' (the exchange rate applied) and d(ln D')/d(ln R*_D).
+    ln_dp: f64,
+    dp_r: f64,
+    /// d(ln k)/d(ln ρ).
+    dk_rho: f64,
+    /// ln U_N and its partials in (ln A, ln B, α, β, ln U).
+    ln_un: f64,
+    un: [f64; 5],
+    /// ln N', d(ln N')/d(ln R*_N) and d(ln N')/d(ln U_N).
+    ln_np: f64,
+    np_r: f64,
+    np_un: f64,
 }
 
-/// Σ Huber_δ of the log residuals at θ = (a, b, e, α, β, ln R*, ln ρ); writes the gradient
-/// (none for ln ρ when the runs have one source mix: it is not identified, and stays put).
-pub fn objective(runs: &DataRuns, delta: f64, theta: &[f64; 7], grad: &mut [f64; 7]) -> f64 {
-    *grad = [0.0; 7];
-    let [a, b, e, alpha, beta, r, ln_rho] = *theta;
+impl Point {
+    fn new(ln_n: f64, d: f64, u: f64, (ln_k, dk_rho): (f64, f64), t: &[f64; 8]) -> Self {
+        let (ln_dp, dp_r) = effective_data(d, u, t[5]);
+        // U_N is allotted to the unique tokens the run saw (Muennighoff et al.'s U_D).
+        let (ln_un, un) = base_size(t, d.min(u).ln() + ln_k);
+        let (ln_np, np_r, np_un) = effective_size(ln_n, ln_un, t[7]);
+        Self {
+            ln_dp: ln_dp + ln_k,
+            dp_r,
+            dk_rho,
+            ln_un,
+            un,
+            ln_np,
+            np_r,
+            np_un,
+        }
+    }
+
+    /// The three log terms of the loss: ln(A/N'^α), ln(B/D'^β), ln E.
+    fn terms(&self, t: &[f64; 8]) -> [f64; 3] {
+        [t[0] - t[3] * self.ln_np, t[1] - t[4] * self.ln_dp, t[2]]
+    }
+}
+
+/// ln U_N, the size the law θ allocates to e^ln_u unique tokens (αA/N^α = βB/U^β), with its
+/// partial derivatives in (ln A, ln B, α, β, ln U); +∞ (no parameter is in excess) where α or
+/// β is not positive.
+fn base_size(t: &[f64; 8], ln_u: f64) -> (f64, [f64; 5]) {
+    let (alpha, beta) = (t[3], t[4]);
+    if alpha <= 0.0 || beta <= 0.0 {
+        return (f64::INFINITY, [0.0; 5]);
+    }
+    let ln_un = (alpha.ln() + t[0] - beta.ln() - t[1] + beta * ln_u) / alpha;
+    let partials = [
+        1.0 / alpha,
+        -1.0 / alpha,
+        (1.0 - alpha * ln_un) / (alpha * alpha),
+        (ln_u - 1.0 / beta) / alpha,
+        beta / alpha,
+    ];
+    (ln_un, partials)
+}
+
+/// ln X' with d(ln X')/d(ln R*) and d(ln X')/d(ln U) for X of which U count in full and the
+/// rest decays with R*: X' = X up to U, else U + U·R*·(1 − e^(−(X/U − 1)/R*)). Effective
+/// data (X = D tokens, U unique) and effective parameters (X = N, U = U_N) alike.
+pub fn effective_size(ln_x: f64, ln_u: f64, ln_r_star: f64) -> (f64, f64, f64) {
+    if ln_x <= ln_u || !ln_r_star.is_finite() {
+        return (ln_x, 0.0, 0.0);
+    }
+    let (x, u, r_star) = (ln_x.exp(), ln_u.exp(), ln_r_star.exp());
+    let z = (x / u - 1.0) / r_star;
+    let decay = (-z).exp();
+    let xp = u + u * r_star * (1.0 - decay);
+    let d_r = u * r_star * ((1.0 - decay) - z * decay) / xp;
+    let d_u = u * (1.0 + r_star * (1.0 - decay) - decay * x / u) / xp;
+    (xp.ln(), d_r, d_u)
+}
+
+/// ln D' and d(ln D')/d(ln R*_D) for one run of D tokens, U of them unique.
+pub fn effective_data(d: f64, u: f64, ln_r_star: f64) -> (f64, f64) {
+    let (ln_dp, d_r, _) = effective_size(d.ln(), u.ln(), ln_r_star);
+    (ln_dp, d_r)
+}
+
+/// The law's loss at natural parameters (E, A, B, α, β, R*_D, ρ, R*_N) for N parameters
+/// trained on D tokens of U unique ones, a share `synth` of them synthetic.
+pub fn loss_at(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> f64 {
+    let t = [
+        nat[1].ln(),
+        nat[2].ln(),
+        nat[0].ln(),
+        nat[3],
+        nat[4],
+        nat[5].ln(),
+        nat[6].ln(),
+        nat[7].ln(),
+    ];
+    let k = 1.0 - synth + nat[6] * synth;
+    lse3(Point::new(n.ln(), d, u, (k.ln(), 0.0), &t).terms(&t))
+        .0
+        .exp()
+}
+
+/// Σ Huber_δ of the log residuals at θ = (ln A, ln B, ln E, α, β, ln R*_D, ln ρ, ln R*_N);
+/// writes the gradient (none for ln ρ when the runs have one source mix: it is not
+/// identified, and stays put).
+pub fn objective(runs: &DataRuns, delta: f64, theta: &[f64; 8], grad: &mut [f64; 8]) -> f64 {
+    *grad = [0.0; 8];
+    let (alpha, beta) = (theta[3], theta[4]);
     let fit_rho = runs.mixes_sources();
     let mut total = 0.0;
     for i in 0..runs.len() {
-        let (ln_dp, dln_dp) = effective_data(runs.d[i], runs.u[i], r);
-        let (ln_k, dln_k) = runs.exchange(i, ln_rho);
-        let ln_dp = ln_dp + ln_k;
-        let (lse, w) = lse3([a - alpha * runs.ln_n[i], b - beta * ln_dp, e]);
+        let p = runs.point(i, theta);
+        let (lse, w) = lse3(p.terms(theta));
         let (h, dh) = huber(lse - runs.ln_l[i], delta);
         total += h;
-        grad[0] += dh * w[0];
-        grad[1] += dh * w[1];
+        // The parameter term moves with U_N, which moves with ln A, ln B, α, β and ln U.
+        let via_un = -alpha * p.np_un * w[0];
+        grad[0] += dh * (w[0] + via_un * p.un[0]);
+        grad[1] += dh * (w[1] + via_un * p.un[1]);
         grad[2] += dh * w[2];
-        grad[3] -= dh * w[0] * runs.ln_n[i];
-        grad[4] -= dh * w[1] * ln_dp;
-        grad[5] -= dh * w[1] * beta * dln_dp;
+        grad[3] += dh * (-w[0] * p.ln_np + via_un * p.un[2]);
+        grad[4] += dh * (-w[1] * p.ln_dp + via_un * p.un[3]);
+        grad[5] -= dh * w[1] * beta * p.dp_r;
         if fit_rho {
-            grad[6] -= dh * w[1] * beta * dln_k;
+            grad[6] += dh * (-w[1] * beta + via_un * p.un[4]) * p.dk_rho;
         }
+        grad[7] -= dh * w[0] * alpha * p.np_r;
     }
     total
 }
 
-/// Starts: the plain fit's optimum and the coarse grid, each with several R* (ρ = 1).
-fn starts(plain: &[f64; 5]) -> Vec<[f64; 7]> {
-    let with_r = |t: &[f64; 5], rs: &[f64]| -> Vec<[f64; 7]> {
-        rs.iter()
-            .map(|r| [t[0], t[1], t[2], t[3], t[4], r.ln(), 0.0])
+/// Starts: the plain fit's optimum and the coarse grid, each with several R*_D, and R*_N
+/// where it is fitted (ρ = 1).
+fn starts(plain: &[f64; 5], effective_params: bool) -> Vec<[f64; 8]> {
+    let with_r = |t: &[f64; 5], rd: &[f64], rn: &[f64]| -> Vec<[f64; 8]> {
+        rd.iter()
+            .flat_map(|d| rn.iter().map(move |n| (d, n)))
+            .map(|(d, n)| [t[0], t[1], t[2], t[3], t[4], d.ln(), 0.0, n.ln()])
             .collect()
     };
-    let mut out = with_r(plain, &[0.5, 1.0, 2.0, 5.0, 15.0, 50.0, 200.0]);
+    let r_n: &[f64] = if effective_params {
+        &[5.0, 1e4]
+    } else {
+        &[1e4]
+    };
+    let mut out = with_r(plain, &[0.5, 1.0, 2.0, 5.0, 15.0, 50.0, 200.0], r_n);
     for t in StartGrid::coarse().points() {
-        out.extend(with_r(&t, &[2.0, 15.0, 100.0]));
+        out.extend(with_r(&t, &[2.0, 15.0, 100.0], &[1e4]));
     }
     out
 }
 
+/// A note where a fitted R* lies more than 100 times past the largest excess the runs have:
+/// there e^(−R/R*) ≈ 1 − R/R*, the discount vanishes and R* is not identified.
+fn unidentified(name: &str, value: f64, largest: f64, what: &str) -> Option<String> {
+    (value > 100.0 * largest).then(|| {
+        format!(
+            "{name} = {value:.3e} is more than 100 times the largest {what} ({largest:.1}): it costs nothing these runs can measure; {name} itself is not identified (no interval)"
+        )
+    })
+}
+
 /// The best end point of L-BFGS from every start (`None` if none is finite).
-fn best_of(runs: &DataRuns, opts: &FitOptions, starts: &[[f64; 7]]) -> Option<Minimum<7>> {
+fn best_of(runs: &DataRuns, opts: &FitOptions, starts: &[[f64; 8]]) -> Option<Minimum<8>> {
     let delta = opts.huber_delta;
     starts
         .par_iter()
@@ -195,13 +343,14 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
             "no run repeats data (at most {max_epochs:.2} epochs): R* cannot be fitted"
         ));
     }
-    let mut data = DataRuns::new(&runs.n, d, &u, &runs.param_loss.1);
+    let mut data = DataRuns::new(&runs.n, d, &u, &runs.param_loss.1)
+        .with_effective_params(opts.effective_params);
     if let Some(shares) = &runs.synth_share {
         data = data.with_synthetic_shares(shares);
     }
-    let best = best_of(&data, opts, &starts(&plain.theta))
+    let best = best_of(&data, opts, &starts(&plain.theta, data.effective_params))
         .ok_or("the objective is not finite at any start")?;
-    let draws: Vec<[f64; 7]> = (0..opts.bootstrap)
+    let draws: Vec<[f64; 8]> = (0..opts.bootstrap)
         .into_par_iter()
         .filter_map(|i| {
             let mut rng = SplitMix64::stream(opts.seed, i as u64);
@@ -212,31 +361,36 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
                 best.x,
                 &opts.lbfgs,
             );
-            let nat = natural(&m.x);
-            (m.f.is_finite() && nat.iter().all(|v| v.is_finite())).then_some(nat)
+            let nat = natural(&m.x, sample.effective_params);
+            let finite = nat[..7].iter().all(|v| v.is_finite()) && !nat[7].is_nan();
+            (m.f.is_finite() && finite).then_some(nat)
         })
         .collect();
-    let value = natural(&best.x);
-    // Far past the largest repetition count, e^(−R/R*) ≈ 1 − R/R* and D' ≈ D: no discount.
-    let note = (value[5] > 100.0 * (max_epochs - 1.0)).then(|| {
-        format!(
-            "R* = {:.3e} is more than 100 times the largest repetition count ({:.1}): D' ≈ D for every run, so repetition costs nothing these runs can measure; R* itself is not identified (no interval)",
-            value[5],
-            max_epochs - 1.0
-        )
+    let value = natural(&best.x, data.effective_params);
+    let note = unidentified("R*", value[5], max_epochs - 1.0, "repetition count");
+    let note_n = data.effective_params.then(|| {
+        let excess = data.largest_excess_size(&best.x);
+        unidentified("R*_N", value[7], excess, "excess of N over U_N, N/U_N − 1")
     });
     let est = |k: usize| {
         let v: Vec<f64> = draws.iter().map(|s| s[k]).collect();
         parametric::with_draws(value[k], &v)
     };
+    // Past the runs' excess the objective is flat in R*: refits from the optimum stay where
+    // they start, and their spread would be a false interval.
+    let r_star = |k: usize, note: &Option<String>| match note {
+        Some(_) => Estimate::exact(value[k]),
+        None => est(k),
+    };
     Ok(RepeatedData {
         law: LawEstimates::from_fn(est),
-        // Past the runs' repetitions the objective is flat in R*: refits from the optimum
-        // stay where they start, and their spread would be a false interval.
-        r_star: match note {
-            Some(_) => Estimate::exact(value[5]),
-            None => est(5),
+        r_star: r_star(5, &note),
+        r_star_n: note_n.as_ref().map(|n| r_star(7, n)),
+        past_base_size: match data.effective_params {
+            true => data.past_base_size(&best.x),
+            false => 0,
         },
+        note_n: note_n.flatten(),
         exchange: data.mixes_sources().then(|| est(6)),
         n_runs: data.len(),
         repeated_runs,
@@ -264,8 +418,8 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
     })
 }
 
-/// θ → (E, A, B, α, β, R*, ρ).
-fn natural(t: &[f64; 7]) -> [f64; 7] {
+/// θ → (E, A, B, α, β, R*_D, ρ, R*_N); R*_N = ∞ where it is not fitted.
+fn natural(t: &[f64; 8], effective_params: bool) -> [f64; 8] {
     [
         t[2].exp(),
         t[0].exp(),
@@ -274,6 +428,11 @@ fn natural(t: &[f64; 7]) -> [f64; 7] {
         t[4],
         t[5].exp(),
         t[6].exp(),
+        if effective_params {
+            t[7].exp()
+        } else {
+            f64::INFINITY
+        },
     ]
 }
 
@@ -284,7 +443,7 @@ fn held_out(
     data: &DataRuns,
     opts: &FitOptions,
     plain: &[f64; 5],
-    repeated: &[f64; 7],
+    repeated: &[f64; 8],
 ) -> Option<HeldOutError> {
     let groups = isoflop::group_rows(&runs.c, runs.group.as_deref(), opts.group_tol_dex);
     if groups.len() < 3 {
@@ -292,7 +451,7 @@ fn held_out(
     }
     let mut plain_starts = StartGrid::coarse().points();
     plain_starts.push(*plain);
-    let mut repeated_starts = starts(plain);
+    let mut repeated_starts = starts(plain, data.effective_params);
     repeated_starts.push(*repeated);
     let (mut sq_plain, mut sq_rep, mut count) = (0.0, 0.0, 0usize);
     for (g, left_out) in groups.iter().enumerate() {
@@ -354,21 +513,25 @@ mod tests {
             &[2e7, 1e7, 1e7, 1e7],
             &[2.1, 1.9, 2.0, 1.8],
         );
-        let runs = runs.with_synthetic_shares(&[0.0, 0.5, 0.4, 1.0]);
-        let theta = [6.0, 5.5, 0.4, 0.33, 0.27, 1.5, -0.7];
+        let runs = runs
+            .with_synthetic_shares(&[0.0, 0.5, 0.4, 1.0])
+            .with_effective_params(true);
+        // U_N of these runs is 1.6e5–5.1e5: every size but the first exceeds it.
+        let theta = [6.0, 6.4, 0.4, 0.33, 0.27, 1.5, -0.7, 1.2];
+        assert_eq!(runs.past_base_size(&theta), 3);
         // Huber with a huge δ is r²/2: the objective and the residuals agree.
         let half_sq: f64 = runs.residuals(&theta).iter().map(|r| 0.5 * r * r).sum();
-        let mut g = [0.0; 7];
+        let mut g = [0.0; 8];
         assert!((objective(&runs, f64::MAX, &theta, &mut g) - half_sq).abs() < 1e-12);
         for delta in [1e-3, 10.0] {
-            let mut g = [0.0; 7];
+            let mut g = [0.0; 8];
             objective(&runs, delta, &theta, &mut g);
-            for k in 0..7 {
+            for k in 0..8 {
                 let h = 1e-6;
                 let (mut tp, mut tm) = (theta, theta);
                 tp[k] += h;
                 tm[k] -= h;
-                let mut s = [0.0; 7];
+                let mut s = [0.0; 8];
                 let fd = (objective(&runs, delta, &tp, &mut s)
                     - objective(&runs, delta, &tm, &mut s))
                     / (2.0 * h);

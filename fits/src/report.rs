@@ -443,7 +443,8 @@ fn extras(f: &Fits, s: &mut String) {
     if let Some(r) = &f.repeated_data {
         let _ = writeln!(
             s,
-            "data-constrained L(N, D'): R* = {}, alpha {}, beta {}, E {} ({} of {} runs repeat data, up to {:.1} epochs)",
+            "data-constrained L({}, D'): R*_D = {}, alpha {}, beta {}, E {} ({} of {} runs repeat data, up to {:.1} epochs)",
+            if r.r_star_n.is_some() { "N'" } else { "N" },
             estimate_text(&r.r_star),
             estimate_text(&r.law.alpha),
             estimate_text(&r.law.beta),
@@ -452,6 +453,15 @@ fn extras(f: &Fits, s: &mut String) {
             r.n_runs,
             r.max_epochs
         );
+        if let Some(rn) = &r.r_star_n {
+            let _ = writeln!(
+                s,
+                "  effective parameters N': R*_N = {} ({} of {} runs larger than U_N, the size the law allots their unique data)",
+                estimate_text(rn),
+                r.past_base_size,
+                r.n_runs
+            );
+        }
         if let Some(rho) = &r.exchange {
             let _ = writeln!(
                 s,
@@ -459,7 +469,7 @@ fn extras(f: &Fits, s: &mut String) {
                 estimate_text(rho)
             );
         }
-        if let Some(note) = &r.note {
+        for note in r.note.iter().chain(&r.note_n) {
             let _ = writeln!(s, "  note: {note}");
         }
         if let Some(h) = &r.held_out {
