@@ -64,6 +64,13 @@ pub struct LineFit {
 }
 
 impl LineFit {
+    /// RMS of the residuals: the scatter of the points around the line, in the line's space
+    /// (decades for a power law); `None` without points.
+    pub fn scatter(&self) -> Option<f64> {
+        let n = self.residuals.len();
+        (n > 0).then(|| (self.residuals.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt())
+    }
+
     /// OLS on (x, y); `None` with fewer than two distinct x.
     pub fn fit(x: &[f64], y: &[f64]) -> Option<Self> {
         let line = Line::fit(x, y)?;

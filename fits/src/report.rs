@@ -336,11 +336,12 @@ pub fn summary(f: &Fits) -> String {
     for (key, law) in &f.power_laws {
         let _ = writeln!(
             s,
-            "{key}: {}; exponent {}, R² {}, {} points",
+            "{key}: {}; exponent {}, R² {}, {} points, scatter around the law {} decades (RMS)",
             law.equation(),
             estimate_text(&law.fit.slope),
             r2_text(law.fit.r2),
-            law.fit.n_points
+            law.fit.n_points,
+            law.fit.scatter().map_or("n/a".into(), sig)
         );
     }
     if let Some(law) = &f.log_law {
@@ -424,7 +425,11 @@ fn extras(f: &Fits, s: &mut String) {
             t.power_laws
                 .get(k)
                 .map_or(format!("{y} law not fitted"), |l| {
-                    format!("{y} ∝ C^{}", estimate_text(&l.fit.slope))
+                    let scatter = l.fit.scatter().map_or("n/a".into(), sig);
+                    format!(
+                        "{y} ∝ C^{} (scatter {scatter} decades)",
+                        estimate_text(&l.fit.slope)
+                    )
                 })
         };
         let _ = writeln!(
