@@ -297,12 +297,25 @@ fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCo
     }
     println!("  N_v {} ; 6·(N + N_v)·D / C = {:.4}", sig(p.n_v), p.spends);
     for v in &p.hour_values {
+        let e = &v.compute_equivalent;
+        let worth = if e.value.is_infinite() {
+            let refits = match (e.ci_low, e.ci_high) {
+                (Some(lo), Some(hi)) => {
+                    format!("; refits' 95% interval [{}, {}]×", sig(lo), sig(hi))
+                }
+                _ => String::new(),
+            };
+            format!(
+                "more than any compute (no budget reaches that loss with today's hours{refits})"
+            )
+        } else {
+            format!("{}× compute", estimate_text(&v.compute_equivalent))
+        };
         println!(
-            "  +{} h {:<5}: loss {} ; worth {}× compute",
+            "  +{} h {:<5}: loss {} ; worth {worth}",
             v.hours,
             v.source,
             estimate_text(&v.loss_change),
-            estimate_text(&v.compute_equivalent)
         );
     }
     for v in &p.verdicts {
