@@ -59,7 +59,9 @@ pub struct Summary {
 
 /// Create the sweep folder `runs` (made absolute) and give it `plan`: write `runs/plan.toml`,
 /// or check that the one there is the same plan, or one that `plan` extends (then `plan`
-/// replaces it: its first points are the ones already run).
+/// replaces it: its first points are the ones already run), or one that extends `plan` (then
+/// the folder keeps its own: `plan`'s points are its first ones, so a run of an older plan
+/// can go on beside one of its extension).
 pub fn adopt_plan(plan: &IsoFlopPlan, runs: &Path) -> Result<PathBuf, SweepError> {
     std::fs::create_dir_all(runs).map_err(|e| SweepError::io(runs, e))?;
     let runs = std::fs::canonicalize(runs).map_err(|e| SweepError::io(runs, e))?;
@@ -67,13 +69,14 @@ pub fn adopt_plan(plan: &IsoFlopPlan, runs: &Path) -> Result<PathBuf, SweepError
     if path.exists() {
         let adopted = IsoFlopPlan::read(&path)?;
         if adopted != *plan {
-            if !plan.extends(&adopted) {
+            if plan.extends(&adopted) {
+                plan.write(&path)?;
+            } else if !adopted.extends(plan) {
                 return Err(SweepError::invalid(
                     &path,
-                    "this sweep folder holds a different plan (not one this plan extends); use another --out",
+                    "this sweep folder holds a different plan (neither one this plan extends nor an extension of it); use another --out",
                 ));
             }
-            plan.write(&path)?;
         }
     } else {
         plan.write(&path)?;
@@ -176,7 +179,8 @@ pub fn run_local(
     } else {
         run_workers(&runs, todo, options, &mut summary, log)?;
     }
-    summary.rows = results::rebuild_tables(&runs, plan)?.len();
+    // From the folder's own plan: `plan` may be an older one that it extends.
+    summary.rows = results::rebuild_tables(&runs, &read_adopted_plan(&runs)?)?.len();
     Ok(summary)
 }
 

@@ -1150,7 +1150,13 @@ mod tests {
         crate::local::adopt_plan(&base, dir.path()).unwrap();
         crate::local::adopt_plan(&plan, dir.path()).unwrap();
         assert_eq!(crate::local::read_adopted_plan(dir.path()).unwrap(), plan);
-        let e = crate::local::adopt_plan(&base, dir.path()).unwrap_err();
+        // The base plan may still run there (its points are the extension's first ones); the
+        // folder keeps the extension.
+        crate::local::adopt_plan(&base, dir.path()).unwrap();
+        assert_eq!(crate::local::read_adopted_plan(dir.path()).unwrap(), plan);
+        let mut other = base.clone();
+        other.train.checkpoint_every += 1;
+        let e = crate::local::adopt_plan(&other, dir.path()).unwrap_err();
         assert!(e.to_string().contains("different plan"), "{e}");
     }
 

@@ -93,7 +93,8 @@ pub fn run_point(
     match train_point(plan, runs, point, device, log) {
         Ok(row) => {
             results::write_row(runs, &row)?;
-            results::rebuild_tables(runs, plan)?;
+            // From the folder's own plan: `plan` may be an older one that it extends.
+            results::rebuild_tables(runs, &crate::local::read_adopted_plan(runs)?)?;
             Ok(Outcome::Trained(row))
         }
         Err(e) => {
