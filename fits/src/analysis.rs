@@ -513,25 +513,12 @@ mod tests {
     fn data_constrained_fit_recovers_the_exchange_rate_of_synthetic_data() {
         let law = repetition_law();
         let (r_star, rho) = (6.0f64, 0.3f64);
-        // A captured-only ladder and a half-synthetic one, each at two corpus sizes.
-        let mut csv =
-            String::from("budget,n_nv,tokens,test_loss,norm_test_loss,epochs,synth_share\n");
-        for (unique, share) in [(5e6, 0.0), (2e7, 0.0), (1e7, 0.5), (4e7, 0.5)] {
-            for c in [1e13, 1e14, 1e15] {
-                for k in 0..5 {
-                    let n = 10f64.powf(4.0 + 0.5 * k as f64);
-                    let d = c / (6.0 * n);
-                    let kk = 1.0 - share + rho * share;
-                    let (ln_dp, _) = repeated::effective_data(d * kk, unique * kk, r_star.ln());
-                    let loss =
-                        law.e + law.a / n.powf(law.alpha) + law.b / ln_dp.exp().powf(law.beta);
-                    let _ = writeln!(csv, "{c},{n},{d},{loss},{loss},{},{share}", d / unique);
-                }
-            }
-        }
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("results.csv");
-        std::fs::write(&path, csv).unwrap();
+        let path = two_source_ladders(dir.path(), |n, d, unique, share| {
+            let kk = 1.0 - share + rho * share;
+            let (ln_dp, _) = repeated::effective_data(d * kk, unique * kk, r_star.ln());
+            law.e + law.a / n.powf(law.alpha) + law.b / ln_dp.exp().powf(law.beta)
+        });
         let opts = FitOptions {
             repeated_data: true,
             ..quick()
@@ -558,21 +545,10 @@ mod tests {
         // (E, A, B, α, β, R*_D, ρ, R*_N): U_N ≈ 7e-3·U_D^0.86, 1.2e4 for 2e7 unique tokens, so
         // the larger sizes are far past it.
         let truth = [law.e, law.a, law.b, law.alpha, law.beta, 6.0, 0.3, 5.0];
-        let mut csv =
-            String::from("budget,n_nv,tokens,test_loss,norm_test_loss,epochs,synth_share\n");
-        for (unique, share) in [(5e6, 0.0), (2e7, 0.0), (1e7, 0.5), (4e7, 0.5)] {
-            for c in [1e13, 1e14, 1e15] {
-                for k in 0..5 {
-                    let n = 10f64.powf(4.0 + 0.5 * k as f64);
-                    let d = c / (6.0 * n);
-                    let loss = repeated::loss_at(&truth, n, d, unique, share);
-                    let _ = writeln!(csv, "{c},{n},{d},{loss},{loss},{},{share}", d / unique);
-                }
-            }
-        }
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("results.csv");
-        std::fs::write(&path, csv).unwrap();
+        let path = two_source_ladders(dir.path(), |n, d, unique, share| {
+            repeated::loss_at(&truth, n, d, unique, share)
+        });
         let opts = FitOptions {
             repeated_data: true,
             effective_params: true,
@@ -590,6 +566,29 @@ mod tests {
             assert!((got / want - 1.0).abs() < 0.05, "{name}: {got} vs {want}");
         }
         assert!((r.law.alpha.value - law.alpha).abs() < 0.01, "{:?}", r.law);
+    }
+
+    /// A captured-only ladder and a half-synthetic one, each at two corpus sizes, 3 budgets ×
+    /// 5 sizes, with `loss(N, D, U, synthetic share)`, written to `dir/results.csv`.
+    fn two_source_ladders(
+        dir: &std::path::Path,
+        loss: impl Fn(f64, f64, f64, f64) -> f64,
+    ) -> std::path::PathBuf {
+        let mut csv =
+            String::from("budget,n_nv,tokens,test_loss,norm_test_loss,epochs,synth_share\n");
+        for (unique, share) in [(5e6, 0.0), (2e7, 0.0), (1e7, 0.5), (4e7, 0.5)] {
+            for c in [1e13, 1e14, 1e15] {
+                for k in 0..5 {
+                    let n = 10f64.powf(4.0 + 0.5 * k as f64);
+                    let d = c / (6.0 * n);
+                    let l = loss(n, d, unique, share);
+                    let _ = writeln!(csv, "{c},{n},{d},{l},{l},{},{share}", d / unique);
+                }
+            }
+        }
+        let path = dir.join("results.csv");
+        std::fs::write(&path, csv).unwrap();
+        path
     }
 
     /// The law the data-constrained tests draw their runs from.
