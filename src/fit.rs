@@ -241,7 +241,7 @@ pub struct PredictArgs {
 }
 
 /// `real=H,synth=H` (either may be left out: 0 hours).
-fn parse_hours(text: &str) -> Result<Hours, String> {
+pub(crate) fn parse_hours(text: &str) -> Result<Hours, String> {
     let mut h = Hours {
         real: 0.0,
         synth: 0.0,

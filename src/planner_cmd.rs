@@ -5,8 +5,10 @@ use crate::sweep_cmd::PlanArgs;
 use anyhow::{bail, Context, Result};
 use experiments::plan;
 use experiments::IsoFlopPlan;
+use fits::data_value::{predict_data, Hours};
+use fits::hour_design::{self, DataCandidate};
 use fits::isoflop::{self, parabola_minimum};
-use fits::planner::{self, Candidate, Observation, Settings, Target};
+use fits::planner::{self, Candidate, Goal, Observation, Settings, Target};
 use fits::replay::{self, Policy, ReplayStep, ReplayTable};
 use fits::Table;
 use std::path::{Path, PathBuf};
@@ -285,24 +287,31 @@ fn print_summary(summary: &replay::ReplaySummary) {
     }
 }
 
+/// A fits.json of `motionscale fit`.
+fn read_fits(path: &Path) -> Result<fits::Fits> {
+    serde_json::from_slice(&std::fs::read(path).with_context(|| path.display().to_string())?)
+        .with_context(|| format!("{}: not a fits.json of `motionscale fit`", path.display()))
+}
+
 /// The fit `--next` narrows, checked to have the target's law.
-fn fit_with_law(path: &Path, target: Target) -> Result<fits::Fits> {
-    let fits: fits::Fits =
-        serde_json::from_slice(&std::fs::read(path).with_context(|| path.display().to_string())?)
-            .with_context(|| format!("{}: not a fits.json of `motionscale fit`", path.display()))?;
-    let has = match target {
-        Target::NOpt => fits.power_laws.contains_key("n_opt_vs_c"),
-        Target::Loss => fits.log_law.is_some(),
+fn fit_with_law(path: &Path, goal: Goal) -> Result<fits::Fits> {
+    let fits = read_fits(path)?;
+    let (has, law) = match goal {
+        Goal::IsoFlop(Target::NOpt) => (
+            fits.power_laws.contains_key("n_opt_vs_c"),
+            "N_opt ∝ C^b law (n_opt_vs_c)",
+        ),
+        Goal::IsoFlop(Target::Loss) => (fits.log_law.is_some(), "log law of the loss at N_opt"),
+        Goal::HourValue => (
+            fits.repeated_data.is_some(),
+            "data-constrained fit (`fit --repeated-data`)",
+        ),
     };
     if !has {
-        let law = match target {
-            Target::NOpt => "N_opt ∝ C^b law (n_opt_vs_c)",
-            Target::Loss => "log law of the loss at N_opt",
-        };
         bail!(
             "{}: no {law} to narrow for --target {} (skipped: {})",
             path.display(),
-            target.name(),
+            goal.name(),
             fits.skipped.join("; ")
         );
     }
@@ -386,35 +395,138 @@ pub fn next_plan(args: &PlanArgs, k: usize) -> Result<IsoFlopPlan> {
     request.centring = None;
     request.extend = None;
     let grid = plan::plan(&request)?;
-    // The study's subset: the data of the grid's points (trained rows of other subsets differ).
-    let subset = grid.points.first().and_then(|p| p.data.clone());
-    let obs = trained_runs(args, &fit, &base, subset.as_ref(), c_star)?;
-    let pool = candidates(&grid, &base, c_star);
-    let settings = Settings::default();
-    let now = planner::posterior(&obs, args.target, c_star, &settings);
-    println!(
-        "planner: {} trained runs of the plan; {} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {}, {} of {} draws with a law, spread {:.3} ({} candidates)",
-        obs.len(), args.target.name(), now.median, now.low, now.high, now.width, args.target.unit(), now.valid, now.draws, now.spread(), pool.len()
-    );
     let room = args.max_compute.unwrap_or(f64::INFINITY);
-    let proposals = planner::propose(&obs, &pool, args.target, c_star, k, room, &settings);
+    let chosen = match args.target {
+        Goal::IsoFlop(target) => next_isoflop(args, &fit, &grid, &base, target, (c_star, k, room))?,
+        Goal::HourValue => next_hours(args, &fit, fits_path, &grid, &base, (c_star, k, room))?,
+    };
+    request.only = chosen;
+    request.extend = Some(base);
+    Ok(plan::plan(&request)?)
+}
+
+/// The proposals' run ids, printed with what each costs and buys.
+fn chosen_ids(proposals: &[planner::Proposal], ids: &[&str]) -> Result<Vec<String>> {
     if proposals.is_empty() {
         bail!("no candidate fits --max-compute, is predictable from the trained runs, or is expected to narrow the interval");
     }
     for (i, p) in proposals.iter().enumerate() {
-        let ids: Vec<&str> = p.runs.iter().map(|&j| pool[j].id.as_str()).collect();
+        let these: Vec<&str> = p.runs.iter().map(|&j| ids[j]).collect();
         println!(
             "next {}: {} ({:.3e} FLOPs): {}",
             i + 1,
-            ids.join(", "),
+            these.join(", "),
             p.cost,
             p.why
         );
     }
-    request.only = proposals
+    Ok(proposals
         .iter()
-        .flat_map(|p| p.runs.iter().map(|&j| pool[j].id.clone()))
-        .collect();
-    request.extend = Some(base);
-    Ok(plan::plan(&request)?)
+        .flat_map(|p| p.runs.iter().map(|&j| ids[j].to_string()))
+        .collect())
+}
+
+/// `--next` on N_opt or the loss at N_opt: the IsoFLOP bootstrap (`fits::planner`).
+fn next_isoflop(
+    args: &PlanArgs,
+    fit: &fits::Fits,
+    grid: &IsoFlopPlan,
+    base: &IsoFlopPlan,
+    target: Target,
+    (c_star, k, room): (f64, usize, f64),
+) -> Result<Vec<String>> {
+    // The study's subset: the data of the grid's points (trained rows of other subsets differ).
+    let subset = grid.points.first().and_then(|p| p.data.clone());
+    let obs = trained_runs(args, fit, base, subset.as_ref(), c_star)?;
+    let pool = candidates(grid, base, c_star);
+    let settings = Settings::default();
+    let now = planner::posterior(&obs, target, c_star, &settings);
+    println!(
+        "planner: {} trained runs of the plan; {} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {}, {} of {} draws with a law, spread {:.3} ({} candidates)",
+        obs.len(), target.name(), now.median, now.low, now.high, now.width, target.unit(), now.valid, now.draws, now.spread(), pool.len()
+    );
+    let proposals = planner::propose(&obs, &pool, target, c_star, k, room, &settings);
+    let ids: Vec<&str> = pool.iter().map(|c| c.id.as_str()).collect();
+    chosen_ids(&proposals, &ids)
+}
+
+/// `--next --target hour_value`: the data-constrained fit's Laplace posterior
+/// (`fits::hour_design`) over the grid's points of every data subset.
+fn next_hours(
+    args: &PlanArgs,
+    fit: &fits::Fits,
+    fits_path: &Path,
+    grid: &IsoFlopPlan,
+    base: &IsoFlopPlan,
+    (c_star, k, room): (f64, usize, f64),
+) -> Result<Vec<String>> {
+    let rd = fit
+        .repeated_data
+        .as_ref()
+        .context("checked by fit_with_law")?;
+    let n_col = fit.input.columns.get("N").cloned().flatten();
+    if n_col.as_deref() != Some("n_nv") {
+        bail!(
+            "{}: the fit's N column is {n_col:?}; --target hour_value reads the plan's N as n_nv",
+            fits_path.display()
+        );
+    }
+    let hours = match args.hours {
+        Some(h) => h,
+        None => corpus_hours(grid).context(
+            "--target hour_value: the plan has no full-data subset; pass --hours real=H,synth=H",
+        )?,
+    };
+    let pool = data_candidates(grid, base, c_star);
+    if pool.is_empty() {
+        bail!("--target hour_value: no point of the grid below {c_star:.3e} has a data subset (plan with --data-fractions)");
+    }
+    let (now, proposals) = hour_design::propose_hours(rd, &pool, c_star, hours, k, room)
+        .map_err(anyhow::Error::msg)?;
+    let refits = predict_data(rd, c_star, hours).map_err(anyhow::Error::msg)?;
+    let by_refits = &refits.hour_values[0].loss_change;
+    println!(
+        "planner: +1 h of captured motion at {c_star:.3e} with {:.2} h captured, {:.2} h synthetic: {:.4e} nats, Laplace 95% [{:.4e}, {:.4e}], width {:.3e} (the fit's refits: [{:.4e}, {:.4e}]); {} candidates",
+        hours.real, hours.synth, now.value, now.low, now.high, now.width,
+        by_refits.ci_low.unwrap_or(f64::NAN), by_refits.ci_high.unwrap_or(f64::NAN), pool.len()
+    );
+    let ids: Vec<&str> = pool.iter().map(|c| c.id.as_str()).collect();
+    chosen_ids(&proposals, &ids)
+}
+
+/// The hours per source of the plan's full data (`all` at fraction 1).
+fn corpus_hours(grid: &IsoFlopPlan) -> Option<Hours> {
+    grid.data
+        .iter()
+        .filter(|d| d.fraction == 1.0)
+        .max_by(|a, b| a.hours.total_cmp(&b.hours))
+        .map(|d| Hours {
+            real: d.hours - d.synth_hours,
+            synth: d.synth_hours,
+        })
+}
+
+/// The grid's runnable points below C* with a data subset that `base` does not have.
+fn data_candidates(grid: &IsoFlopPlan, base: &IsoFlopPlan, c_star: f64) -> Vec<DataCandidate> {
+    grid.points
+        .iter()
+        .filter(|p| {
+            p.runnable() && p.budget < c_star && !base.points.iter().any(|b| b.run_id == p.run_id)
+        })
+        .filter_map(|p| {
+            let subset = grid
+                .data
+                .iter()
+                .find(|d| Some(&d.name) == p.data.as_ref())?;
+            Some(DataCandidate {
+                id: p.run_id.clone(),
+                budget: p.budget,
+                n: p.n_nv as f64,
+                d: p.tokens as f64,
+                u: p.unique_tokens? as f64,
+                synth: subset.synth_hours / subset.hours,
+                cost: p.budget,
+            })
+        })
+        .collect()
 }

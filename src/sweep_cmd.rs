@@ -101,9 +101,14 @@ pub struct PlanArgs {
     /// With --next: the budget C* whose target is narrowed (above every trained budget).
     #[arg(long, requires = "next")]
     pub target_budget: Option<f64>,
-    /// With --next: n_opt (log10 N_opt) or loss (at N_opt).
-    #[arg(long, default_value = "n_opt", value_parser = fits::planner::Target::parse)]
-    pub target: fits::planner::Target,
+    /// With --next: n_opt (log10 N_opt), loss (at N_opt), or hour_value (the loss change of
+    /// +1 h of captured motion at --target-budget; needs a `fit --repeated-data` fit).
+    #[arg(long, default_value = "n_opt", value_parser = fits::planner::Goal::parse)]
+    pub target: fits::planner::Goal,
+    /// With --next --target hour_value: the corpus's hours per source (default: the plan's
+    /// full-data subset).
+    #[arg(long, value_name = "real=H,synth=H", value_parser = crate::fit::parse_hours, requires = "next")]
+    pub hours: Option<fits::data_value::Hours>,
     /// With --next: the most FLOPs the proposed runs may cost together.
     #[arg(long, requires = "next")]
     pub max_compute: Option<f64>,

@@ -113,21 +113,32 @@ fn planner_bad_inputs_name_what_is_missing() {
         "--out",
         arg(&fit),
     ]);
-    let next = motionscale(&[
-        "sweep",
-        "plan",
-        "--corpus",
-        arg(tmp.path()),
-        "--extend",
-        arg(&tmp.path().join("plan.toml")),
-        "--next",
-        "2",
-        "--fits",
-        arg(&fit.join("fits.json")),
-        "--target-budget",
-        "1e21",
-        "--out",
-        arg(&tmp.path().join("next.toml")),
-    ]);
-    fails_with(&next, "no N_opt ∝ C^b law (n_opt_vs_c)");
+    let (corpus, plan) = (arg(tmp.path()), tmp.path().join("plan.toml"));
+    let (fits, next) = (fit.join("fits.json"), tmp.path().join("next.toml"));
+    let next_for = |target: &str| {
+        motionscale(&[
+            "sweep",
+            "plan",
+            "--corpus",
+            corpus,
+            "--extend",
+            arg(&plan),
+            "--next",
+            "2",
+            "--target",
+            target,
+            "--fits",
+            arg(&fits),
+            "--target-budget",
+            "1e21",
+            "--out",
+            arg(&next),
+        ])
+    };
+    fails_with(&next_for("n_opt"), "no N_opt ∝ C^b law (n_opt_vs_c)");
+    // Nor a data-constrained law for the value of an hour.
+    fails_with(
+        &next_for("hour_value"),
+        "no data-constrained fit (`fit --repeated-data`)",
+    );
 }

@@ -152,25 +152,38 @@ pub struct DataPrediction {
     pub verdicts: Vec<String>,
 }
 
-/// The laws of `rd`: its point estimate, then its bootstrap refits.
-fn laws(rd: &RepeatedData) -> Result<Vec<Law>, String> {
-    let tokens_per_hour = rd
-        .tokens_per_hour
-        .ok_or("the data-constrained fit has no tokens per hour (refit a table with the sweep's `hours` column)")?;
-    let rho = rd.exchange.as_ref().map_or(1.0, |e| e.value);
+/// The fitted law of `rd`, natural parameters (E, A, B, α, β, R*_D, ρ, R*_N): ρ = 1 where it
+/// was not fitted, R*_N = ∞.
+pub fn fitted_law(rd: &RepeatedData) -> [f64; 8] {
     let l = &rd.law;
-    let point = [
+    [
         l.e.value,
         l.a.value,
         l.b.value,
         l.alpha.value,
         l.beta.value,
         rd.r_star.value,
-        rho,
+        rd.exchange.as_ref().map_or(1.0, |e| e.value),
         rd.r_star_n.as_ref().map_or(f64::INFINITY, |r| r.value),
-    ];
+    ]
+}
+
+/// The law `theta` with the fit's conversions (hours to tokens, N to N_v).
+fn law(rd: &RepeatedData, theta: [f64; 8]) -> Result<Law, String> {
+    let tokens_per_hour = rd
+        .tokens_per_hour
+        .ok_or("the data-constrained fit has no tokens per hour (refit a table with the sweep's `hours` column)")?;
+    Ok(Law {
+        theta,
+        tokens_per_hour,
+        nv_line: rd.nv_line,
+    })
+}
+
+/// The laws of `rd`: its point estimate, then its bootstrap refits.
+fn laws(rd: &RepeatedData) -> Result<Vec<Law>, String> {
     let exchange_fitted = rd.exchange.is_some();
-    Ok(std::iter::once(point)
+    std::iter::once(fitted_law(rd))
         .chain(rd.draws.iter().map(|d| {
             let mut t = *d;
             if !exchange_fitted {
@@ -178,12 +191,35 @@ fn laws(rd: &RepeatedData) -> Result<Vec<Law>, String> {
             }
             t
         }))
-        .map(|theta| Law {
-            theta,
-            tokens_per_hour,
-            nv_line: rd.nv_line,
-        })
-        .collect())
+        .map(|theta| law(rd, theta))
+        .collect()
+}
+
+/// The compute-optimal N at C with `hours` under the law `theta` (natural parameters) of `rd`.
+pub fn optimal_size(
+    rd: &RepeatedData,
+    theta: [f64; 8],
+    budget: f64,
+    hours: Hours,
+) -> Result<f64, String> {
+    Ok(law(rd, theta)?.optimum(budget, hours).n)
+}
+
+/// The loss change (negative: better) that `more` hours buy at C with `hours` today, the
+/// model re-optimised, under the law `theta` (natural parameters) of `rd`.
+pub fn hour_loss_change(
+    rd: &RepeatedData,
+    theta: [f64; 8],
+    budget: f64,
+    hours: Hours,
+    more: Hours,
+) -> Result<f64, String> {
+    let law = law(rd, theta)?;
+    let after = Hours {
+        real: hours.real + more.real,
+        synth: hours.synth + more.synth,
+    };
+    Ok(law.optimum(budget, after).loss - law.optimum(budget, hours).loss)
 }
 
 /// An estimate from the point law's value (first) and the refits'.
@@ -327,6 +363,7 @@ mod tests {
             tokens_per_hour: Some(36_000.0),
             nv_line: Some([1.0, 0.5]),
             vocab: Some(1000.0),
+            information: None,
         }
     }
 

@@ -380,6 +380,36 @@ pub struct SeedNoise {
     pub resolved_gap: Option<f64>,
 }
 
+/// The data-constrained fit's Laplace (Gauss–Newton) approximation at its optimum: what the
+/// planner's `hour_value` target narrows. The log residuals are modelled as a budget's shared
+/// misfit (variance τ²) plus each run's own (σ²), so runs of one budget inform less than
+/// independent ones would.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Information {
+    /// The coordinates of θ = (ln A, ln B, ln E, α, β, ln R*_D, ln ρ, ln R*_N) it covers: those
+    /// fitted and identified.
+    pub free: Vec<usize>,
+    /// Each budget group's runs, JᵀJ and ΣJ (J: the runs' gradients of ln L̂ over `free`).
+    pub budgets: Vec<BudgetInformation>,
+    /// Within-budget variance of the log residuals.
+    pub sigma2: f64,
+    /// Variance of the budgets' shared misfit (one-way random-effects moments, at least 0).
+    pub tau2: f64,
+}
+
+/// One budget group's share of [`Information`].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BudgetInformation {
+    /// Budget C of the group.
+    pub budget: f64,
+    /// Runs in it.
+    pub runs: usize,
+    /// JᵀJ over its runs.
+    pub jtj: Vec<Vec<f64>>,
+    /// Σ J over its runs.
+    pub sum: Vec<f64>,
+}
+
 /// Leave-one-budget-out error of the plain and the data-constrained fits, in ln L.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct HeldOutError {
@@ -453,6 +483,9 @@ pub struct RepeatedData {
     /// The runs' vocabulary size, when they share one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub vocab: Option<f64>,
+    /// The Laplace approximation at the optimum (absent in fits written before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub information: Option<Information>,
 }
 
 /// One predicted quantity against the held-out runs.

@@ -8,6 +8,7 @@ mod error;
 mod fastmath;
 pub mod fitted;
 pub mod holdout;
+pub mod hour_design;
 pub mod isoflop;
 pub mod laws;
 pub mod lbfgs;

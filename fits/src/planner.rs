@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 pub const WIDTH_CAP: f64 = 10.0;
 
 /// Budgets within this many decades are one budget group (as `fit`'s default).
-const GROUP_TOL_DEX: f64 = 0.05;
+pub const GROUP_TOL_DEX: f64 = 0.05;
 
 /// The quantity the planner narrows, both extrapolated to the target budget.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -41,7 +41,8 @@ impl Target {
             "n_opt" => Ok(Self::NOpt),
             "loss" => Ok(Self::Loss),
             "hour_value" => Err(
-                "--target hour_value: not available yet (the planner narrows n_opt or loss)".into(),
+                "--target hour_value: `sweep plan --next` only (a replay scores n_opt or loss)"
+                    .into(),
             ),
             other => Err(format!("--target {other:?}: expected n_opt or loss")),
         }
@@ -68,6 +69,36 @@ impl Target {
         match self {
             Self::NOpt => p.vertex(),
             Self::Loss => p.at(p.vertex()),
+        }
+    }
+}
+
+/// What `sweep plan --next` narrows: an IsoFLOP target, or the value of one more hour of
+/// captured motion (`hour_design`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Goal {
+    /// N_opt or the loss at N_opt (the IsoFLOP bootstrap).
+    IsoFlop(Target),
+    /// The loss change of +1 h of captured motion (the data-constrained law's Laplace posterior).
+    HourValue,
+}
+
+impl Goal {
+    /// The name `parse` reads.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::IsoFlop(t) => t.name(),
+            Self::HourValue => "hour_value",
+        }
+    }
+
+    /// Parses `n_opt`, `loss` or `hour_value`.
+    pub fn parse(name: &str) -> Result<Self, String> {
+        match name {
+            "hour_value" => Ok(Self::HourValue),
+            other => Target::parse(other)
+                .map(Self::IsoFlop)
+                .map_err(|_| format!("--target {other:?}: expected n_opt, loss or hour_value")),
         }
     }
 }
@@ -452,7 +483,7 @@ pub struct Proposal {
 /// the law's vertex there) are not proposed there: a parabola describes the loss near its
 /// minimum only, and far out its prediction — and so the value it assigns a run — is not to be
 /// trusted.
-const SIZE_WINDOW_DEX: f64 = 0.75;
+pub const SIZE_WINDOW_DEX: f64 = 0.75;
 
 /// Gauss–Hermite nodes (in predictive SDs) and weights for the expectation over outcomes.
 const NODES: [(f64, f64); 3] = [

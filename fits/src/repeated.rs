@@ -16,7 +16,9 @@
 //! k = 1 − s + ρ·s (each epoch passes over both sources; R is unchanged), so that
 //! ln D' gains ln k. It is identified only when the runs' synthetic shares differ.
 
-use crate::fitted::{FitOptions, Fits, HeldOutError, LawEstimates, RepeatedData};
+use crate::fitted::{
+    BudgetInformation, FitOptions, Fits, HeldOutError, Information, LawEstimates, RepeatedData,
+};
 use crate::isoflop;
 use crate::laws::Estimate;
 use crate::lbfgs::{minimize, Minimum};
@@ -141,6 +143,59 @@ impl DataRuns {
             .fold(0.0, f64::max)
     }
 
+    /// The Gauss–Newton information at θ over the fitted coordinates (R*_D and R*_N only
+    /// where identified: past the runs' excess their columns vanish), by budget group
+    /// (`groups`, with their budgets).
+    fn information(
+        &self,
+        t: &[f64; 8],
+        identified: [bool; 2],
+        groups: &[(f64, Vec<usize>)],
+    ) -> Information {
+        let fit_rho = self.mixes_sources();
+        let free: Vec<usize> = (0..8)
+            .filter(|&k| match k {
+                5 => identified[0],
+                6 => fit_rho,
+                7 => self.effective_params && identified[1],
+                _ => true,
+            })
+            .collect();
+        let p = free.len();
+        let mut residuals = Vec::new();
+        let budgets = groups
+            .iter()
+            .map(|(budget, rows)| {
+                let mut b = BudgetInformation {
+                    budget: *budget,
+                    runs: rows.len(),
+                    jtj: vec![vec![0.0; p]; p],
+                    sum: vec![0.0; p],
+                };
+                let mut r = Vec::new();
+                for &i in rows {
+                    let (lse, g) = self.point(i, t).log_loss(t, fit_rho);
+                    r.push(lse - self.ln_l[i]);
+                    for (a, &k) in free.iter().enumerate() {
+                        b.sum[a] += g[k];
+                        for (c, &l) in free.iter().enumerate() {
+                            b.jtj[a][c] += g[k] * g[l];
+                        }
+                    }
+                }
+                residuals.push(r);
+                b
+            })
+            .collect();
+        let (sigma2, tau2) = variance_components(&residuals, p);
+        Information {
+            free,
+            budgets,
+            sigma2,
+            tau2,
+        }
+    }
+
     /// The plain runs (D' = D).
     fn plain(&self) -> LogRuns {
         LogRuns {
@@ -191,6 +246,29 @@ impl Point {
     fn terms(&self, t: &[f64; 8]) -> [f64; 3] {
         [t[0] - t[3] * self.ln_np, t[1] - t[4] * self.ln_dp, t[2]]
     }
+
+    /// ln L̂ and its gradient in θ (zero in ln ρ unless `fit_rho`).
+    fn log_loss(&self, t: &[f64; 8], fit_rho: bool) -> (f64, [f64; 8]) {
+        let (alpha, beta) = (t[3], t[4]);
+        let (lse, w) = lse3(self.terms(t));
+        // The parameter term moves with U_N, which moves with ln A, ln B, α, β and ln U.
+        let via_un = -alpha * self.np_un * w[0];
+        let rho = match fit_rho {
+            true => (-w[1] * beta + via_un * self.un[4]) * self.dk_rho,
+            false => 0.0,
+        };
+        let grad = [
+            w[0] + via_un * self.un[0],
+            w[1] + via_un * self.un[1],
+            w[2],
+            -w[0] * self.ln_np + via_un * self.un[2],
+            -w[1] * self.ln_dp + via_un * self.un[3],
+            -w[1] * beta * self.dp_r,
+            rho,
+            -w[0] * alpha * self.np_r,
+        ];
+        (lse, grad)
+    }
 }
 
 /// ln U_N, the size the law θ allocates to e^ln_u unique tokens (αA/N^α = βB/U^β), with its
@@ -234,10 +312,35 @@ pub fn effective_data(d: f64, u: f64, ln_r_star: f64) -> (f64, f64) {
     (ln_dp, d_r)
 }
 
-/// The law's loss at natural parameters (E, A, B, α, β, R*_D, ρ, R*_N) for N parameters
-/// trained on D tokens of U unique ones, a share `synth` of them synthetic.
-pub fn loss_at(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> f64 {
-    let t = [
+/// One-way random-effects moments of residuals grouped by budget: (σ², τ²), the within-group
+/// variance (`p` fitted coordinates spent) and the variance of the groups' shared offsets
+/// (ANOVA estimator, at least 0).
+fn variance_components(groups: &[Vec<f64>], p: usize) -> (f64, f64) {
+    let n: usize = groups.iter().map(|g| g.len()).sum();
+    let k = groups.len();
+    let mean = |g: &[f64]| g.iter().sum::<f64>() / g.len().max(1) as f64;
+    let grand = groups.iter().flatten().sum::<f64>() / n.max(1) as f64;
+    let within: f64 = groups
+        .iter()
+        .map(|g| g.iter().map(|r| (r - mean(g)).powi(2)).sum::<f64>())
+        .sum();
+    let sigma2 = within / n.saturating_sub(k.max(p)).max(1) as f64;
+    if k < 2 {
+        return (sigma2, 0.0);
+    }
+    let between: f64 = groups
+        .iter()
+        .map(|g| g.len() as f64 * (mean(g) - grand).powi(2))
+        .sum::<f64>()
+        / (k - 1) as f64;
+    let n0 = (n as f64 - groups.iter().map(|g| g.len().pow(2)).sum::<usize>() as f64 / n as f64)
+        / (k - 1) as f64;
+    (sigma2, ((between - sigma2) / n0).max(0.0))
+}
+
+/// θ of natural parameters (E, A, B, α, β, R*_D, ρ, R*_N): the inverse of `natural`.
+pub fn coordinates(nat: &[f64; 8]) -> [f64; 8] {
+    [
         nat[1].ln(),
         nat[2].ln(),
         nat[0].ln(),
@@ -246,11 +349,31 @@ pub fn loss_at(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> f64 {
         nat[5].ln(),
         nat[6].ln(),
         nat[7].ln(),
-    ];
+    ]
+}
+
+/// One run under natural parameters, and θ.
+fn point_at(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> (Point, [f64; 8]) {
+    let t = coordinates(nat);
     let k = 1.0 - synth + nat[6] * synth;
-    lse3(Point::new(n.ln(), d, u, (k.ln(), 0.0), &t).terms(&t))
-        .0
-        .exp()
+    (
+        Point::new(n.ln(), d, u, (k.ln(), nat[6] * synth / k), &t),
+        t,
+    )
+}
+
+/// The law's loss at natural parameters (E, A, B, α, β, R*_D, ρ, R*_N) for N parameters
+/// trained on D tokens of U unique ones, a share `synth` of them synthetic.
+pub fn loss_at(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> f64 {
+    let (p, t) = point_at(nat, n, d, u, synth);
+    lse3(p.terms(&t)).0.exp()
+}
+
+/// The gradient of ln L̂ in θ = (ln A, ln B, ln E, α, β, ln R*_D, ln ρ, ln R*_N) for the run
+/// `loss_at` describes: one row of the Jacobian a new run would add to the fit.
+pub fn log_loss_gradient(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> [f64; 8] {
+    let (p, t) = point_at(nat, n, d, u, synth);
+    p.log_loss(&t, true).1
 }
 
 /// Σ Huber_δ of the log residuals at θ = (ln A, ln B, ln E, α, β, ln R*_D, ln ρ, ln R*_N);
@@ -258,26 +381,15 @@ pub fn loss_at(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> f64 {
 /// identified, and stays put).
 pub fn objective(runs: &DataRuns, delta: f64, theta: &[f64; 8], grad: &mut [f64; 8]) -> f64 {
     *grad = [0.0; 8];
-    let (alpha, beta) = (theta[3], theta[4]);
     let fit_rho = runs.mixes_sources();
     let mut total = 0.0;
     for i in 0..runs.len() {
-        let p = runs.point(i, theta);
-        let (lse, w) = lse3(p.terms(theta));
+        let (lse, row) = runs.point(i, theta).log_loss(theta, fit_rho);
         let (h, dh) = huber(lse - runs.ln_l[i], delta);
         total += h;
-        // The parameter term moves with U_N, which moves with ln A, ln B, α, β and ln U.
-        let via_un = -alpha * p.np_un * w[0];
-        grad[0] += dh * (w[0] + via_un * p.un[0]);
-        grad[1] += dh * (w[1] + via_un * p.un[1]);
-        grad[2] += dh * w[2];
-        grad[3] += dh * (-w[0] * p.ln_np + via_un * p.un[2]);
-        grad[4] += dh * (-w[1] * p.ln_dp + via_un * p.un[3]);
-        grad[5] -= dh * w[1] * beta * p.dp_r;
-        if fit_rho {
-            grad[6] += dh * (-w[1] * beta + via_un * p.un[4]) * p.dk_rho;
+        for (g, r) in grad.iter_mut().zip(row) {
+            *g += dh * r;
         }
-        grad[7] -= dh * w[0] * alpha * p.np_r;
     }
     total
 }
@@ -372,6 +484,13 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
         let excess = data.largest_excess_size(&best.x);
         unidentified("R*_N", value[7], excess, "excess of N over U_N, N/U_N − 1")
     });
+    let groups: Vec<(f64, Vec<usize>)> =
+        isoflop::group_rows(&runs.c, runs.group.as_deref(), opts.group_tol_dex)
+            .into_iter()
+            .map(|rows| (isoflop::group_budget(&runs.c, &rows), rows))
+            .collect();
+    let identified = [note.is_none(), !matches!(note_n, Some(Some(_)))];
+    let information = data.information(&best.x, identified, &groups);
     let est = |k: usize| {
         let v: Vec<f64> = draws.iter().map(|s| s[k]).collect();
         parametric::with_draws(value[k], &v)
@@ -399,6 +518,7 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
         termination: best.termination,
         bootstrap: [opts.bootstrap, draws.len()],
         held_out: held_out(runs, &data, opts, &plain.theta, &best.x),
+        information: Some(information),
         note,
         tokens_per_hour: runs.hours.as_ref().map(|h| {
             let mut per: Vec<f64> = u.iter().zip(h).map(|(u, h)| u / h).collect();
@@ -419,7 +539,7 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
 }
 
 /// θ → (E, A, B, α, β, R*_D, ρ, R*_N); R*_N = ∞ where it is not fitted.
-fn natural(t: &[f64; 8], effective_params: bool) -> [f64; 8] {
+pub fn natural(t: &[f64; 8], effective_params: bool) -> [f64; 8] {
     [
         t[2].exp(),
         t[0].exp(),
