@@ -365,13 +365,20 @@ fn trained_runs(
     Ok(obs)
 }
 
+/// The grid's runnable points below C* that `base` does not have.
+fn open_points<'a>(
+    grid: &'a IsoFlopPlan,
+    base: &'a IsoFlopPlan,
+    c_star: f64,
+) -> impl Iterator<Item = &'a experiments::plan::PlanPoint> {
+    grid.points.iter().filter(move |p| {
+        p.runnable() && p.budget < c_star && !base.points.iter().any(|b| b.run_id == p.run_id)
+    })
+}
+
 /// The grid's runnable points below C* that `base` does not have, as candidates.
 fn candidates(grid: &IsoFlopPlan, base: &IsoFlopPlan, c_star: f64) -> Vec<Candidate> {
-    grid.points
-        .iter()
-        .filter(|p| {
-            p.runnable() && p.budget < c_star && !base.points.iter().any(|b| b.run_id == p.run_id)
-        })
+    open_points(grid, base, c_star)
         .map(|p| Candidate {
             id: p.run_id.clone(),
             budget: p.budget,
@@ -508,11 +515,7 @@ fn corpus_hours(grid: &IsoFlopPlan) -> Option<Hours> {
 
 /// The grid's runnable points below C* with a data subset that `base` does not have.
 fn data_candidates(grid: &IsoFlopPlan, base: &IsoFlopPlan, c_star: f64) -> Vec<DataCandidate> {
-    grid.points
-        .iter()
-        .filter(|p| {
-            p.runnable() && p.budget < c_star && !base.points.iter().any(|b| b.run_id == p.run_id)
-        })
+    open_points(grid, base, c_star)
         .filter_map(|p| {
             let subset = grid
                 .data
