@@ -123,7 +123,7 @@ enum SweepCommand {
     Submit(sweep_cmd::SubmitArgs),
     /// Rebuild results.csv / results.parquet from every run's result.json.
     Collect(sweep_cmd::CollectArgs),
-    /// Replay a planning policy (active, grid, random) on a finished table: the target's
+    /// Replay a planning policy (active, grid, random, oracle) on a finished table: the target's
     /// interval and error against compute spent, on real runs only.
     Replay(planner_cmd::ReplayArgs),
 }

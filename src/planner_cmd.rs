@@ -27,7 +27,8 @@ pub struct ReplayArgs {
     /// What is extrapolated: n_opt (log10 N_opt, decades) or loss (at N_opt).
     #[arg(long, default_value = "n_opt", value_parser = Target::parse)]
     pub target: Target,
-    /// Policies to replay, comma-separated: active, grid, random.
+    /// Policies to replay, comma-separated: active, grid, random, oracle (knows every loss:
+    /// the full table's envelope runs, cheapest budget first; what the cap allows at all).
     #[arg(long, value_delimiter = ',', default_value = "active,grid,random", value_parser = Policy::parse)]
     pub policy: Vec<Policy>,
     /// Random orders to replay (their median is the random policy's curve).

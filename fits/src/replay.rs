@@ -3,6 +3,7 @@
 //! not on its own model. Every policy starts from the same runs (the cheapest budgets' grids)
 //! and stops before its compute would pass the cap.
 
+use crate::isoflop::group_rows;
 use crate::planner::{self, Candidate, Observation, Posterior, Settings, Target, WIDTH_CAP};
 use crate::table::Table;
 use crate::FitError;
@@ -10,6 +11,10 @@ use motionscale_core::rng::SplitMix64;
 use plot::{Chart, Series};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+
+/// Widths this close are the same interval: the same runs added in another order give the
+/// full table's posterior up to the order of summation (about 1e-12 apart).
+const SAME_WIDTH: f64 = 1e-9;
 
 /// How the next run is chosen.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -21,6 +26,11 @@ pub enum Policy {
     Grid,
     /// A seeded random order.
     Random,
+    /// Knows every outcome: the runs on the full table's envelope (the lowest loss at each N
+    /// of a budget), budget by budget from the cheapest, each budget's nearest its best run
+    /// first. No policy that picks runs without their losses does better; it shows what the
+    /// cap allows at all.
+    Oracle,
 }
 
 impl Policy {
@@ -30,8 +40,9 @@ impl Policy {
             "active" => Ok(Self::Active),
             "grid" => Ok(Self::Grid),
             "random" => Ok(Self::Random),
+            "oracle" => Ok(Self::Oracle),
             other => Err(format!(
-                "--policy {other:?}: expected active, grid or random"
+                "--policy {other:?}: expected active, grid, random or oracle"
             )),
         }
     }
@@ -42,6 +53,7 @@ impl Policy {
             Self::Active => "active",
             Self::Grid => "grid",
             Self::Random => "random",
+            Self::Oracle => "oracle",
         }
     }
 }
@@ -70,7 +82,7 @@ pub struct ReplayTable {
 /// One point of a policy's curve.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ReplayStep {
-    /// `active`, `grid` or `random`.
+    /// `active`, `grid`, `random` or `oracle`.
     pub policy: String,
     /// Which random order (0 for the others).
     pub order: usize,
@@ -87,6 +99,17 @@ pub struct ReplayStep {
     pub error: f64,
     /// Run ids added at this step, `;`-separated.
     pub added: String,
+}
+
+impl ReplayStep {
+    /// The error, at most [`WIDTH_CAP`]; a step without a law (no median yet) counts as the cap,
+    /// as an unbounded width does.
+    pub fn capped_error(&self) -> f64 {
+        match self.error.is_nan() {
+            true => WIDTH_CAP,
+            false => self.error.min(WIDTH_CAP),
+        }
+    }
 }
 
 impl ReplayTable {
@@ -135,6 +158,36 @@ impl ReplayTable {
         }
     }
 
+    /// The pool's envelope runs outside `chosen` in the oracle's order: budget by budget from
+    /// the cheapest, each budget's by distance in log N from its lowest-loss run.
+    fn envelope_order(&self, chosen: &[usize]) -> Vec<usize> {
+        let c: Vec<f64> = self.pool.iter().map(|r| r.budget).collect();
+        let mut order = Vec::new();
+        for rows in group_rows(&c, None, planner::GROUP_TOL_DEX) {
+            let mut best_at_n: Vec<usize> = Vec::new();
+            for &i in &rows {
+                let same_n = best_at_n
+                    .iter()
+                    .position(|&j| self.pool[j].n == self.pool[i].n);
+                match same_n {
+                    Some(k) if self.losses[i] < self.losses[best_at_n[k]] => best_at_n[k] = i,
+                    Some(_) => {}
+                    None => best_at_n.push(i),
+                }
+            }
+            let Some(&best) = best_at_n
+                .iter()
+                .min_by(|&&a, &&b| self.losses[a].total_cmp(&self.losses[b]))
+            else {
+                continue;
+            };
+            let distance = |i: usize| (self.pool[i].n / self.pool[best].n).log10().abs();
+            best_at_n.sort_by(|&a, &b| distance(a).total_cmp(&distance(b)));
+            order.extend(best_at_n.into_iter().filter(|i| !chosen.contains(i)));
+        }
+        order
+    }
+
     /// Replays `policy` (random order `order`) until its next choice would pass the cap.
     pub fn replay(&self, policy: Policy, order: usize) -> Vec<ReplayStep> {
         let mut chosen = self.start.clone();
@@ -143,8 +196,12 @@ impl ReplayTable {
         let mut queue: Vec<usize> = (0..self.pool.len())
             .filter(|i| !chosen.contains(i))
             .collect();
-        if policy == Policy::Random {
-            SplitMix64::stream(self.settings.seed, order as u64).shuffle(&mut queue);
+        match policy {
+            Policy::Random => {
+                SplitMix64::stream(self.settings.seed, order as u64).shuffle(&mut queue)
+            }
+            Policy::Oracle => queue = self.envelope_order(&chosen),
+            Policy::Active | Policy::Grid => {}
         }
         loop {
             let next: Vec<usize> = match policy {
@@ -168,7 +225,7 @@ impl ReplayTable {
                         None => break,
                     }
                 }
-                Policy::Grid | Policy::Random => match queue.first() {
+                Policy::Grid | Policy::Random | Policy::Oracle => match queue.first() {
                     Some(&i) if spent + self.pool[i].cost <= self.max_compute => vec![i],
                     _ => break,
                 },
@@ -258,7 +315,7 @@ pub struct PolicySummary {
     pub orders_reaching_full_width: usize,
     /// Mean capped width over 100 compute levels from the start to the cap (lower is better).
     pub mean_width: f64,
-    /// Mean error over the same levels.
+    /// Mean capped error over the same levels.
     pub mean_error: f64,
 }
 
@@ -270,7 +327,7 @@ pub struct AtOrBelow {
     pub policy: String,
     /// Share of levels where the active width is at or below.
     pub width: f64,
-    /// Share of levels where the active error is at or below.
+    /// Share of levels where the active (capped) error is at or below.
     pub error: f64,
 }
 
@@ -327,7 +384,7 @@ pub fn at_or_below(curves: &[(&str, Vec<Vec<ReplayStep>>)], levels: &[f64]) -> V
         .map(|(name, c)| AtOrBelow {
             policy: name.to_string(),
             width: share(c, |s| s.posterior.capped_width()),
-            error: share(c, |s| s.error),
+            error: share(c, ReplayStep::capped_error),
         })
         .collect()
 }
@@ -347,7 +404,10 @@ pub fn summarise(
     let end = |value: fn(&ReplayStep) -> f64| median_at(&ends, f64::INFINITY, value);
     let mut reach: Vec<f64> = curves
         .iter()
-        .filter_map(|c| c.iter().find(|s| s.posterior.width <= full_width))
+        .filter_map(|c| {
+            c.iter()
+                .find(|s| s.posterior.width <= full_width + SAME_WIDTH)
+        })
         .map(|s| s.compute / pool_compute)
         .collect();
     reach.sort_by(f64::total_cmp);
@@ -367,7 +427,7 @@ pub fn summarise(
         share_to_full_width: (!reach.is_empty()).then(|| reach[reach.len() / 2]),
         orders_reaching_full_width: reach.len(),
         mean_width: mean(|s| s.posterior.capped_width()),
-        mean_error: mean(|s| s.error),
+        mean_error: mean(ReplayStep::capped_error),
     }
 }
 
@@ -521,5 +581,54 @@ mod tests {
             assert!(curve.iter().all(|s| s.compute <= table.max_compute));
             assert!(curve.windows(2).all(|w| w[1].compute > w[0].compute));
         }
+    }
+
+    #[test]
+    fn oracle_takes_each_budget_envelope_nearest_its_best_run_first() {
+        let mut table = synthetic_table();
+        let n = table.pool.len();
+        for i in 0..n {
+            let worse = Candidate {
+                id: format!("{}-worse", table.pool[i].id),
+                vocab: Some(2.0),
+                ..table.pool[i].clone()
+            };
+            table.pool.push(worse);
+            table.losses.push(table.losses[i] + 0.05);
+        }
+        table.max_compute = f64::INFINITY;
+        let curve = table.replay(Policy::Oracle, 0);
+        let added: Vec<usize> = curve[1..]
+            .iter()
+            .map(|s| table.pool.iter().position(|c| c.id == s.added).unwrap())
+            .collect();
+        assert_eq!(added.len(), n - table.start.len(), "each envelope run once");
+        assert!(added.iter().all(|&i| i < n), "never a run off the envelope");
+        for pair in added.windows(2) {
+            let (a, b) = (&table.pool[pair[0]], &table.pool[pair[1]]);
+            assert!(a.budget <= b.budget, "budget by budget from the cheapest");
+            if a.budget == b.budget {
+                let best = (0..n)
+                    .filter(|&i| table.pool[i].budget == a.budget)
+                    .min_by(|&i, &j| table.losses[i].total_cmp(&table.losses[j]))
+                    .unwrap();
+                let d = |c: &Candidate| (c.n / table.pool[best].n).log10().abs();
+                assert!(d(a) <= d(b), "nearest the budget's best run first");
+            }
+        }
+        let (end, full) = (curve.last().unwrap().posterior, table.full());
+        for (a, b) in [
+            (end.low, full.low),
+            (end.median, full.median),
+            (end.high, full.high),
+        ] {
+            assert!(
+                (a - b).abs() < 1e-9,
+                "the envelope is all the posterior reads"
+            );
+        }
+        let spent = curve.last().unwrap().compute;
+        let summary = summarise("oracle", &[curve], spent, &[spent], full.width);
+        assert_eq!(summary.orders_reaching_full_width, 1);
     }
 }
