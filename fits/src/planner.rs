@@ -558,7 +558,7 @@ fn best_action(
     s: &Settings,
 ) -> Option<Proposal> {
     let before = posterior_of(model, target, c_star, s).spread();
-    let actions: Vec<(Vec<usize>, String)> = actions(model, known, candidates, open)
+    let actions: Vec<(Vec<usize>, String)> = actions(model, known, candidates, open, s)
         .into_iter()
         .filter(|(runs, _)| runs.iter().map(|&i| candidates[i].cost).sum::<f64>() <= room)
         .collect();
@@ -623,6 +623,7 @@ fn actions(
     known: &[Observation],
     candidates: &[Candidate],
     open: &[usize],
+    s: &Settings,
 ) -> Vec<(Vec<usize>, String)> {
     let mut out = Vec::new();
     let budgets: Vec<f64> = open.iter().map(|&i| candidates[i].budget).collect();
@@ -645,48 +646,89 @@ fn actions(
             }));
             continue;
         }
-        let seen: Vec<f64> = known
-            .iter()
-            .filter(|o| (o.budget.log10() - c.log10()).abs() <= GROUP_TOL_DEX)
-            .map(|o| o.n)
-            .collect();
-        let need = 3usize.saturating_sub(distinct(&seen));
-        let centre = match &model.surrogate {
-            Some(s) => s.vertex.at(c.log10()),
-            None => {
-                let mut lx: Vec<f64> = here.iter().map(|&i| candidates[i].n.log10()).collect();
-                lx.sort_by(f64::total_cmp);
-                lx[lx.len() / 2]
-            }
-        };
-        let mut pick: Vec<usize> = Vec::new();
-        // The vocabulary excess of each open run here, once (it is a line fit).
-        let key = |i: usize| {
-            let d = (candidates[i].n.log10() - centre).abs();
-            (d, model.offset(candidates[i].vocab, c), i)
-        };
-        let mut keyed: Vec<(f64, f64, usize)> = here.iter().map(|&i| key(i)).collect();
-        keyed.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.total_cmp(&b.1)));
-        let by_distance = keyed.into_iter().map(|(_, _, i)| i);
-        for i in by_distance {
-            let n = candidates[i].n;
-            if !seen.contains(&n) && !pick.iter().any(|&j| candidates[j].n == n) {
-                pick.push(i);
-            }
-            if pick.len() == need {
-                break;
-            }
-        }
-        if need > 0 && pick.len() == need {
-            let what = format!(
-                "{} sizes at {c:.3e} (no parabola there yet) around the predicted vertex N = {:.3e}",
-                need,
-                10f64.powf(centre)
-            );
-            out.push((pick, what));
-        }
+        out.extend(entry_sizes(model, known, candidates, &here, s));
     }
     out
+}
+
+/// The sizes that give budget `here` (open candidates of one budget without a parabola) its
+/// first parabola. With no size there yet, they straddle the predicted vertex's 95% interval
+/// at that budget (its 2.5%, 50% and 97.5% points, at most `SIZE_WINDOW_DEX` from the median):
+/// three sizes around the median alone did not bracket the vertex when the prediction was off.
+/// Otherwise, and while the interval is unbounded, the sizes nearest the law's vertex.
+fn entry_sizes(
+    model: &Model,
+    known: &[Observation],
+    candidates: &[Candidate],
+    here: &[usize],
+    s: &Settings,
+) -> Option<(Vec<usize>, String)> {
+    let c = candidates[here[0]].budget;
+    let seen: Vec<f64> = known
+        .iter()
+        .filter(|o| (o.budget.log10() - c.log10()).abs() <= GROUP_TOL_DEX)
+        .map(|o| o.n)
+        .collect();
+    let need = 3usize.saturating_sub(distinct(&seen));
+    let centre = match &model.surrogate {
+        Some(law) => law.vertex.at(c.log10()),
+        None => {
+            let mut lx: Vec<f64> = here.iter().map(|&i| candidates[i].n.log10()).collect();
+            lx.sort_by(f64::total_cmp);
+            lx[lx.len() / 2]
+        }
+    };
+    let vertex = posterior_of(model, Target::NOpt, c, s);
+    let bounded = vertex.low.is_finite() && vertex.high.is_finite();
+    let (aims, around) = match need == 3 && bounded && model.surrogate.is_some() {
+        true => {
+            let near = |v: f64| {
+                v.clamp(
+                    vertex.median - SIZE_WINDOW_DEX,
+                    vertex.median + SIZE_WINDOW_DEX,
+                )
+            };
+            let aims = vec![vertex.median, near(vertex.low), near(vertex.high)];
+            let around = format!(
+                "straddling the predicted vertex N = {:.3e} [{:.3e}, {:.3e}]",
+                10f64.powf(vertex.median),
+                10f64.powf(vertex.low),
+                10f64.powf(vertex.high)
+            );
+            (aims, around)
+        }
+        false => (
+            vec![centre],
+            format!("around the predicted vertex N = {:.3e}", 10f64.powf(centre)),
+        ),
+    };
+    let mut pick: Vec<usize> = Vec::new();
+    for k in 0..need {
+        let aim = aims[k.min(aims.len() - 1)];
+        // The nearest size not taken; among its vocabularies, the lowest expected excess.
+        let key = |i: usize| {
+            (
+                (candidates[i].n.log10() - aim).abs(),
+                model.offset(candidates[i].vocab, c),
+            )
+        };
+        let next = here
+            .iter()
+            .copied()
+            .filter(|&i| {
+                let n = candidates[i].n;
+                !seen.contains(&n) && !pick.iter().any(|&j| candidates[j].n == n)
+            })
+            .min_by(|&a, &b| {
+                let (ka, kb) = (key(a), key(b));
+                ka.0.total_cmp(&kb.0)
+                    .then(ka.1.total_cmp(&kb.1))
+                    .then(a.cmp(&b))
+            })?;
+        pick.push(next);
+    }
+    let what = format!("{need} sizes at {c:.3e} (no parabola there yet) {around}");
+    (need > 0).then_some((pick, what))
 }
 
 #[cfg(test)]
@@ -729,7 +771,7 @@ mod tests {
     }
 
     #[test]
-    fn a_new_budget_is_entered_with_three_sizes_around_its_predicted_vertex() {
+    fn a_new_budget_is_entered_with_three_sizes_straddling_its_predicted_vertex() {
         let s = Settings {
             draws: 64,
             ..Settings::default()
@@ -741,8 +783,11 @@ mod tests {
         assert_eq!(p[0].runs.len(), 3, "{p:?}");
         let mut sizes: Vec<usize> = p[0].runs.clone();
         sizes.sort();
-        // The ladder's middle three of seven (the grid is centred on the true vertex).
-        assert_eq!(sizes, [2, 3, 4], "{}", p[0].why);
+        // The grid of seven is centred on the true vertex (size 3): the three sizes straddle
+        // it, one at the predicted median and one towards each end of its interval.
+        assert!(sizes.contains(&3), "{}", p[0].why);
+        assert!(sizes[0] < 3 && 3 < sizes[2], "{}", p[0].why);
+        assert!(p[0].why.contains("straddling"), "{}", p[0].why);
         assert!(p[0].expected_width < p[0].width_before);
         assert_eq!(p[1].runs.len(), 1, "then single sizes on the new parabola");
         let cheap = propose(&obs, &open, Target::NOpt, 1e21, 2, 1e19, &s);
@@ -765,10 +810,11 @@ mod tests {
         let open_runs = [all[1].0.clone(), all[5].0.clone(), far];
         let model = Model::new(&obs, Settings::default().misfit_floor);
         assert!(model.budget_at(1e18).unwrap().interior().is_none());
-        let offered: Vec<usize> = actions(&model, &obs, &open_runs, &[0, 1, 2])
-            .iter()
-            .flat_map(|(runs, _)| runs.clone())
-            .collect();
+        let offered: Vec<usize> =
+            actions(&model, &obs, &open_runs, &[0, 1, 2], &Settings::default())
+                .iter()
+                .flat_map(|(runs, _)| runs.clone())
+                .collect();
         assert_eq!(
             offered,
             [0, 1],
