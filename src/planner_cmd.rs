@@ -28,7 +28,7 @@ pub struct ReplayArgs {
     #[arg(long, default_value = "n_opt", value_parser = Target::parse)]
     pub target: Target,
     /// Policies to replay, comma-separated: active, grid, random, oracle (knows every loss:
-    /// the full table's envelope runs, cheapest budget first; what the cap allows at all).
+    /// the full table's envelope runs, cheapest budget first; what reproducing it costs).
     #[arg(long, value_delimiter = ',', default_value = "active,grid,random", value_parser = Policy::parse)]
     pub policy: Vec<Policy>,
     /// Random orders to replay (their median is the random policy's curve).

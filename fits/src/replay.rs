@@ -28,8 +28,8 @@ pub enum Policy {
     Random,
     /// Knows every outcome: the runs on the full table's envelope (the lowest loss at each N
     /// of a budget), budget by budget from the cheapest, each budget's nearest its best run
-    /// first. No policy that picks runs without their losses does better; it shows what the
-    /// cap allows at all.
+    /// first: the cheapest order that reproduces the full table's answer, and what that costs
+    /// against the cap.
     Oracle,
 }
 
