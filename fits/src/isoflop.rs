@@ -130,10 +130,19 @@ pub fn parabola_minimum(
 
 /// The lowest loss at each distinct x, sorted by x.
 pub(crate) fn envelope(x: &[f64], loss: &[f64]) -> Vec<[f64; 2]> {
-    let mut pts: Vec<[f64; 2]> = x.iter().zip(loss).map(|(&a, &b)| [a, b]).collect();
-    pts.sort_by(|p, q| p[0].total_cmp(&q[0]).then(p[1].total_cmp(&q[1])));
-    pts.dedup_by(|later, first| later[0] == first[0]);
-    pts
+    envelope_rows(x, loss)
+        .into_iter()
+        .map(|i| [x[i], loss[i]])
+        .collect()
+}
+
+/// The rows of [`envelope`]: the row with the lowest loss at each distinct x (the first such
+/// row on a tie), sorted by x.
+pub(crate) fn envelope_rows(x: &[f64], loss: &[f64]) -> Vec<usize> {
+    let mut rows: Vec<usize> = (0..x.len()).collect();
+    rows.sort_by(|&i, &j| x[i].total_cmp(&x[j]).then(loss[i].total_cmp(&loss[j])));
+    rows.dedup_by(|later, first| x[*later] == x[*first]);
+    rows
 }
 
 /// Groups of row indices sharing a budget: equal values of `group` when given, otherwise runs

@@ -670,6 +670,9 @@ fn entry_sizes(
         .map(|o| o.n)
         .collect();
     let need = 3usize.saturating_sub(distinct(&seen));
+    if need == 0 {
+        return None;
+    }
     let centre = match &model.surrogate {
         Some(law) => law.vertex.at(c.log10()),
         None => {
@@ -678,10 +681,12 @@ fn entry_sizes(
             lx[lx.len() / 2]
         }
     };
-    let vertex = posterior_of(model, Target::NOpt, c, s);
-    let bounded = vertex.low.is_finite() && vertex.high.is_finite();
-    let (aims, around) = match need == 3 && bounded && model.surrogate.is_some() {
-        true => {
+    // The vertex's posterior (a bootstrap) only where it can place all three sizes.
+    let vertex = (need == 3 && model.surrogate.is_some())
+        .then(|| posterior_of(model, Target::NOpt, c, s))
+        .filter(|v| v.low.is_finite() && v.high.is_finite());
+    let (aims, around) = match vertex {
+        Some(vertex) => {
             let near = |v: f64| {
                 v.clamp(
                     vertex.median - SIZE_WINDOW_DEX,
@@ -697,38 +702,36 @@ fn entry_sizes(
             );
             (aims, around)
         }
-        false => (
+        None => (
             vec![centre],
             format!("around the predicted vertex N = {:.3e}", 10f64.powf(centre)),
         ),
     };
+    // The vocabulary excess of each open run here, once (it is a line fit).
+    let excess: Vec<f64> = here
+        .iter()
+        .map(|&i| model.offset(candidates[i].vocab, c))
+        .collect();
     let mut pick: Vec<usize> = Vec::new();
     for k in 0..need {
         let aim = aims[k.min(aims.len() - 1)];
         // The nearest size not taken; among its vocabularies, the lowest expected excess.
-        let key = |i: usize| {
-            (
-                (candidates[i].n.log10() - aim).abs(),
-                model.offset(candidates[i].vocab, c),
-            )
-        };
-        let next = here
-            .iter()
-            .copied()
-            .filter(|&i| {
-                let n = candidates[i].n;
+        let key = |h: usize| ((candidates[here[h]].n.log10() - aim).abs(), excess[h]);
+        let next = (0..here.len())
+            .filter(|&h| {
+                let n = candidates[here[h]].n;
                 !seen.contains(&n) && !pick.iter().any(|&j| candidates[j].n == n)
             })
             .min_by(|&a, &b| {
                 let (ka, kb) = (key(a), key(b));
                 ka.0.total_cmp(&kb.0)
                     .then(ka.1.total_cmp(&kb.1))
-                    .then(a.cmp(&b))
+                    .then(here[a].cmp(&here[b]))
             })?;
-        pick.push(next);
+        pick.push(here[next]);
     }
     let what = format!("{need} sizes at {c:.3e} (no parabola there yet) {around}");
-    (need > 0).then_some((pick, what))
+    Some((pick, what))
 }
 
 #[cfg(test)]

@@ -3,7 +3,7 @@
 //! not on its own model. Every policy starts from the same runs (the cheapest budgets' grids)
 //! and stops before its compute would pass the cap.
 
-use crate::isoflop::group_rows;
+use crate::isoflop::{envelope_rows, group_rows};
 use crate::planner::{self, Candidate, Observation, Posterior, Settings, Target, WIDTH_CAP};
 use crate::table::Table;
 use crate::FitError;
@@ -164,17 +164,12 @@ impl ReplayTable {
         let c: Vec<f64> = self.pool.iter().map(|r| r.budget).collect();
         let mut order = Vec::new();
         for rows in group_rows(&c, None, planner::GROUP_TOL_DEX) {
-            let mut best_at_n: Vec<usize> = Vec::new();
-            for &i in &rows {
-                let same_n = best_at_n
-                    .iter()
-                    .position(|&j| self.pool[j].n == self.pool[i].n);
-                match same_n {
-                    Some(k) if self.losses[i] < self.losses[best_at_n[k]] => best_at_n[k] = i,
-                    Some(_) => {}
-                    None => best_at_n.push(i),
-                }
-            }
+            let n: Vec<f64> = rows.iter().map(|&i| self.pool[i].n).collect();
+            let loss: Vec<f64> = rows.iter().map(|&i| self.losses[i]).collect();
+            let mut best_at_n: Vec<usize> = envelope_rows(&n, &loss)
+                .into_iter()
+                .map(|k| rows[k])
+                .collect();
             let Some(&best) = best_at_n
                 .iter()
                 .min_by(|&&a, &&b| self.losses[a].total_cmp(&self.losses[b]))
