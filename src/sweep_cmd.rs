@@ -500,11 +500,33 @@ pub struct CollectArgs {
     /// Sweep folder.
     #[arg(long)]
     pub out: PathBuf,
+    /// First select each finished run's checkpoint again from its train/evals.jsonl by
+    /// today's rule (a run on one data source on that source's validation clips) and rewrite
+    /// the result.json files it changes (rows of runs finished before the rule).
+    #[arg(long)]
+    pub reselect: bool,
 }
 
 /// `motionscale sweep collect`: rebuild results.csv / results.parquet from every run's
 /// result.json; exit 2 when some runnable points have none.
 pub fn collect_cmd(args: CollectArgs) -> Result<ExitCode> {
+    if args.reselect {
+        let plan = local::read_adopted_plan(&args.out)?;
+        let changed = experiments::run::reselect(&plan, &args.out)?;
+        for c in &changed {
+            println!(
+                "{}: best step {} → {}, test CE {:.4} → {:.4} (captured {:.4} → {:.4})",
+                c.after.run_id,
+                c.before.best_step,
+                c.after.best_step,
+                c.before.best_test_loss,
+                c.after.best_test_loss,
+                c.before.best_real_test_loss,
+                c.after.best_real_test_loss
+            );
+        }
+        println!("{} runs re-selected", changed.len());
+    }
     let (rows, missing) = local::collect(&args.out)?;
     println!(
         "{} rows → {}, {}",

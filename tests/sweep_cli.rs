@@ -371,11 +371,20 @@ fn a_plan_centred_on_an_earlier_fit_brackets_n_opt_warns_past_the_ladder_and_lim
     assert!(listed > 0);
 }
 
-/// The demo's captured clips and 40 synthetic ones, mirrored, with fallback caption
-/// embeddings: both origins in train and test.
-fn mixed_corpus(tmp: &Path) -> std::path::PathBuf {
+/// The demo's captured clips (each file under `copies` names) and 40 synthetic ones,
+/// mirrored, with fallback caption embeddings: both origins in train and test (and, with 4
+/// copies, in validation).
+fn mixed_corpus(tmp: &Path, copies: usize) -> std::path::PathBuf {
     let (inputs, corpus) = (tmp.join("inputs"), tmp.join("corpus"));
     demo_inputs(&inputs);
+    for entry in std::fs::read_dir(&inputs).unwrap() {
+        let path = entry.unwrap().path();
+        let (stem, ext) = (path.file_stem().unwrap(), path.extension().unwrap());
+        for k in 2..=copies {
+            let name = format!("{}_{k}.{}", stem.to_string_lossy(), ext.to_string_lossy());
+            std::fs::copy(&path, inputs.join(name)).unwrap();
+        }
+    }
     let bvh = format!("bvh:{}", inputs.display());
     motionscale_ok(&[
         "ingest",
@@ -407,7 +416,7 @@ fn data_plan(corpus: &Path, fractions: &str, source: &str, out: &Path) -> IsoFlo
 #[test]
 fn a_data_ladder_trains_nested_subsets_and_reports_test_losses_per_origin() {
     let tmp = tempfile::tempdir().unwrap();
-    let corpus = mixed_corpus(tmp.path());
+    let corpus = mixed_corpus(tmp.path(), 1);
     let plan_path = tmp.path().join("plan.toml");
     let plan = data_plan(&corpus, "1/2,1", "all", &plan_path);
     let names: Vec<&str> = plan.data.iter().map(|d| d.name.as_str()).collect();
@@ -541,4 +550,73 @@ fn a_data_ladder_trains_nested_subsets_and_reports_test_losses_per_origin() {
     ]);
     assert_eq!(code(&out), 1, "{}", text(&out));
     assert!(text(&out).contains("(0, 1]"), "{}", text(&out));
+}
+
+#[test]
+fn a_captured_only_run_selects_on_captured_validation_clips_and_collect_reselects_old_rows() {
+    let tmp = tempfile::tempdir().unwrap();
+    let corpus = mixed_corpus(tmp.path(), 4);
+    let plan_path = tmp.path().join("real.toml");
+    let plan = data_plan(&corpus, "1", "real", &plan_path);
+    let runs = tmp.path().join("runs");
+    motionscale_ok(&[
+        "sweep",
+        "run",
+        "--plan",
+        arg(&plan_path),
+        "--out",
+        arg(&runs),
+    ]);
+    let dir = runs.join(&plan.points[0].run_id);
+    let evals: Vec<serde_json::Value> =
+        std::fs::read_to_string(dir.join("train").join("evals.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+    assert!(evals.len() > 2, "{} evaluations", evals.len());
+    let captured_val = |e: &serde_json::Value| {
+        let v = &e["val"]["by_origin"];
+        assert!(v["synth"].is_object(), "validation holds both origins");
+        v["real"]["cross_entropy"].as_f64().unwrap()
+    };
+    // The first of the lowest, as the trainer selects.
+    let on_captured = evals
+        .iter()
+        .min_by(|a, b| captured_val(a).total_cmp(&captured_val(b)))
+        .unwrap();
+    let captured_test =
+        |e: &serde_json::Value| e["test"]["by_origin"]["real"]["cross_entropy"].as_f64();
+    let row = table_rows(&runs).remove(0);
+    assert_eq!(Some(row.best_step), on_captured["step"].as_u64());
+    assert_eq!(Some(row.best_real_test_loss), captured_test(on_captured));
+    let eval: serde_json::Value = read_json(&dir.join("train").join("eval.json"));
+    assert_eq!(eval["best"]["selected_on"], "real");
+    assert_eq!(
+        eval["best"]["val_cross_entropy"].as_f64(),
+        Some(captured_val(on_captured))
+    );
+
+    // A row finished under another selection (here: the worst evaluation) is corrected.
+    let result = dir.join("result.json");
+    let today = std::fs::read_to_string(&result).unwrap();
+    let first = evals
+        .iter()
+        .max_by(|a, b| captured_val(a).total_cmp(&captured_val(b)))
+        .unwrap();
+    let stale = RunRow {
+        best_step: first["step"].as_u64().unwrap(),
+        best_test_loss: first["test"]["cross_entropy"].as_f64().unwrap(),
+        best_real_test_loss: captured_test(first).unwrap(),
+        ..row.clone()
+    };
+    assert_ne!(stale.best_step, row.best_step);
+    std::fs::write(&result, serde_json::to_string_pretty(&stale).unwrap()).unwrap();
+    let collect = ["sweep", "collect", "--out", arg(&runs), "--reselect"];
+    let out = motionscale_ok(&collect);
+    assert!(out.contains("1 runs re-selected"), "{out}");
+    assert_eq!(std::fs::read_to_string(&result).unwrap(), today);
+    assert_eq!(deterministic(&table_rows(&runs)[0]), deterministic(&row));
+    let again = motionscale_ok(&collect);
+    assert!(again.contains("0 runs re-selected"), "{again}");
 }

@@ -40,6 +40,16 @@ impl DataSource {
         }
     }
 
+    /// The one origin of its clips (none for both): a run on it selects its checkpoint on
+    /// that origin's validation clips.
+    pub fn origin(self) -> Option<Origin> {
+        match self {
+            Self::Real => Some(Origin::Real),
+            Self::Synth => Some(Origin::Synth),
+            Self::All => None,
+        }
+    }
+
     /// `real`, `synth` or `all`.
     pub fn as_str(self) -> &'static str {
         match self {

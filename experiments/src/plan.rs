@@ -884,6 +884,15 @@ impl IsoFlopPlan {
         self.data.iter().find(|d| d.name == name)
     }
 
+    /// The source of `point`'s train clips (all for a point on the whole train split).
+    pub fn data_source(&self, point: &PlanPoint) -> DataSource {
+        point
+            .data
+            .as_deref()
+            .and_then(|n| self.subset(n))
+            .map_or(DataSource::All, |s| s.source)
+    }
+
     /// The training configuration of `point` writing into `out`, reading `tokens` and, for a
     /// point on a data subset, the split lists in `splits`.
     pub fn train_config(
@@ -897,6 +906,7 @@ impl IsoFlopPlan {
         let mut c = TrainConfig::new(tokens, model_shape(&point.model)?, point.tokens, out);
         c.corpus = Some(self.corpus.clone());
         c.splits = splits.map(Path::to_path_buf);
+        c.select_on = self.data_source(point).origin();
         c.text_encoder = Some(self.text_encoder.clone());
         c.hyper = s.hyper.clone();
         c.hyper.seed = point.seed(self);

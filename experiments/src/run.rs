@@ -13,15 +13,16 @@
 //! it was written is discarded and the point trained again from the start, which gives the
 //! same weights (training is a pure function of its config).
 
-use crate::data_ladder::{self, DataSource};
+use crate::data_ladder;
 use crate::plan::{IsoFlopPlan, PlanPoint};
 use crate::prepare::prepare_vocabulary;
 use crate::results::{self, read_row, run_dir, RunRow};
 use crate::SweepError;
 use candle_core::Device;
 use ingest::corpus::{Corpus, Origin};
+use lm::selection;
 use lm::test_loss::SplitLoss;
-use lm::train::{train, TrainEvent, TrainReport};
+use lm::train::{train, BestEval, TrainEvent, TrainReport};
 use motionscale_core::lock::FileLock;
 use motionscale_core::{write_json, FileError};
 use nn::ModelError;
@@ -218,16 +219,11 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
     let e = &report.eval;
     let vocab = plan.vocabulary(point.codebook).expect("validated plan");
     let subset = point.data.as_deref().and_then(|n| plan.subset(n));
-    let best = e.best.as_ref().map(|b| &b.test);
     let (real, synth) = (
         origin_losses(Some(&e.test), Origin::Real),
         origin_losses(Some(&e.test), Origin::Synth),
     );
-    let (best_real, best_synth) = (
-        origin_losses(best, Origin::Real),
-        origin_losses(best, Origin::Synth),
-    );
-    RunRow {
+    let mut row = RunRow {
         run_id: point.run_id.clone(),
         budget: point.budget,
         n_nv: e.n_nv,
@@ -260,11 +256,11 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
             .map(|f| f.as_str())
             .collect::<Vec<_>>()
             .join(";"),
-        best_step: e.best.as_ref().map_or(0, |b| b.step),
-        best_test_loss: e.best.as_ref().map_or(f64::NAN, |b| b.test.cross_entropy),
-        best_norm_test_loss: e.best.as_ref().map_or(f64::NAN, |b| b.test.normalized_loss),
+        best_step: 0,
+        best_test_loss: f64::NAN,
+        best_norm_test_loss: f64::NAN,
         data: point.data.clone().unwrap_or_default(),
-        data_source: subset.map_or(DataSource::All, |s| s.source).to_string(),
+        data_source: plan.data_source(point).to_string(),
         data_fraction: subset.map_or(1.0, |s| s.fraction),
         unique_tokens: point.unique_tokens(plan),
         hours: subset.map_or(f64::NAN, |s| s.hours),
@@ -273,11 +269,63 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
         real_norm_test_loss: real.1,
         synth_test_loss: synth.0,
         synth_norm_test_loss: synth.1,
-        best_real_test_loss: best_real.0,
-        best_real_norm_test_loss: best_real.1,
-        best_synth_test_loss: best_synth.0,
-        best_synth_norm_test_loss: best_synth.1,
+        best_real_test_loss: f64::NAN,
+        best_real_norm_test_loss: f64::NAN,
+        best_synth_test_loss: f64::NAN,
+        best_synth_norm_test_loss: f64::NAN,
+    };
+    set_best(&mut row, e.best.as_ref());
+    row
+}
+
+/// Fill `row`'s validation-selected columns from `best` (zero step and NaN losses for none).
+fn set_best(row: &mut RunRow, best: Option<&BestEval>) {
+    let test = best.map(|b| &b.test);
+    let (real, synth) = (
+        origin_losses(test, Origin::Real),
+        origin_losses(test, Origin::Synth),
+    );
+    row.best_step = best.map_or(0, |b| b.step);
+    row.best_test_loss = test.map_or(f64::NAN, |t| t.cross_entropy);
+    row.best_norm_test_loss = test.map_or(f64::NAN, |t| t.normalized_loss);
+    (row.best_real_test_loss, row.best_real_norm_test_loss) = real;
+    (row.best_synth_test_loss, row.best_synth_norm_test_loss) = synth;
+}
+
+/// A finished point whose validation-selected checkpoint [`reselect`] changed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Reselected {
+    /// The point's row before.
+    pub before: RunRow,
+    /// Its row now.
+    pub after: RunRow,
+}
+
+/// Select each finished point's checkpoint again from its `evals.jsonl` by today's rule (on
+/// the validation clips of the point's own data source), rewrite the rows it changes, and
+/// return them. Rows finished before the rule selected on the whole split are corrected;
+/// a folder already selected by it is left byte-identical.
+pub fn reselect(plan: &IsoFlopPlan, runs: &Path) -> Result<Vec<Reselected>, SweepError> {
+    let mut changed = Vec::new();
+    for point in &plan.points {
+        let Some(before) = read_row(runs, &point.run_id)? else {
+            continue;
+        };
+        let train_dir = run_dir(runs, &point.run_id).join("train");
+        let best = selection::reselect(&train_dir, plan.data_source(point).origin())?;
+        let mut after = before.clone();
+        set_best(&mut after, best.as_ref());
+        if !same_row(&before, &after) {
+            results::write_row(runs, &after)?;
+            changed.push(Reselected { before, after });
+        }
     }
+    Ok(changed)
+}
+
+/// Equal rows, NaN equal to NaN.
+fn same_row(a: &RunRow, b: &RunRow) -> bool {
+    serde_json::to_value(a).ok() == serde_json::to_value(b).ok()
 }
 
 /// `git describe --always --dirty` of the source tree this binary was built from (recorded by

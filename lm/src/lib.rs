@@ -11,6 +11,7 @@ pub mod generate;
 pub mod lm_data;
 pub mod lora;
 pub mod prefix_lm;
+pub mod selection;
 pub mod test_loss;
 pub mod train;
 

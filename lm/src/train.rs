@@ -23,10 +23,12 @@ use crate::es_moe::{EsMoe, EsMoeConfig};
 use crate::lm_data::{Limits, LmData};
 use crate::lora::{adapter_a_matrices, base_weights, LoraAdapter, LoraConfig, ADAPTER_FILE};
 use crate::prefix_lm::{init_model, Compute, LmBatch, PrefixLm, PrefixLmConfig};
+use crate::selection;
 use crate::test_loss::{evaluate, SplitLoss};
 use crate::MotionLm;
 use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
+use ingest::corpus::Origin;
 use motionscale_core::files::{append_json_line, check_same_run, read_json, write_json};
 use motionscale_core::rng::SplitMix64;
 use motionscale_core::write_atomic;
@@ -213,6 +215,10 @@ pub struct TrainConfig {
     /// token set's own splits: only the listed clips train and evaluate.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub splits: Option<PathBuf>,
+    /// Select the best checkpoint on the validation clips of this origin only (a run trained
+    /// on one source); none: on all of them.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub select_on: Option<Origin>,
     /// Model shape.
     pub model: ModelShape,
     /// Token budget D: motion loss positions to train on (rounded up to whole batches).
@@ -248,6 +254,7 @@ impl TrainConfig {
             corpus: None,
             text_encoder: None,
             splits: None,
+            select_on: None,
             model,
             tokens_budget,
             betas: (0.9, 0.95),
@@ -314,15 +321,18 @@ pub struct TrainState {
 }
 
 /// The validation-selected checkpoint: the evaluation whose validation cross-entropy is the
-/// lowest so far (the earliest of equals), with its test losses.
+/// lowest so far (the earliest of equals), with its test losses (see [`crate::selection`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct BestEval {
     /// Step of that evaluation.
     pub step: u64,
-    /// Its validation cross-entropy.
+    /// Its validation cross-entropy (on the clips of `selected_on`).
     pub val_cross_entropy: f64,
     /// Its test losses.
     pub test: SplitLoss,
+    /// The origin of the validation clips it was selected on (none: all of them).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub selected_on: Option<Origin>,
 }
 
 /// `OUT/eval.json`: one evaluation with the accounting of the run so far.
@@ -343,6 +353,10 @@ pub struct EvalRecord {
     /// validation clips).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub best: Option<BestEval>,
+    /// Made only because `stop_after` ended this invocation early, off the schedule: never
+    /// selected (a resumed run would not have made it).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub unscheduled: bool,
     /// C = 6·(N_nv + N_v)·D.
     pub flops_6n: f64,
     /// Exact FLOPs of the real (unpadded) slots.
@@ -778,28 +792,15 @@ impl Run {
             true => None,
             false => Some(evaluate(lm, &self.data, "val", batch)?),
         };
-        if let (Some(v), true) = (&val, scheduled) {
-            if self
-                .state
-                .best
-                .as_ref()
-                .is_none_or(|b| v.cross_entropy < b.val_cross_entropy)
-            {
-                self.state.best = Some(BestEval {
-                    step: self.state.step,
-                    val_cross_entropy: v.cross_entropy,
-                    test: test.clone(),
-                });
-            }
-        }
         let params = self.config.accounting.params;
-        let record = EvalRecord {
+        let mut record = EvalRecord {
             step: self.state.step,
             tokens_seen: self.state.tokens_seen,
             train_loss,
             test,
             val,
-            best: self.state.best.clone(),
+            best: None,
+            unscheduled: !scheduled,
             flops_6n: accounting::budget(&self.config.model, self.state.tokens_seen as f64),
             flops_exact: self.state.flops_exact,
             n_nv: params.n_nv,
@@ -807,6 +808,10 @@ impl Run {
             tied: params.tied,
             expert_weights,
         };
+        if let Some(c) = selection::candidate(&record, self.config.train.select_on) {
+            self.state.best = Some(selection::keep_better(self.state.best.take(), c));
+        }
+        record.best = self.state.best.clone();
         write_json(&self.paths.eval, &record)?;
         append_json_line(&self.paths.evals, &record)?;
         Ok(record)
