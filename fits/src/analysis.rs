@@ -514,11 +514,12 @@ mod tests {
         let law = repetition_law();
         let (r_star, rho) = (6.0f64, 0.3f64);
         let dir = tempfile::tempdir().unwrap();
-        let path = two_source_ladders(dir.path(), |n, d, unique, share| {
+        let loss = |n: f64, d: f64, unique: f64, share: f64| {
             let kk = 1.0 - share + rho * share;
             let (ln_dp, _) = repeated::effective_data(d * kk, unique * kk, r_star.ln());
             law.e + law.a / n.powf(law.alpha) + law.b / ln_dp.exp().powf(law.beta)
-        });
+        };
+        let path = two_source_ladders(dir.path(), loss);
         let opts = FitOptions {
             repeated_data: true,
             ..quick()
@@ -537,6 +538,37 @@ mod tests {
             "{:?}",
             r.law.beta
         );
+
+        // The charts' points: each corpus's lowest loss over the sizes, per budget.
+        assert_eq!(r.frontier.len(), 4 * 3, "{:?}", r.frontier);
+        let half = r
+            .frontier
+            .iter()
+            .find(|p| {
+                (p.budget / 1e14 - 1.0).abs() < 1e-9
+                    && p.synth_share == 0.5
+                    && p.unique_tokens < 2e7
+            })
+            .unwrap();
+        let lowest = (0..5)
+            .map(|k| 10f64.powf(4.0 + 0.5 * k as f64))
+            .map(|n| loss(n, 1e14 / (6.0 * n), 1e7, 0.5))
+            .fold(f64::INFINITY, f64::min);
+        assert!((half.unique_tokens / 1e7 - 1.0).abs() < 1e-9 && half.loss == lowest);
+        let charts = crate::report::charts(&fits);
+        let chart = |stem: &str| &charts.iter().find(|(s, _)| s == stem).unwrap().1;
+        let raw = chart("data_loss_vs_hours");
+        assert_eq!(raw.x_label, "unique data (tokens)", "no hours column");
+        // Mixed corpora move to U·(1 − s + ρ·s); captured-only ones stay.
+        let xs = |c: &plot::Chart, name: &str| -> Vec<f64> {
+            let s = c.series.iter().find(|s| s.name == name).unwrap();
+            s.points.iter().map(|p| p.0).collect()
+        };
+        let k = 1.0 - 0.5 + exchange.value * 0.5;
+        let moved = chart("data_exchange_rate");
+        assert_eq!(xs(moved, "C = 10¹⁴, mixed"), [1e7 * k, 4e7 * k]);
+        assert_eq!(xs(moved, "C = 10¹⁴, captured only"), [5e6, 2e7]);
+        assert_eq!(xs(raw, "C = 10¹⁴, mixed"), [1e7, 4e7]);
     }
 
     #[test]

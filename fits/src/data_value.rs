@@ -360,6 +360,7 @@ mod tests {
             held_out: None,
             note: None,
             draws: vec![jitter(0.98), theta, jitter(1.02)],
+            frontier: Vec::new(),
             tokens_per_hour: Some(36_000.0),
             nv_line: Some([1.0, 0.5]),
             vocab: Some(1000.0),

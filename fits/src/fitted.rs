@@ -423,6 +423,24 @@ pub struct HeldOutError {
     pub better: String,
 }
 
+/// The lowest loss of the runs at one budget on one unique-data set, over model sizes.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DataFrontierPoint {
+    /// The budget (the group's geometric mean C).
+    pub budget: f64,
+    /// Unique tokens U of the set.
+    pub unique_tokens: f64,
+    /// Hours of motion in it (none without the `hours` column).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hours: Option<f64>,
+    /// Its synthetic share s.
+    pub synth_share: f64,
+    /// The lowest loss (the data-constrained fit's loss column).
+    pub loss: f64,
+    /// N of the run that scored it.
+    pub n: f64,
+}
+
 /// The data-constrained fit as recorded in `fits.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RepeatedData {
@@ -472,6 +490,10 @@ pub struct RepeatedData {
         deserialize_with = "refits_with_r_star_n_or_without"
     )]
     pub draws: Vec<[f64; 8]>,
+    /// The lowest loss of each budget on each unique-data set (over model sizes): the points
+    /// of the data-law charts.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub frontier: Vec<DataFrontierPoint>,
     /// The runs' unique loss positions per hour of motion (median over runs; needs the
     /// `hours` column): turns hours into U.
     #[serde(default, skip_serializing_if = "Option::is_none")]

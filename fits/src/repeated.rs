@@ -17,7 +17,8 @@
 //! ln D' gains ln k. It is identified only when the runs' synthetic shares differ.
 
 use crate::fitted::{
-    BudgetInformation, FitOptions, Fits, HeldOutError, Information, LawEstimates, RepeatedData,
+    BudgetInformation, DataFrontierPoint, FitOptions, Fits, HeldOutError, Information,
+    LawEstimates, RepeatedData,
 };
 use crate::isoflop;
 use crate::laws::Estimate;
@@ -435,6 +436,41 @@ fn best_of(runs: &DataRuns, opts: &FitOptions, starts: &[[f64; 8]]) -> Option<Mi
         .min_by(|a, b| a.f.total_cmp(&b.f))
 }
 
+/// Unique-data sets whose U differ by less than this (relative) are one set: U is recovered
+/// as D / epochs, and D is rounded to whole batches.
+const SAME_UNIQUE_DATA: f64 = 0.01;
+
+/// The lowest loss at each budget group on each unique-data set (U within
+/// [`SAME_UNIQUE_DATA`] and the same synthetic share), by budget, then U.
+fn frontier(runs: &Runs, u: &[f64], groups: &[(f64, Vec<usize>)]) -> Vec<DataFrontierPoint> {
+    let loss = &runs.param_loss.1;
+    let share = |i: usize| runs.synth_share.as_ref().map_or(0.0, |s| s[i]);
+    let mut out: Vec<DataFrontierPoint> = Vec::new();
+    for (budget, rows) in groups {
+        let first = out.len();
+        for &i in rows {
+            let same = |p: &DataFrontierPoint| {
+                (p.unique_tokens / u[i] - 1.0).abs() < SAME_UNIQUE_DATA
+                    && (p.synth_share - share(i)).abs() < SAME_UNIQUE_DATA
+            };
+            match out[first..].iter_mut().find(|p| same(p)) {
+                Some(p) if loss[i] < p.loss => (p.loss, p.n) = (loss[i], runs.n[i]),
+                Some(_) => {}
+                None => out.push(DataFrontierPoint {
+                    budget: *budget,
+                    unique_tokens: u[i],
+                    hours: runs.hours.as_ref().map(|h| h[i]),
+                    synth_share: share(i),
+                    loss: loss[i],
+                    n: runs.n[i],
+                }),
+            }
+        }
+        out[first..].sort_by(|a, b| a.unique_tokens.total_cmp(&b.unique_tokens));
+    }
+    out
+}
+
 /// The data-constrained fit of `runs` (the plain parametric fit in `fits` seeds it); the error
 /// says why it cannot be fitted.
 pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, String> {
@@ -520,6 +556,7 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
         held_out: held_out(runs, &data, opts, &plain.theta, &best.x),
         information: Some(information),
         note,
+        frontier: frontier(runs, &u, &groups),
         tokens_per_hour: runs.hours.as_ref().map(|h| {
             let mut per: Vec<f64> = u.iter().zip(h).map(|(u, h)| u / h).collect();
             per.sort_by(f64::total_cmp);

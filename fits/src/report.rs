@@ -1,6 +1,6 @@
 //! Writing a fit: `fits.json`, the plots (SVG + PNG) and a short text summary.
 
-use crate::fitted::Fits;
+use crate::fitted::{DataFrontierPoint, Fits};
 use crate::laws::{Estimate, PowerLaw};
 use crate::FitError;
 use plot::ticks::format_tick;
@@ -136,7 +136,108 @@ pub fn charts(f: &Fits) -> Vec<(String, Chart)> {
         push_fit(&mut chart, lo, hi, |c| law.at(c), held_point);
         out.push(("log_law".to_string(), chart));
     }
+    out.extend(data_charts(f));
     out
+}
+
+/// Synthetic shares below this are captured-only corpora, above 1 − this synthetic-only.
+const ONE_SOURCE_SHARE: f64 = 0.05;
+
+/// The data-constrained fit's charts: the lowest loss at each budget against the unique data
+/// (`data_loss_vs_hours`), and, with an exchange rate ρ, the same against the captured-
+/// equivalent data U·(1 − s + ρ·s) (`data_exchange_rate`), where corpora of any mix fall on
+/// one curve per budget if ρ is right.
+fn data_charts(f: &Fits) -> Vec<(String, Chart)> {
+    let Some(r) = f.repeated_data.as_ref().filter(|r| !r.frontier.is_empty()) else {
+        return Vec::new();
+    };
+    let by_hours = r.frontier.iter().all(|p| p.hours.is_some());
+    let unit = if by_hours { "hours" } else { "tokens" };
+    let size = |p: &DataFrontierPoint| match by_hours {
+        true => p.hours.unwrap_or(f64::NAN),
+        false => p.unique_tokens,
+    };
+    let loss_name = column(f, "parametric_loss");
+    let mut out = vec![(
+        "data_loss_vs_hours".to_string(),
+        data_chart(
+            &r.frontier,
+            "Lowest loss vs unique data, per budget (lines: mixed; dots: one source)",
+            format!("unique data ({unit})"),
+            &loss_name,
+            size,
+        ),
+    )];
+    if let Some(rho) = &r.exchange {
+        let k = |p: &DataFrontierPoint| 1.0 - p.synth_share + rho.value * p.synth_share;
+        out.push((
+            "data_exchange_rate".to_string(),
+            data_chart(
+                &r.frontier,
+                &format!(
+                    "Captured-equivalent data U·(1 − s + ρ·s), ρ = {:.2} [{:.2}, {:.2}]",
+                    rho.value,
+                    rho.ci_low.unwrap_or(f64::NAN),
+                    rho.ci_high.unwrap_or(f64::NAN)
+                ),
+                format!("captured-equivalent unique data ({unit})"),
+                &loss_name,
+                |p| size(p) * k(p),
+            ),
+        ));
+    }
+    out
+}
+
+/// `captured only`, `synthetic only` or `mixed`, by a corpus's synthetic share.
+fn source_kind(synth_share: f64) -> &'static str {
+    match synth_share {
+        s if s < ONE_SOURCE_SHARE => "captured only",
+        s if s > 1.0 - ONE_SOURCE_SHARE => "synthetic only",
+        _ => "mixed",
+    }
+}
+
+/// One chart of `frontier` at x = `x(point)`: per budget, a line through its mixed corpora
+/// and markers for its captured-only and synthetic-only ones.
+fn data_chart(
+    frontier: &[DataFrontierPoint],
+    title: &str,
+    x_label: String,
+    loss_name: &str,
+    x: impl Fn(&DataFrontierPoint) -> f64,
+) -> Chart {
+    let mut chart = Chart::new(title, x_label, format!("lowest loss ({loss_name})"));
+    chart.log_x = true;
+    let mut budgets: Vec<f64> = frontier.iter().map(|p| p.budget).collect();
+    budgets.dedup();
+    for (i, &c) in budgets.iter().enumerate() {
+        for kind in ["mixed", "captured only", "synthetic only"] {
+            let mut pts: Vec<(f64, f64)> = frontier
+                .iter()
+                .filter(|p| p.budget == c && source_kind(p.synth_share) == kind)
+                .map(|p| (x(p), p.loss))
+                .collect();
+            if pts.is_empty() {
+                continue;
+            }
+            pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let name = format!("C = {}, {kind}", format_tick(c));
+            if kind == "mixed" {
+                chart
+                    .series
+                    .push(Series::line(name, pts.clone()).with_color(curve_color(i)));
+                chart
+                    .series
+                    .push(Series::points("", pts).with_color(curve_color(i)));
+            } else {
+                chart
+                    .series
+                    .push(Series::points(name, pts).with_color(curve_color(i)));
+            }
+        }
+    }
+    chart
 }
 
 fn r2_text(r2: Option<f64>) -> String {
