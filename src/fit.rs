@@ -366,6 +366,20 @@ pub fn prediction_rows(p: &Prediction) -> Vec<(&'static str, String)> {
             rows.push((name, estimate_text(e)));
         }
     }
+    if !p.loss_by_form.is_empty() {
+        let forms: Vec<String> = p
+            .loss_by_form
+            .iter()
+            .map(|f| {
+                let lobo = f
+                    .lobo_rms
+                    .map_or("not scored".into(), |r| format!("{r:.3}"));
+                let chosen = if f.chosen { ", chosen" } else { "" };
+                format!("{} {} (LOBO RMS {lobo}{chosen})", f.form, sig(f.loss))
+            })
+            .collect();
+        rows.push(("loss by form", forms.join("; ")));
+    }
     if let Some(d) = p.d_from_budget {
         rows.push(("D spending C exactly", sig(d)));
     }

@@ -34,17 +34,41 @@ pub struct LossShape {
     pub chosen: Option<String>,
 }
 
-/// A fitted form: predicts the loss at log10 C.
-type Predictor = Box<dyn Fn(f64) -> f64>;
+impl ShapeFit {
+    /// The loss this form predicts at log10 C = `x`.
+    pub fn at(&self, x: f64) -> f64 {
+        evaluate(&self.form, &self.params, self.centre, x)
+    }
+}
 
-/// Fits `form` to (x, y); `None` when the points cannot determine it.
-fn fit_form(form: &str, x: &[f64], y: &[f64]) -> Option<(Vec<f64>, f64, Predictor)> {
+impl LossShape {
+    /// The form chosen by leave-one-budget-out error, if any was scored.
+    pub fn chosen_fit(&self) -> Option<&ShapeFit> {
+        let chosen = self.chosen.as_deref()?;
+        self.forms.iter().find(|f| f.form == chosen)
+    }
+}
+
+/// The loss `form` with parameters `p` (centred on `centre`) predicts at log10 C = `x`.
+fn evaluate(form: &str, p: &[f64], centre: f64, x: f64) -> f64 {
+    match form {
+        "log" => p[0] + p[1] * x,
+        "curved" => {
+            let u = x - centre;
+            p[0] + p[1] * u + p[2] * u * u
+        }
+        _ => p[0] + p[1] * 10f64.powf(-p[2] * (x - centre)),
+    }
+}
+
+/// Fits `form` to (x, y): its parameters and centre; `None` when the points cannot
+/// determine it.
+fn fit_form(form: &str, x: &[f64], y: &[f64]) -> Option<(Vec<f64>, f64)> {
     let centre = x.iter().sum::<f64>() / x.len() as f64;
     match form {
         "log" => {
             let l = Line::fit(x, y)?;
-            let (a, b) = (l.intercept, l.slope);
-            Some((vec![a, b], centre, Box::new(move |v| a + b * v)))
+            Some((vec![l.intercept, l.slope], centre))
         }
         "curved" => {
             let rows: Vec<Vec<f64>> = x
@@ -54,16 +78,7 @@ fn fit_form(form: &str, x: &[f64], y: &[f64]) -> Option<(Vec<f64>, f64, Predicto
                     vec![1.0, u, u * u]
                 })
                 .collect();
-            let c = Ols::fit(&rows, y)?.coef;
-            let p = [c[0], c[1], c[2]];
-            Some((
-                p.to_vec(),
-                centre,
-                Box::new(move |v| {
-                    let u = v - centre;
-                    p[0] + p[1] * u + p[2] * u * u
-                }),
-            ))
+            Some((Ols::fit(&rows, y)?.coef[..3].to_vec(), centre))
         }
         _ => {
             // For a fixed decay k the floor form is linear in (E, A): scan k, keep the best.
@@ -79,11 +94,7 @@ fn fit_form(form: &str, x: &[f64], y: &[f64]) -> Option<(Vec<f64>, f64, Predicto
             let (_, e, a, k) = (1..=400)
                 .filter_map(|i| fit_k(i as f64 * 0.01))
                 .min_by(|p, q| p.0.total_cmp(&q.0))?;
-            Some((
-                vec![e, a, k],
-                centre,
-                Box::new(move |v| e + a * 10f64.powf(-k * (v - centre))),
-            ))
+            Some((vec![e, a, k], centre))
         }
     }
 }
@@ -94,7 +105,8 @@ pub fn compare(points: &[[f64; 2]]) -> LossShape {
         .iter()
         .filter_map(|&(form, params)| {
             let (x, y): (Vec<f64>, Vec<f64>) = points.iter().map(|p| (p[0], p[1])).unzip();
-            let (p, centre, at) = fit_form(form, &x, &y)?;
+            let (p, centre) = fit_form(form, &x, &y)?;
+            let at = |v: f64| evaluate(form, &p, centre, v);
             let rms = (x
                 .iter()
                 .zip(&y)
@@ -113,8 +125,8 @@ pub fn compare(points: &[[f64; 2]]) -> LossShape {
                             .map(|(_, w)| *w)
                             .collect()
                     };
-                    let (_, _, at) = fit_form(form, &keep(&x), &keep(&y))?;
-                    Some([x[i], at(x[i])])
+                    let (q, c) = fit_form(form, &keep(&x), &keep(&y))?;
+                    Some([x[i], evaluate(form, &q, c, x[i])])
                 })
                 .collect();
             let lobo_rms = (lobo.len() == x.len() && !lobo.is_empty()).then(|| {
@@ -165,6 +177,8 @@ mod tests {
     fn each_form_is_recovered_and_chosen_on_its_own_law() {
         let floor = compare(&points(|x| -5.0 + 3.0 * 10f64.powf(-0.6 * (x - 12.5))));
         assert_eq!(floor.chosen.as_deref(), Some("floor"), "{floor:?}");
+        let chosen = floor.chosen_fit().unwrap();
+        assert!((chosen.at(12.5) + 2.0).abs() < 1e-3 && (chosen.at(14.0) + 4.6223).abs() < 1e-3);
         let p = &floor.forms[2].params;
         assert!(
             (p[0] + 5.0).abs() < 1e-3 && (p[1] - 3.0).abs() < 1e-3 && (p[2] - 0.6).abs() < 1e-9,

@@ -3,6 +3,7 @@
 
 use crate::fitted::{Fits, Parametric};
 use crate::laws::{Estimate, LogLaw, PowerLaw};
+use crate::loss_shape::LossShape;
 use crate::parametric::with_draws;
 use crate::FitError;
 use serde::Serialize;
@@ -52,6 +53,8 @@ pub struct Laws {
     pub loss: Option<LogLaw>,
     /// The parametric L(N, D) with its bootstrap draws.
     pub parametric: Option<Parametric>,
+    /// The loss law's forms over the minima and the one chosen by leave-one-budget-out error.
+    pub loss_shape: Option<LossShape>,
     /// True for ScaMo's published coefficients (enables the comparison with the paper's 1e18 run).
     pub is_scamo: bool,
 }
@@ -69,6 +72,7 @@ impl Laws {
             nv_vs_n: Some(PowerLaw::exact("N_nv", "N_v", -5.604, 1.467)),
             loss: Some(LogLaw::exact(-1.062, 13.839)),
             parametric: None,
+            loss_shape: None,
             is_scamo: true,
         }
     }
@@ -85,6 +89,7 @@ impl Laws {
             nv_vs_n: law("nv_vs_n"),
             loss: f.log_law.clone(),
             parametric: f.parametric.clone(),
+            loss_shape: f.loss_shape.clone(),
             is_scamo: false,
         }
     }
@@ -238,12 +243,58 @@ pub struct Prediction {
     pub v_opt: Option<Estimate>,
     /// Loss from the log law (95% interval of the fitted mean).
     pub loss: Option<Estimate>,
+    /// Loss from each form of the loss law (log, curved, floor), the chosen one marked.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub loss_by_form: Vec<FormLoss>,
     /// From the parametric fit, when the fits have one.
     pub parametric: Option<ParametricPrediction>,
     /// Checks between the laws (and with the paper for the scamo preset at 1e18).
     pub consistency: Vec<Check>,
     /// Plain statements of the failed checks and other caveats.
     pub warnings: Vec<String>,
+}
+
+/// The loss one form of the loss law predicts at the budget.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FormLoss {
+    /// `log`, `curved` or `floor`.
+    pub form: String,
+    /// Its loss at C.
+    pub loss: f64,
+    /// Its leave-one-budget-out RMS error over the minima (none: too few to score).
+    pub lobo_rms: Option<f64>,
+    /// Whether leave-one-budget-out error chose it.
+    pub chosen: bool,
+}
+
+/// Each form's loss at `c`, and a warning when the chosen form is not the log law that
+/// `loss` reports.
+fn losses_by_form(shape: &LossShape, c: f64, warnings: &mut Vec<String>) -> Vec<FormLoss> {
+    let chosen = shape.chosen.as_deref();
+    let by_form: Vec<FormLoss> = shape
+        .forms
+        .iter()
+        .map(|f| FormLoss {
+            form: f.form.clone(),
+            loss: f.at(c.log10()),
+            lobo_rms: f.lobo_rms,
+            chosen: chosen == Some(f.form.as_str()),
+        })
+        .collect();
+    let log = by_form.iter().find(|f| f.form == "log");
+    if let (Some(best), Some(log)) = (by_form.iter().find(|f| f.chosen), log) {
+        if best.form != "log" {
+            warnings.push(format!(
+                "the loss law's form chosen by leave-one-budget-out error is {} (RMS {}): loss {} at this budget; the log law's {} above extrapolates worse (RMS {})",
+                best.form,
+                best.lobo_rms.map_or("n/a".into(), |r| format!("{r:.3}")),
+                crate::report::sig(best.loss),
+                crate::report::sig(log.loss),
+                log.lobo_rms.map_or("n/a".into(), |r| format!("{r:.3}")),
+            ));
+        }
+    }
+    by_form
 }
 
 /// Nearest FSQ level set to a codebook size (in log2).
@@ -338,6 +389,10 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
     let d_from_budget = total.map(|t| c / (6.0 * t));
 
     let vocab = vocab_at(n_v.as_ref(), width.as_ref(), &mut warnings);
+    let loss_by_form = laws
+        .loss_shape
+        .as_ref()
+        .map_or_else(Vec::new, |s| losses_by_form(s, c, &mut warnings));
     let mut prediction = Prediction {
         source: laws.source.clone(),
         budget: c,
@@ -352,6 +407,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         vocab,
         v_opt: laws.v.as_ref().map(|l| l.at(c)),
         loss: laws.loss.as_ref().map(|l| l.at(c)),
+        loss_by_form,
         parametric: laws.parametric.as_ref().map(|p| parametric_at(p, c)),
         consistency: Vec::new(),
         warnings,
@@ -641,6 +697,45 @@ mod tests {
             .map(|(_, l)| l.iter().map(|&v| v as u64).product())
             .collect();
         assert_eq!(real, vec![240, 1000, 4375, 15360, 64000]);
+    }
+
+    #[test]
+    fn the_loss_is_also_predicted_by_each_form_and_the_chosen_one_is_said() {
+        let law = |x: f64| -5.0 + 3.0 * 10f64.powf(-0.6 * (x - 12.5));
+        let minima: Vec<[f64; 2]> = (0..7)
+            .map(|i| 11.0 + 0.5 * i as f64)
+            .map(|x| [x, law(x)])
+            .collect();
+        let laws = Laws {
+            source: "test".into(),
+            n: None,
+            nv: None,
+            v: None,
+            d: None,
+            nv_vs_n: None,
+            loss: Some(LogLaw::exact(-1.0, 10.0)),
+            parametric: None,
+            loss_shape: Some(crate::loss_shape::compare(&minima)),
+            is_scamo: false,
+        };
+        let options = PredictOptions {
+            budget: 1e14,
+            width: None,
+            vocab: None,
+        };
+        let p = predict(&laws, &options).unwrap();
+        let forms: Vec<&str> = p.loss_by_form.iter().map(|f| f.form.as_str()).collect();
+        assert_eq!(forms, ["log", "curved", "floor"]);
+        let chosen = p.loss_by_form.iter().find(|f| f.chosen).unwrap();
+        assert_eq!(chosen.form, "floor");
+        assert!((chosen.loss - law(14.0)).abs() < 1e-3, "{chosen:?}");
+        assert!(
+            p.warnings
+                .iter()
+                .any(|w| w.contains("chosen by leave-one-budget-out error is floor")),
+            "{:?}",
+            p.warnings
+        );
     }
 
     #[test]
