@@ -102,6 +102,11 @@ fn run_sweep(plan: &Path, runs: &Path) -> Command {
     c
 }
 
+/// `sweep run` of `plan` into `runs`, which must succeed; its output.
+fn sweep_run_ok(plan: &Path, runs: &Path) -> String {
+    motionscale_ok(&["sweep", "run", "--plan", arg(plan), "--out", arg(runs)])
+}
+
 #[test]
 fn a_sweep_killed_five_times_ends_with_one_row_per_point() {
     let tmp = tempfile::tempdir().unwrap();
@@ -444,14 +449,7 @@ fn a_data_ladder_trains_nested_subsets_and_reports_test_losses_per_origin() {
     );
 
     let runs = tmp.path().join("runs");
-    motionscale_ok(&[
-        "sweep",
-        "run",
-        "--plan",
-        arg(&plan_path),
-        "--out",
-        arg(&runs),
-    ]);
+    sweep_run_ok(&plan_path, &runs);
     let list = |name: &str, split: &str| -> Vec<String> {
         let path = runs.join("data").join(name).join(format!("{split}.txt"));
         std::fs::read_to_string(path)
@@ -522,7 +520,7 @@ fn a_data_ladder_trains_nested_subsets_and_reports_test_losses_per_origin() {
             let r = tmp.path().join("plain-runs");
             let plain_plan = IsoFlopPlan::read(&plain).unwrap();
             assert_eq!(plain_plan.points[0].tokens, plan.points[1].tokens);
-            motionscale_ok(&["sweep", "run", "--plan", arg(&plain), "--out", arg(&r)]);
+            sweep_run_ok(&plain, &r);
             table_rows(&r)[0].test_loss
         },
         "the lists of fraction 1 select the same clips as the corpus's splits"
@@ -559,14 +557,7 @@ fn a_captured_only_run_selects_on_captured_validation_clips_and_collect_reselect
     let plan_path = tmp.path().join("real.toml");
     let plan = data_plan(&corpus, "1", "real", &plan_path);
     let runs = tmp.path().join("runs");
-    motionscale_ok(&[
-        "sweep",
-        "run",
-        "--plan",
-        arg(&plan_path),
-        "--out",
-        arg(&runs),
-    ]);
+    sweep_run_ok(&plan_path, &runs);
     let dir = runs.join(&plan.points[0].run_id);
     let evals: Vec<serde_json::Value> =
         std::fs::read_to_string(dir.join("train").join("evals.jsonl"))
