@@ -485,6 +485,25 @@ mod tests {
             .find(|c| c.quantity == "best loss (parametric)");
         assert!((best.unwrap().ratio - 1.0).abs() < 0.01, "{best:?}");
 
+        // With enough budgets to score every form, the loss is also scored on the chosen one:
+        // at the minima Chinchilla's loss is E + k·C^(−γ), the floor form exactly.
+        let more = [1e17, 3e17, 1e18, 3e18, 1e19, 3e19, 1e20];
+        let fits = fit_table(&table(&dir, &isoflop_rows(&CHINCHILLA, &more, 1.0)), &opts).unwrap();
+        assert_eq!(
+            fits.loss_shape.as_ref().and_then(|s| s.chosen.as_deref()),
+            Some("floor")
+        );
+        let h = fits.holdout.as_ref().unwrap();
+        let floor = h
+            .checks
+            .iter()
+            .find(|c| c.quantity == "loss at N_opt (floor form)")
+            .unwrap();
+        assert!(
+            (floor.ratio - 1.0).abs() < 0.01 && floor.inside.is_none(),
+            "{floor:?}"
+        );
+
         // The held-out runs as if their N were 4× larger (their optimum moves about 2× smaller):
         // the prediction must miss it.
         let mut rows = isoflop_rows(&CHINCHILLA, &budgets[..4], 1.0);

@@ -80,6 +80,20 @@ pub fn score(held: &Runs, fits: &Fits) -> Result<Holdout, FitError> {
         trained.loss_opt.filter(|_| trained.interior),
         "the log law of the other budgets, 95% prediction interval, vs the held-out parabola's minimum (the loss column)",
     );
+    // The form leave-one-budget-out chose, where it is not the log law (no interval).
+    if let Some(form) = fits
+        .loss_shape
+        .as_ref()
+        .and_then(|s| s.chosen_fit())
+        .filter(|f| f.form != "log")
+    {
+        push(
+            &format!("loss at N_opt ({} form)", form.form),
+            Some(Estimate::exact(form.at(budget.log10()))),
+            trained.loss_opt.filter(|_| trained.interior),
+            "the form of the loss law the other budgets chose by leave-one-budget-out error (no interval) vs the held-out parabola's minimum",
+        );
+    }
     let param = fits
         .parametric
         .as_ref()
