@@ -97,6 +97,20 @@ pub fn append_json_line(path: &Path, value: &impl Serialize) -> Result<(), FileE
     writeln!(file, "{line}").map_err(|e| FileError::io(path, e))
 }
 
+/// Every line of the JSON-lines file `path` (as [`append_json_line`] writes it), parsed;
+/// blank lines are skipped and a bad line is an error naming its number.
+pub fn read_json_lines<T: DeserializeOwned>(path: &Path) -> Result<Vec<T>, FileError> {
+    let text = std::fs::read_to_string(path).map_err(|e| FileError::io(path, e))?;
+    text.lines()
+        .enumerate()
+        .filter(|(_, line)| !line.trim().is_empty())
+        .map(|(i, line)| {
+            serde_json::from_str(line)
+                .map_err(|e| FileError::invalid(path, format!("line {}: {e}", i + 1)))
+        })
+        .collect()
+}
+
 /// Refuse to resume a run folder whose configuration file (`config_path`, if present) holds
 /// another run: `same` says whether the stored configuration is the one asked for, and `what`
 /// names the run in the error ("a continual run").
@@ -129,6 +143,18 @@ mod tests {
         let err = read_json::<String>(&path).unwrap_err();
         assert_eq!(err.path(), path);
         assert!(err.to_string().starts_with(&path.display().to_string()));
+    }
+
+    #[test]
+    fn json_lines_read_back_what_was_appended_and_a_bad_line_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("log.jsonl");
+        append_json_line(&path, &1u32).unwrap();
+        append_json_line(&path, &2u32).unwrap();
+        assert_eq!(read_json_lines::<u32>(&path).unwrap(), [1, 2]);
+        std::fs::write(&path, "1\n\nx\n").unwrap();
+        let err = read_json_lines::<u32>(&path).unwrap_err();
+        assert!(err.to_string().contains("line 3"), "{err}");
     }
 
     #[test]

@@ -10,6 +10,7 @@
 use crate::test_loss::SplitLoss;
 use crate::train::{BestEval, EvalRecord};
 use ingest::corpus::Origin;
+use motionscale_core::files::read_json_lines;
 use nn::ModelError;
 use std::path::Path;
 
@@ -64,17 +65,7 @@ pub fn select<'a>(
 
 /// The selection on `on` among the evaluations in the run folder `out`'s `evals.jsonl`.
 pub fn reselect(out: &Path, on: Option<Origin>) -> Result<Option<BestEval>, ModelError> {
-    let path = out.join("evals.jsonl");
-    let text = std::fs::read_to_string(&path).map_err(|e| ModelError::io(&path, e))?;
-    let records = text
-        .lines()
-        .filter(|l| !l.trim().is_empty())
-        .enumerate()
-        .map(|(i, l)| {
-            serde_json::from_str::<EvalRecord>(l)
-                .map_err(|e| ModelError::invalid(&path, format!("line {}: {e}", i + 1)))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
+    let records: Vec<EvalRecord> = read_json_lines(&out.join("evals.jsonl"))?;
     Ok(select(&records, on))
 }
 
