@@ -4,6 +4,8 @@
 # H100/H200. At most about 5 minutes:
 #  1. `model executors`: the graph executor on the GPU (f32) against the cpu executor on the
 #     CPU, same seeded weights and batch: loss, every gradient, logits, KV-cached decoding;
+#     and each fused op's kernels (nn/kernels/fused_ops.cu, AdamW's included) against its
+#     CPU side;
 #  2. a small corpus, tokenizer and token set made on the GPU, then 300 training steps of
 #     d256/4L in f32 and in bf16 on it: the train and test losses side by side (within 1%);
 #  3. `bench train --device cuda --reference`: ScaMo-44M and ScaMo-343M shapes beside
@@ -98,10 +100,13 @@ def check(name, passed, detail):
 rows += ["| check | result | figures |", "|---|---|---|"]
 for f in sorted(glob.glob(f"{out}/executors-*.json")):
     a = json.load(open(f))
+    fused = a.get("fused_ops", [])
+    worst = max(fused, key=lambda o: o[1]) if fused else ["none", 0.0]
     check(f"executors {os.path.basename(f)[10:-5]} (graph on {a['device']} vs cpu)",
-          max(a["loss_relative"], a["gradient_relative"], a["logits_relative"]) <= 1e-5,
+          max(a["loss_relative"], a["gradient_relative"], a["logits_relative"], worst[1]) <= 1e-5,
           f"loss {a['loss_relative']:.1e}, gradients {a['gradient_relative']:.1e} ({a['worst_weight']}), "
-          f"logits {a['logits_relative']:.1e}, KV-cached max abs {a['cached_logits_max_abs']:.1e}")
+          f"logits {a['logits_relative']:.1e}, KV-cached max abs {a['cached_logits_max_abs']:.1e}; "
+          f"fused ops on the GPU vs CPU: worst {worst[1]:.1e} ({worst[0]}) over {len(fused)} outputs")
 ev = {p: [json.loads(l) for l in open(f"{out}/evals-{p}.jsonl")] for p in ("f32", "bf16")
       if os.path.exists(f"{out}/evals-{p}.jsonl")}
 if len(ev) == 2 and ev["f32"] and ev["bf16"]:

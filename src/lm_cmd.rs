@@ -250,10 +250,18 @@ pub fn executors(args: ExecutorsArgs) -> Result<ExitCode> {
             a.device, args.width, args.layers, args.batch, a.loss, a.loss_relative,
             a.gradient_relative, a.worst_weight, a.logits_relative, a.cached_logits_max_abs
         );
+        for (output, d) in &a.fused_ops {
+            println!(
+                "fused op on {} vs the CPU: {output}: relative Δ {d:.1e}",
+                a.device
+            );
+        }
     }
+    let fused = a.fused_ops.iter().map(|(_, d)| *d);
     let ok = [a.loss_relative, a.gradient_relative, a.logits_relative]
-        .iter()
-        .all(|&d| d <= args.tolerance)
+        .into_iter()
+        .chain(fused)
+        .all(|d| d <= args.tolerance)
         && a.cached_logits_max_abs <= 10.0 * args.tolerance;
     if !ok {
         eprintln!(

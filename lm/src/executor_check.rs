@@ -26,6 +26,9 @@ pub struct Agreement {
     pub logits_relative: f32,
     /// The largest |Δlogit| of KV-cached decoding, step by step, against the cpu executor's.
     pub cached_logits_max_abs: f32,
+    /// Each fused op's outputs and the AdamW update on the device against the CPU
+    /// (`nn::fused_ops::self_check`): largest relative difference per output.
+    pub fused_ops: Vec<(String, f32)>,
 }
 
 /// A seeded batch of `batch` sequences: random text of 2–16 tokens and 4–40 motion codes.
@@ -145,6 +148,7 @@ pub fn compare(
         worst_weight,
         logits_relative: logits,
         cached_logits_max_abs: cached,
+        fused_ops: nn::fused_ops::self_check(device)?,
     })
 }
 

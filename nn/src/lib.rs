@@ -8,6 +8,9 @@
 //!   batch layout they read; [`head_loss`]: the LM head fused with its cross-entropy;
 //! - [`gru`] and [`gru_kernel`]: the GRU layer (PyTorch's gate layout and names) and its fused
 //!   scan with a hand-written backward through time;
+//! - [`fused_ops`]: RMSNorm, SwiGLU, rotary QKV heads, the masked softmax and the
+//!   cross-entropy as single ops with a backward, on the CPU and (`cuda`) the GPU, for the
+//!   graph executor;
 //! - [`optim`] (AdamW with saveable state, warm-up + cosine schedule), [`checkpoint`]
 //!   (safetensors written atomically, resumable run files), [`kmeans`], and [`gradcheck`]
 //!   (the finite-difference reference of the gradient tests).
@@ -21,6 +24,7 @@ pub mod cpu_f32;
 pub mod device;
 pub mod error;
 pub mod fast_exp;
+pub mod fused_ops;
 pub mod gradcheck;
 pub mod gru;
 pub mod gru_kernel;

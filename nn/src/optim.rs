@@ -105,8 +105,35 @@ impl StepValues {
             });
     }
 
-    /// The same update in tensor ops on the parameter's device, from moments `mv` (`None`:
-    /// zero): the new moments; the parameter is set in place.
+    /// The same update on the parameter's device, from moments `mv` (`(2, n)`; `None`:
+    /// zero): the new moments; the parameter is set in place. On a GPU one fused kernel
+    /// (`nn::fused_ops`), elsewhere tensor ops.
+    fn apply_device(
+        &self,
+        var: &Var,
+        mv: Option<Tensor>,
+        grad: &Tensor,
+    ) -> candle_core::Result<Tensor> {
+        #[cfg(feature = "cuda")]
+        if var.device().is_cuda() && var.dtype() == DType::F32 && var.is_contiguous() {
+            let n = var.elem_count();
+            let mv = match mv {
+                Some(mv) => mv,
+                None => Tensor::zeros((2, n), DType::F32, var.device())?,
+            };
+            let grad = grad.to_dtype(DType::F32)?.contiguous()?;
+            var.as_tensor()
+                .inplace_op3(&grad, &mv, &DeviceUpdate(*self))?;
+            return Ok(mv);
+        }
+        let mv = mv
+            .map(|mv| Ok::<_, candle_core::Error>((mv.get(0)?, mv.get(1)?)))
+            .transpose()?;
+        let (m, v) = self.apply_tensors(var, mv.as_ref(), grad)?;
+        Tensor::stack(&[m, v], 0)
+    }
+
+    /// The update in tensor ops, from moments `mv` (`None`: zero): the new moments.
     fn apply_tensors(
         &self,
         var: &Var,
@@ -187,13 +214,59 @@ impl InplaceOp2 for Update<'_> {
     }
 }
 
+/// One parameter's update on a GPU: the kernel `adamw_step` over the parameter in place, its
+/// gradient and its moments `(2, n)`.
+#[cfg(feature = "cuda")]
+struct DeviceUpdate(StepValues);
+
+#[cfg(feature = "cuda")]
+impl candle_core::InplaceOp3 for DeviceUpdate {
+    fn name(&self) -> &'static str {
+        "adamw-update-device"
+    }
+
+    fn cpu_fwd(
+        &self,
+        _: &mut CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+        _: &CpuStorage,
+        _: &Layout,
+    ) -> candle_core::Result<()> {
+        candle_core::bail!("adamw: the device update runs on a GPU only")
+    }
+
+    fn cuda_fwd(
+        &self,
+        p: &mut candle_core::CudaStorage,
+        lp: &Layout,
+        g: &candle_core::CudaStorage,
+        lg: &Layout,
+        mv: &candle_core::CudaStorage,
+        lmv: &Layout,
+    ) -> candle_core::Result<()> {
+        let s = &self.0;
+        let values = [
+            s.scale,
+            s.beta.0,
+            s.beta.1,
+            s.eps,
+            s.step_size,
+            s.bias2_sqrt,
+            s.decay,
+        ];
+        crate::fused_ops::gpu::adamw_step(p, lp, (g, lg), (mv, lmv), values)
+    }
+}
+
 /// The first and second moments of one parameter.
 enum Moments {
     /// f32 CPU parameters: updated by the fused pass.
     Host { m: Vec<f32>, v: Vec<f32> },
-    /// Parameters elsewhere: f32 tensors `(m, v)` on the parameter's device (`None` while
-    /// both are zero, before the first step).
-    Device(Option<(Tensor, Tensor)>),
+    /// Parameters elsewhere: one f32 tensor `(2, n)`, m then v, on the parameter's device
+    /// (`None` while both are zero, before the first step).
+    Device(Option<Tensor>),
 }
 
 impl Moments {
@@ -214,7 +287,7 @@ impl Moments {
     fn to_host(&self, n: usize) -> Result<(Vec<f32>, Vec<f32>), NnError> {
         Ok(match self {
             Self::Host { m, v } => (m.clone(), v.clone()),
-            Self::Device(Some((m, v))) => (m.to_vec1()?, v.to_vec1()?),
+            Self::Device(Some(mv)) => (mv.get(0)?.to_vec1()?, mv.get(1)?.to_vec1()?),
             Self::Device(None) => (vec![0.0; n], vec![0.0; n]),
         })
     }
@@ -225,8 +298,7 @@ impl Moments {
             Self::Host { m: hm, v: hv } => (*hm, *hv) = (m, v),
             Self::Device(moments) => {
                 let n = m.len();
-                let on = |x: Vec<f32>| Tensor::from_vec(x, n, var.device());
-                *moments = Some((on(m)?, on(v)?));
+                *moments = Some(Tensor::from_vec([m, v].concat(), (2, n), var.device())?);
             }
         }
         Ok(())
@@ -289,14 +361,11 @@ impl AdamW {
             .collect();
         // Sums of squares per fixed chunk in parallel, added in order: deterministic.
         let mut squares = Vec::new();
+        // Off the CPU, one sum per gradient, read back together: one wait for the device.
+        let mut device_sums = Vec::new();
         for g in grads.iter().flatten() {
             if !g.device().is_cpu() {
-                let sum = g
-                    .to_dtype(DType::F32)?
-                    .sqr()?
-                    .sum_all()?
-                    .to_scalar::<f32>()?;
-                squares.push(f64::from(sum));
+                device_sums.push(g.to_dtype(DType::F32)?.sqr()?.sum_all()?);
                 continue;
             }
             let g = F32Values::of(g)?;
@@ -305,6 +374,10 @@ impl AdamW {
                     .map(|c| c.iter().map(|&v| (v as f64) * (v as f64)).sum::<f64>())
                     .collect::<Vec<_>>(),
             );
+        }
+        if !device_sums.is_empty() {
+            let sums = Tensor::stack(&device_sums, 0)?.to_vec1::<f32>()?;
+            squares.extend(sums.into_iter().map(f64::from));
         }
         let norm = squares.iter().sum::<f64>().sqrt();
         let scale = match max_norm {
@@ -338,7 +411,7 @@ impl AdamW {
                         .inplace_op2(&grad.contiguous()?, &update)?;
                 }
                 Moments::Device(moments) => {
-                    *moments = Some(step.apply_tensors(&slot.var, moments.as_ref(), grad)?)
+                    *moments = Some(step.apply_device(&slot.var, moments.take(), grad)?)
                 }
             }
         }
@@ -396,6 +469,47 @@ impl AdamW {
         self.step = u64::from(halves[0]) | (u64::from(halves[1]) << 32);
         Ok(())
     }
+}
+
+/// Three clipped steps with weight decay on `var`, each from the gradient of Σ var³ at a
+/// rising learning rate: the comparison of the optimiser's update paths.
+fn three_clipped_steps(var: &Var, opt: &mut AdamW) -> Result<(), NnError> {
+    for step in 0..3 {
+        let grads = var.as_tensor().powf(3.0)?.sum_all()?.backward()?;
+        opt.step(&grads, 1e-2 * (step + 1) as f64, Some(5.0))?;
+    }
+    Ok(())
+}
+
+/// The seeded 20 × 15 parameter of [`three_clipped_steps`] on `device`, with its optimiser.
+fn seeded_parameter(device: &Device) -> Result<(Var, AdamW), NnError> {
+    let values: Vec<f32> = (0..300)
+        .map(|i| ((i * 37 % 101) as f32 - 50.0) / 40.0)
+        .collect();
+    let var = Var::from_vec(values, (20, 15), device)?;
+    let config = AdamWConfig {
+        weight_decay: 0.1,
+        ..AdamWConfig::default()
+    };
+    let opt = AdamW::new(&HashMap::from([("w".into(), var.clone())]), config);
+    Ok((var, opt))
+}
+
+/// [`three_clipped_steps`] on `device` (on a GPU, the fused kernel) against the fused host
+/// pass on the CPU: the largest parameter difference over the largest parameter.
+pub fn device_agreement(device: &Device) -> Result<f32, NnError> {
+    let run = |on: &Device| -> Result<Vec<f32>, NnError> {
+        let (var, mut opt) = seeded_parameter(on)?;
+        three_clipped_steps(&var, &mut opt)?;
+        Ok(var
+            .as_tensor()
+            .flatten_all()?
+            .to_device(&Device::Cpu)?
+            .to_vec1()?)
+    };
+    let (host, there) = (run(&Device::Cpu)?, run(device)?);
+    let scale = host.iter().fold(f32::MIN_POSITIVE, |m, v| m.max(v.abs()));
+    Ok(crate::gradcheck::max_abs_diff(&host, &there) / scale)
 }
 
 #[cfg(test)]
@@ -501,32 +615,11 @@ mod tests {
     fn moments_kept_as_tensors_update_as_the_fused_pass_does() {
         // The path of parameters off the CPU, run here on CPU tensors, against the fused
         // host pass: same parameters and moments after a few clipped steps.
-        let values: Vec<f32> = (0..300)
-            .map(|i| ((i * 37 % 101) as f32 - 50.0) / 40.0)
-            .collect();
-        let fresh = || Var::from_vec(values.clone(), (20, 15), &Device::Cpu).unwrap();
-        let (host, tensors) = (fresh(), fresh());
-        let config = AdamWConfig {
-            weight_decay: 0.1,
-            ..AdamWConfig::default()
-        };
-        let mut opt_host = AdamW::new(&HashMap::from([("w".into(), host.clone())]), config);
-        let mut opt_tensors = AdamW::new(&HashMap::from([("w".into(), tensors.clone())]), config);
+        let (host, mut opt_host) = seeded_parameter(&Device::Cpu).unwrap();
+        let (tensors, mut opt_tensors) = seeded_parameter(&Device::Cpu).unwrap();
         opt_tensors.slots[0].moments = Moments::Device(None);
-        for step in 0..3 {
-            for (var, opt) in [(&host, &mut opt_host), (&tensors, &mut opt_tensors)] {
-                let grads = var
-                    .as_tensor()
-                    .powf(3.0)
-                    .unwrap()
-                    .sum_all()
-                    .unwrap()
-                    .backward()
-                    .unwrap();
-                opt.step(&grads, 1e-2 * (step + 1) as f64, Some(5.0))
-                    .unwrap();
-            }
-        }
+        three_clipped_steps(&host, &mut opt_host).unwrap();
+        three_clipped_steps(&tensors, &mut opt_tensors).unwrap();
         let flat = |v: &Var| {
             v.as_tensor()
                 .flatten_all()

@@ -1,7 +1,9 @@
 //! The graph executor of the prefix LM: the model written in candle's differentiable ops, so
-//! it runs on any device and dtype and `loss.backward()` gives its gradients. Never candle's
-//! fused `rms_norm`, `softmax_last_dim` or `rope` (they have no backward: gradients silently
-//! stop there, see `../shared/docs/pitfalls.md`).
+//! it runs on any device and dtype and `loss.backward()` gives its gradients. The norms, the
+//! SwiGLU, the rotary QKV split, the masked softmax and the loss are `nn::fused_ops`: one
+//! kernel each way with its own backward, where candle's composed ops took 5–15 kernels and
+//! tensors each (never candle's fused `rms_norm`, `softmax_last_dim` or `rope`: they have no
+//! backward, see `../shared/docs/pitfalls.md`).
 //!
 //! The model runs on the dense (sequence, slot) grid of a [`SeqLayout`], padding slots
 //! included (masked as keys, their own outputs dropped): a row gather per block would cost a
@@ -17,13 +19,11 @@
 use super::{ExtraLoss, LmBatch, PrefixLm};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var, D};
-use candle_nn::ops::{rms_norm_slow, silu, softmax};
+use nn::fused_ops::{
+    masked_softmax, qkv_heads, rms_norm, swiglu_rows, weighted_cross_entropy, PrefixMask,
+};
 use nn::lm_kernels::IGNORE;
 use nn::seq_layout::SeqLayout;
-
-/// Additive mask of a score that may not be attended to: finite, so a padding row with no
-/// allowed column stays finite (its output is dropped).
-const MASKED: f32 = -1e9;
 
 /// The weights as one call uses them: matrices in the compute dtype, the rest f32.
 struct GraphWeights {
@@ -71,22 +71,21 @@ fn linear(x: &Tensor, w: &Tensor) -> Result<Tensor> {
     x.to_dtype(w.dtype())?.matmul(&w.t()?)?.to_dtype(DType::F32)
 }
 
-/// Rotary tables, one row per slot, and the additive mask of one attention call.
+/// Rotary tables, one row per query slot, and the mask of one attention call.
 struct AttentionInputs {
     cos: Tensor,
     sin: Tensor,
-    /// `(batch, 1, queries, keys)`.
-    mask: Tensor,
+    /// Each sequence's caption length (u32), for the mask.
+    prefix_lens: Tensor,
+    mask: PrefixMask,
 }
 
 impl AttentionInputs {
-    /// Tables for the query slots `queries` (each `(sequence, slot)`) of `layout`, keys
-    /// `0..keys` of each sequence.
+    /// Tables for the query slots `queries` (each `(sequence, slot)`) of `layout`.
     fn new(
         model: &PrefixLm,
         layout: &SeqLayout,
         queries: (usize, usize),
-        keys: usize,
         device: &Device,
     ) -> Result<Self> {
         let (from, to) = queries;
@@ -96,29 +95,24 @@ impl AttentionInputs {
             Vec::with_capacity(rows * half),
             Vec::with_capacity(rows * half),
         );
-        let mut mask = Vec::with_capacity(rows * keys);
         for b in 0..layout.batch {
             for s in from..to {
                 let (c, si) = model.rope.at(layout.position(b, s));
                 cos.extend_from_slice(c);
                 sin.extend_from_slice(si);
-                mask.extend((0..keys).map(|j| if layout.allowed(b, s, j) { 0.0 } else { MASKED }));
             }
         }
+        let prefix_lens: Vec<u32> = layout.prefix_lens.iter().map(|&n| n as u32).collect();
         Ok(Self {
-            cos: Tensor::from_vec(cos, (rows, 1, half), device)?,
-            sin: Tensor::from_vec(sin, (rows, 1, half), device)?,
-            mask: Tensor::from_vec(mask, (layout.batch, 1, to - from, keys), device)?,
+            cos: Tensor::from_vec(cos, (rows, half), device)?,
+            sin: Tensor::from_vec(sin, (rows, half), device)?,
+            prefix_lens: Tensor::new(prefix_lens, device)?,
+            mask: PrefixMask {
+                prefix_slots: layout.prefix_slots,
+                first_query: from,
+                scale: 1.0 / (model.config.head_dim() as f32).sqrt(),
+            },
         })
-    }
-
-    /// `x` (`rows × heads × head_dim`, f32) rotated to each row's position (rotate-half).
-    fn rotate(&self, x: &Tensor) -> Result<Tensor> {
-        let half = x.dim(D::Minus1)? / 2;
-        let (x1, x2) = (x.narrow(2, 0, half)?, x.narrow(2, half, half)?);
-        let r1 = (x1.broadcast_mul(&self.cos)? - x2.broadcast_mul(&self.sin)?)?;
-        let r2 = (x2.broadcast_mul(&self.cos)? + x1.broadcast_mul(&self.sin)?)?;
-        Tensor::cat(&[&r1, &r2], 2)
     }
 }
 
@@ -137,36 +131,22 @@ impl Pass<'_> {
     /// Split QKV rows (`batch · slots × 3d`, slot-major per sequence) into rotated queries,
     /// rotated keys and values, each `(batch, heads, slots, head_dim)` in the product dtype.
     fn heads(&self, qkv: &Tensor, at: &AttentionInputs, batch: usize) -> Result<[Tensor; 3]> {
-        let c = &self.model.config;
-        let (d, h, hd) = (c.d_model, c.n_heads, c.head_dim());
-        let rows = qkv.dim(0)?;
-        let part = |k: usize| qkv.narrow(1, k * d, d)?.reshape((rows, h, hd));
-        let grid = |x: Tensor| {
-            x.reshape((batch, rows / batch, h, hd))?
-                .transpose(1, 2)?
-                .contiguous()?
-                .to_dtype(self.dtype)
-        };
-        Ok([
-            grid(at.rotate(&part(0)?)?)?,
-            grid(at.rotate(&part(1)?)?)?,
-            grid(part(2)?)?,
-        ])
+        let grid = qkv_heads(qkv, &at.cos, &at.sin, batch, self.model.config.n_heads)?;
+        let part = |i: usize| grid.get(i)?.to_dtype(self.dtype);
+        Ok([part(0)?, part(1)?, part(2)?])
     }
 
     /// Softmax attention of `q` against `k`, `v` (`(batch, heads, ·, head_dim)`) under the
     /// mask; the output as rows (`batch · queries × d`, f32).
-    fn attend(&self, q: &Tensor, k: &Tensor, v: &Tensor, mask: &Tensor) -> Result<Tensor> {
-        let c = &self.model.config;
+    fn attend(&self, q: &Tensor, k: &Tensor, v: &Tensor, at: &AttentionInputs) -> Result<Tensor> {
         let (b, _, n, _) = q.dims4()?;
-        let scale = 1.0 / (c.head_dim() as f64).sqrt();
-        let scores = (q.matmul(&k.t()?)?.to_dtype(DType::F32)? * scale)?.broadcast_add(mask)?;
-        let probs = softmax(&scores, D::Minus1)?.to_dtype(self.dtype)?;
+        let scores = q.matmul(&k.t()?)?.to_dtype(DType::F32)?;
+        let probs = masked_softmax(&scores, &at.prefix_lens, at.mask)?.to_dtype(self.dtype)?;
         probs
             .matmul(v)?
             .to_dtype(DType::F32)?
             .transpose(1, 2)?
-            .reshape((b * n, c.d_model))
+            .reshape((b * n, self.model.config.d_model))
     }
 
     /// The block's FFN and attention around `attention` (QKV rows → attention output rows).
@@ -177,12 +157,10 @@ impl Pass<'_> {
         attention: impl FnOnce(&Tensor) -> Result<Tensor>,
     ) -> Result<Tensor> {
         let [n1, wqkv, wo, n2, w13, w2] = &self.w.blocks[i];
-        let f = self.model.config.ffn_hidden;
-        let qkv = linear(&rms_norm_slow(&h, n1, self.eps())?, wqkv)?;
+        let qkv = linear(&rms_norm(&h, n1, self.eps())?, wqkv)?;
         let h = (&h + linear(&attention(&qkv)?, wo)?)?;
-        let ab = linear(&rms_norm_slow(&h, n2, self.eps())?, w13)?;
-        let act = (silu(&ab.narrow(1, 0, f)?)? * ab.narrow(1, f, f)?)?;
-        &h + linear(&act, w2)?
+        let ab = linear(&rms_norm(&h, n2, self.eps())?, w13)?;
+        &h + linear(&swiglu_rows(&ab)?, w2)?
     }
 
     /// `text · Wᵀ + b` of text rows (`rows × E`).
@@ -228,11 +206,11 @@ impl Pass<'_> {
         let (l, device) = (&batch.layout, self.w.head.device());
         let grid = Grid::new(batch, device)?;
         let mut h = self.inputs(batch, &grid, device)?;
-        let at = AttentionInputs::new(self.model, l, (0, l.slots()), l.slots(), device)?;
+        let at = AttentionInputs::new(self.model, l, (0, l.slots()), device)?;
         for i in 0..self.w.blocks.len() {
             h = self.block(i, h, |qkv| {
                 let [q, k, v] = self.heads(qkv, &at, l.batch)?;
-                self.attend(&q, &k, &v, &at.mask)
+                self.attend(&q, &k, &v, &at)
             })?;
         }
         Ok((h, grid))
@@ -240,7 +218,7 @@ impl Pass<'_> {
 
     /// `RMSNorm(h; norm) · headᵀ` (f32 logits).
     fn head(&self, h: &Tensor) -> Result<Tensor> {
-        linear(&rms_norm_slow(h, &self.w.norm, self.eps())?, &self.w.head)
+        linear(&rms_norm(h, &self.w.norm, self.eps())?, &self.w.head)
     }
 
     /// Logits of every real motion row, in the layout's row order.
@@ -448,12 +426,9 @@ fn masked_cross_entropy(
     if n == 0 {
         return logits.sum_all()? * 0.0;
     }
-    let log_probs = candle_nn::ops::log_softmax(logits, D::Minus1)?
-        .gather(&targets.unsqueeze(1)?, 1)?
-        .squeeze(1)?;
-    (log_probs * weight)?
+    weighted_cross_entropy(logits, targets, weight)?
         .sum_all()?
-        .affine(-1.0 / n as f64, 0.0)
+        .affine(1.0 / n as f64, 0.0)
 }
 
 /// Mean cross-entropy of f32 `logits` rows against `targets` (0 without targets).
@@ -524,7 +499,7 @@ pub(super) fn forward_cached(
     }
     let rows = Tensor::cat(&parts, 0)?;
     let mut h = rows.index_select(&Tensor::new(pick, device)?, 0)?;
-    let at = AttentionInputs::new(model, layout, (from, to), to, device)?;
+    let at = AttentionInputs::new(model, layout, (from, to), device)?;
     for (i, layer) in cache.layers.iter_mut().enumerate() {
         h = pass.block(i, h, |qkv| {
             let [q, k, v] = pass.heads(qkv, &at, layout.batch)?;
@@ -532,7 +507,7 @@ pub(super) fn forward_cached(
                 Some((ck, cv)) => (Tensor::cat(&[&ck, &k], 2)?, Tensor::cat(&[&cv, &v], 2)?),
                 None => (k, v),
             };
-            let out = pass.attend(&q, &k, &v, &at.mask)?;
+            let out = pass.attend(&q, &k, &v, &at)?;
             *layer = Some((k, v));
             Ok(out)
         })?;
