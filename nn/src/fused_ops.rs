@@ -693,11 +693,10 @@ pub fn self_check(device: &candle_core::Device) -> Result<Vec<(String, f32)>> {
             .reshape((rows, d))?;
         let normed = rms_norm(&attended, &w.flatten_all()?, 1e-5)?;
         let act = swiglu_rows(&normed)?;
-        let tail = logits
-            .narrow(1, 0, d / 2)?
-            .mul(&act)?
-            .sum_keepdim(1)?
-            .broadcast_add(logits)?;
+        // A per-row factor on the logits: a per-row shift would carry no gradient (the
+        // cross-entropy's gradient sums to 0 over each row) and leave only rounding noise.
+        let factor = (logits.narrow(1, 0, d / 2)?.mul(&act)?.sum_keepdim(1)? + 1.0)?;
+        let tail = logits.broadcast_mul(&factor)?;
         let ce = weighted_cross_entropy(
             &tail,
             &Tensor::new(targets.as_slice(), on)?,
