@@ -1,5 +1,5 @@
-//! The prefix LM's two executors side by side on one seeded model and batch: the cpu
-//! executor on the CPU against the graph executor on any device (a GPU, or the CPU itself).
+//! The prefix LM's executors side by side on one seeded model and batch: the cpu executor on
+//! the CPU against the graph and the fused executors on any device (a GPU, or the CPU).
 //! `motionscale model executors` prints it; `scripts/gpu-check.sh` runs it on a GPU.
 
 use crate::prefix_lm::{init_model, Compute, Executor, LmBatch, PrefixLm, PrefixLmConfig};
@@ -22,6 +22,9 @@ pub struct Agreement {
     pub gradient_relative: f32,
     /// The weight where that is largest.
     pub worst_weight: String,
+    /// The fused executor's training step on the device: |Δloss| / loss, the largest
+    /// relative gradient difference and its weight, as above.
+    pub fused_step: (f32, f32, String),
     /// max |Δlogit| / max |logit| over every motion slot.
     pub logits_relative: f32,
     /// The largest |Δlogit| of KV-cached decoding, step by step, against the cpu executor's.
@@ -110,29 +113,35 @@ pub fn compare(
     };
     let (cpu, cpu_vars) = init_model(config, seed, &Device::Cpu)?;
     let (graph, graph_vars) = init_model(config, seed, device)?;
+    let fused = graph.clone().with_compute(forced(Executor::Fused));
     let (cpu, graph) = (
         cpu.with_compute(forced(Executor::Cpu)),
         graph.with_compute(forced(Executor::Graph)),
     );
     let data = batch_of(config, batch, seed ^ 0x5eed);
     let (l_cpu, g_cpu) = cpu.loss_and_grads(&data)?;
-    let (l_graph, g_graph) = graph.loss_and_grads(&data)?;
     let (cpu_vars, graph_vars) = (
         cpu_vars.data().lock().expect("vars"),
         graph_vars.data().lock().expect("vars"),
     );
-    let mut names: Vec<&String> = cpu_vars.keys().collect();
-    names.sort();
-    let (mut worst, mut worst_weight) = (0f32, String::new());
-    for name in names {
-        let missing = || candle_core::Error::Msg(format!("no gradient of {name}"));
-        let a = g_graph.get(&graph_vars[name]).ok_or_else(missing)?;
-        let b = g_cpu.get(&cpu_vars[name]).ok_or_else(missing)?;
-        let d = relative(a, b)?;
-        if d >= worst {
-            (worst, worst_weight) = (d, name.clone());
+    let step_agreement = |model: &PrefixLm| -> Result<(f32, f32, String)> {
+        let (loss, grads) = model.loss_and_grads(&data)?;
+        let mut names: Vec<&String> = cpu_vars.keys().collect();
+        names.sort();
+        let (mut worst, mut worst_weight) = (0f32, String::new());
+        for name in names {
+            let missing = || candle_core::Error::Msg(format!("no gradient of {name}"));
+            let a = grads.get(&graph_vars[name]).ok_or_else(missing)?;
+            let b = g_cpu.get(&cpu_vars[name]).ok_or_else(missing)?;
+            let d = relative(a, b)?;
+            if d >= worst {
+                (worst, worst_weight) = (d, name.clone());
+            }
         }
-    }
+        Ok(((loss - l_cpu).abs() / l_cpu.abs(), worst, worst_weight))
+    };
+    let (loss_relative, worst, worst_weight) = step_agreement(&graph)?;
+    let fused_step = step_agreement(&fused)?;
     let logits = relative(&graph.forward(&data)?, &cpu.forward(&data)?)?;
     let (cached_graph, cached_cpu) = (cached_logits(&graph, seed)?, cached_logits(&cpu, seed)?);
     let cached = cached_graph
@@ -143,9 +152,10 @@ pub fn compare(
     Ok(Agreement {
         device: device_name(device),
         loss: l_cpu,
-        loss_relative: (l_graph - l_cpu).abs() / l_cpu.abs(),
+        loss_relative,
         gradient_relative: worst,
         worst_weight,
+        fused_step,
         logits_relative: logits,
         cached_logits_max_abs: cached,
         fused_ops: nn::fused_ops::self_check(device)?,

@@ -466,30 +466,33 @@ mod tests {
             let (loss, g) = model.loss_and_grads(&b).unwrap();
             (loss, lora.grads(&merged, &g).unwrap())
         };
-        let ((l_cpu, g_cpu), (l_graph, g_graph)) = (run(Executor::Cpu), run(Executor::Graph));
-        assert!(
-            (l_cpu - l_graph).abs() <= 1e-5 * l_cpu.abs(),
-            "{l_cpu} vs {l_graph}"
-        );
-        let mut worst = 0f32;
-        for (name, var) in lora.vars() {
-            let values = |g: &GradStore| -> Vec<f32> {
-                g.get(var.as_tensor())
-                    .unwrap()
-                    .flatten_all()
-                    .unwrap()
-                    .to_vec1()
-                    .unwrap()
-            };
-            let (a, c) = (values(&g_graph), values(&g_cpu));
-            let scale = c.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
-            let d = nn::gradcheck::max_abs_diff(&a, &c) / scale;
+        let (l_cpu, g_cpu) = run(Executor::Cpu);
+        for other in [Executor::Graph, Executor::Fused] {
+            let (l_graph, g_graph) = run(other);
             assert!(
-                d <= 1e-5,
-                "{name}: gradients differ by {d:.2e} of their scale"
+                (l_cpu - l_graph).abs() <= 1e-5 * l_cpu.abs(),
+                "{l_cpu} vs {l_graph}"
             );
-            worst = worst.max(d);
+            let mut worst = 0f32;
+            for (name, var) in lora.vars() {
+                let values = |g: &GradStore| -> Vec<f32> {
+                    g.get(var.as_tensor())
+                        .unwrap()
+                        .flatten_all()
+                        .unwrap()
+                        .to_vec1()
+                        .unwrap()
+                };
+                let (a, c) = (values(&g_graph), values(&g_cpu));
+                let scale = c.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
+                let d = nn::gradcheck::max_abs_diff(&a, &c) / scale;
+                assert!(
+                    d <= 1e-5,
+                    "{name}: gradients differ by {d:.2e} of their scale"
+                );
+                worst = worst.max(d);
+            }
+            eprintln!("LoRA {other:?} vs cpu: loss {l_graph} vs {l_cpu}, gradients {worst:.2e} (relative)");
         }
-        eprintln!("LoRA graph vs cpu: loss {l_graph} vs {l_cpu}, gradients {worst:.2e} (relative)");
     }
 }

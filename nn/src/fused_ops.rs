@@ -13,7 +13,7 @@
 
 use crate::cpu_f32::contiguous_f32;
 use crate::lm_kernels::{
-    cross_entropy_row, gate_sigmoid, rms_norm_backward, swiglu, swiglu_backward, target_log_prob,
+    cross_entropy_row, gate_sigmoid, swiglu, swiglu_backward, target_log_prob,
 };
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
 
@@ -93,6 +93,61 @@ pub fn weighted_cross_entropy(
         .apply_op3(targets, weight, CrossEntropy)
 }
 
+/// The backward of [`rms_norm`] written out: the gradients of `x` and `w` given that of the
+/// output (for an executor without autograd).
+pub fn rms_norm_backward(x: &Tensor, w: &Tensor, g: &Tensor, eps: f32) -> Result<(Tensor, Tensor)> {
+    let (rows, d) = (x.elem_count() / w.elem_count(), w.elem_count());
+    let out = x
+        .contiguous()?
+        .apply_op3_no_bwd(w, &g.contiguous()?, &RmsNormGrad { eps })?;
+    Ok((
+        out.narrow(0, 0, rows)?.reshape(x.shape())?,
+        out.narrow(0, rows, 1)?.reshape(d)?,
+    ))
+}
+
+/// The backward of [`swiglu_rows`]: the gradient of `[a | b]` given that of the output.
+pub fn swiglu_backward_rows(ab: &Tensor, g: &Tensor) -> Result<Tensor> {
+    ab.contiguous()?
+        .apply_op2_no_bwd(&g.contiguous()?, &SwigluGrad)
+}
+
+/// The backward of [`qkv_heads`]: the gradient of the QKV rows given that of the grid.
+pub fn qkv_heads_backward(
+    g: &Tensor,
+    cos: &Tensor,
+    sin: &Tensor,
+    batch: usize,
+    heads: usize,
+) -> Result<Tensor> {
+    let op = QkvHeads {
+        batch,
+        heads,
+        backward: true,
+    };
+    g.contiguous()?.apply_op3_no_bwd(cos, sin, &op)
+}
+
+/// The backward of [`masked_softmax`] from its output `probs`: the gradient of the scores
+/// (the scale included) given that of the probabilities.
+pub fn masked_softmax_backward(probs: &Tensor, g: &Tensor, mask: PrefixMask) -> Result<Tensor> {
+    probs
+        .contiguous()?
+        .apply_op2_no_bwd(&g.contiguous()?, &SoftmaxGrad { scale: mask.scale })
+}
+
+/// The backward of [`weighted_cross_entropy`] given each row's weight times its loss
+/// gradient, `grad_weight`: `grad_weight · (softmax − onehot)` per row.
+pub fn weighted_cross_entropy_backward(
+    logits: &Tensor,
+    targets: &Tensor,
+    grad_weight: &Tensor,
+) -> Result<Tensor> {
+    logits
+        .contiguous()?
+        .apply_op3_no_bwd(targets, &grad_weight.detach(), &CrossEntropyGrad)
+}
+
 fn u32s<'a>(s: &'a CpuStorage, l: &Layout, what: &str) -> Result<&'a [u32]> {
     let (start, end) = l
         .contiguous_offsets()
@@ -151,12 +206,8 @@ impl CustomOp2 for RmsNorm {
         _y: &Tensor,
         g: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let (rows, d) = (x.elem_count() / w.elem_count(), w.elem_count());
-        let out = x.apply_op3_no_bwd(w, &g.contiguous()?, &RmsNormGrad { eps: self.eps })?;
-        Ok((
-            Some(out.narrow(0, 0, rows)?.reshape(x.shape())?),
-            Some(out.narrow(0, rows, 1)?.reshape(d)?),
-        ))
+        let (dx, dw) = rms_norm_backward(x, w, g, self.eps)?;
+        Ok((Some(dx), Some(dw)))
     }
 }
 
@@ -182,7 +233,7 @@ impl CustomOp3 for RmsNormGrad {
         let (x, w) = (contiguous_f32(s1, l1, "x")?, contiguous_f32(s2, l2, "w")?);
         let g = contiguous_f32(s3, l3, "gradient")?;
         let mut out = vec![0f32; x.len()];
-        let gw = rms_norm_backward(x, w, g, self.eps, &mut out);
+        let gw = crate::lm_kernels::rms_norm_backward(x, w, g, self.eps, &mut out);
         out.extend(gw);
         f32_out(out, (x.len() / w.len() + 1, w.len()))
     }
@@ -229,7 +280,7 @@ impl CustomOp1 for Swiglu {
     }
 
     fn bwd(&self, ab: &Tensor, _y: &Tensor, g: &Tensor) -> Result<Option<Tensor>> {
-        Ok(Some(ab.apply_op2_no_bwd(&g.contiguous()?, &SwigluGrad)?))
+        Ok(Some(swiglu_backward_rows(ab, g)?))
     }
 }
 
@@ -399,15 +450,8 @@ impl CustomOp3 for QkvHeads {
         _res: &Tensor,
         g: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let back = QkvHeads {
-            backward: true,
-            ..*self
-        };
-        Ok((
-            Some(g.contiguous()?.apply_op3_no_bwd(cos, sin, &back)?),
-            None,
-            None,
-        ))
+        let grad = qkv_heads_backward(g, cos, sin, self.batch, self.heads)?;
+        Ok((Some(grad), None, None))
     }
 }
 
@@ -473,13 +517,7 @@ impl CustomOp2 for MaskedSoftmax {
         probs: &Tensor,
         g: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>)> {
-        let grad = probs.apply_op2_no_bwd(
-            &g.contiguous()?,
-            &SoftmaxGrad {
-                scale: self.0.scale,
-            },
-        )?;
-        Ok((Some(grad), None))
+        Ok((Some(masked_softmax_backward(probs, g, self.0)?), None))
     }
 }
 
@@ -588,12 +626,8 @@ impl CustomOp3 for CrossEntropy {
         _loss: &Tensor,
         g: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let gw = (weight * g)?;
-        Ok((
-            Some(logits.apply_op3_no_bwd(targets, &gw, &CrossEntropyGrad)?),
-            None,
-            None,
-        ))
+        let grad = weighted_cross_entropy_backward(logits, targets, &(weight * g)?)?;
+        Ok((Some(grad), None, None))
     }
 }
 

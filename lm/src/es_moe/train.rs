@@ -568,25 +568,28 @@ mod tests {
                 .collect();
             (loss.total(lambda), grads)
         };
-        let ((l_cpu, g_cpu), (l_graph, g_graph)) = (run(Executor::Cpu), run(Executor::Graph));
-        assert!(
-            (l_cpu - l_graph).abs() <= 1e-5 * l_cpu.abs(),
-            "{l_cpu} vs {l_graph}"
-        );
-        assert_eq!(g_cpu.len(), g_graph.len());
-        let mut worst = 0f32;
-        for (name, c) in &g_cpu {
-            let scale = c.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
-            let d = nn::gradcheck::max_abs_diff(&g_graph[name], c) / scale;
+        let (l_cpu, g_cpu) = run(Executor::Cpu);
+        for other in [Executor::Graph, Executor::Fused] {
+            let (l_graph, g_graph) = run(other);
             assert!(
-                d <= 1e-5,
-                "{name}: gradients differ by {d:.2e} of their scale"
+                (l_cpu - l_graph).abs() <= 1e-5 * l_cpu.abs(),
+                "{l_cpu} vs {l_graph}"
             );
-            worst = worst.max(d);
+            assert_eq!(g_cpu.len(), g_graph.len());
+            let mut worst = 0f32;
+            for (name, c) in &g_cpu {
+                let scale = c.iter().fold(1e-3f32, |m, v| m.max(v.abs()));
+                let d = nn::gradcheck::max_abs_diff(&g_graph[name], c) / scale;
+                assert!(
+                    d <= 1e-5,
+                    "{name}: gradients differ by {d:.2e} of their scale"
+                );
+                worst = worst.max(d);
+            }
+            eprintln!(
+                "ES-MoE {other:?} vs cpu: loss {l_graph} vs {l_cpu}, {} gradients within {worst:.2e} (relative)",
+                g_cpu.len()
+            );
         }
-        eprintln!(
-            "ES-MoE graph vs cpu: loss {l_graph} vs {l_cpu}, {} gradients within {worst:.2e} (relative)",
-            g_cpu.len()
-        );
     }
 }

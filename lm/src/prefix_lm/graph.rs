@@ -26,19 +26,19 @@ use nn::lm_kernels::IGNORE;
 use nn::seq_layout::SeqLayout;
 
 /// The weights as one call uses them: matrices in the compute dtype, the rest f32.
-struct GraphWeights {
-    tok_emb: Tensor,
-    proj_w: Tensor,
-    proj_b: Tensor,
+pub(super) struct GraphWeights {
+    pub(super) tok_emb: Tensor,
+    pub(super) proj_w: Tensor,
+    pub(super) proj_b: Tensor,
     /// Per block: n1, Wqkv, Wo, n2, W13, W2.
-    blocks: Vec<[Tensor; 6]>,
-    norm: Tensor,
-    head: Tensor,
+    pub(super) blocks: Vec<[Tensor; 6]>,
+    pub(super) norm: Tensor,
+    pub(super) head: Tensor,
 }
 
 impl GraphWeights {
     /// `tensors` (in [`PrefixLm::tensors`] order) cast for `dtype` products.
-    fn cast(tensors: &[Tensor], dtype: DType) -> Result<Self> {
+    pub(super) fn cast(tensors: &[Tensor], dtype: DType) -> Result<Self> {
         let f32 = |t: &Tensor| t.to_dtype(DType::F32);
         let mat = |t: &Tensor| t.to_dtype(dtype);
         let n = tensors.len();
@@ -72,17 +72,17 @@ fn linear(x: &Tensor, w: &Tensor) -> Result<Tensor> {
 }
 
 /// Rotary tables, one row per query slot, and the mask of one attention call.
-struct AttentionInputs {
-    cos: Tensor,
-    sin: Tensor,
+pub(super) struct AttentionInputs {
+    pub(super) cos: Tensor,
+    pub(super) sin: Tensor,
     /// Each sequence's caption length (u32), for the mask.
-    prefix_lens: Tensor,
-    mask: PrefixMask,
+    pub(super) prefix_lens: Tensor,
+    pub(super) mask: PrefixMask,
 }
 
 impl AttentionInputs {
     /// Tables for the query slots `queries` (each `(sequence, slot)`) of `layout`.
-    fn new(
+    pub(super) fn new(
         model: &PrefixLm,
         layout: &SeqLayout,
         queries: (usize, usize),
@@ -188,15 +188,7 @@ impl Pass<'_> {
         if batch.text.is_empty() {
             return Ok(h);
         }
-        let e = self.model.config.text_dim;
-        let text = Tensor::cat(
-            &[
-                Tensor::from_slice(&batch.text, (batch.text.len() / e, e), device)?,
-                Tensor::zeros((1, e), DType::F32, device)?,
-            ],
-            0,
-        )?
-        .index_select(&grid.text_rows, 0)?;
+        let text = grid.caption_rows(&batch.text, self.model.config.text_dim, device)?;
         let projected = linear(&text, &self.w.proj_w)?.broadcast_add(&self.w.proj_b)?;
         h + projected.broadcast_mul(&grid.text_mask)?
     }
@@ -229,21 +221,21 @@ impl Pass<'_> {
 }
 
 /// Where a batch's real slots sit in its dense (sequence, slot) grid.
-struct Grid {
+pub(super) struct Grid {
     /// Per grid row: its motion input token, or the vocabulary size (no one-hot column) on a
     /// text or padding slot.
-    tokens: Tensor,
+    pub(super) tokens: Tensor,
     /// Per grid row: the caption row it reads, or the zero row after them.
     text_rows: Tensor,
     /// Per grid row: 1 on a real text slot, else 0 (`rows × 1`, f32).
-    text_mask: Tensor,
+    pub(super) text_mask: Tensor,
     /// The grid row of each motion row of the layout.
     motion_grid_rows: Vec<u32>,
     device: Device,
 }
 
 impl Grid {
-    fn new(batch: &LmBatch, device: &Device) -> Result<Self> {
+    pub(super) fn new(batch: &LmBatch, device: &Device) -> Result<Self> {
         let l = &batch.layout;
         let (slots, motion) = (l.slots(), l.motion_rows());
         let vocab_end = u32::MAX;
@@ -275,6 +267,25 @@ impl Grid {
         })
     }
 
+    /// Per grid row, the caption embedding it reads (zero off real text slots; `rows × E`).
+    /// `text`: the batch's caption rows, `text_dim` wide.
+    pub(super) fn caption_rows(
+        &self,
+        text: &[f32],
+        text_dim: usize,
+        device: &Device,
+    ) -> Result<Tensor> {
+        let e = text_dim;
+        Tensor::cat(
+            &[
+                Tensor::from_slice(text, (text.len() / e, e), device)?,
+                Tensor::zeros((1, e), DType::F32, device)?,
+            ],
+            0,
+        )?
+        .index_select(&self.text_rows, 0)
+    }
+
     /// The grid rows of the layout's motion rows `rows`.
     fn motion_rows(&self, rows: &[u32]) -> Result<Tensor> {
         let picked: Vec<u32> = rows
@@ -291,7 +302,7 @@ impl Grid {
 
     /// Per grid row, the target of a motion row with one (else 0) and its weight (1, else
     /// 0), from the layout's motion `rows` and their `targets`.
-    fn targets(&self, rows: &[u32], targets: &[u32]) -> Result<(Tensor, Tensor)> {
+    pub(super) fn targets(&self, rows: &[u32], targets: &[u32]) -> Result<(Tensor, Tensor)> {
         let n = self.tokens.dim(0)?;
         let (mut dense, mut weight) = (vec![0u32; n], vec![0f32; n]);
         for (&r, &t) in rows.iter().zip(targets) {
@@ -321,7 +332,7 @@ fn pass_over<'a>(model: &'a PrefixLm, tensors: &[Tensor]) -> Result<Pass<'a>> {
 }
 
 /// The rows of `batch`'s motion slots that have a target, and those targets.
-fn target_rows(batch: &LmBatch) -> (Vec<u32>, Vec<u32>) {
+pub(super) fn target_rows(batch: &LmBatch) -> (Vec<u32>, Vec<u32>) {
     batch
         .targets
         .iter()

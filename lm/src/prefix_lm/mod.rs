@@ -21,18 +21,22 @@
 //! Vocabulary: the motion codes `0..K`, then BOS = K, EOS = K + 1, PAD = K + 2 (V = K + 3).
 //!
 //! The model is defined once here (shape, weights by name, built from a `VarBuilder`) and run
-//! by one of two executors, as the tokenizer's convolutions are:
+//! by one of three executors, as the tokenizer's convolutions are by two:
 //! - [`Executor::Cpu`] (`cpu.rs`): the fused CPU kernels of [`nn::lm_kernels`] with a forward
 //!   trace and a hand-written backward ([`PrefixLm::loss_and_grads`] returns a `GradStore`
 //!   as `loss.backward()` would). f32 weights on the CPU only.
-//! - [`Executor::Graph`] (`graph.rs`): the same model in candle's differentiable ops, on any
-//!   device and in f32 or bf16 ([`Precision`]); candle's autograd gives the gradients.
+//! - [`Executor::Graph`] (`graph.rs`): the same model in candle's differentiable ops and the
+//!   fused ops of [`nn::fused_ops`], on any device and in f32 or bf16 ([`Precision`]);
+//!   candle's autograd gives the gradients.
+//! - [`Executor::Fused`] (`fused.rs`): the graph executor's model with a forward trace and the
+//!   backward written out (no autograd graph) for training; its inference is `Graph`'s.
 //!
-//! The executor follows the weights: f32 on the CPU runs `Cpu`, anything else `Graph`;
-//! [`Compute::executor`] forces one (tests and comparisons). A test checks that the two agree
+//! The executor follows the weights: f32 on the CPU runs `Cpu`, anything else `Fused`;
+//! [`Compute::executor`] forces one (tests and comparisons). Tests check that they agree
 //! on the loss, every gradient, the logits and KV-cached decoding.
 
 mod cpu;
+mod fused;
 mod graph;
 #[cfg(test)]
 mod tests;
@@ -320,6 +324,9 @@ pub enum Executor {
     Cpu,
     /// candle's differentiable ops with autograd, on any device and dtype.
     Graph,
+    /// The graph executor's model and fused ops with the backward written out (no autograd
+    /// graph): training off the CPU; inference runs the graph executor.
+    Fused,
 }
 
 /// How a model computes: the executor (by default the one its weights call for) and the
@@ -397,7 +404,8 @@ impl PrefixLm {
     }
 
     /// The executor that runs the model: the forced one, else `Cpu` for f32 CPU weights in
-    /// f32 and `Graph` for anything else. Forcing `Cpu` on other weights is an error.
+    /// f32 and `Fused` for anything else (whose inference is `Graph`'s). Forcing `Cpu` on
+    /// other weights is an error.
     pub fn executor(&self) -> Result<Executor> {
         let cpu_ok = self.head.device().is_cpu()
             && self.head.dtype() == DType::F32
@@ -412,7 +420,7 @@ impl PrefixLm {
             ),
             Some(e) => Ok(e),
             None if cpu_ok => Ok(Executor::Cpu),
-            None => Ok(Executor::Graph),
+            None => Ok(Executor::Fused),
         }
     }
 
@@ -440,7 +448,7 @@ impl PrefixLm {
     pub fn forward(&self, batch: &LmBatch) -> Result<Tensor> {
         match self.executor()? {
             Executor::Cpu => self.cpu_forward(batch),
-            Executor::Graph => graph::forward(self, batch),
+            Executor::Graph | Executor::Fused => graph::forward(self, batch),
         }
     }
 
@@ -449,7 +457,7 @@ impl PrefixLm {
     pub fn target_log_probs(&self, batch: &LmBatch) -> Result<Vec<f32>> {
         match self.executor()? {
             Executor::Cpu => self.cpu_target_log_probs(batch),
-            Executor::Graph => graph::target_log_probs(self, batch),
+            Executor::Graph | Executor::Fused => graph::target_log_probs(self, batch),
         }
     }
 
@@ -460,6 +468,7 @@ impl PrefixLm {
         match self.executor()? {
             Executor::Cpu => self.cpu_loss_and_grads(batch),
             Executor::Graph => graph::loss_and_grads(self, batch, None),
+            Executor::Fused => fused::loss_and_grads(self, batch),
         }
     }
 
@@ -472,7 +481,8 @@ impl PrefixLm {
     ) -> Result<(f32, GradStore)> {
         match self.executor()? {
             Executor::Cpu => self.cpu_loss_and_grads_with(batch, extra),
-            Executor::Graph => graph::loss_and_grads(self, batch, Some(extra)),
+            // The extra term's gradient enters at the logits: the graph executor's autograd.
+            Executor::Graph | Executor::Fused => graph::loss_and_grads(self, batch, Some(extra)),
         }
     }
 
@@ -480,7 +490,9 @@ impl PrefixLm {
     pub fn new_cache(&self, layout: &SeqLayout) -> Result<DecodeCache> {
         Ok(DecodeCache(match self.executor()? {
             Executor::Cpu => CacheKind::Cpu(self.cpu_new_cache(layout)?),
-            Executor::Graph => CacheKind::Graph(graph::GraphCache::new(self.config.n_layers)),
+            Executor::Graph | Executor::Fused => {
+                CacheKind::Graph(graph::GraphCache::new(self.config.n_layers))
+            }
         }))
     }
 

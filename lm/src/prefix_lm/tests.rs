@@ -180,13 +180,13 @@ fn executors_agree_on_logits_and_target_log_probs() {
     assert!(logits <= 1e-5, "logits differ by {logits}");
 }
 
-/// Loss and every gradient of `model` on both executors: the loss's relative difference and
-/// the largest per-weight relative gradient difference.
+/// Loss and every gradient of `model` on the cpu executor and on `other`: the loss's relative
+/// difference and the largest per-weight relative gradient difference.
 fn loss_and_grad_agreement(
     model: &PrefixLm,
     vars: &HashMap<String, Var>,
     batch: &LmBatch,
-    extra: Option<&ExtraLoss<'_>>,
+    (other, extra): (Executor, Option<&ExtraLoss<'_>>),
 ) -> (f32, f32) {
     let run = |e| {
         let m = on(model, e);
@@ -195,7 +195,7 @@ fn loss_and_grad_agreement(
             None => m.loss_and_grads(batch).unwrap(),
         }
     };
-    let ((l_cpu, g_cpu), (l_graph, g_graph)) = (run(Executor::Cpu), run(Executor::Graph));
+    let ((l_cpu, g_cpu), (l_graph, g_graph)) = (run(Executor::Cpu), run(other));
     let mut worst = 0f32;
     for (name, var) in vars {
         let (a, b) = (g_graph.get(var).unwrap(), g_cpu.get(var).unwrap());
@@ -215,9 +215,11 @@ fn executors_agree_on_the_loss_and_every_gradient() {
     let (model, varmap) = init_model(&config, 11, &Device::Cpu).unwrap();
     let vars = varmap.data().lock().unwrap().clone();
     let batch = two_clips(&config);
-    let (loss, grads) = loss_and_grad_agreement(&model, &vars, &batch, None);
-    eprintln!("graph vs cpu: loss {loss:.2e}, gradients {grads:.2e} (relative)");
-    assert!(loss <= 1e-5, "losses differ by {loss:.2e}");
+    for other in [Executor::Graph, Executor::Fused] {
+        let (loss, grads) = loss_and_grad_agreement(&model, &vars, &batch, (other, None));
+        eprintln!("{other:?} vs cpu: loss {loss:.2e}, gradients {grads:.2e} (relative)");
+        assert!(loss <= 1e-5, "{other:?}: losses differ by {loss:.2e}");
+    }
     // An extra term on the logits (here: pull every logit towards 0.1) reaches the weights
     // alike on both.
     let pull = |logits: &[f32]| {
@@ -225,7 +227,8 @@ fn executors_agree_on_the_loss_and_every_gradient() {
         let term = logits.iter().map(|v| 5e-4 * (v - 0.1).powi(2)).sum();
         Some((term, g))
     };
-    let (loss, grads) = loss_and_grad_agreement(&model, &vars, &batch, Some(&pull));
+    let extra = (Executor::Graph, Some(&pull as &ExtraLoss));
+    let (loss, grads) = loss_and_grad_agreement(&model, &vars, &batch, extra);
     eprintln!("with an extra loss: loss {loss:.2e}, gradients {grads:.2e} (relative)");
     assert!(loss <= 1e-5, "losses differ by {loss:.2e}");
 }
@@ -263,42 +266,49 @@ fn training_losses(executor: Executor, precision: Precision, steps: usize) -> Ve
 #[test]
 fn executors_agree_after_40_training_steps() {
     let cpu = training_losses(Executor::Cpu, Precision::F32, 40);
-    let graph = training_losses(Executor::Graph, Precision::F32, 40);
-    let worst = cpu
-        .iter()
-        .zip(&graph)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0f32, f32::max);
-    eprintln!(
-        "40 steps: loss {:.5} -> {:.5} (cpu), {:.5} (graph); largest difference {worst:.2e}",
-        cpu[0], cpu[39], graph[39]
-    );
     assert!(
         cpu[39] < cpu[0] - 0.5,
         "training did not reduce the loss: {cpu:?}"
     );
-    assert!(worst <= 1e-4, "losses differ by {worst}");
+    for other in [Executor::Graph, Executor::Fused] {
+        let losses = training_losses(other, Precision::F32, 40);
+        let worst = cpu
+            .iter()
+            .zip(&losses)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        eprintln!(
+            "40 steps: loss {:.5} -> {:.5} (cpu), {:.5} ({other:?}); largest difference {worst:.2e}",
+            cpu[0], cpu[39], losses[39]
+        );
+        assert!(worst <= 1e-4, "{other:?}: losses differ by {worst}");
+    }
 }
 
 #[test]
 fn bf16_training_follows_f32_within_bf16_rounding() {
     let f32 = training_losses(Executor::Graph, Precision::F32, 40);
-    let bf16 = training_losses(Executor::Graph, Precision::Bf16, 40);
-    let worst = f32
-        .iter()
-        .zip(&bf16)
-        .map(|(a, b)| (a - b).abs() / a)
-        .fold(0f32, f32::max);
-    eprintln!(
-        "40 steps bf16 vs f32: final {:.4} vs {:.4}, largest relative difference {worst:.2e}",
-        bf16[39], f32[39]
-    );
-    // bf16 keeps 8 mantissa bits (relative rounding 2^-9 ≈ 2e-3 per product).
-    assert!(worst <= 3e-2, "bf16 strays {worst:.2e} from f32");
-    assert!(
-        worst > 0.0,
-        "bf16 computed exactly the f32 losses: the cast did not happen"
-    );
+    for executor in [Executor::Graph, Executor::Fused] {
+        let bf16 = training_losses(executor, Precision::Bf16, 40);
+        let worst = f32
+            .iter()
+            .zip(&bf16)
+            .map(|(a, b)| (a - b).abs() / a)
+            .fold(0f32, f32::max);
+        eprintln!(
+            "40 steps bf16 ({executor:?}) vs f32: final {:.4} vs {:.4}, largest relative difference {worst:.2e}",
+            bf16[39], f32[39]
+        );
+        // bf16 keeps 8 mantissa bits (relative rounding 2^-9 ≈ 2e-3 per product).
+        assert!(
+            worst <= 3e-2,
+            "{executor:?}: bf16 strays {worst:.2e} from f32"
+        );
+        assert!(
+            worst > 0.0,
+            "{executor:?}: bf16 computed exactly the f32 losses: the cast did not happen"
+        );
+    }
 }
 
 #[test]
@@ -315,5 +325,5 @@ fn the_cpu_executor_refuses_what_it_cannot_run() {
         executor: None,
         precision: Precision::Bf16,
     });
-    assert_eq!(graph.executor().unwrap(), Executor::Graph);
+    assert_eq!(graph.executor().unwrap(), Executor::Fused);
 }

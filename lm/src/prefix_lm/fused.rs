@@ -1,0 +1,233 @@
+//! The fused executor of the prefix LM's training step: the graph executor's model (same
+//! weights, casts and fused ops of `nn::fused_ops`) with the structure of the cpu executor:
+//! the forward records what the backward needs, and the backward is written out, so no
+//! autograd graph is built (candle's backward allocates a zero tensor and adds into it for
+//! every edge). Runs wherever candle's tensors do; the default for training off the CPU.
+//! Inference (logits, log-probabilities, decoding) is the graph executor's.
+//!
+//! Every product is `linear`: `x` cast to the compute dtype times `Wᵀ`, f32 out; its
+//! backward casts the output gradient once and gives `dx = (dy · W)` and `dW = dyᵀ · x` in
+//! f32, as the graph executor's autograd does through the same casts.
+
+use super::graph::{target_rows, AttentionInputs, GraphWeights, Grid};
+use super::{LmBatch, PrefixLm};
+use candle_core::backprop::GradStore;
+use candle_core::{DType, Device, Result, Tensor};
+use nn::fused_ops::{
+    masked_softmax, masked_softmax_backward, qkv_heads, qkv_heads_backward, rms_norm,
+    rms_norm_backward, swiglu_backward_rows, swiglu_rows, weighted_cross_entropy,
+    weighted_cross_entropy_backward,
+};
+
+/// `x` (f32 or the compute dtype) cast to `dtype` times `Wᵀ` (`w` in `dtype`): the cast
+/// input, kept for the backward, and the f32 output.
+fn linear(x: &Tensor, w: &Tensor) -> Result<(Tensor, Tensor)> {
+    let xc = x.to_dtype(w.dtype())?;
+    let y = xc.matmul(&w.t()?)?.to_dtype(DType::F32)?;
+    Ok((xc, y))
+}
+
+/// The backward of [`linear`] from its cast input `xc`: `(dx, dW)`, both f32.
+fn linear_backward(xc: &Tensor, w: &Tensor, dy: &Tensor) -> Result<(Tensor, Tensor)> {
+    let dyc = dy.to_dtype(w.dtype())?;
+    let dx = dyc.matmul(w)?.to_dtype(DType::F32)?;
+    let dw = dyc.t()?.matmul(xc)?.to_dtype(DType::F32)?;
+    Ok((dx, dw))
+}
+
+/// What one block's backward needs from its forward.
+struct BlockTape {
+    h: Tensor,
+    a1: Tensor,
+    /// Rotated queries, rotated keys and values in the compute dtype.
+    qkv: [Tensor; 3],
+    probs: Tensor,
+    probs_c: Tensor,
+    o_rows: Tensor,
+    h1: Tensor,
+    a2: Tensor,
+    ab: Tensor,
+    act: Tensor,
+}
+
+/// One training pass: the model, its weights as cast, the attention tables.
+struct Step<'a> {
+    model: &'a PrefixLm,
+    w: GraphWeights,
+    at: AttentionInputs,
+    batch: usize,
+}
+
+impl Step<'_> {
+    fn eps(&self) -> f32 {
+        self.model.config.norm_eps as f32
+    }
+
+    fn block_forward(&self, i: usize, h: Tensor) -> Result<(Tensor, BlockTape)> {
+        let [n1, wqkv, wo, n2, w13, w2] = &self.w.blocks[i];
+        let (c, dtype) = (&self.model.config, wqkv.dtype());
+        let (a1, qkv) = linear(&rms_norm(&h, n1, self.eps())?, wqkv)?;
+        let grid = qkv_heads(&qkv, &self.at.cos, &self.at.sin, self.batch, c.n_heads)?;
+        let [q, k, v] = [0, 1, 2].map(|p| grid.get(p).and_then(|t| t.to_dtype(dtype)));
+        let (q, k, v) = (q?, k?, v?);
+        let scores = q.matmul(&k.t()?)?.to_dtype(DType::F32)?;
+        let probs = masked_softmax(&scores, &self.at.prefix_lens, self.at.mask)?;
+        let probs_c = probs.to_dtype(dtype)?;
+        let (b, _, n, _) = q.dims4()?;
+        let o = probs_c
+            .matmul(&v)?
+            .transpose(1, 2)?
+            .reshape((b * n, c.d_model))?;
+        let (o_rows, att) = linear(&o, wo)?;
+        let h1 = (&h + att)?;
+        let (a2, ab) = linear(&rms_norm(&h1, n2, self.eps())?, w13)?;
+        let (act, out) = linear(&swiglu_rows(&ab)?, w2)?;
+        let h2 = (&h1 + out)?;
+        let tape = BlockTape {
+            h,
+            a1,
+            qkv: [q, k, v],
+            probs,
+            probs_c,
+            o_rows,
+            h1,
+            a2,
+            ab,
+            act,
+        };
+        Ok((h2, tape))
+    }
+
+    /// The gradient of the block's input from that of its output `dh2`, and the gradients
+    /// of its weights in [`super::Block`] order.
+    fn block_backward(&self, i: usize, t: BlockTape, dh2: Tensor) -> Result<(Tensor, [Tensor; 6])> {
+        let [n1, wqkv, wo, n2, w13, w2] = &self.w.blocks[i];
+        let (c, eps) = (&self.model.config, self.eps());
+        let (dact, dw2) = linear_backward(&t.act, w2, &dh2)?;
+        let dab = swiglu_backward_rows(&t.ab, &dact)?;
+        let (da2, dw13) = linear_backward(&t.a2, w13, &dab)?;
+        let (dh1_norm, dn2) = rms_norm_backward(&t.h1, n2, &da2, eps)?;
+        let dh1 = (dh2 + dh1_norm)?;
+        let (do_rows, dwo) = linear_backward(&t.o_rows, wo, &dh1)?;
+        let [q, k, v] = &t.qkv;
+        let (b, h, n, hd) = q.dims4()?;
+        let d_o = do_rows
+            .reshape((b, n, h, hd))?
+            .transpose(1, 2)?
+            .to_dtype(q.dtype())?
+            .contiguous()?;
+        let dprobs = d_o.matmul(&v.t()?)?.to_dtype(DType::F32)?;
+        let dv = t.probs_c.t()?.matmul(&d_o)?;
+        let dscores =
+            masked_softmax_backward(&t.probs, &dprobs, self.at.mask)?.to_dtype(q.dtype())?;
+        let dq = dscores.matmul(k)?;
+        let dk = dscores.t()?.matmul(q)?;
+        let dgrid = Tensor::stack(&[dq, dk, dv], 0)?.to_dtype(DType::F32)?;
+        let dqkv = qkv_heads_backward(&dgrid, &self.at.cos, &self.at.sin, self.batch, c.n_heads)?;
+        let (da1, dwqkv) = linear_backward(&t.a1, wqkv, &dqkv)?;
+        let (dh_norm, dn1) = rms_norm_backward(&t.h, n1, &da1, eps)?;
+        Ok(((dh1 + dh_norm)?, [dn1, dwqkv, dwo, dn2, dw13, dw2]))
+    }
+}
+
+/// The grid's block inputs and what their backward needs: the one-hot motion tokens, and
+/// the cast caption rows with their mask when the batch has captions.
+struct InputTape {
+    one_hot: Tensor,
+    text: Option<(Tensor, Tensor)>,
+}
+
+fn inputs(
+    step: &Step,
+    batch: &LmBatch,
+    grid: &Grid,
+    device: &Device,
+) -> Result<(Tensor, InputTape)> {
+    let vocab = step.w.tok_emb.dim(0)? as u32;
+    let one_hot = grid
+        .tokens
+        .unsqueeze(1)?
+        .broadcast_eq(&Tensor::arange(0, vocab, device)?.unsqueeze(0)?)?
+        .to_dtype(DType::F32)?;
+    let h = one_hot.matmul(&step.w.tok_emb)?;
+    if batch.text.is_empty() {
+        return Ok((
+            h,
+            InputTape {
+                one_hot,
+                text: None,
+            },
+        ));
+    }
+    let text = grid.caption_rows(&batch.text, step.model.config.text_dim, device)?;
+    let (text_c, projected) = linear(&text, &step.w.proj_w)?;
+    let projected = projected.broadcast_add(&step.w.proj_b)?;
+    let h = (h + projected.broadcast_mul(&grid.text_mask)?)?;
+    Ok((
+        h,
+        InputTape {
+            one_hot,
+            text: Some((text_c, grid.text_mask.clone())),
+        },
+    ))
+}
+
+/// [`super::PrefixLm::loss_and_grads`] without an extra loss, for a batch with targets.
+pub(super) fn loss_and_grads(model: &PrefixLm, batch: &LmBatch) -> Result<(f32, GradStore)> {
+    model.check(&batch.layout)?;
+    let (rows, targets) = target_rows(batch);
+    let own = model.tensors();
+    let detached: Vec<Tensor> = own.iter().map(|t| t.detach()).collect();
+    let dtype = model.compute.precision.compute_dtype();
+    let device = model.device();
+    let l = &batch.layout;
+    let step = Step {
+        model,
+        w: GraphWeights::cast(&detached, dtype)?,
+        at: AttentionInputs::new(model, l, (0, l.slots()), device)?,
+        batch: l.batch,
+    };
+    let grid = Grid::new(batch, device)?;
+    let (mut h, input_tape) = inputs(&step, batch, &grid, device)?;
+    let mut tapes = Vec::with_capacity(step.w.blocks.len());
+    for i in 0..step.w.blocks.len() {
+        let (next, tape) = step.block_forward(i, h)?;
+        tapes.push(tape);
+        h = next;
+    }
+    let normed = rms_norm(&h, &step.w.norm, step.eps())?;
+    let (normed_c, logits) = linear(&normed, &step.w.head)?;
+    let (dense, weight) = grid.targets(&rows, &targets)?;
+    let n = targets.len().max(1) as f64;
+    let loss = weighted_cross_entropy(&logits, &dense, &weight)?
+        .sum_all()?
+        .affine(1.0 / n, 0.0)?;
+    let dlogits = weighted_cross_entropy_backward(&logits, &dense, &weight.affine(1.0 / n, 0.0)?)?;
+    let (dnormed, dhead) = linear_backward(&normed_c, &step.w.head, &dlogits)?;
+    let (mut dh, dnorm) = rms_norm_backward(&h, &step.w.norm, &dnormed, step.eps())?;
+    let mut block_grads = Vec::with_capacity(tapes.len());
+    for (i, tape) in tapes.into_iter().enumerate().rev() {
+        let (prev, grads) = step.block_backward(i, tape, dh)?;
+        block_grads.push(grads);
+        dh = prev;
+    }
+    block_grads.reverse();
+    let mut grads: Vec<Option<Tensor>> = vec![Some(input_tape.one_hot.t()?.matmul(&dh)?)];
+    match &input_tape.text {
+        Some((text_c, mask)) => {
+            let dprojected = dh.broadcast_mul(mask)?;
+            let (_, dproj_w) = linear_backward(text_c, &step.w.proj_w, &dprojected)?;
+            grads.extend([Some(dproj_w), Some(dprojected.sum(0)?)]);
+        }
+        None => grads.extend([None, None]),
+    }
+    grads.extend(block_grads.into_iter().flatten().map(Some));
+    grads.extend([Some(dnorm), Some(dhead)]);
+    let mut store = GradStore::default();
+    for (t, g) in own.into_iter().zip(grads) {
+        if let Some(g) = g {
+            store.insert(t, g.reshape(t.shape())?);
+        }
+    }
+    Ok((loss.to_scalar::<f32>()?, store))
+}
