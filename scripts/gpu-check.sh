@@ -138,7 +138,8 @@ if os.path.exists(f"{out}/bench-train.json"):
             f"ours {t['motion_tokens_per_s']:.0f} tok/s (MFU {100*t['mfu']:.1f}%, fwd+bwd "
             f"{1e3*t['phase_median_s']['fwd_bwd']:.0f} ms, AdamW {1e3*t['phase_median_s']['opt']:.0f} ms); "
             f"PyTorch eager {e.get('result', {}).get('motion_tokens_per_s', float('nan')):.0f}, compiled "
-            f"{c.get('result', {}).get('motion_tokens_per_s', float('nan')):.0f} tok/s; PyTorch peak {mem:.2f} GiB")
+            f"{c.get('result', {}).get('motion_tokens_per_s', float('nan')):.0f} tok/s; peak memory allocated: ours "
+            f"{t.get('peak_gpu_memory_allocated_gib') or float('nan'):.2f} GiB, PyTorch eager {mem:.2f} GiB")
 if os.path.exists(f"{out}/bench-tokenizer.json"):
     for t in json.load(open(f"{out}/bench-tokenizer.json"))["figures"]:
         row(f"bench tokenizer {t['quantizer']} B{t['batch']}", f"{t.get('ratio', float('nan')):.2f}× PyTorch eager",

@@ -82,8 +82,61 @@ fn open_cuda(ordinal: usize) -> Result<Device, NnError> {
             "cannot open cuda:{ordinal} ({e}); pass --device cpu on a machine without that GPU"
         ))
     })?;
+    keep_freed_memory(&device)
+        .map_err(|e| NnError::Device(format!("cuda:{ordinal}: its memory pool: {e}")))?;
     table.insert(ordinal, device.clone());
     Ok(device)
+}
+
+/// The device's stream-ordered memory pool, with the context bound to this thread.
+#[cfg(feature = "cuda")]
+fn memory_pool(
+    device: &Device,
+) -> candle_core::Result<candle_core::cuda::cudarc::driver::sys::CUmemoryPool> {
+    let cuda = device.as_cuda_device()?;
+    let stream = cuda.cuda_stream();
+    let context = stream.context();
+    context.bind_to_thread().map_err(candle_core::Error::wrap)?;
+    // SAFETY: the context's own device.
+    unsafe {
+        candle_core::cuda::cudarc::driver::result::device::get_default_mem_pool(context.cu_device())
+    }
+    .map_err(candle_core::Error::wrap)
+}
+
+/// Keep freed memory in the pool for reuse (release threshold at its maximum), as PyTorch's
+/// caching allocator does: at the default threshold of 0 the pool returns it to the driver
+/// at every synchronisation, and every step allocates it anew.
+#[cfg(feature = "cuda")]
+fn keep_freed_memory(device: &Device) -> candle_core::Result<()> {
+    use candle_core::cuda::cudarc::driver::{result::mem_pool, sys};
+    let pool = memory_pool(device)?;
+    let mut threshold = u64::MAX;
+    let attr = sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_RELEASE_THRESHOLD;
+    // SAFETY: a valid pool; the attribute is a u64.
+    unsafe { mem_pool::set_attribute(pool, attr, (&mut threshold as *mut u64).cast()) }
+        .map_err(candle_core::Error::wrap)
+}
+
+/// The most memory the GPU's pool has had allocated since the last call (bytes; the
+/// counterpart of PyTorch's `max_memory_allocated`), its mark then reset; `None` off a GPU.
+pub fn gpu_peak_allocated(device: &Device) -> candle_core::Result<Option<u64>> {
+    #[cfg(feature = "cuda")]
+    if device.is_cuda() {
+        use candle_core::cuda::cudarc::driver::{result::mem_pool, sys};
+        let pool = memory_pool(device)?;
+        let attr = sys::CUmemPool_attribute::CU_MEMPOOL_ATTR_USED_MEM_HIGH;
+        let (mut high, mut zero) = (0u64, 0u64);
+        // SAFETY: a valid pool; the attribute is a u64 (reset by writing 0).
+        unsafe {
+            mem_pool::get_attribute(pool, attr, (&mut high as *mut u64).cast())
+                .and_then(|_| mem_pool::set_attribute(pool, attr, (&mut zero as *mut u64).cast()))
+        }
+        .map_err(candle_core::Error::wrap)?;
+        return Ok(Some(high));
+    }
+    let _ = device;
+    Ok(None)
 }
 
 #[cfg(not(feature = "cuda"))]

@@ -117,6 +117,7 @@ pub(super) fn bench_train_step(
         },
     );
     let lm_batch = bench_batch(&config, batch, 1)?;
+    nn::device::gpu_peak_allocated(device)?;
     let mut phases = [Vec::new(), Vec::new()];
     let st = time(args.warmup, args.reps, args.min_time, || {
         let t0 = Instant::now();
@@ -137,6 +138,7 @@ pub(super) fn bench_train_step(
         v[v.len() / 2]
     };
     let [fwd_bwd, optim] = phases.each_mut().map(median);
+    let peak_gib = nn::device::gpu_peak_allocated(device)?.map(|b| b as f64 / (1u64 << 30) as f64);
     // On a GPU, the forward pass alone (motion logits), for the forward/backward split.
     let forward = match device.is_cuda() {
         true => {
@@ -168,7 +170,7 @@ pub(super) fn bench_train_step(
         "device": nn::device::device_name(device), "precision": compute.precision.to_string(),
         "executor": format!("{:?}", model.executor()?).to_lowercase(),
         "step_time": st, "phase_median_s": {"fwd_bwd": fwd_bwd, "opt": optim, "fwd": forward},
-        "motion_tokens_per_s": tokens / step_s,
+        "motion_tokens_per_s": tokens / step_s, "peak_gpu_memory_allocated_gib": peak_gib,
         "flops_per_step_exact": flops, "flops_per_step_6N": six_n,
         "achieved_gflops_exact": gflops, "mfu": gflops / peak_gflops,
         "cpu_time_equivalent": {"step_s": cpu_bound_s, "motion_tokens_per_s": tokens / cpu_bound_s,

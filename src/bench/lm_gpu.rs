@@ -84,14 +84,16 @@ pub fn train(args: &BenchTrainArgs, device: &Device) -> Result<ExitCode> {
         let ours_tps = ours["motion_tokens_per_s"].as_f64().unwrap_or(0.0);
         let phases = &ours["phase_median_s"];
         println!(
-            "train d{d}/{layers}L B{batch} on {} ({}): {ours_tps:.0} motion tok/s, MFU {:.1}% ({:.1} ms/step: forward + backward {:.1} (forward alone {:.1}), AdamW {:.1})",
+            "train d{d}/{layers}L B{batch} on {} ({}, {} executor): {ours_tps:.0} motion tok/s, MFU {:.1}% ({:.1} ms/step: forward + backward {:.1} (forward alone {:.1}), AdamW {:.1}); peak memory allocated {:.2} GiB",
             ours["device"].as_str().unwrap_or("?"),
             compute.precision,
+            ours["executor"].as_str().unwrap_or("?"),
             100.0 * ours["mfu"].as_f64().unwrap_or(0.0),
             1e3 * ours["step_time"]["median_s"].as_f64().unwrap_or(0.0),
             1e3 * phases["fwd_bwd"].as_f64().unwrap_or(0.0),
             1e3 * phases["fwd"].as_f64().unwrap_or(f64::NAN),
             1e3 * phases["opt"].as_f64().unwrap_or(0.0),
+            ours["peak_gpu_memory_allocated_gib"].as_f64().unwrap_or(f64::NAN),
         );
         if args.reference {
             let mut refs = serde_json::Map::new();
