@@ -240,3 +240,15 @@ extern "C" __global__ void adamw_step(float* p, const float* g, float* m, float*
   const float denom = sqrtf(vi) / bias2_sqrt + eps;
   p[at] = p[at] * decay - step_size * mi / denom;
 }
+
+// Sums of squares of `n` values, one partial per block (grid-stride; the gradient norm's first
+// stage; the second runs it again over the partials with one block). Deterministic.
+extern "C" __global__ void square_sums(const float* x, float* partial, size_t n, int square) {
+  __shared__ float shared[32];
+  float s = 0.f;
+  for (size_t at = (size_t)blockIdx.x * blockDim.x + threadIdx.x; at < n;
+       at += (size_t)gridDim.x * blockDim.x)
+    s += square ? x[at] * x[at] : x[at];
+  s = block_sum(s, shared);
+  if (threadIdx.x == 0) partial[blockIdx.x] = s;
+}

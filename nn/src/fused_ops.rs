@@ -52,6 +52,34 @@ pub fn qkv_heads(
     qkv.contiguous()?.apply_op3(cos, sin, op)
 }
 
+/// `Σ x²` of an f32 tensor, as a one-element tensor (no gradient): on a GPU over many
+/// blocks (candle's `sum_all` reduces with a single block).
+pub fn sum_of_squares(x: &Tensor) -> Result<Tensor> {
+    x.contiguous()?.apply_op1_no_bwd(&SumOfSquares)
+}
+
+struct SumOfSquares;
+
+impl CustomOp1 for SumOfSquares {
+    fn name(&self) -> &'static str {
+        "fused-sum-of-squares"
+    }
+
+    fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
+        let x = contiguous_f32(s, l, "x")?;
+        f32_out(vec![x.iter().map(|v| v * v).sum()], 1)
+    }
+
+    #[cfg(feature = "cuda")]
+    fn cuda_fwd(
+        &self,
+        s: &candle_core::CudaStorage,
+        l: &Layout,
+    ) -> Result<(candle_core::CudaStorage, Shape)> {
+        Ok((gpu::sum_of_squares(s, l)?, 1.into()))
+    }
+}
+
 /// Where a block of attention queries sits in a prefix-LM layout: the prefix slots (keys
 /// `< prefix_slots` are caption slots, attended by every query up to the sequence's caption
 /// length; later keys causally by motion queries only) and the slot of the first query.
@@ -759,6 +787,12 @@ pub fn self_check(device: &candle_core::Device) -> Result<Vec<(String, f32)>> {
             Ok((name, diff / scale))
         })
         .collect::<Result<Vec<_>>>()?;
+    let squares = |t: &Tensor| sum_of_squares(t)?.to_device(&cpu)?.to_vec1::<f32>();
+    let (a, b) = (
+        squares(&inputs[4])?[0],
+        squares(&inputs[4].to_device(device)?)?[0],
+    );
+    report.push(("sum of squares".to_string(), (a - b).abs() / a));
     let adamw = crate::optim::device_agreement(device)
         .map_err(|e| candle_core::Error::Msg(format!("adamw: {e}")))?;
     report.push(("adamw, 3 steps".to_string(), adamw));

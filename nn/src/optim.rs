@@ -365,7 +365,7 @@ impl AdamW {
         let mut device_sums = Vec::new();
         for g in grads.iter().flatten() {
             if !g.device().is_cpu() {
-                device_sums.push(g.to_dtype(DType::F32)?.sqr()?.sum_all()?);
+                device_sums.push(crate::fused_ops::sum_of_squares(&g.to_dtype(DType::F32)?)?);
                 continue;
             }
             let g = F32Values::of(g)?;
@@ -376,7 +376,7 @@ impl AdamW {
             );
         }
         if !device_sums.is_empty() {
-            let sums = Tensor::stack(&device_sums, 0)?.to_vec1::<f32>()?;
+            let sums = Tensor::cat(&device_sums, 0)?.to_vec1::<f32>()?;
             squares.extend(sums.into_iter().map(f64::from));
         }
         let norm = squares.iter().sum::<f64>().sqrt();

@@ -9,7 +9,9 @@ use anyhow::{Context, Result};
 use candle_core::Device;
 use lm::accounting::{self, SequenceShape};
 use lm::generate::Sampling;
-use lm::prefix_lm::{init_model, Compute, LmBatch, PrefixLmConfig};
+use lm::prefix_lm::{
+    init_model, record_stage_times, stage_times, Compute, Executor, LmBatch, PrefixLmConfig,
+};
 use nn::optim::{AdamW, AdamWConfig};
 use serde_json::{json, Value};
 use std::path::PathBuf;
@@ -153,6 +155,23 @@ pub(super) fn bench_train_step(
         }
         false => None,
     };
+    // The fused executor's stages, each ended by a synchronisation (so apart from the timing
+    // above): where a GPU step spends its time.
+    let stages = match device.is_cuda() && model.executor()? == Executor::Fused {
+        true => {
+            record_stage_times(true);
+            for _ in 0..args.reps.max(3) {
+                model.loss_and_grads(&lm_batch)?;
+            }
+            let stages: serde_json::Map<String, Value> = stage_times()
+                .into_iter()
+                .map(|(k, ms)| (k, json!(ms)))
+                .collect();
+            record_stage_times(false);
+            Some(stages)
+        }
+        false => None,
+    };
     let step_s = st["median_s"].as_f64().expect("median");
     let flops = batch as f64 * accounting::train_flops_exact(&config, SequenceShape::BENCH);
     let six_n =
@@ -170,6 +189,7 @@ pub(super) fn bench_train_step(
         "device": nn::device::device_name(device), "precision": compute.precision.to_string(),
         "executor": format!("{:?}", model.executor()?).to_lowercase(),
         "step_time": st, "phase_median_s": {"fwd_bwd": fwd_bwd, "opt": optim, "fwd": forward},
+        "fused_stage_ms": stages,
         "motion_tokens_per_s": tokens / step_s, "peak_gpu_memory_allocated_gib": peak_gib,
         "flops_per_step_exact": flops, "flops_per_step_6N": six_n,
         "achieved_gflops_exact": gflops, "mfu": gflops / peak_gflops,

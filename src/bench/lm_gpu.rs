@@ -95,6 +95,16 @@ pub fn train(args: &BenchTrainArgs, device: &Device) -> Result<ExitCode> {
             1e3 * phases["opt"].as_f64().unwrap_or(0.0),
             ours["peak_gpu_memory_allocated_gib"].as_f64().unwrap_or(f64::NAN),
         );
+        if let Some(stages) = ours["fused_stage_ms"].as_object() {
+            let parts: Vec<String> = stages
+                .iter()
+                .map(|(k, ms)| format!("{k} {:.1}", ms.as_f64().unwrap_or(f64::NAN)))
+                .collect();
+            println!(
+                "  stages, ms per step (each synchronised): {}",
+                parts.join("; ")
+            );
+        }
         if args.reference {
             let mut refs = serde_json::Map::new();
             for (name, compile) in [("eager", false), ("compiled", true)] {

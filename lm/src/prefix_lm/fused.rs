@@ -18,6 +18,67 @@ use nn::fused_ops::{
     rms_norm_backward, swiglu_backward_rows, swiglu_rows, weighted_cross_entropy,
     weighted_cross_entropy_backward,
 };
+use std::cell::RefCell;
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+thread_local! {
+    /// Seconds per stage and calls, while [`record_stage_times`] is on (this thread).
+    static STAGES: RefCell<Option<BTreeMap<&'static str, (f64, usize)>>> = const { RefCell::new(None) };
+}
+
+/// Start (`true`: from zero) or stop timing the fused executor's stages on this thread. Each
+/// stage then ends with a device synchronisation, so steps run slower while it is on.
+pub fn record_stage_times(on: bool) {
+    STAGES.with(|s| *s.borrow_mut() = on.then(BTreeMap::new));
+}
+
+/// The stages timed since [`record_stage_times`]: name and mean milliseconds per step.
+pub fn stage_times() -> Vec<(String, f64)> {
+    STAGES.with(|s| {
+        let s = s.borrow();
+        let steps = s
+            .as_ref()
+            .and_then(|m| m.get("loss"))
+            .map_or(1, |&(_, n)| n.max(1));
+        s.iter()
+            .flatten()
+            .map(|(name, (secs, _))| (name.to_string(), 1e3 * secs / steps as f64))
+            .collect()
+    })
+}
+
+/// The clock of the stages: each `lap` adds the time since the previous one to a stage
+/// (after waiting for the device), when timing is on.
+struct Laps {
+    device: Device,
+    last: RefCell<Instant>,
+}
+
+impl Laps {
+    fn new(device: &Device) -> Self {
+        Self {
+            device: device.clone(),
+            last: RefCell::new(Instant::now()),
+        }
+    }
+
+    fn lap(&self, stage: &'static str) -> Result<()> {
+        if STAGES.with(|s| s.borrow().is_none()) {
+            return Ok(());
+        }
+        self.device.synchronize()?;
+        let now = Instant::now();
+        let secs = (now - self.last.replace(now)).as_secs_f64();
+        STAGES.with(|s| {
+            if let Some(m) = s.borrow_mut().as_mut() {
+                let e = m.entry(stage).or_insert((0.0, 0));
+                (e.0, e.1) = (e.0 + secs, e.1 + 1);
+            }
+        });
+        Ok(())
+    }
+}
 
 /// `x` (f32 or the compute dtype) cast to `dtype` times `Wᵀ` (`w` in `dtype`): the cast
 /// input, kept for the backward, and the f32 output.
@@ -56,6 +117,7 @@ struct Step<'a> {
     w: GraphWeights,
     at: AttentionInputs,
     batch: usize,
+    laps: Laps,
 }
 
 impl Step<'_> {
@@ -70,6 +132,7 @@ impl Step<'_> {
         let grid = qkv_heads(&qkv, &self.at.cos, &self.at.sin, self.batch, c.n_heads)?;
         let [q, k, v] = [0, 1, 2].map(|p| grid.get(p).and_then(|t| t.to_dtype(dtype)));
         let (q, k, v) = (q?, k?, v?);
+        self.laps.lap("forward: norm, QKV product, rotary heads")?;
         let scores = q.matmul(&k.t()?)?.to_dtype(DType::F32)?;
         let probs = masked_softmax(&scores, &self.at.prefix_lens, self.at.mask)?;
         let probs_c = probs.to_dtype(dtype)?;
@@ -78,11 +141,14 @@ impl Step<'_> {
             .matmul(&v)?
             .transpose(1, 2)?
             .reshape((b * n, c.d_model))?;
+        self.laps.lap("forward: scores, masked softmax, values")?;
         let (o_rows, att) = linear(&o, wo)?;
         let h1 = (&h + att)?;
+        self.laps.lap("forward: output product, residual")?;
         let (a2, ab) = linear(&rms_norm(&h1, n2, self.eps())?, w13)?;
         let (act, out) = linear(&swiglu_rows(&ab)?, w2)?;
         let h2 = (&h1 + out)?;
+        self.laps.lap("forward: norm, SwiGLU FFN, residual")?;
         let tape = BlockTape {
             h,
             a1,
@@ -108,6 +174,7 @@ impl Step<'_> {
         let (da2, dw13) = linear_backward(&t.a2, w13, &dab)?;
         let (dh1_norm, dn2) = rms_norm_backward(&t.h1, n2, &da2, eps)?;
         let dh1 = (dh2 + dh1_norm)?;
+        self.laps.lap("backward: SwiGLU FFN, norm")?;
         let (do_rows, dwo) = linear_backward(&t.o_rows, wo, &dh1)?;
         let [q, k, v] = &t.qkv;
         let (b, h, n, hd) = q.dims4()?;
@@ -123,10 +190,13 @@ impl Step<'_> {
         let dq = dscores.matmul(k)?;
         let dk = dscores.t()?.matmul(q)?;
         let dgrid = Tensor::stack(&[dq, dk, dv], 0)?.to_dtype(DType::F32)?;
+        self.laps.lap("backward: output product, attention")?;
         let dqkv = qkv_heads_backward(&dgrid, &self.at.cos, &self.at.sin, self.batch, c.n_heads)?;
         let (da1, dwqkv) = linear_backward(&t.a1, wqkv, &dqkv)?;
         let (dh_norm, dn1) = rms_norm_backward(&t.h, n1, &da1, eps)?;
-        Ok(((dh1 + dh_norm)?, [dn1, dwqkv, dwo, dn2, dw13, dw2]))
+        let dh = (dh1 + dh_norm)?;
+        self.laps.lap("backward: rotary heads, QKV product, norm")?;
+        Ok((dh, [dn1, dwqkv, dwo, dn2, dw13, dw2]))
     }
 }
 
@@ -181,14 +251,18 @@ pub(super) fn loss_and_grads(model: &PrefixLm, batch: &LmBatch) -> Result<(f32, 
     let dtype = model.compute.precision.compute_dtype();
     let device = model.device();
     let l = &batch.layout;
+    let laps = Laps::new(device);
     let step = Step {
         model,
         w: GraphWeights::cast(&detached, dtype)?,
         at: AttentionInputs::new(model, l, (0, l.slots()), device)?,
         batch: l.batch,
+        laps,
     };
     let grid = Grid::new(batch, device)?;
     let (mut h, input_tape) = inputs(&step, batch, &grid, device)?;
+    step.laps
+        .lap("inputs: weights cast, grid, embedding, captions")?;
     let mut tapes = Vec::with_capacity(step.w.blocks.len());
     for i in 0..step.w.blocks.len() {
         let (next, tape) = step.block_forward(i, h)?;
@@ -205,6 +279,7 @@ pub(super) fn loss_and_grads(model: &PrefixLm, batch: &LmBatch) -> Result<(f32, 
     let dlogits = weighted_cross_entropy_backward(&logits, &dense, &weight.affine(1.0 / n, 0.0)?)?;
     let (dnormed, dhead) = linear_backward(&normed_c, &step.w.head, &dlogits)?;
     let (mut dh, dnorm) = rms_norm_backward(&h, &step.w.norm, &dnormed, step.eps())?;
+    step.laps.lap("head and loss, both ways")?;
     let mut block_grads = Vec::with_capacity(tapes.len());
     for (i, tape) in tapes.into_iter().enumerate().rev() {
         let (prev, grads) = step.block_backward(i, tape, dh)?;
@@ -223,11 +298,14 @@ pub(super) fn loss_and_grads(model: &PrefixLm, batch: &LmBatch) -> Result<(f32, 
     }
     grads.extend(block_grads.into_iter().flatten().map(Some));
     grads.extend([Some(dnorm), Some(dhead)]);
+    step.laps.lap("backward: inputs")?;
     let mut store = GradStore::default();
     for (t, g) in own.into_iter().zip(grads) {
         if let Some(g) = g {
             store.insert(t, g.reshape(t.shape())?);
         }
     }
-    Ok((loss.to_scalar::<f32>()?, store))
+    let loss = loss.to_scalar::<f32>()?;
+    step.laps.lap("loss")?;
+    Ok((loss, store))
 }

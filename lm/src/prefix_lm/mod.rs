@@ -38,6 +38,8 @@
 mod cpu;
 mod fused;
 mod graph;
+
+pub use fused::{record_stage_times, stage_times};
 #[cfg(test)]
 mod tests;
 

@@ -1,4 +1,4 @@
-//! Tests of the prefix LM: its masking, padding and decoding, and the agreement of its two
+//! Tests of the prefix LM: its masking, padding and decoding, and the agreement of its
 //! executors.
 
 use super::*;
@@ -326,4 +326,27 @@ fn the_cpu_executor_refuses_what_it_cannot_run() {
         precision: Precision::Bf16,
     });
     assert_eq!(graph.executor().unwrap(), Executor::Fused);
+}
+
+#[test]
+fn the_fused_executor_times_its_stages_when_asked() {
+    let config = tiny();
+    let (model, _) = init_model(&config, 5, &Device::Cpu).unwrap();
+    let fused = on(&model, Executor::Fused);
+    let batch = two_clips(&config);
+    fused.loss_and_grads(&batch).unwrap();
+    assert!(stage_times().is_empty(), "timed while off");
+    record_stage_times(true);
+    for _ in 0..2 {
+        fused.loss_and_grads(&batch).unwrap();
+    }
+    let stages = stage_times();
+    record_stage_times(false);
+    let names: Vec<&str> = stages.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(stages.len(), 11, "{names:?}");
+    assert!(
+        names.contains(&"backward: output product, attention"),
+        "{names:?}"
+    );
+    assert!(stages.iter().all(|(_, ms)| *ms >= 0.0 && ms.is_finite()));
 }

@@ -262,3 +262,22 @@ pub(crate) fn adamw_step(
         &mut pv, &gv, &m, &v, &n, &scale, &b1, &b2, &eps, &step_size, &bias2_sqrt, &decay);
     Ok(())
 }
+
+/// Σ x² of a contiguous f32 tensor: block partials, then their sum (one value).
+pub(crate) fn sum_of_squares(x: &CudaStorage, l: &Layout) -> Result<CudaStorage> {
+    const BLOCKS: usize = 512;
+    let dev = &x.device;
+    let n = l.shape().elem_count();
+    let xv = view::<f32>(x, l, "x")?;
+    let mut partial = zeros(dev, BLOCKS)?;
+    let mut total = zeros(dev, 1)?;
+    let (square, plain, blocks) = (1i32, 0i32, BLOCKS);
+    let grid = |blocks: usize| LaunchConfig {
+        grid_dim: (blocks as u32, 1, 1),
+        block_dim: (THREADS, 1, 1),
+        shared_mem_bytes: 0,
+    };
+    launch!(dev, "square_sums", grid(BLOCKS); &xv, &mut partial, &n, &square);
+    launch!(dev, "square_sums", grid(1); &partial, &mut total, &blocks, &plain);
+    Ok(storage(total, dev))
+}
