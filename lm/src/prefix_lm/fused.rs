@@ -213,12 +213,7 @@ fn inputs(
     grid: &Grid,
     device: &Device,
 ) -> Result<(Tensor, InputTape)> {
-    let vocab = step.w.tok_emb.dim(0)? as u32;
-    let one_hot = grid
-        .tokens
-        .unsqueeze(1)?
-        .broadcast_eq(&Tensor::arange(0, vocab, device)?.unsqueeze(0)?)?
-        .to_dtype(DType::F32)?;
+    let one_hot = grid.one_hot(step.w.tok_emb.dim(0)?)?;
     let h = one_hot.matmul(&step.w.tok_emb)?;
     if batch.text.is_empty() {
         return Ok((

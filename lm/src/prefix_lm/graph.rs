@@ -178,13 +178,9 @@ impl Pass<'_> {
     /// The block inputs of the grid: one-hot motion tokens times the embedding, plus the
     /// projected captions on real text slots; zero on padding slots.
     fn inputs(&self, batch: &LmBatch, grid: &Grid, device: &Device) -> Result<Tensor> {
-        let vocab = self.w.tok_emb.dim(0)? as u32;
-        let one_hot = grid
-            .tokens
-            .unsqueeze(1)?
-            .broadcast_eq(&Tensor::arange(0, vocab, device)?.unsqueeze(0)?)?
-            .to_dtype(DType::F32)?;
-        let h = one_hot.matmul(&self.w.tok_emb)?;
+        let h = grid
+            .one_hot(self.w.tok_emb.dim(0)?)?
+            .matmul(&self.w.tok_emb)?;
         if batch.text.is_empty() {
             return Ok(h);
         }
@@ -224,7 +220,7 @@ impl Pass<'_> {
 pub(super) struct Grid {
     /// Per grid row: its motion input token, or the vocabulary size (no one-hot column) on a
     /// text or padding slot.
-    pub(super) tokens: Tensor,
+    tokens: Tensor,
     /// Per grid row: the caption row it reads, or the zero row after them.
     text_rows: Tensor,
     /// Per grid row: 1 on a real text slot, else 0 (`rows × 1`, f32).
@@ -265,6 +261,16 @@ impl Grid {
             motion_grid_rows,
             device: device.clone(),
         })
+    }
+
+    /// The grid's motion tokens one-hot over `vocab` columns (`rows × vocab`, f32; a zero row
+    /// on text and padding slots).
+    pub(super) fn one_hot(&self, vocab: usize) -> Result<Tensor> {
+        let columns = Tensor::arange(0, vocab as u32, &self.device)?.unsqueeze(0)?;
+        self.tokens
+            .unsqueeze(1)?
+            .broadcast_eq(&columns)?
+            .to_dtype(DType::F32)
     }
 
     /// Per grid row, the caption embedding it reads (zero off real text slots; `rows × E`).
