@@ -511,19 +511,23 @@ fn a_data_ladder_trains_nested_subsets_and_reports_test_losses_per_origin() {
         }
         assert!(row.best_real_norm_test_loss.is_finite() && row.best_synth_test_loss.is_finite());
     }
+    // The whole-split point equals a plain (no --data-fractions) point's training, and the
+    // plain point records the whole split's hours.
+    let plain = tmp.path().join("plain.toml");
+    make_plan(&corpus, "3e10", &plain);
+    let r = tmp.path().join("plain-runs");
+    let plain_plan = IsoFlopPlan::read(&plain).unwrap();
+    assert_eq!(plain_plan.points[0].tokens, plan.points[1].tokens);
+    assert_eq!(plain_plan.train_split.as_ref(), Some(&plan.data[1]));
+    sweep_run_ok(&plain, &r);
+    let plain_row = table_rows(&r).remove(0);
     assert_eq!(
-        rows[1].test_loss,
-        {
-            // The whole-split point equals a plain (no --data-fractions) point's training.
-            let plain = tmp.path().join("plain.toml");
-            make_plan(&corpus, "3e10", &plain);
-            let r = tmp.path().join("plain-runs");
-            let plain_plan = IsoFlopPlan::read(&plain).unwrap();
-            assert_eq!(plain_plan.points[0].tokens, plan.points[1].tokens);
-            sweep_run_ok(&plain, &r);
-            table_rows(&r)[0].test_loss
-        },
+        rows[1].test_loss, plain_row.test_loss,
         "the lists of fraction 1 select the same clips as the corpus's splits"
+    );
+    assert_eq!(
+        (plain_row.hours, plain_row.synth_share),
+        (rows[1].hours, rows[1].synth_share)
     );
 
     let real_plan = data_plan(&corpus, "1", "real", &tmp.path().join("real.toml"));

@@ -88,6 +88,10 @@ pub struct IsoFlopPlan {
     /// The train-split subsets of the unique-data axis (`--data-fractions`), by name.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub data: Vec<DataSubset>,
+    /// The whole train split described as a subset (`all-1`): the hours of the points planned
+    /// without `--data-fractions` (absent from plans written before it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub train_split: Option<DataSubset>,
     /// Every (budget, model, vocabulary, data) point, in index order.
     pub points: Vec<PlanPoint>,
     /// Each budget's predicted N_opt, when the sizes were centred on an earlier fit.
@@ -494,22 +498,23 @@ fn subset_tokens(subsets: &[(DataSubset, Vec<&str>)], targets: &[(String, u64)])
         .collect()
 }
 
-/// Vocabularies, data subsets, and each vocabulary's loss positions per epoch of each subset.
-type VocabulariesAndData = (Vec<Vocabulary>, Vec<DataSubset>, Vec<Vec<u64>>);
+/// Vocabularies, data subsets, each vocabulary's loss positions per epoch of each subset, and
+/// the whole train split described as a subset.
+type VocabulariesAndData = (Vec<Vocabulary>, Vec<DataSubset>, Vec<Vec<u64>>, DataSubset);
 
-/// The vocabularies of `request` with their train data in `corpus`, the data subsets, and
-/// each vocabulary's loss positions per epoch of each subset.
+/// The vocabularies of `request` with their train data in `corpus`, the data subsets, each
+/// vocabulary's loss positions per epoch of each subset, and the whole train split.
 fn vocabularies_and_data(
     request: &PlanRequest,
     corpus: &Path,
 ) -> Result<VocabulariesAndData, SweepError> {
-    let clips = match request.data_fractions.is_empty() {
-        true => Vec::new(),
-        false => Corpus::open(corpus)
-            .and_then(|c| c.clip_metadata())
-            .map_err(|e| SweepError::invalid(corpus, e))?,
-    };
+    let clips = Corpus::open(corpus)
+        .and_then(|c| c.clip_metadata())
+        .map_err(|e| SweepError::invalid(corpus, e))?;
     let data = data_subsets(request, &clips)?;
+    let (all, seed) = (DataSource::All, request.data_seed);
+    let train_split =
+        data_ladder::describe(&data_ladder::select(&clips, all, 1.0, seed), all, 1.0, seed);
     let (mut vocabularies, mut unique) = (Vec::new(), Vec::new());
     for (codebook, source) in &request.vocabularies {
         let source = absolute_source(source)?;
@@ -528,6 +533,7 @@ fn vocabularies_and_data(
         vocabularies,
         data.into_iter().map(|(d, _)| d).collect(),
         unique,
+        train_split,
     ))
 }
 
@@ -562,7 +568,7 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
         .expect("resolve_encoder found it in the manifest");
     let models = expand_models(&request.models)?;
     let settings = &request.train;
-    let (vocabularies, data, unique) = vocabularies_and_data(request, &corpus)?;
+    let (vocabularies, data, unique, train_split) = vocabularies_and_data(request, &corpus)?;
     // Without fractions every point learns from the whole train split.
     let subsets: Vec<Option<usize>> = match data.is_empty() {
         true => vec![None],
@@ -625,6 +631,7 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
         train: settings.clone(),
         vocabularies,
         data,
+        train_split: Some(train_split),
         points,
         centres,
     };
@@ -777,6 +784,7 @@ impl IsoFlopPlan {
                 None => plan.data.push(subset),
             }
         }
+        plan.train_split = plan.train_split.or(new.train_split);
         plan.warnings.extend(new.warnings);
         plan.centres.extend(new.centres);
         for mut point in new.points {
@@ -1009,6 +1017,7 @@ mod tests {
                 ),
             ],
             data: Vec::new(),
+            train_split: None,
             points: vec![
                 point(0, 256, vec![PointFlag::ExceedsData]),
                 point(

@@ -219,6 +219,12 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
     let e = &report.eval;
     let vocab = plan.vocabulary(point.codebook).expect("validated plan");
     let subset = point.data.as_deref().and_then(|n| plan.subset(n));
+    // A point on the whole train split has that split's hours (NaN in plans made before
+    // the plan recorded them).
+    let hours_of = match &point.data {
+        Some(_) => subset,
+        None => plan.train_split.as_ref(),
+    };
     let (real, synth) = (
         origin_losses(Some(&e.test), Origin::Real),
         origin_losses(Some(&e.test), Origin::Synth),
@@ -263,8 +269,8 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
         data_source: plan.data_source(point).to_string(),
         data_fraction: subset.map_or(1.0, |s| s.fraction),
         unique_tokens: point.unique_tokens(plan),
-        hours: subset.map_or(f64::NAN, |s| s.hours),
-        synth_share: subset.map_or(f64::NAN, |s| s.synth_hours / s.hours),
+        hours: hours_of.map_or(f64::NAN, |s| s.hours),
+        synth_share: hours_of.map_or(f64::NAN, |s| s.synth_hours / s.hours),
         real_test_loss: real.0,
         real_norm_test_loss: real.1,
         synth_test_loss: synth.0,
