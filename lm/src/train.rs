@@ -543,7 +543,7 @@ enum Trainee {
     /// A whole model.
     Model(PrefixLm),
     /// A LoRA adapter on a frozen base.
-    Lora(LoraRun),
+    Lora(Box<LoraRun>),
     /// An ES-MoE expert and the gate on a frozen base.
     Moe(Box<EsMoeTrainer>),
 }
@@ -603,7 +603,7 @@ fn build_trainee(
                 teacher,
                 distillation: *distillation as f32,
             };
-            (Trainee::Lora(lora), vars)
+            (Trainee::Lora(Box::new(lora)), vars)
         }
         ModelShape::EsMoe {
             base,
