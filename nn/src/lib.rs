@@ -15,7 +15,8 @@
 //!   (safetensors written atomically, resumable run files), [`kmeans`], and [`gradcheck`]
 //!   (the finite-difference reference of the gradient tests).
 //!
-//! The `cuda` feature (off by default) builds candle with CUDA; the fused CPU ops then fall
+//! The `cuda` feature (off by default) builds candle with CUDA and `kernels/fused_ops.cu`
+//! (the GPU side of [`fused_ops`], compiled to PTX by `build.rs`); the other fused CPU ops fall
 //! back to candle's own ops on GPU tensors.
 
 pub mod checkpoint;
