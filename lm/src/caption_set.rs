@@ -1,5 +1,5 @@
 //! Motions for the captions of a corpus split: one caption of every clip animated by a
-//! trained prefix LM, written as a HumanML3D-layout folder that [`crate::motion_eval`] (and
+//! trained prefix LM, written as a HumanML3D-layout folder that the evaluator's `score` (and
 //! T2M-style tools) read:
 //!
 //! ```text

@@ -495,7 +495,7 @@ fn seeded_parameter(device: &Device) -> Result<(Var, AdamW), NnError> {
     Ok((var, opt))
 }
 
-/// [`three_clipped_steps`] on `device` (on a GPU, the fused kernel) against the fused host
+/// Three clipped AdamW steps on `device` (on a GPU, the fused kernel) against the fused host
 /// pass on the CPU: the largest parameter difference over the largest parameter.
 pub fn device_agreement(device: &Device) -> Result<f32, NnError> {
     let run = |on: &Device| -> Result<Vec<f32>, NnError> {
