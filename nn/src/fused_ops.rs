@@ -93,11 +93,7 @@ pub struct PrefixMask {
 
 impl PrefixMask {
     fn allowed(&self, prefix_len: usize, i: usize, j: usize) -> bool {
-        if j < self.prefix_slots {
-            j < prefix_len
-        } else {
-            i >= self.prefix_slots && j <= i
-        }
+        crate::seq_layout::prefix_lm_allows(self.prefix_slots, prefix_len, i, j)
     }
 }
 

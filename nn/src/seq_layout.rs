@@ -108,11 +108,18 @@ impl SeqLayout {
     /// Whether slot `i` of sequence `b` attends to slot `j`: real text slots are seen by
     /// every slot; motion slots only by motion slots at or after them.
     pub fn allowed(&self, b: usize, i: usize, j: usize) -> bool {
-        if j < self.prefix_slots {
-            j < self.prefix_lens[b]
-        } else {
-            i >= self.prefix_slots && j <= i
-        }
+        prefix_lm_allows(self.prefix_slots, self.prefix_lens[b], i, j)
+    }
+}
+
+/// The prefix-LM mask: whether slot `i` attends to slot `j` in a sequence whose captions fill
+/// `prefix_len` of the `prefix_slots` (caption keys by every slot, motion keys causally by
+/// motion slots only).
+pub fn prefix_lm_allows(prefix_slots: usize, prefix_len: usize, i: usize, j: usize) -> bool {
+    if j < prefix_slots {
+        j < prefix_len
+    } else {
+        i >= prefix_slots && j <= i
     }
 }
 

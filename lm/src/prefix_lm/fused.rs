@@ -9,7 +9,9 @@
 //! backward casts the output gradient once and gives `dx = (dy · W)` and `dW = dyᵀ · x` in
 //! f32, as the graph executor's autograd does through the same casts.
 
-use super::graph::{target_rows, AttentionInputs, GraphWeights, Grid};
+use super::graph::{
+    cast_linear as linear, grid_inputs, target_rows, AttentionInputs, GraphWeights, Grid,
+};
 use super::{LmBatch, PrefixLm};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor};
@@ -80,15 +82,7 @@ impl Laps {
     }
 }
 
-/// `x` (f32 or the compute dtype) cast to `dtype` times `Wᵀ` (`w` in `dtype`): the cast
-/// input, kept for the backward, and the f32 output.
-fn linear(x: &Tensor, w: &Tensor) -> Result<(Tensor, Tensor)> {
-    let xc = x.to_dtype(w.dtype())?;
-    let y = xc.matmul(&w.t()?)?.to_dtype(DType::F32)?;
-    Ok((xc, y))
-}
-
-/// The backward of [`linear`] from its cast input `xc`: `(dx, dW)`, both f32.
+/// The backward of `linear` (the graph executor's `cast_linear`) from its cast input `xc`: `(dx, dW)`, both f32.
 fn linear_backward(xc: &Tensor, w: &Tensor, dy: &Tensor) -> Result<(Tensor, Tensor)> {
     let dyc = dy.to_dtype(w.dtype())?;
     let dx = dyc.matmul(w)?.to_dtype(DType::F32)?;
@@ -200,43 +194,6 @@ impl Step<'_> {
     }
 }
 
-/// The grid's block inputs and what their backward needs: the one-hot motion tokens, and
-/// the cast caption rows with their mask when the batch has captions.
-struct InputTape {
-    one_hot: Tensor,
-    text: Option<(Tensor, Tensor)>,
-}
-
-fn inputs(
-    step: &Step,
-    batch: &LmBatch,
-    grid: &Grid,
-    device: &Device,
-) -> Result<(Tensor, InputTape)> {
-    let one_hot = grid.one_hot(step.w.tok_emb.dim(0)?)?;
-    let h = one_hot.matmul(&step.w.tok_emb)?;
-    if batch.text.is_empty() {
-        return Ok((
-            h,
-            InputTape {
-                one_hot,
-                text: None,
-            },
-        ));
-    }
-    let text = grid.caption_rows(&batch.text, step.model.config.text_dim, device)?;
-    let (text_c, projected) = linear(&text, &step.w.proj_w)?;
-    let projected = projected.broadcast_add(&step.w.proj_b)?;
-    let h = (h + projected.broadcast_mul(&grid.text_mask)?)?;
-    Ok((
-        h,
-        InputTape {
-            one_hot,
-            text: Some((text_c, grid.text_mask.clone())),
-        },
-    ))
-}
-
 /// [`super::PrefixLm::loss_and_grads`] without an extra loss, for a batch with targets.
 pub(super) fn loss_and_grads(model: &PrefixLm, batch: &LmBatch) -> Result<(f32, GradStore)> {
     model.check(&batch.layout)?;
@@ -255,7 +212,7 @@ pub(super) fn loss_and_grads(model: &PrefixLm, batch: &LmBatch) -> Result<(f32, 
         laps,
     };
     let grid = Grid::new(batch, device)?;
-    let (mut h, input_tape) = inputs(&step, batch, &grid, device)?;
+    let (mut h, input_tape) = grid_inputs(&step.w, model.config.text_dim, batch, &grid, device)?;
     step.laps
         .lap("inputs: weights cast, grid, embedding, captions")?;
     let mut tapes = Vec::with_capacity(step.w.blocks.len());

@@ -68,7 +68,47 @@ impl GraphWeights {
 
 /// `x · Wᵀ` of f32 rows with `W` in its compute dtype; f32 out.
 fn linear(x: &Tensor, w: &Tensor) -> Result<Tensor> {
-    x.to_dtype(w.dtype())?.matmul(&w.t()?)?.to_dtype(DType::F32)
+    Ok(cast_linear(x, w)?.1)
+}
+
+/// [`linear`], with the input as cast to `W`'s dtype (what the product's backward reads).
+pub(super) fn cast_linear(x: &Tensor, w: &Tensor) -> Result<(Tensor, Tensor)> {
+    let xc = x.to_dtype(w.dtype())?;
+    let y = xc.matmul(&w.t()?)?.to_dtype(DType::F32)?;
+    Ok((xc, y))
+}
+
+/// What the backward of [`grid_inputs`] needs: the one-hot motion tokens, and the cast
+/// caption rows with their mask when the batch has captions.
+pub(super) struct InputTape {
+    pub(super) one_hot: Tensor,
+    pub(super) text: Option<(Tensor, Tensor)>,
+}
+
+/// The block inputs of the grid: one-hot motion tokens times the embedding, plus the
+/// projected captions (`text_dim` wide) on real text slots; zero on padding slots.
+pub(super) fn grid_inputs(
+    w: &GraphWeights,
+    text_dim: usize,
+    batch: &LmBatch,
+    grid: &Grid,
+    device: &Device,
+) -> Result<(Tensor, InputTape)> {
+    let one_hot = grid.one_hot(w.tok_emb.dim(0)?)?;
+    let h = one_hot.matmul(&w.tok_emb)?;
+    if batch.text.is_empty() {
+        let tape = InputTape {
+            one_hot,
+            text: None,
+        };
+        return Ok((h, tape));
+    }
+    let text = grid.caption_rows(&batch.text, text_dim, device)?;
+    let (text_c, projected) = cast_linear(&text, &w.proj_w)?;
+    let projected = projected.broadcast_add(&w.proj_b)?;
+    let h = (h + projected.broadcast_mul(&grid.text_mask)?)?;
+    let text = Some((text_c, grid.text_mask.clone()));
+    Ok((h, InputTape { one_hot, text }))
 }
 
 /// Rotary tables, one row per query slot, and the mask of one attention call.
@@ -175,18 +215,10 @@ impl Pass<'_> {
         self.w.tok_emb.embedding(&Tensor::new(tokens, device)?)
     }
 
-    /// The block inputs of the grid: one-hot motion tokens times the embedding, plus the
-    /// projected captions on real text slots; zero on padding slots.
+    /// The block inputs of the grid ([`grid_inputs`]).
     fn inputs(&self, batch: &LmBatch, grid: &Grid, device: &Device) -> Result<Tensor> {
-        let h = grid
-            .one_hot(self.w.tok_emb.dim(0)?)?
-            .matmul(&self.w.tok_emb)?;
-        if batch.text.is_empty() {
-            return Ok(h);
-        }
-        let text = grid.caption_rows(&batch.text, self.model.config.text_dim, device)?;
-        let projected = linear(&text, &self.w.proj_w)?.broadcast_add(&self.w.proj_b)?;
-        h + projected.broadcast_mul(&grid.text_mask)?
+        let text_dim = self.model.config.text_dim;
+        Ok(grid_inputs(&self.w, text_dim, batch, grid, device)?.0)
     }
 
     /// The last block's output of every slot of `batch`'s grid, and the grid.
