@@ -8,6 +8,7 @@ use experiments::IsoFlopPlan;
 use fits::data_value::{predict_data, Hours};
 use fits::hour_design::{self, DataCandidate};
 use fits::isoflop::{self, parabola_minimum};
+use fits::loss_shape::Form;
 use fits::planner::{self, Candidate, Goal, Observation, Settings, Target};
 use fits::replay::{self, Policy, ReplayStep, ReplayTable};
 use fits::Table;
@@ -302,7 +303,7 @@ fn fit_with_law(path: &Path, goal: Goal) -> Result<fits::Fits> {
             fits.power_laws.contains_key("n_opt_vs_c"),
             "N_opt ∝ C^b law (n_opt_vs_c)",
         ),
-        Goal::IsoFlop(Target::Loss) => (fits.log_law.is_some(), "log law of the loss at N_opt"),
+        Goal::IsoFlop(Target::Loss) => (fits.log_law.is_some(), "law of the loss at N_opt"),
         Goal::HourValue => (
             fits.repeated_data.is_some(),
             "data-constrained fit (`fit --repeated-data`)",
@@ -447,10 +448,24 @@ fn next_isoflop(
     let subset = grid.points.first().and_then(|p| p.data.clone());
     let obs = trained_runs(args, fit, base, subset.as_ref(), c_star)?;
     let pool = candidates(grid, base, c_star);
-    let settings = Settings::default();
+    // The loss extrapolates by the form `fit` chose for it (leave-one-budget-out error).
+    let loss_form = fit
+        .loss_shape
+        .as_ref()
+        .and_then(|shape| shape.chosen.as_deref())
+        .and_then(Form::parse)
+        .unwrap_or_default();
+    let settings = Settings {
+        loss_form,
+        ..Settings::default()
+    };
     let now = planner::posterior(&obs, target, c_star, &settings);
+    let by = match target {
+        Target::Loss => format!(" (the {} law)", loss_form.name()),
+        Target::NOpt => String::new(),
+    };
     println!(
-        "planner: {} trained runs of the plan; {} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {}, {} of {} draws with a law, spread {:.3} ({} candidates)",
+        "planner: {} trained runs of the plan; {}{by} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {}, {} of {} draws with a law, spread {:.3} ({} candidates)",
         obs.len(), target.name(), now.median, now.low, now.high, now.width, target.unit(), now.valid, now.draws, now.spread(), pool.len()
     );
     let proposals = planner::propose(&obs, &pool, target, c_star, k, room, &settings);

@@ -37,7 +37,7 @@ pub struct LossShape {
 impl ShapeFit {
     /// The loss this form predicts at log10 C = `x`.
     pub fn at(&self, x: f64) -> f64 {
-        evaluate(&self.form, &self.params, self.centre, x)
+        Form::parse(&self.form).map_or(f64::NAN, |f| f.at(&self.params, self.centre, x))
     }
 }
 
@@ -49,64 +49,115 @@ impl LossShape {
     }
 }
 
-/// The loss `form` with parameters `p` (centred on `centre`) predicts at log10 C = `x`.
-fn evaluate(form: &str, p: &[f64], centre: f64, x: f64) -> f64 {
-    match form {
-        "log" => p[0] + p[1] * x,
-        "curved" => {
-            let u = x - centre;
-            p[0] + p[1] * u + p[2] * u * u
-        }
-        _ => p[0] + p[1] * 10f64.powf(-p[2] * (x - centre)),
-    }
+/// A form of the loss law in log10 C.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Form {
+    /// L = a + b·x.
+    #[default]
+    Log,
+    /// L = a + b·u + c·u², u = x − x̄.
+    Curved,
+    /// L = E + A·10^(−k·u), A > 0, k > 0.
+    Floor,
 }
 
-/// Fits `form` to (x, y): its parameters and centre; `None` when the points cannot
-/// determine it.
-fn fit_form(form: &str, x: &[f64], y: &[f64]) -> Option<(Vec<f64>, f64)> {
-    let centre = x.iter().sum::<f64>() / x.len() as f64;
-    match form {
-        "log" => {
-            let l = Line::fit(x, y)?;
-            Some((vec![l.intercept, l.slope], centre))
+impl Form {
+    /// The three forms, in the order `compare` reports them.
+    pub const ALL: [Form; 3] = [Form::Log, Form::Curved, Form::Floor];
+
+    /// `log`, `curved` or `floor`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Log => "log",
+            Self::Curved => "curved",
+            Self::Floor => "floor",
         }
-        "curved" => {
-            let rows: Vec<Vec<f64>> = x
-                .iter()
-                .map(|v| {
-                    let u = v - centre;
-                    vec![1.0, u, u * u]
-                })
-                .collect();
-            Some((Ols::fit(&rows, y)?.coef[..3].to_vec(), centre))
+    }
+
+    /// The form `name` names.
+    pub fn parse(name: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|f| f.name() == name)
+    }
+
+    /// Its number of parameters.
+    pub fn params(self) -> usize {
+        match self {
+            Self::Log => 2,
+            Self::Curved | Self::Floor => 3,
         }
-        _ => {
-            // For a fixed decay k the floor form is linear in (E, A): scan k, keep the best.
-            let fit_k = |k: f64| {
+    }
+
+    /// The loss with parameters `p` (centred on `centre`) at log10 C = `x`.
+    pub fn at(self, p: &[f64], centre: f64, x: f64) -> f64 {
+        let u = x - centre;
+        match self {
+            Self::Log => p[0] + p[1] * x,
+            Self::Curved => p[0] + p[1] * u + p[2] * u * u,
+            Self::Floor => p[0] + p[1] * 10f64.powf(-p[2] * u),
+        }
+    }
+
+    /// ∂L/∂p at `x` (the rows of the Jacobian a delta-method interval needs).
+    pub fn gradient(self, p: &[f64], centre: f64, x: f64) -> Vec<f64> {
+        let u = x - centre;
+        match self {
+            Self::Log => vec![1.0, x],
+            Self::Curved => vec![1.0, u, u * u],
+            Self::Floor => {
+                let decay = 10f64.powf(-p[2] * u);
+                vec![1.0, decay, -p[1] * std::f64::consts::LN_10 * u * decay]
+            }
+        }
+    }
+
+    /// Fits the form to (x, y): its parameters and centre; `None` when the points cannot
+    /// determine it.
+    pub fn fit(self, x: &[f64], y: &[f64]) -> Option<(Vec<f64>, f64)> {
+        let centre = x.iter().sum::<f64>() / x.len() as f64;
+        match self {
+            Self::Log => {
+                let l = Line::fit(x, y)?;
+                Some((vec![l.intercept, l.slope], centre))
+            }
+            Self::Curved => {
                 let rows: Vec<Vec<f64>> = x
                     .iter()
-                    .map(|v| vec![1.0, 10f64.powf(-k * (v - centre))])
+                    .map(|v| {
+                        let u = v - centre;
+                        vec![1.0, u, u * u]
+                    })
                     .collect();
-                let ols = Ols::fit(&rows, y)?;
-                let rss: f64 = ols.residuals.iter().map(|r| r * r).sum();
-                (ols.coef[1] > 0.0).then_some((rss, ols.coef[0], ols.coef[1], k))
-            };
-            let (_, e, a, k) = (1..=400)
-                .filter_map(|i| fit_k(i as f64 * 0.01))
-                .min_by(|p, q| p.0.total_cmp(&q.0))?;
-            Some((vec![e, a, k], centre))
+                Some((Ols::fit(&rows, y)?.coef[..3].to_vec(), centre))
+            }
+            Self::Floor => {
+                // For a fixed decay k the floor form is linear in (E, A): scan k, keep the best.
+                let fit_k = |k: f64| {
+                    let rows: Vec<Vec<f64>> = x
+                        .iter()
+                        .map(|v| vec![1.0, 10f64.powf(-k * (v - centre))])
+                        .collect();
+                    let ols = Ols::fit(&rows, y)?;
+                    let rss: f64 = ols.residuals.iter().map(|r| r * r).sum();
+                    (ols.coef[1] > 0.0).then_some((rss, ols.coef[0], ols.coef[1], k))
+                };
+                let (_, e, a, k) = (1..=400)
+                    .filter_map(|i| fit_k(i as f64 * 0.01))
+                    .min_by(|p, q| p.0.total_cmp(&q.0))?;
+                Some((vec![e, a, k], centre))
+            }
         }
     }
 }
 
 /// Fits and scores the three forms on the minima `points` ((log10 C, loss), ascending C).
 pub fn compare(points: &[[f64; 2]]) -> LossShape {
-    let forms: Vec<ShapeFit> = [("log", 2usize), ("curved", 3), ("floor", 3)]
-        .iter()
-        .filter_map(|&(form, params)| {
+    let forms: Vec<ShapeFit> = Form::ALL
+        .into_iter()
+        .filter_map(|form| {
+            let params = form.params();
             let (x, y): (Vec<f64>, Vec<f64>) = points.iter().map(|p| (p[0], p[1])).unzip();
-            let (p, centre) = fit_form(form, &x, &y)?;
-            let at = |v: f64| evaluate(form, &p, centre, v);
+            let (p, centre) = form.fit(&x, &y)?;
+            let at = |v: f64| form.at(&p, centre, v);
             let rms = (x
                 .iter()
                 .zip(&y)
@@ -125,8 +176,8 @@ pub fn compare(points: &[[f64; 2]]) -> LossShape {
                             .map(|(_, w)| *w)
                             .collect()
                     };
-                    let (q, c) = fit_form(form, &keep(&x), &keep(&y))?;
-                    Some([x[i], evaluate(form, &q, c, x[i])])
+                    let (q, c) = form.fit(&keep(&x), &keep(&y))?;
+                    Some([x[i], form.at(&q, c, x[i])])
                 })
                 .collect();
             let lobo_rms = (lobo.len() == x.len() && !lobo.is_empty()).then(|| {
@@ -139,7 +190,7 @@ pub fn compare(points: &[[f64; 2]]) -> LossShape {
                     .sqrt()
             });
             Some(ShapeFit {
-                form: form.into(),
+                form: form.name().into(),
                 params: p,
                 centre,
                 rms,

@@ -7,14 +7,17 @@
 //! parabola is refitted on its fitted values plus residuals drawn from the pooled parabola
 //! residuals — the parabolas' misfit, several times the seed noise in our sweeps, so seed noise
 //! alone would understate it — the interior vertices give the law in log C, and the law's own
-//! scatter at C* is added as s·t_dof·√(1 + 1/k + (x* − x̄)²/Sxx). A proposal's value is the
-//! expected interval width after it, over its predictive outcomes (3-point Gauss–Hermite), per
-//! FLOP it costs; a budget without a parabola is entered with the three sizes nearest its
-//! predicted vertex, since fewer sizes there change nothing.
+//! scatter at C* is added as s·t_dof·√(1 + 1/k + (x* − x̄)²/Sxx) (for a loss law with a floor
+//! or curvature, its delta-method analogue). A proposal's value is the expected interval width
+//! after it, over its predictive outcomes (3-point Gauss–Hermite), per FLOP it costs; a budget
+//! without a parabola is entered with three sizes straddling its predicted vertex's interval,
+//! since fewer sizes there change nothing.
 
 use crate::isoflop::{envelope, group_budget, group_rows};
+use crate::loss_shape::Form;
 use crate::ols::{distinct, Line, Parabola};
 use motionscale_core::rng::SplitMix64;
+use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -30,7 +33,7 @@ pub const GROUP_TOL_DEX: f64 = 0.05;
 pub enum Target {
     /// log10 of the compute-optimal N (the `n_opt_vs_c` law), in decades.
     NOpt,
-    /// The loss at N_opt (the log law), in the loss column's units.
+    /// The loss at N_opt (the law of [`Settings::loss_form`]), in the loss column's units.
     Loss,
 }
 
@@ -140,6 +143,9 @@ pub struct Settings {
     pub seed: u64,
     /// Smallest loss noise assumed (the seed noise), used while no parabola has residuals.
     pub misfit_floor: f64,
+    /// The form of the loss law the `loss` target extrapolates (`fit` chooses it by
+    /// leave-one-budget-out error; the straight log law by default).
+    pub loss_form: Form,
 }
 
 impl Default for Settings {
@@ -148,6 +154,7 @@ impl Default for Settings {
             draws: 200,
             seed: 0,
             misfit_floor: 0.01,
+            loss_form: Form::Log,
         }
     }
 }
@@ -381,8 +388,9 @@ impl Model {
         }
     }
 
-    /// One bootstrap draw of the target at log10 C* = `x_star`; `None` without a law.
-    fn draw(&self, target: Target, x_star: f64, rng: &mut SplitMix64) -> Option<f64> {
+    /// One bootstrap draw of the target at log10 C* = `x_star` (the loss by `form`); `None`
+    /// without a law.
+    fn draw(&self, target: Target, form: Form, x_star: f64, rng: &mut SplitMix64) -> Option<f64> {
         let mut points: Vec<(f64, f64)> = Vec::new();
         for b in &self.budgets {
             let Some(p) = &b.parabola else { continue };
@@ -400,6 +408,9 @@ impl Model {
             return None;
         }
         let (x, y): (Vec<f64>, Vec<f64>) = points.into_iter().unzip();
+        if target == Target::Loss && form != Form::Log {
+            return form_draw(form, &x, &y, x_star, rng);
+        }
         let line = Line::fit(&x, &y)?;
         let k = x.len() as f64;
         let mean = x.iter().sum::<f64>() / k;
@@ -409,6 +420,26 @@ impl Model {
         let lever = (1.0 + 1.0 / k + (x_star - mean).powi(2) / sxx).sqrt();
         Some(line.at(x_star) + s * lever * student_t(rng, dof))
     }
+}
+
+/// One draw of the loss at `x_star` from `form` fitted on the vertices (`x`, `y`), with the
+/// form's own scatter there by the delta method, s·t_dof·√(1 + gᵀ(JᵀJ)⁻¹g) (J: the gradients at
+/// the vertices, g: at `x_star`; for the line this is the line's formula). `None` without a
+/// vertex to spare beyond the form's parameters.
+fn form_draw(form: Form, x: &[f64], y: &[f64], x_star: f64, rng: &mut SplitMix64) -> Option<f64> {
+    let (p, centre) = form.fit(x, y)?;
+    let dof = x.len().checked_sub(form.params()).filter(|&d| d > 0)?;
+    let rss: f64 = x
+        .iter()
+        .zip(y)
+        .map(|(&u, &v)| (v - form.at(&p, centre, u)).powi(2))
+        .sum();
+    let rows: Vec<Vec<f64>> = x.iter().map(|&u| form.gradient(&p, centre, u)).collect();
+    let jac = DMatrix::from_fn(x.len(), form.params(), |i, j| rows[i][j]);
+    let g = DVector::from_vec(form.gradient(&p, centre, x_star));
+    let lever = 1.0 + g.dot(&((jac.transpose() * &jac).try_inverse()? * &g));
+    let s = (rss / dof as f64).sqrt();
+    Some(form.at(&p, centre, x_star) + s * lever.max(1.0).sqrt() * student_t(rng, dof))
 }
 
 /// A Student-t draw with `dof` degrees of freedom (z / √(χ²/dof)).
@@ -438,7 +469,7 @@ fn posterior_of(model: &Model, target: Target, c_star: f64, s: &Settings) -> Pos
     let mut missing = 0;
     for i in 0..s.draws {
         let mut rng = SplitMix64::stream(s.seed, i as u64);
-        match model.draw(target, x_star, &mut rng) {
+        match model.draw(target, s.loss_form, x_star, &mut rng) {
             Some(v) if v.is_finite() => values.push(v),
             _ => missing += 1,
         }
@@ -771,6 +802,32 @@ mod tests {
         assert!(posterior(&obs(2), Target::NOpt, 1e21, &s)
             .width
             .is_infinite());
+    }
+
+    #[test]
+    fn the_loss_target_extrapolates_by_the_chosen_form() {
+        // On a Chinchilla-form law the loss at N_opt is E + G·C^(−γ): the floor form in log C.
+        let s = |loss_form| Settings {
+            loss_form,
+            ..Settings::default()
+        };
+        let obs: Vec<Observation> = runs(&[1e18, 3e18, 1e19, 3e19, 1e20, 3e20])
+            .iter()
+            .map(|(c, l)| observed(c, *l))
+            .collect();
+        let n = CHINCHILLA.n_opt(1e23);
+        let truth = CHINCHILLA.loss(n, 1e23 / (6.0 * n));
+        let floor = posterior(&obs, Target::Loss, 1e23, &s(Form::Floor));
+        let line = posterior(&obs, Target::Loss, 1e23, &s(Form::Log));
+        assert!(
+            floor.low < truth && truth < floor.high,
+            "{floor:?} vs {truth}"
+        );
+        assert!(
+            (floor.median - truth).abs() < 0.5 * (line.median - truth).abs(),
+            "floor {floor:?}, line {line:?}, truth {truth}"
+        );
+        assert_eq!(floor.valid, floor.draws);
     }
 
     #[test]
