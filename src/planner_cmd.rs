@@ -28,6 +28,11 @@ pub struct ReplayArgs {
     /// What is extrapolated: n_opt (log10 N_opt, decades) or loss (at N_opt).
     #[arg(long, default_value = "n_opt", value_parser = Target::parse)]
     pub target: Target,
+    /// With --target loss: the loss law it extrapolates by, log, curved or floor (pass the one
+    /// `fit` chose for the table, its fits.json's `loss_shape.chosen`; `sweep plan --next`
+    /// reads it from there).
+    #[arg(long, default_value = "log", value_parser = parse_form)]
+    pub loss_form: Form,
     /// Policies to replay, comma-separated: active, grid, random, oracle (knows every loss:
     /// the full table's envelope runs, cheapest budget first; what reproducing it costs).
     #[arg(long, value_delimiter = ',', default_value = "active,grid,random", value_parser = Policy::parse)]
@@ -56,6 +61,19 @@ pub struct ReplayArgs {
     /// Output folder: replay.csv, summary.json, replay-width and replay-error charts.
     #[arg(long)]
     pub out: PathBuf,
+}
+
+/// " (the … law)" after a `loss` target's name, naming the form it extrapolates by.
+fn by_law(target: Target, form: Form) -> String {
+    match target {
+        Target::Loss => format!(" (the {} law)", form.name()),
+        Target::NOpt => String::new(),
+    }
+}
+
+/// Parses `--loss-form`.
+fn parse_form(name: &str) -> Result<Form, String> {
+    Form::parse(name).ok_or_else(|| format!("{name:?}: expected log, curved or floor"))
 }
 
 /// log10 distance under which two budgets are one group (as `fit`).
@@ -167,6 +185,7 @@ fn replay_table(args: &ReplayArgs) -> Result<ReplayTable> {
         settings: Settings {
             draws: args.draws,
             seed: args.seed,
+            loss_form: args.loss_form,
             ..Settings::default()
         },
     })
@@ -179,11 +198,15 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
     let full = table.full();
     let unit = args.target.unit();
     println!(
-        "replay: {} runs below {:.3e} ({:.3e} FLOPs), {} in the start; truth {:.4}; full table: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {unit}",
+        "replay: {} runs below {:.3e} ({:.3e} FLOPs), {} in the start; {}truth {:.4}; full table: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {unit}",
         table.pool.len(),
         table.c_star,
         pool_compute,
         table.start.len(),
+        match args.target {
+            Target::Loss => format!("loss{}: ", by_law(args.target, args.loss_form)),
+            Target::NOpt => String::new(),
+        },
         table.truth,
         full.median,
         full.low,
@@ -205,6 +228,7 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
     let summary = replay::ReplaySummary {
         results: args.results.display().to_string(),
         target: args.target.name().into(),
+        loss_form: (args.target == Target::Loss).then(|| args.loss_form.name().into()),
         target_budget: args.target_budget,
         truth: table.truth,
         loss_col: args.loss_col.clone(),
@@ -460,13 +484,9 @@ fn next_isoflop(
         ..Settings::default()
     };
     let now = planner::posterior(&obs, target, c_star, &settings);
-    let by = match target {
-        Target::Loss => format!(" (the {} law)", loss_form.name()),
-        Target::NOpt => String::new(),
-    };
     println!(
-        "planner: {} trained runs of the plan; {}{by} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {}, {} of {} draws with a law, spread {:.3} ({} candidates)",
-        obs.len(), target.name(), now.median, now.low, now.high, now.width, target.unit(), now.valid, now.draws, now.spread(), pool.len()
+        "planner: {} trained runs of the plan; {}{} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {}, {} of {} draws with a law, spread {:.3} ({} candidates)",
+        obs.len(), target.name(), by_law(target, loss_form), now.median, now.low, now.high, now.width, target.unit(), now.valid, now.draws, now.spread(), pool.len()
     );
     let proposals = planner::propose(&obs, &pool, target, c_star, k, room, &settings);
     let ids: Vec<&str> = pool.iter().map(|c| c.id.as_str()).collect();

@@ -1,9 +1,11 @@
 //! End-to-end: `motionscale sweep replay` on a synthetic IsoFLOP table with known truth, its
-//! report section, and the planner's bad inputs (`sweep replay`, `sweep plan --next`).
+//! report section, `sweep plan --next` extending a plan whose runs are "trained" by that law,
+//! and the planner's bad inputs (`sweep replay`, `sweep plan --next`).
 
 mod common;
 
 use common::*;
+use experiments::IsoFlopPlan;
 use fits::synth::{isoflop_runs, CHINCHILLA};
 use std::fmt::Write as _;
 use std::path::Path;
@@ -14,7 +16,7 @@ fn write_table(path: &Path, budgets: &[f64]) {
     let runs = isoflop_runs(&CHINCHILLA, budgets, 7, 0.01, 0.0, 11);
     let mut csv = String::from("run_id,index,budget,n_nv,tokens,flops,norm_test_loss,test_loss\n");
     for (i, r) in runs.iter().enumerate() {
-        let loss = r.loss + 0.02 * (4.0 * r.n.log10() + r.c.log10()).sin();
+        let loss = r.loss + ripple(r.n, r.c);
         let _ = writeln!(
             csv,
             "r{i},{i},{},{},{},{},{loss},{loss}",
@@ -69,10 +71,144 @@ fn replay_scores_every_policy_against_the_runs_at_the_target_and_reports_it() {
     ] {
         assert!(out.join(f).is_file(), "{f}");
     }
+    // The loss target extrapolates by the law given (`fit`'s choice), and says which.
+    let loss_out = tmp.path().join("replay-loss");
+    let stdout = motionscale_ok(&[
+        "sweep",
+        "replay",
+        "--results",
+        arg(&csv),
+        "--target-budget",
+        "1e21",
+        "--target",
+        "loss",
+        "--loss-form",
+        "floor",
+        "--policy",
+        "active",
+        "--draws",
+        "64",
+        "--out",
+        arg(&loss_out),
+    ]);
+    assert!(stdout.contains("loss (the floor law): truth"), "{stdout}");
+    let summary: fits::replay::ReplaySummary = read_json(&loss_out.join("summary.json"));
+    assert_eq!(summary.loss_form.as_deref(), Some("floor"));
+    assert!(
+        summary.full_table.width.is_finite(),
+        "{:?}",
+        summary.full_table
+    );
+
     let page = tmp.path().join("report.html");
     motionscale_ok(&["report", arg(&out), "--out", arg(&page)]);
     let html = std::fs::read_to_string(&page).unwrap();
     assert!(html.contains("share to the full table"), "planner section");
+}
+
+/// The ripple in log N and log C that [`write_table`] adds to the law.
+fn ripple(n: f64, c: f64) -> f64 {
+    0.02 * (4.0 * n.log10() + c.log10()).sin()
+}
+
+/// `sweep plan` on `corpus` for `budgets` × `models` (vocabulary 256), plus `extra`.
+fn plan(corpus: &Path, budgets: &str, models: &str, out: &Path, extra: &[&str]) -> String {
+    let mut args = vec![
+        "sweep",
+        "plan",
+        "--corpus",
+        arg(corpus),
+        "--budgets",
+        budgets,
+        "--models",
+        models,
+        "--vocabs",
+        "256",
+        "--tokenizer-flags=--width 32 --batch 8 --steps 30",
+        "--out",
+        arg(out),
+    ];
+    args.extend_from_slice(extra);
+    motionscale_ok(&args)
+}
+
+#[test]
+fn next_extends_the_plan_with_runs_that_enter_the_next_budget_around_the_law() {
+    let tmp = tempfile::tempdir().unwrap();
+    let corpus = tmp.path().join("corpus");
+    tiny_lm_corpus(&corpus);
+    let models = "8x1,12x1,16x1,24x1,32x1,48x1,64x1,96x1,128x2";
+    let base_path = tmp.path().join("base.toml");
+    plan(&corpus, "1e10,3e10,1e11", models, &base_path, &[]);
+    let base = IsoFlopPlan::read(&base_path).unwrap();
+
+    // "Train" every point of the base plan: the Chinchilla law at its (N, D), with the ripple.
+    let mut csv = String::from("run_id,index,budget,n_nv,tokens,flops,norm_test_loss\n");
+    for (i, p) in base.points.iter().enumerate() {
+        let n = p.n_nv as f64;
+        let loss = CHINCHILLA.loss(n, p.budget / (6.0 * n)) + ripple(n, p.budget);
+        let (c, id) = (p.budget, &p.run_id);
+        let _ = writeln!(csv, "{id},{i},{c},{n},{},{c},{loss}", p.tokens);
+    }
+    let results = tmp.path().join("results.csv");
+    std::fs::write(&results, csv).unwrap();
+    let fit = tmp.path().join("fit");
+    motionscale_ok(&[
+        "fit",
+        "--results",
+        arg(&results),
+        "--bootstrap",
+        "0",
+        "--out",
+        arg(&fit),
+    ]);
+
+    let next_path = tmp.path().join("next.toml");
+    let fits_json = fit.join("fits.json");
+    let stdout = plan(
+        &corpus,
+        "3e11",
+        models,
+        &next_path,
+        &[
+            "--extend",
+            arg(&base_path),
+            "--next",
+            "2",
+            "--fits",
+            arg(&fits_json),
+            "--target-budget",
+            "1e12",
+        ],
+    );
+    let n_base = base.points.len();
+    assert!(
+        stdout.contains(&format!("planner: {n_base} trained runs of the plan")),
+        "{stdout}"
+    );
+    assert!(stdout.contains("next 1: "), "{stdout}");
+    let next = IsoFlopPlan::read(&next_path).unwrap();
+    assert_eq!(
+        next.points[..n_base],
+        base.points[..],
+        "the base comes first, unchanged"
+    );
+    let new = &next.points[n_base..];
+    // No parabola at 3e11 yet: the first proposal enters it with sizes that straddle the
+    // law's vertex there, near the truth.
+    assert!(new.len() >= 3, "{stdout}");
+    assert!(new.iter().all(|p| p.budget == 3e11), "{new:?}");
+    let sizes: Vec<f64> = new.iter().map(|p| (p.n_nv as f64).log10()).collect();
+    let truth = CHINCHILLA.n_opt(3e11).log10();
+    let (low, high) = sizes
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), &x| {
+            (l.min(x), h.max(x))
+        });
+    assert!(low < truth && truth < high, "{sizes:?} around {truth}");
+    for p in new {
+        assert!(stdout.contains(&p.run_id), "{} printed: {stdout}", p.run_id);
+    }
 }
 
 #[test]
@@ -95,6 +231,19 @@ fn planner_bad_inputs_name_what_is_missing() {
     };
     fails_with(&replay("1e17", &csv), "is not above the table's budgets");
     fails_with(&replay("1e21", &csv), "pass --truth");
+    let cubic = motionscale(&[
+        "sweep",
+        "replay",
+        "--results",
+        arg(&csv),
+        "--target-budget",
+        "3e20",
+        "--loss-form",
+        "cubic",
+        "--out",
+        arg(&out),
+    ]);
+    fails_with(&cubic, "expected log, curved or floor");
 
     let one = tmp.path().join("one.csv");
     write_table(&one, &[1e18]);

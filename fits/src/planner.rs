@@ -535,22 +535,15 @@ pub fn propose(
     max_compute: f64,
     s: &Settings,
 ) -> Vec<Proposal> {
+    let q = Question { target, c_star, s };
     let mut known = obs.to_vec();
     let mut open: Vec<usize> = (0..candidates.len()).collect();
     let mut spent = 0.0;
     let mut out = Vec::new();
     while out.len() < k {
         let model = Model::new(&known, s.misfit_floor);
-        let Some(best) = best_action(
-            &model,
-            &known,
-            candidates,
-            &open,
-            target,
-            c_star,
-            max_compute - spent,
-            s,
-        ) else {
+        let Some(best) = best_action(&model, &known, candidates, &open, max_compute - spent, &q)
+        else {
             break;
         };
         for &i in &best.runs {
@@ -576,31 +569,42 @@ pub fn observed(c: &Candidate, loss: f64) -> Observation {
     }
 }
 
+/// What the planner narrows: `target` at budget `c_star`, under `s`.
+struct Question<'a> {
+    target: Target,
+    c_star: f64,
+    s: &'a Settings,
+}
+
+impl Question<'_> {
+    /// The target's spread ([`Posterior::spread`]) under `model`.
+    fn spread(&self, model: &Model) -> f64 {
+        posterior_of(model, self.target, self.c_star, self.s).spread()
+    }
+}
+
 /// The best next action among the `open` candidates costing at most `room` FLOPs.
-#[allow(clippy::too_many_arguments)]
 fn best_action(
     model: &Model,
     known: &[Observation],
     candidates: &[Candidate],
     open: &[usize],
-    target: Target,
-    c_star: f64,
     room: f64,
-    s: &Settings,
+    q: &Question,
 ) -> Option<Proposal> {
-    let before = posterior_of(model, target, c_star, s).spread();
-    let actions: Vec<(Vec<usize>, String)> = actions(model, known, candidates, open, s)
+    let before = q.spread(model);
+    let actions: Vec<(Vec<usize>, String)> = actions(model, known, candidates, open, q.s)
         .into_iter()
         .filter(|(runs, _)| runs.iter().map(|&i| candidates[i].cost).sum::<f64>() <= room)
         .collect();
     let scored: Vec<Proposal> = actions
         .into_par_iter()
         .filter_map(|(runs, what)| {
-            let after = expected_width(model, known, candidates, &runs, target, c_star, s)?;
+            let after = expected_width(model, known, candidates, &runs, q)?;
             let cost: f64 = runs.iter().map(|&i| candidates[i].cost).sum();
             let why = format!(
                 "{what}: spread (capped width + 10 × share of draws without a law) {before:.3} → {after:.3} {} expected ({:+.3} per 10^12 FLOPs)",
-                target.unit(),
+                q.target.unit(),
                 (after - before) / cost * 1e12
             );
             Some(Proposal {
@@ -627,9 +631,7 @@ fn expected_width(
     known: &[Observation],
     candidates: &[Candidate],
     runs: &[usize],
-    target: Target,
-    c_star: f64,
-    s: &Settings,
+    q: &Question,
 ) -> Option<f64> {
     let predicted: Vec<(f64, f64)> = runs
         .iter()
@@ -642,7 +644,7 @@ fn expected_width(
         for (&i, (mean, sd)) in runs.iter().zip(&predicted) {
             with.push(observed(&candidates[i], mean + z * sd));
         }
-        expected += w * posterior(&with, target, c_star, s).spread();
+        expected += w * q.spread(&Model::new(&with, q.s.misfit_floor));
     }
     Some(expected)
 }

@@ -333,6 +333,9 @@ pub struct ReplaySummary {
     pub results: String,
     /// `n_opt` or `loss`.
     pub target: String,
+    /// The loss law of the `loss` target (`log`, `curved` or `floor`); none for `n_opt`.
+    #[serde(default)]
+    pub loss_form: Option<String>,
     /// C*.
     pub target_budget: f64,
     /// The target's true value.
