@@ -32,20 +32,7 @@ fn replay_scores_every_policy_against_the_runs_at_the_target_and_reports_it() {
     let csv = tmp.path().join("results.csv");
     write_table(&csv, &[1e18, 3e18, 1e19, 3e19, 1e20, 3e20, 1e21]);
     let out = tmp.path().join("replay");
-    let stdout = motionscale_ok(&[
-        "sweep",
-        "replay",
-        "--results",
-        arg(&csv),
-        "--target-budget",
-        "1e21",
-        "--seeds",
-        "5",
-        "--draws",
-        "64",
-        "--out",
-        arg(&out),
-    ]);
+    let stdout = replay_ok(&csv, &out, &["--seeds", "5", "--draws", "64"]);
     assert!(stdout.contains("42 runs below 1.000e21"), "{stdout}");
     let summary: fits::replay::ReplaySummary = read_json(&out.join("summary.json"));
     let names: Vec<&str> = summary.policies.iter().map(|p| p.policy.as_str()).collect();
@@ -73,24 +60,19 @@ fn replay_scores_every_policy_against_the_runs_at_the_target_and_reports_it() {
     }
     // The loss target extrapolates by the law given (`fit`'s choice), and says which.
     let loss_out = tmp.path().join("replay-loss");
-    let stdout = motionscale_ok(&[
-        "sweep",
-        "replay",
-        "--results",
-        arg(&csv),
-        "--target-budget",
-        "1e21",
+    let loss_args = [
         "--target",
         "loss",
         "--loss-form",
         "floor",
         "--policy",
         "active",
-        "--draws",
-        "64",
-        "--out",
-        arg(&loss_out),
-    ]);
+    ];
+    let stdout = replay_ok(
+        &csv,
+        &loss_out,
+        &[&loss_args[..], &["--draws", "64"]].concat(),
+    );
     assert!(stdout.contains("loss (the floor law): truth"), "{stdout}");
     let summary: fits::replay::ReplaySummary = read_json(&loss_out.join("summary.json"));
     assert_eq!(summary.loss_form.as_deref(), Some("floor"));
@@ -111,20 +93,15 @@ fn ripple(n: f64, c: f64) -> f64 {
     0.02 * (4.0 * n.log10() + c.log10()).sin()
 }
 
-/// `sweep plan` on `corpus` for `budgets` × `models` (vocabulary 256), plus `extra`.
-fn plan(corpus: &Path, budgets: &str, models: &str, out: &Path, extra: &[&str]) -> String {
+/// `sweep replay` of `csv` at C* = 10^21 into `out`, plus `extra`; returns its output.
+fn replay_ok(csv: &Path, out: &Path, extra: &[&str]) -> String {
     let mut args = vec![
         "sweep",
-        "plan",
-        "--corpus",
-        arg(corpus),
-        "--budgets",
-        budgets,
-        "--models",
-        models,
-        "--vocabs",
-        "256",
-        "--tokenizer-flags=--width 32 --batch 8 --steps 30",
+        "replay",
+        "--results",
+        arg(csv),
+        "--target-budget",
+        "1e21",
         "--out",
         arg(out),
     ];
@@ -139,7 +116,7 @@ fn next_extends_the_plan_with_runs_that_enter_the_next_budget_around_the_law() {
     tiny_lm_corpus(&corpus);
     let models = "8x1,12x1,16x1,24x1,32x1,48x1,64x1,96x1,128x2";
     let base_path = tmp.path().join("base.toml");
-    plan(&corpus, "1e10,3e10,1e11", models, &base_path, &[]);
+    sweep_plan(&corpus, "1e10,3e10,1e11", models, "256", &[], &base_path);
     let base = IsoFlopPlan::read(&base_path).unwrap();
 
     // "Train" every point of the base plan: the Chinchilla law at its (N, D), with the ripple.
@@ -165,11 +142,11 @@ fn next_extends_the_plan_with_runs_that_enter_the_next_budget_around_the_law() {
 
     let next_path = tmp.path().join("next.toml");
     let fits_json = fit.join("fits.json");
-    let stdout = plan(
+    let stdout = sweep_plan(
         &corpus,
         "3e11",
         models,
-        &next_path,
+        "256",
         &[
             "--extend",
             arg(&base_path),
@@ -180,6 +157,7 @@ fn next_extends_the_plan_with_runs_that_enter_the_next_budget_around_the_law() {
             "--target-budget",
             "1e12",
         ],
+        &next_path,
     );
     let n_base = base.points.len();
     assert!(

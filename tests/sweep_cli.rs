@@ -28,27 +28,15 @@ fn tiny_plan(
     extra: &[&str],
     out: &Path,
 ) -> IsoFlopPlan {
-    let mut args = vec![
-        "sweep",
-        "plan",
-        "--corpus",
-        arg(corpus),
-        "--budgets",
+    let settings = ["--batch", "8", "--checkpoint-every", "10"];
+    sweep_plan(
+        corpus,
         budgets,
-        "--models",
         "cpu-50K",
-        "--vocabs",
         vocabs,
-        "--tokenizer-flags=--width 32 --batch 8 --steps 30",
-        "--batch",
-        "8",
-        "--checkpoint-every",
-        "10",
-        "--out",
-        arg(out),
-    ];
-    args.extend_from_slice(extra);
-    motionscale_ok(&args);
+        &[&settings[..], extra].concat(),
+        out,
+    );
     IsoFlopPlan::read(out).expect("the plan reads back")
 }
 

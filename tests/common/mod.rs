@@ -84,6 +84,35 @@ pub fn python(script: &str, args: &[&str]) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// `sweep plan` on `corpus` for `budgets` × `models` × `vocabs` (tokenizers of width 32 trained
+/// 30 steps, when it runs), plus `extra`; returns its output.
+pub fn sweep_plan(
+    corpus: &Path,
+    budgets: &str,
+    models: &str,
+    vocabs: &str,
+    extra: &[&str],
+    out: &Path,
+) -> String {
+    let mut args = vec![
+        "sweep",
+        "plan",
+        "--corpus",
+        arg(corpus),
+        "--budgets",
+        budgets,
+        "--models",
+        models,
+        "--vocabs",
+        vocabs,
+        "--tokenizer-flags=--width 32 --batch 8 --steps 30",
+        "--out",
+        arg(out),
+    ];
+    args.extend_from_slice(extra);
+    motionscale_ok(&args)
+}
+
 /// Read `rejects.jsonl` as JSON values.
 pub fn rejects(corpus: &Path) -> Vec<serde_json::Value> {
     std::fs::read_to_string(corpus.join("rejects.jsonl"))
