@@ -197,16 +197,17 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
     let pool_compute: f64 = table.pool.iter().map(|r| r.cost).sum();
     let full = table.full();
     let unit = args.target.unit();
+    // The loss law matters, and is named, for the loss target only.
+    let loss_form = (args.target == Target::Loss).then_some(args.loss_form);
     println!(
         "replay: {} runs below {:.3e} ({:.3e} FLOPs), {} in the start; {}truth {:.4}; full table: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {unit}",
         table.pool.len(),
         table.c_star,
         pool_compute,
         table.start.len(),
-        match args.target {
-            Target::Loss => format!("loss{}: ", by_law(args.target, args.loss_form)),
-            Target::NOpt => String::new(),
-        },
+        loss_form
+            .map(|f| format!("loss{}: ", by_law(args.target, f)))
+            .unwrap_or_default(),
         table.truth,
         full.median,
         full.low,
@@ -228,7 +229,7 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
     let summary = replay::ReplaySummary {
         results: args.results.display().to_string(),
         target: args.target.name().into(),
-        loss_form: (args.target == Target::Loss).then(|| args.loss_form.name().into()),
+        loss_form: loss_form.map(|f| f.name().into()),
         target_budget: args.target_budget,
         truth: table.truth,
         loss_col: args.loss_col.clone(),

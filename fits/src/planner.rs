@@ -644,7 +644,7 @@ fn expected_width(
         for (&i, (mean, sd)) in runs.iter().zip(&predicted) {
             with.push(observed(&candidates[i], mean + z * sd));
         }
-        expected += w * q.spread(&Model::new(&with, q.s.misfit_floor));
+        expected += w * posterior(&with, q.target, q.c_star, q.s).spread();
     }
     Some(expected)
 }
