@@ -95,6 +95,12 @@ pub struct FitArgs {
     /// (R_N = N/U_N − 1), with R*_N fitted (Muennighoff et al. 2023).
     #[arg(long, requires = "repeated_data")]
     pub effective_params: bool,
+    /// With --repeated-data: early stopping. The law is fitted on the tokens of each run's
+    /// validation-selected checkpoint (tokens·best_step/steps, the sweep's columns), beside a
+    /// stopping rule ln e* = c₀ + c_N·ln N + c_U·ln U fitted on the runs selected before the
+    /// end of their schedule; `predict --hours` then counts min(D, e*·U) tokens of a run.
+    #[arg(long, requires = "repeated_data")]
+    pub early_stopping: bool,
     /// Grouping tolerance in log10 C, used without a group column.
     #[arg(long, default_value_t = 0.05, value_name = "DEX")]
     pub group_tol: f64,
@@ -167,6 +173,7 @@ impl FitArgs {
             vocab: self.vocab,
             repeated_data: self.repeated_data,
             effective_params: self.effective_params,
+            early_stopping: self.early_stopping,
             ..FitOptions::default()
         })
     }
@@ -262,6 +269,29 @@ pub(crate) fn parse_hours(text: &str) -> Result<Hours, String> {
     Ok(h)
 }
 
+/// What an hour buys in compute: C'/C with its interval, or "more than any compute", with the
+/// share of refits at which no budget reaches the loss.
+fn worth_text(v: &fits::data_value::HourValue) -> String {
+    let e = &v.compute_equivalent;
+    let share = 100.0 * v.unbuyable;
+    let end = |x: Option<f64>| x.map_or("∞".into(), sig);
+    match (e.value.is_infinite(), v.unbuyable > 0.0) {
+        (true, _) => format!(
+            "more than any compute: no budget reaches that loss with today's hours (nor at {share:.0}% of refits)"
+        ),
+        (false, refits) => format!(
+            "{} [{}, {}]× compute{}",
+            sig(e.value),
+            end(e.ci_low),
+            end(e.ci_high),
+            match refits {
+                true => format!(" (no budget reaches it at {share:.0}% of refits)"),
+                false => String::new(),
+            }
+        ),
+    }
+}
+
 /// `predict --hours`: the data question.
 fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCode> {
     let fits: Fits =
@@ -288,34 +318,24 @@ fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCo
         p.vocab.map_or("mixed".into(), |v| format!("{v:.0}"))
     );
     for (name, e) in [
-        ("N_opt", &p.n_opt),
-        ("D", &p.d),
-        ("epochs", &p.epochs),
-        ("loss", &p.loss),
+        ("N_opt", Some(&p.n_opt)),
+        ("D", Some(&p.d)),
+        ("epochs", Some(&p.epochs)),
+        ("stops at", p.stop_epochs.as_ref()),
+        ("loss", Some(&p.loss)),
     ] {
-        println!("  {name:<8} {}", estimate_text(e));
+        if let Some(e) = e {
+            println!("  {name:<8} {}", estimate_text(e));
+        }
     }
     println!("  N_v {} ; 6·(N + N_v)·D / C = {:.4}", sig(p.n_v), p.spends);
     for v in &p.hour_values {
-        let e = &v.compute_equivalent;
-        let worth = if e.value.is_infinite() {
-            let refits = match (e.ci_low, e.ci_high) {
-                (Some(lo), Some(hi)) => {
-                    format!("; refits' 95% interval [{}, {}]×", sig(lo), sig(hi))
-                }
-                _ => String::new(),
-            };
-            format!(
-                "more than any compute (no budget reaches that loss with today's hours{refits})"
-            )
-        } else {
-            format!("{}× compute", estimate_text(&v.compute_equivalent))
-        };
         println!(
-            "  +{} h {:<5}: loss {} ; worth {worth}",
+            "  +{} h {:<5}: loss {} ; worth {}",
             v.hours,
             v.source,
             estimate_text(&v.loss_change),
+            worth_text(v)
         );
     }
     for v in &p.verdicts {

@@ -412,6 +412,7 @@ mod tests {
     use super::*;
     use crate::parametric::StartGrid;
     use crate::synth::{Law, CHINCHILLA};
+    use crate::{data_value, stopping};
     use std::fmt::Write as _;
 
     /// Writes rows (budget, n_nv, tokens, loss, epochs) as a results CSV and reads it back.
@@ -538,7 +539,7 @@ mod tests {
             let (ln_dp, _) = repeated::effective_data(d * kk, unique * kk, r_star.ln());
             law.e + law.a / n.powf(law.alpha) + law.b / ln_dp.exp().powf(law.beta)
         };
-        let path = two_source_ladders(dir.path(), loss);
+        let path = two_source_ladders(dir.path(), |_, _, _| 100_000, loss);
         let opts = FitOptions {
             repeated_data: true,
             ..quick()
@@ -597,9 +598,11 @@ mod tests {
         // the larger sizes are far past it.
         let truth = [law.e, law.a, law.b, law.alpha, law.beta, 6.0, 0.3, 5.0];
         let dir = tempfile::tempdir().unwrap();
-        let path = two_source_ladders(dir.path(), |n, d, unique, share| {
-            repeated::loss_at(&truth, n, d, unique, share)
-        });
+        let path = two_source_ladders(
+            dir.path(),
+            |_, _, _| 100_000,
+            |n, d, unique, share| repeated::loss_at(&truth, n, d, unique, share),
+        );
         let opts = FitOptions {
             repeated_data: true,
             effective_params: true,
@@ -619,21 +622,108 @@ mod tests {
         assert!((r.law.alpha.value - law.alpha).abs() < 0.01, "{:?}", r.law);
     }
 
+    #[test]
+    fn early_stopping_recovers_the_stopping_rule_and_predicts_the_plateau() {
+        let law = repetition_law();
+        let truth = [
+            law.e,
+            law.a,
+            law.b,
+            law.alpha,
+            law.beta,
+            6.0,
+            0.3,
+            f64::INFINITY,
+        ];
+        // e* = 100·N^−0.35·U^0.05: 8.6 epochs at N = 10⁴, 1.7 at 10⁶ (U = 5·10⁶); runs stop
+        // early at every budget, so that each budget left out keeps a rule to predict it by.
+        let rule = [100f64.ln(), -0.35, 0.05];
+        let select = |n: f64, d: f64, unique: f64| {
+            let stop = stopping::stop_epochs(&rule, n, unique) * unique;
+            (1e5 * (stop / d).min(1.0)).round().max(1.0) as u32
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let path = two_source_ladders(dir.path(), select, |n, d, unique, share| {
+            repeated::loss_at(&truth, n, d, unique, share)
+        });
+        let opts = FitOptions {
+            repeated_data: true,
+            early_stopping: true,
+            ..quick()
+        };
+        let fits = fit_table(&Table::read(&path).unwrap(), &opts).unwrap();
+        let mut r = fits.repeated_data.clone().expect("fitted");
+        let s = r
+            .stopping
+            .as_ref()
+            .expect("early stopping: the rule is fitted");
+        // The steps are whole, so e* is recovered to their rounding.
+        assert!(
+            (s.coef[1] - rule[1]).abs() < 0.01,
+            "{:?} vs {rule:?}",
+            s.coef
+        );
+        for (n, unique) in [(1e4, 5e6), (1e5, 1e7), (1e6, 4e7)] {
+            let (got, want) = (
+                stopping::stop_epochs(&s.coef, n, unique),
+                stopping::stop_epochs(&rule, n, unique),
+            );
+            assert!(
+                (got / want - 1.0).abs() < 0.01,
+                "e* at N = {n}: {got} vs {want}"
+            );
+        }
+        assert!(s.runs == 37 && s.draws.len() == r.draws.len(), "{s:?}");
+        let rho = r.exchange.as_ref().unwrap().value;
+        assert!((r.r_star.value / 6.0 - 1.0).abs() < 0.05, "{:?}", r.r_star);
+        assert!((rho / 0.3 - 1.0).abs() < 0.05, "ρ {rho}");
+        let h = r.held_out.as_ref().unwrap();
+        assert!(
+            h.repeated_rms < 0.01,
+            "held out at the rule's tokens: {h:?}"
+        );
+        // Past the budget where the optimum stops improving, compute buys nothing, and an hour
+        // of captured motion is worth more than any compute.
+        r.tokens_per_hour = Some(1e6);
+        let hours = data_value::Hours {
+            real: 5.0,
+            synth: 0.0,
+        };
+        let at = |c: f64| data_value::predict_data(&r, c, hours).unwrap();
+        let (p16, p18) = (at(1e16), at(1e18));
+        assert!(
+            (p18.loss.value / p16.loss.value - 1.0).abs() < 1e-9,
+            "{p16:?}"
+        );
+        assert!(p18.epochs.value > p18.stop_epochs.as_ref().unwrap().value);
+        assert!(p18.verdicts.iter().any(|v| v.contains("buys nothing")));
+        let real = &p18.hour_values[0];
+        assert!(real.loss_change.value < 0.0 && real.compute_equivalent.value.is_infinite());
+    }
+
     /// A captured-only ladder and a half-synthetic one, each at two corpus sizes, 3 budgets ×
-    /// 5 sizes, with `loss(N, D, U, synthetic share)`, written to `dir/results.csv`.
+    /// 5 sizes, with `loss(N, D, U, synthetic share)` at the selected checkpoint, which lies at
+    /// step `select(N, D, U)` of 100,000, written to `dir/results.csv`.
     fn two_source_ladders(
         dir: &std::path::Path,
+        select: impl Fn(f64, f64, f64) -> u32,
         loss: impl Fn(f64, f64, f64, f64) -> f64,
     ) -> std::path::PathBuf {
-        let mut csv =
-            String::from("budget,n_nv,tokens,test_loss,norm_test_loss,epochs,synth_share\n");
+        let mut csv = String::from(
+            "budget,n_nv,tokens,test_loss,norm_test_loss,epochs,synth_share,best_step,steps\n",
+        );
         for (unique, share) in [(5e6, 0.0), (2e7, 0.0), (1e7, 0.5), (4e7, 0.5)] {
             for c in [1e13, 1e14, 1e15] {
                 for k in 0..5 {
                     let n = 10f64.powf(4.0 + 0.5 * k as f64);
                     let d = c / (6.0 * n);
-                    let l = loss(n, d, unique, share);
-                    let _ = writeln!(csv, "{c},{n},{d},{l},{l},{},{share}", d / unique);
+                    let step = select(n, d, unique);
+                    let l = loss(n, d * f64::from(step) / 1e5, unique, share);
+                    let _ = writeln!(
+                        csv,
+                        "{c},{n},{d},{l},{l},{},{share},{step},100000",
+                        d / unique
+                    );
                 }
             }
         }

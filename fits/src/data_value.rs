@@ -9,6 +9,7 @@ use crate::fitted::RepeatedData;
 use crate::laws::Estimate;
 use crate::parametric::with_draws;
 use crate::repeated::loss_at;
+use crate::stopping::{stop_epochs, tokens_used};
 use serde::{Deserialize, Serialize};
 
 /// Hours of each source in the corpus.
@@ -20,12 +21,14 @@ pub struct Hours {
     pub synth: f64,
 }
 
-/// One law: (E, A, B, α, β, R*_D, ρ, R*_N), with the conversions the fit recorded.
+/// One law: (E, A, B, α, β, R*_D, ρ, R*_N), with the conversions the fit recorded and, with
+/// early stopping, the stopping rule's coefficients.
 #[derive(Debug, Clone, Copy)]
 struct Law {
     theta: [f64; 8],
     tokens_per_hour: f64,
     nv_line: Option<[f64; 2]>,
+    stopping: Option<[f64; 3]>,
 }
 
 /// The compute-optimal point of one law at (C, hours).
@@ -44,15 +47,16 @@ impl Law {
             .map_or(0.0, |[c0, c1]| 10f64.powf(c0 + c1 * n.log10()))
     }
 
+    /// The loss of N trained on D tokens of the corpus `h` (with early stopping, on the
+    /// tokens it trains before it stops improving).
     fn loss(&self, n: f64, d: f64, h: Hours) -> f64 {
-        let total = h.real + h.synth;
-        loss_at(
-            &self.theta,
-            n,
-            d,
-            total * self.tokens_per_hour,
-            h.synth / total,
-        )
+        let u = self.unique_tokens(h);
+        let d = self.stopping.map_or(d, |c| tokens_used(&c, n, d, u));
+        loss_at(&self.theta, n, d, u, h.synth / (h.real + h.synth))
+    }
+
+    fn unique_tokens(&self, h: Hours) -> f64 {
+        (h.real + h.synth) * self.tokens_per_hour
     }
 
     /// The loss of N at budget C (D = C / (6·(N + N_v))).
@@ -119,8 +123,12 @@ pub struct HourValue {
     /// Loss change at the budget, the model re-optimised (negative: better).
     pub loss_change: Estimate,
     /// C'/C: the compute that reaches the same loss at today's hours, as a multiple of C
-    /// (∞ when no budget does: the data, not the compute, limits the loss).
+    /// (∞ when no budget does: the data, not the compute, limits the loss). An interval end
+    /// that falls among the refits at ∞ is unbounded (absent).
     pub compute_equivalent: Estimate,
+    /// The share of the bootstrap refits at which no budget reaches that loss.
+    #[serde(default)]
+    pub unbuyable: f64,
 }
 
 /// `predict --hours`: the optimum at (C, hours) and what more hours are worth.
@@ -142,6 +150,10 @@ pub struct DataPrediction {
     pub d: Estimate,
     /// D / U.
     pub epochs: Estimate,
+    /// With early stopping: e*, the epochs after which N_opt stops improving on validation
+    /// (compute spent past them buys nothing).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_epochs: Option<Estimate>,
     /// The loss there (the fit's parametric loss column).
     pub loss: Estimate,
     /// 6·(N_opt + N_v)·D / C.
@@ -168,7 +180,8 @@ pub fn fitted_law(rd: &RepeatedData) -> [f64; 8] {
     ]
 }
 
-/// The law `theta` with the fit's conversions (hours to tokens, N to N_v).
+/// The law `theta` with the fit's conversions (hours to tokens, N to N_v) and its point
+/// stopping rule.
 fn law(rd: &RepeatedData, theta: [f64; 8]) -> Result<Law, String> {
     let tokens_per_hour = rd
         .tokens_per_hour
@@ -177,22 +190,34 @@ fn law(rd: &RepeatedData, theta: [f64; 8]) -> Result<Law, String> {
         theta,
         tokens_per_hour,
         nv_line: rd.nv_line,
+        stopping: rd.stopping.as_ref().map(|s| s.coef),
     })
 }
 
-/// The laws of `rd`: its point estimate, then its bootstrap refits.
+/// The laws of `rd`: its point estimate, then its bootstrap refits (each with the stopping
+/// rule refitted on the same resample).
 fn laws(rd: &RepeatedData) -> Result<Vec<Law>, String> {
     let exchange_fitted = rd.exchange.is_some();
-    std::iter::once(fitted_law(rd))
-        .chain(rd.draws.iter().map(|d| {
-            let mut t = *d;
-            if !exchange_fitted {
-                t[6] = 1.0;
-            }
-            t
-        }))
-        .map(|theta| law(rd, theta))
-        .collect()
+    let point = law(rd, fitted_law(rd))?;
+    let mut out = vec![point];
+    for (i, d) in rd.draws.iter().enumerate() {
+        let mut t = *d;
+        if !exchange_fitted {
+            t[6] = 1.0;
+        }
+        let stopping = match &rd.stopping {
+            Some(s) => Some(*s.draws.get(i).ok_or(
+                "the stopping rule has fewer bootstrap refits than the law (a damaged fits.json)",
+            )?),
+            None => None,
+        };
+        out.push(Law {
+            theta: t,
+            stopping,
+            ..point
+        });
+    }
+    Ok(out)
 }
 
 /// The compute-optimal N at C with `hours` under the law `theta` (natural parameters) of `rd`.
@@ -225,6 +250,30 @@ pub fn hour_loss_change(
 /// An estimate from the point law's value (first) and the refits'.
 fn estimate(values: &[f64]) -> Estimate {
     with_draws(values[0], &values[1..])
+}
+
+/// As `estimate`, for values that may be +∞: the refits at ∞ rank above every finite one, so
+/// that an interval end among them is unbounded (`None`), and the share of refits at ∞.
+fn unbounded_estimate(values: &[f64]) -> (Estimate, f64) {
+    let mut refits = values[1..].to_vec();
+    refits.sort_by(f64::total_cmp);
+    let end = |q: f64| {
+        let pos = q * refits.len().saturating_sub(1) as f64;
+        let (lo, hi) = (
+            refits.get(pos.floor() as usize)?,
+            refits.get(pos.ceil() as usize)?,
+        );
+        let v = lo + (hi - lo) * (pos - pos.floor());
+        v.is_finite().then_some(v)
+    };
+    let infinite = refits.iter().filter(|v| v.is_infinite()).count();
+    let estimate = Estimate {
+        value: values[0],
+        se: None,
+        ci_low: end(0.025),
+        ci_high: end(0.975),
+    };
+    (estimate, infinite as f64 / refits.len().max(1) as f64)
 }
 
 /// The optimum at `budget` and `hours`, and the value of +1 h and +10 h per source.
@@ -276,26 +325,44 @@ pub fn predict_data(
                 dl.push(better - base.loss);
                 ratio.push(law.compute_for(better, budget, hours) / budget);
             }
+            let (compute_equivalent, unbuyable) = unbounded_estimate(&ratio);
             hour_values.push(HourValue {
                 source: source.into(),
                 hours: more,
                 loss_change: estimate(&dl),
-                compute_equivalent: estimate(&ratio),
+                compute_equivalent,
+                unbuyable,
             });
         }
     }
     let p = &optima[0];
     let n_opt = of(|o| o.n);
+    let stops: Option<Vec<f64>> = laws
+        .iter()
+        .zip(&optima)
+        .map(|(l, o)| l.stopping.map(|c| stop_epochs(&c, o.n, u)))
+        .collect();
+    let stop_epochs = stops.map(|v| estimate(&v));
+    let mut verdicts = verdicts(&n_opt, &hour_values, rd.draws.len());
+    if let Some(e) = stop_epochs.as_ref().filter(|e| e.value * u < p.d) {
+        verdicts.push(format!(
+            "N_opt stops improving after {:.1} of the {:.1} epochs C buys: the last {:.0}% of the compute buys nothing on these hours",
+            e.value,
+            p.d / u,
+            100.0 * (1.0 - e.value * u / p.d)
+        ));
+    }
     Ok(DataPrediction {
         budget,
         hours,
         unique_tokens: u,
         vocab: rd.vocab,
-        verdicts: verdicts(&n_opt, &hour_values, rd.draws.len()),
+        verdicts,
         n_opt,
         n_v: p.n_v,
         d: of(|o| o.d),
         epochs: estimate(&optima.iter().map(|o| o.d / u).collect::<Vec<_>>()),
+        stop_epochs,
         loss: of(|o| o.loss),
         spends: 6.0 * (p.n + p.n_v) * p.d / budget,
         hour_values,
@@ -365,6 +432,7 @@ mod tests {
             nv_line: Some([1.0, 0.5]),
             vocab: Some(1000.0),
             information: None,
+            stopping: None,
         }
     }
 
@@ -437,6 +505,17 @@ mod tests {
             .loss;
         let c = real.compute_equivalent.value * C;
         assert!((law.optimum(c, h).loss - target).abs() < 1e-6);
+    }
+
+    #[test]
+    fn refits_that_no_budget_serves_rank_above_the_rest_and_are_counted() {
+        let inf = f64::INFINITY;
+        let (e, share) = unbounded_estimate(&[2.0, 1.0, inf, 3.0, inf]);
+        assert_eq!((e.value, share), (2.0, 0.5));
+        assert!((e.ci_low.unwrap() - 1.15).abs() < 1e-12, "{e:?}");
+        assert_eq!(e.ci_high, None, "the upper end lies among the refits at ∞");
+        let (e, share) = unbounded_estimate(&[2.0, 1.0, 3.0]);
+        assert_eq!((e.ci_high, share), (Some(2.95), 0.0));
     }
 
     #[test]

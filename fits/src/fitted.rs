@@ -122,6 +122,9 @@ pub struct FitOptions {
     pub repeated_data: bool,
     /// In it, the effective parameters N' too (R*_N fitted).
     pub effective_params: bool,
+    /// In it, early stopping: the law fitted on the tokens of each run's validation-selected
+    /// checkpoint and a stopping rule beside it (needs `best_step` and `steps` columns).
+    pub early_stopping: bool,
 }
 
 impl Default for FitOptions {
@@ -140,6 +143,7 @@ impl Default for FitOptions {
             vocab: None,
             repeated_data: false,
             effective_params: false,
+            early_stopping: false,
         }
     }
 }
@@ -508,6 +512,29 @@ pub struct RepeatedData {
     /// The Laplace approximation at the optimum (absent in fits written before it).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub information: Option<Information>,
+    /// With early stopping (`--early-stopping`): when a run's validation loss stops improving.
+    /// The law is then fitted on the selected checkpoints' tokens, and a run of D tokens is
+    /// predicted at min(D, e*·U).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stopping: Option<StoppingRule>,
+}
+
+/// When a run's validation loss stops improving: ln e* = c₀ + c_N·ln N + c_U·ln U, e* the
+/// epochs over the U unique tokens at the selected checkpoint, fitted by OLS on the runs whose
+/// selected step comes before the end of their schedule.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StoppingRule {
+    /// (c₀, c_N, c_U).
+    pub coef: [f64; 3],
+    /// Standard errors of the coefficients.
+    pub se: [f64; 3],
+    /// Runs that stopped early (those fitted).
+    pub runs: usize,
+    /// Residual standard deviation in ln e*.
+    pub residual_sd: f64,
+    /// The rule refitted on each bootstrap resample of the law's `draws`, in the same order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub draws: Vec<[f64; 3]>,
 }
 
 /// One predicted quantity against the held-out runs.

@@ -22,6 +22,7 @@ pub mod replay;
 pub mod replicates;
 pub mod report;
 pub mod runs;
+pub mod stopping;
 pub mod synth;
 pub mod table;
 

@@ -26,6 +26,7 @@ use crate::lbfgs::{minimize, Minimum};
 use crate::ols::Line;
 use crate::parametric::{self, huber, lse3, LogRuns, StartGrid};
 use crate::runs::Runs;
+use crate::stopping::{tokens_used, StopRuns};
 use motionscale_core::rng::SplitMix64;
 use rayon::prelude::*;
 
@@ -474,12 +475,24 @@ fn frontier(runs: &Runs, u: &[f64], groups: &[(f64, Vec<usize>)]) -> Vec<DataFro
 /// The data-constrained fit of `runs` (the plain parametric fit in `fits` seeds it); the error
 /// says why it cannot be fitted.
 pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, String> {
-    let (Some(d), Some(u), Some(epochs)) = (&runs.d, runs.unique_tokens(), &runs.epochs) else {
+    let (Some(d_run), Some(u), Some(epochs_run)) = (&runs.d, runs.unique_tokens(), &runs.epochs)
+    else {
         return Err(format!(
             "needs a tokens column and an epochs column ({:?}: epochs over the unique tokens)",
             opts.columns.epochs.name
         ));
     };
+    // With early stopping the law sees the tokens of each run's selected checkpoint.
+    let stop = runs
+        .selected
+        .as_ref()
+        .map(|sel| StopRuns::new(&runs.n, &u, epochs_run, sel));
+    let at_selected = |v: &[f64]| match &runs.selected {
+        Some(sel) => v.iter().zip(sel).map(|(x, s)| x * s).collect(),
+        None => v.to_vec(),
+    };
+    let (d, epochs): (Vec<f64>, Vec<f64>) = (at_selected(d_run), at_selected(epochs_run));
+    let mut stopping = stop.as_ref().map(StopRuns::rule).transpose()?;
     let plain = fits
         .parametric
         .as_ref()
@@ -491,29 +504,18 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
             "no run repeats data (at most {max_epochs:.2} epochs): R* cannot be fitted"
         ));
     }
-    let mut data = DataRuns::new(&runs.n, d, &u, &runs.param_loss.1)
+    let mut data = DataRuns::new(&runs.n, &d, &u, &runs.param_loss.1)
         .with_effective_params(opts.effective_params);
     if let Some(shares) = &runs.synth_share {
         data = data.with_synthetic_shares(shares);
     }
     let best = best_of(&data, opts, &starts(&plain.theta, data.effective_params))
         .ok_or("the objective is not finite at any start")?;
-    let draws: Vec<[f64; 8]> = (0..opts.bootstrap)
-        .into_par_iter()
-        .filter_map(|i| {
-            let mut rng = SplitMix64::stream(opts.seed, i as u64);
-            let idx: Vec<usize> = (0..data.len()).map(|_| rng.index(data.len())).collect();
-            let sample = data.select(&idx);
-            let m = minimize(
-                |t, g| objective(&sample, opts.huber_delta, t, g),
-                best.x,
-                &opts.lbfgs,
-            );
-            let nat = natural(&m.x, sample.effective_params);
-            let finite = nat[..7].iter().all(|v| v.is_finite()) && !nat[7].is_nan();
-            (m.f.is_finite() && finite).then_some(nat)
-        })
-        .collect();
+    let refits = bootstrap(&data, stop.as_ref(), &best.x, opts);
+    let draws: Vec<[f64; 8]> = refits.iter().map(|r| r.0).collect();
+    if let Some(rule) = &mut stopping {
+        rule.draws = refits.iter().filter_map(|r| r.1).collect();
+    }
     let value = natural(&best.x, data.effective_params);
     let note = unidentified("R*", value[5], max_epochs - 1.0, "repetition count");
     let note_n = data.effective_params.then(|| {
@@ -553,7 +555,13 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
         objective: best.f,
         termination: best.termination,
         bootstrap: [opts.bootstrap, draws.len()],
-        held_out: held_out(runs, &data, opts, &plain.theta, &best.x),
+        held_out: held_out(
+            runs,
+            &data,
+            stop.as_ref().map(|s| (s, d_run.as_slice())),
+            opts,
+            (&plain.theta, &best.x),
+        ),
         information: Some(information),
         note,
         frontier: frontier(runs, &u, &groups),
@@ -572,7 +580,39 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
             .as_ref()
             .and_then(|v| v.iter().all(|&k| k == v[0]).then(|| v[0])),
         draws,
+        stopping,
     })
+}
+
+/// The bootstrap refits from the optimum `from`, natural parameters: each resample of the runs
+/// refits the law and, with early stopping (`stop`), the stopping rule on the same runs. A
+/// resample on which either does not fit is dropped.
+fn bootstrap(
+    data: &DataRuns,
+    stop: Option<&StopRuns>,
+    from: &[f64; 8],
+    opts: &FitOptions,
+) -> Vec<([f64; 8], Option<[f64; 3]>)> {
+    (0..opts.bootstrap)
+        .into_par_iter()
+        .filter_map(|i| {
+            let mut rng = SplitMix64::stream(opts.seed, i as u64);
+            let idx: Vec<usize> = (0..data.len()).map(|_| rng.index(data.len())).collect();
+            let sample = data.select(&idx);
+            let m = minimize(
+                |t, g| objective(&sample, opts.huber_delta, t, g),
+                *from,
+                &opts.lbfgs,
+            );
+            let nat = natural(&m.x, sample.effective_params);
+            let finite = nat[..7].iter().all(|v| v.is_finite()) && !nat[7].is_nan();
+            let rule = match stop {
+                Some(s) => Some(s.fit(&idx)?.1),
+                None => None,
+            };
+            (m.f.is_finite() && finite).then_some((nat, rule))
+        })
+        .collect()
 }
 
 /// θ → (E, A, B, α, β, R*_D, ρ, R*_N); R*_N = ∞ where it is not fitted.
@@ -595,12 +635,15 @@ pub fn natural(t: &[f64; 8], effective_params: bool) -> [f64; 8] {
 
 /// Leave each budget out, refit both forms on the rest (from the full-data optima and the
 /// coarse grid), and collect the log residuals on the left-out runs; `None` below 3 budgets.
+/// With early stopping (`stop`: the rule's runs and each run's whole tokens), the rule is
+/// refitted on the rest too, and a left-out run is predicted at the tokens it says the run
+/// used, not at those of its selected checkpoint.
 fn held_out(
     runs: &Runs,
     data: &DataRuns,
+    stop: Option<(&StopRuns, &[f64])>,
     opts: &FitOptions,
-    plain: &[f64; 5],
-    repeated: &[f64; 8],
+    (plain, repeated): (&[f64; 5], &[f64; 8]),
 ) -> Option<HeldOutError> {
     let groups = isoflop::group_rows(&runs.c, runs.group.as_deref(), opts.group_tol_dex);
     if groups.len() < 3 {
@@ -619,7 +662,14 @@ fn held_out(
             .flat_map(|(_, rows)| rows.iter().copied())
             .collect();
         let train = data.select(&kept);
-        let test = data.select(left_out);
+        let mut test = data.select(left_out);
+        if let Some((rule_runs, d_run)) = stop {
+            let coef = rule_runs.fit(&kept)?.1;
+            test.d = left_out
+                .iter()
+                .map(|&i| tokens_used(&coef, runs.n[i], d_run[i], data.u[i]))
+                .collect();
+        }
         let p =
             parametric::multi_start(&train.plain(), opts.huber_delta, &plain_starts, &opts.lbfgs)
                 .ok()?;

@@ -96,6 +96,7 @@ mod tests {
             synth_share: None,
             seed: Some(vec![0.0, 1.0, 2.0, 0.0]),
             hours: None,
+            selected: None,
             columns: BTreeMap::new(),
             notes: Vec::new(),
         };

@@ -1,6 +1,6 @@
 //! Writing a fit: `fits.json`, the plots (SVG + PNG) and a short text summary.
 
-use crate::fitted::{DataFrontierPoint, Fits};
+use crate::fitted::{DataFrontierPoint, Fits, StoppingRule};
 use crate::laws::{Estimate, PowerLaw};
 use crate::FitError;
 use plot::ticks::format_tick;
@@ -575,6 +575,9 @@ fn extras(f: &Fits, s: &mut String) {
                 estimate_text(rho)
             );
         }
+        if let Some(rule) = &r.stopping {
+            let _ = writeln!(s, "  {}", stopping_text(rule));
+        }
         for note in r.note.iter().chain(&r.note_n) {
             let _ = writeln!(s, "  note: {note}");
         }
@@ -617,4 +620,14 @@ fn extras(f: &Fits, s: &mut String) {
             let _ = writeln!(s, "  not predicted: {m}");
         }
     }
+}
+
+/// The stopping rule of an early-stopping fit, in one line.
+fn stopping_text(rule: &StoppingRule) -> String {
+    let [c0, cn, cu] = rule.coef;
+    let [s0, sn, su] = rule.se;
+    format!(
+        "early stopping: ln e* = {c0:.3} (±{s0:.3}) + {cn:.3} (±{sn:.3})·ln N + {cu:.3} (±{su:.3})·ln U over the {} runs selected before the end of their schedule (residual s.d. {:.3}); the law is fitted on the selected checkpoints' tokens",
+        rule.runs, rule.residual_sd
+    )
 }

@@ -37,6 +37,9 @@ pub struct Runs {
     /// Hours of motion in each run's unique data (the sweep's `hours` column; `None` unless
     /// recorded on every row): the data-constrained fit's tokens per hour.
     pub hours: Option<Vec<f64>>,
+    /// The share of each run's steps at its validation-selected checkpoint, best_step / steps
+    /// (read for `--early-stopping` only).
+    pub selected: Option<Vec<f64>>,
     /// Role → column used (`None`: not used).
     pub columns: BTreeMap<String, Option<String>>,
     /// Defaults substituted or computed.
@@ -91,6 +94,34 @@ fn shares(
             column: col.name.clone(),
             row: row + 1,
             problem: format!("{} is not a share in [0, 1]", values[row]),
+        }),
+    }
+}
+
+/// The sweep's `best_step` / `steps` per run, each in (0, 1]: where the validation-selected
+/// checkpoint lies in the run's schedule.
+fn selected_share(t: &Table) -> Result<Vec<f64>, FitError> {
+    if let Some(missing) = ["best_step", "steps"].into_iter().find(|c| !t.has(c)) {
+        return Err(FitError::MissingColumn {
+            path: t.path().to_path_buf(),
+            column: missing.into(),
+            available: t.names().join(", "),
+            hint: "--early-stopping reads the sweep's `best_step` and `steps` columns".into(),
+        });
+    }
+    let best = t.numbers("best_step", "--early-stopping")?;
+    let steps = t.numbers("steps", "--early-stopping")?;
+    let share: Vec<f64> = best.iter().zip(&steps).map(|(b, s)| b / s).collect();
+    match share.iter().position(|v| !(*v > 0.0 && *v <= 1.0)) {
+        None => Ok(share),
+        Some(row) => Err(FitError::BadCell {
+            path: t.path().to_path_buf(),
+            column: "best_step".into(),
+            row: row + 1,
+            problem: format!(
+                "best_step {} of {} steps: the selected step must lie in (0, steps]",
+                best[row], steps[row]
+            ),
         }),
     }
 }
@@ -189,6 +220,10 @@ impl Runs {
             }
         };
         columns.insert("parametric_loss".into(), Some(param_loss.0.clone()));
+        let selected = match opts.early_stopping {
+            true => Some(selected_share(t)?),
+            false => None,
+        };
         Ok(Self {
             n,
             loss,
@@ -203,6 +238,7 @@ impl Runs {
             synth_share,
             seed,
             hours,
+            selected,
             columns,
             notes,
         })
@@ -236,6 +272,7 @@ impl Runs {
             synth_share: pick_opt(&self.synth_share),
             hours: pick_opt(&self.hours),
             seed: pick_opt(&self.seed),
+            selected: pick_opt(&self.selected),
             columns: self.columns.clone(),
             notes: self.notes.clone(),
         }
@@ -346,6 +383,7 @@ mod tests {
             synth_share: None,
             seed: None,
             hours: None,
+            selected: None,
             columns,
             notes: Vec::new(),
         }
@@ -415,6 +453,32 @@ mod tests {
             .any(|n| n.contains("not recorded at row 1")));
         let e = read(["0.5", "1.5"]).unwrap_err().to_string();
         assert!(e.contains("synth_share") && e.contains("[0, 1]"), "{e}");
+    }
+
+    #[test]
+    fn early_stopping_reads_the_selected_share_or_says_which_column_is_wrong() {
+        let dir = tempfile::tempdir().unwrap();
+        let opts = FitOptions {
+            early_stopping: true,
+            ..FitOptions::default()
+        };
+        let read = |header: &str, row: &str| {
+            let path = dir.path().join("results.csv");
+            let csv = format!("budget,n_nv,tokens,norm_test_loss{header}\n1e12,1e5,1e6,-2{row}\n");
+            std::fs::write(&path, csv).unwrap();
+            Runs::read(&Table::read(&path).unwrap(), &opts)
+        };
+        let ok = read(",best_step,steps", ",250,1000").unwrap();
+        assert_eq!(ok.selected, Some(vec![0.25]));
+        let e = read(",steps", ",1000").unwrap_err().to_string();
+        assert!(
+            e.contains("best_step") && e.contains("--early-stopping"),
+            "{e}"
+        );
+        let e = read(",best_step,steps", ",1200,1000")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("row 1") && e.contains("(0, steps]"), "{e}");
     }
 
     #[test]
