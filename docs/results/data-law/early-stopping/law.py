@@ -2,7 +2,8 @@
 many starts), to compare forms before one is built into `fit`:
   M  Muennighoff et al. 2023 with the exchange rate (what `fit` fits: L = E + A/N^α + B/D'^β);
   MN M with effective parameters past κ·U (R*_N);  G  L = E + (A/N^α + B/D'^β)^γ;
-  P  M plus an overfitting term G·(D/U)^ψ·(N/U)^μ."""
+  P  M plus an overfitting term G·(D/U)^ψ·(N/U)^μ;
+  S  M with the effective data saturating at S = κ·U'^γ instead: D' = S·(1 − e^(−D/S))."""
 import csv, sys, numpy as np
 from scipy.optimize import least_squares, minimize
 
@@ -35,6 +36,11 @@ def predict(form, t, N, D, U, s):
         g = t[7]
         X, Y = a - al * np.log(N), b - be * np.log(Dp)
         return np.logaddexp(g * np.logaddexp(X, Y), e)
+    if form == 'S':    # effective data saturates at S = kappa * U'^gamma: D' = S (1 - exp(-D/S))
+        S = np.exp(t[5] + t[7] * np.log(U * k))
+        Dp = S * -np.expm1(-(D * k) / S)
+        X, Y = a - al * np.log(N), b - be * np.log(Dp)
+        return np.logaddexp(np.logaddexp(X, Y), e)
     if form == 'P':    # overfitting penalty: + G * (D/U)^psi * (N/U)^mu  (grows with epochs and size per datum)
         lg, psi, mu = t[7], t[8], t[9]
         X, Y = a - al * np.log(N), b - be * np.log(Dp)
@@ -52,6 +58,7 @@ def starts(form, rng, n=40):
         if form == 'MN': t += [np.log(rng.uniform(0.3, 300)), np.log(rng.uniform(1, 100))]
         if form == 'G': t += [rng.uniform(0.3, 1.5)]
         if form == 'P': t += [rng.uniform(-15, -2), rng.uniform(0.1, 2), rng.uniform(0.0, 1.5)]
+        if form == 'S': t[5] = rng.uniform(0, 8); t += [rng.uniform(0.3, 1.2)]
         out.append(np.array(t))
     return out
 
