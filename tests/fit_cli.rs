@@ -295,3 +295,78 @@ fn predict_hours_needs_a_data_constrained_law() {
     fails_with(&predict("real=20,synth=10"), "no data-constrained law");
     fails_with(&predict("mocap=3"), "the sources are real and synth");
 }
+
+/// A captured-only ladder drawn from a known data-constrained law whose runs stop improving
+/// after e* = 100·N^−0.35·U^0.05 epochs, with the sweep's columns (`best_step` of 100,000
+/// steps, `hours` at 10⁶ unique tokens an hour), written to `path`.
+fn stopping_ladder(path: &std::path::Path) {
+    let truth = [1.2, 60.0, 400.0, 0.35, 0.3, 6.0, 1.0, f64::INFINITY];
+    let rule = [100f64.ln(), -0.35, 0.05];
+    let mut csv = String::from(
+        "budget,n_nv,tokens,test_loss,norm_test_loss,epochs,synth_share,best_step,steps,hours\n",
+    );
+    for unique in [5e6, 2e7] {
+        for c in [1e13, 1e14, 1e15] {
+            for k in 0..5 {
+                let n = 10f64.powf(4.0 + 0.5 * k as f64);
+                let d = c / (6.0 * n);
+                let stop = fits::stopping::stop_epochs(&rule, n, unique) * unique;
+                let step = (1e5 * (stop / d).min(1.0)).round().max(1.0);
+                let l = fits::repeated::loss_at(&truth, n, d * step / 1e5, unique, 0.0);
+                csv.push_str(&format!(
+                    "{c},{n},{d},{l},{l},{},0,{step},100000,{}\n",
+                    d / unique,
+                    unique / 1e6
+                ));
+            }
+        }
+    }
+    std::fs::write(path, csv).unwrap();
+}
+
+#[test]
+fn predict_hours_from_an_early_stopping_fit_says_what_compute_cannot_buy() {
+    let tmp = tempfile::tempdir().unwrap();
+    let csv = tmp.path().join("ladder.csv");
+    stopping_ladder(&csv);
+    let out = tmp.path().join("fits");
+    let fitted = motionscale_ok(&[
+        "fit",
+        "--results",
+        arg(&csv),
+        "--repeated-data",
+        "--early-stopping",
+        "--starts-grid",
+        "coarse",
+        "--bootstrap",
+        "20",
+        "--out",
+        arg(&out),
+    ]);
+    assert!(fitted.contains("early stopping: ln e* = 4.6"), "{fitted}");
+    let fits = out.join("fits.json");
+    let args = ["predict", "--fits", arg(&fits), "--budget", "1e18"];
+    let text = motionscale_ok(&[&args[..], &["--hours", "real=5"]].concat());
+    for needle in [
+        "stops at",
+        "buys nothing on these hours",
+        "+1 h real : loss -",
+        "worth more than any compute: no budget reaches that loss with today's hours",
+    ] {
+        assert!(text.contains(needle), "{needle:?} in {text}");
+    }
+    let json = motionscale_ok(&[&args[..], &["--hours", "real=5", "--json"]].concat());
+    let p: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let (epochs, stop) = (&p["epochs"]["value"], &p["stop_epochs"]["value"]);
+    assert!(
+        epochs.as_f64().unwrap() > 10.0 * stop.as_f64().unwrap(),
+        "{p}"
+    );
+    let real = &p["hour_values"][0];
+    assert_eq!(real["source"], "real");
+    assert_eq!(real["unbuyable"], 1.0, "{real}");
+    assert!(
+        real["compute_equivalent"]["value"].is_null(),
+        "∞ is null in JSON: {real}"
+    );
+}

@@ -123,8 +123,8 @@ pub struct HourValue {
     /// Loss change at the budget, the model re-optimised (negative: better).
     pub loss_change: Estimate,
     /// C'/C: the compute that reaches the same loss at today's hours, as a multiple of C
-    /// (∞ when no budget does: the data, not the compute, limits the loss). An interval end
-    /// that falls among the refits at ∞ is unbounded (absent).
+    /// (∞ when no budget does: the data, not the compute, limits the loss; `null` in JSON). An
+    /// interval end that falls among the refits at ∞ is unbounded (absent).
     pub compute_equivalent: Estimate,
     /// The share of the bootstrap refits at which no budget reaches that loss.
     #[serde(default)]
