@@ -637,7 +637,8 @@ pub fn natural(t: &[f64; 8], effective_params: bool) -> [f64; 8] {
 /// coarse grid), and collect the log residuals on the left-out runs; `None` below 3 budgets.
 /// With early stopping (`stop`: the rule's runs and each run's whole tokens), the rule is
 /// refitted on the rest too, and a left-out run is predicted at the tokens it says the run
-/// used, not at those of its selected checkpoint.
+/// used, not at those of its selected checkpoint (`None` where the rest leave the rule too
+/// few runs that stopped early).
 fn held_out(
     runs: &Runs,
     data: &DataRuns,
