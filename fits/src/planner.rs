@@ -352,33 +352,43 @@ impl Model {
             .find(|b| (b.x - x).abs() <= GROUP_TOL_DEX)
     }
 
-    /// The expected excess of `vocab` at `c`: the line in log C through its budgets' excess
-    /// (their mean with one budget; 0 for a vocabulary not seen yet).
-    fn offset(&self, vocab: Option<f64>, c: f64) -> f64 {
-        let Some(v) = vocab else { return 0.0 };
+    /// The expected excess of `vocab` at `c` and its SD: the line in log C through its
+    /// budgets' excess (their mean with one budget; 0 for a vocabulary not seen yet). The SD
+    /// is the line's residual scatter where it has some, else the spread of every excess seen.
+    fn offset(&self, vocab: Option<f64>, c: f64) -> (f64, f64) {
+        let Some(v) = vocab else { return (0.0, 0.0) };
         let (x, y): (Vec<f64>, Vec<f64>) = self
             .offsets
             .iter()
             .filter(|o| o.0 == v)
             .map(|o| (o.1, o.2))
             .unzip();
+        let all: Vec<f64> = self.offsets.iter().map(|o| o.2).collect();
+        let spread = |v: &[f64]| {
+            let m = v.iter().sum::<f64>() / v.len().max(1) as f64;
+            (v.iter().map(|e| (e - m).powi(2)).sum::<f64>() / v.len().max(1) as f64).sqrt()
+        };
         match Line::fit(&x, &y) {
-            Some(line) => line.at(c.log10()),
-            None => y.iter().sum::<f64>() / y.len().max(1) as f64,
+            Some(line) if line.ols.dof > 0 => {
+                let rss: f64 = line.ols.residuals.iter().map(|r| r * r).sum();
+                (line.at(c.log10()), (rss / line.ols.dof as f64).sqrt())
+            }
+            Some(line) => (line.at(c.log10()), spread(&all)),
+            None => (y.iter().sum::<f64>() / y.len().max(1) as f64, spread(&all)),
         }
     }
 
     /// Predictive mean and SD of a run's loss; `None` when nothing predicts its budget yet.
     fn predict(&self, c: &Candidate) -> Option<(f64, f64)> {
         let u = c.n.log10();
-        let offset = self.offset(c.vocab, c.budget);
+        let (offset, offset_sd) = self.offset(c.vocab, c.budget);
         if let Some(p) = self.budget_at(c.budget).and_then(|b| b.convex()) {
-            return Some((p.at(u) + offset, self.sigma));
+            return Some((p.at(u) + offset, self.sigma.hypot(offset_sd)));
         }
         let s = self.surrogate.as_ref()?;
         let x = c.budget.log10();
         let mean = s.loss.at(x) + s.curvature * (u - s.vertex.at(x)).powi(2) + offset;
-        Some((mean, s.sd))
+        Some((mean, s.sd.hypot(offset_sd)))
     }
 
     fn noise(&self, rng: &mut SplitMix64) -> f64 {
@@ -743,7 +753,7 @@ fn entry_sizes(
     // The vocabulary excess of each open run here, once (it is a line fit).
     let excess: Vec<f64> = here
         .iter()
-        .map(|&i| model.offset(candidates[i].vocab, c))
+        .map(|&i| model.offset(candidates[i].vocab, c).0)
         .collect();
     let mut pick: Vec<usize> = Vec::new();
     for k in 0..need {
@@ -787,6 +797,39 @@ mod tests {
                 (c, r.loss)
             })
             .collect()
+    }
+
+    #[test]
+    fn a_vocabulary_whose_excess_scatters_is_predicted_with_that_scatter() {
+        // Two vocabularies at three budgets: K = 1 on the law, K = 2 above it by 0.05, 0.15 and
+        // 0.05 (not a line in log C). A K = 2 run's predictive SD holds that scatter; a K = 1
+        // run's only the parabolas' misfit.
+        let mut obs = Vec::new();
+        for ((c, l), k) in runs(&[1e18, 1e19, 1e20]).iter().zip(0..) {
+            let mut o = observed(c, *l);
+            o.vocab = Some(1.0);
+            obs.push(o.clone());
+            o.vocab = Some(2.0);
+            o.loss += [0.05, 0.15, 0.05][k / 7];
+            obs.push(o);
+        }
+        let model = Model::new(&obs, Settings::default().misfit_floor);
+        let at = |vocab: f64| {
+            let c = Candidate {
+                id: "x".into(),
+                budget: 1e19,
+                n: CHINCHILLA.n_opt(1e19),
+                vocab: Some(vocab),
+                cost: 1e19,
+            };
+            model.predict(&c).unwrap()
+        };
+        let ((m1, sd1), (m2, sd2)) = (at(1.0), at(2.0));
+        assert!(m2 > m1, "K = 2 lies above the envelope: {m1} vs {m2}");
+        assert!(
+            sd2 > sd1 + 0.05,
+            "the offset's scatter widens K = 2: {sd1} vs {sd2}"
+        );
     }
 
     #[test]
