@@ -356,17 +356,17 @@ fn predict_hours_from_an_early_stopping_fit_says_what_compute_cannot_buy() {
         assert!(text.contains(needle), "{needle:?} in {text}");
     }
     let json = motionscale_ok(&[&args[..], &["--hours", "real=5", "--json"]].concat());
-    let p: serde_json::Value = serde_json::from_str(&json).unwrap();
-    let (epochs, stop) = (&p["epochs"]["value"], &p["stop_epochs"]["value"]);
-    assert!(
-        epochs.as_f64().unwrap() > 10.0 * stop.as_f64().unwrap(),
-        "{p}"
-    );
-    let real = &p["hour_values"][0];
-    assert_eq!(real["source"], "real");
-    assert_eq!(real["unbuyable"], 1.0, "{real}");
+    let raw: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let real = &raw["hour_values"][0];
     assert!(
         real["compute_equivalent"]["value"].is_null(),
         "∞ is null in JSON: {real}"
     );
+    // … and reads back as ∞.
+    let p: fits::data_value::DataPrediction = serde_json::from_str(&json).unwrap();
+    let stop = p.stop_epochs.expect("the stopping rule's epochs at N_opt");
+    assert!(p.epochs.value > 10.0 * stop.value, "{p:?}");
+    let real = &p.hour_values[0];
+    assert_eq!((real.source.as_str(), real.unbuyable), ("real", 1.0));
+    assert!(real.compute_equivalent.value.is_infinite(), "{real:?}");
 }

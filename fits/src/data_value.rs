@@ -10,7 +10,7 @@ use crate::laws::Estimate;
 use crate::parametric::with_draws;
 use crate::repeated::loss_at;
 use crate::stopping::{stop_epochs, tokens_used};
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize};
 
 /// Hours of each source in the corpus.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -125,10 +125,29 @@ pub struct HourValue {
     /// C'/C: the compute that reaches the same loss at today's hours, as a multiple of C
     /// (∞ when no budget does: the data, not the compute, limits the loss; `null` in JSON). An
     /// interval end that falls among the refits at ∞ is unbounded (absent).
+    #[serde(deserialize_with = "infinite_value_if_null")]
     pub compute_equivalent: Estimate,
     /// The share of the bootstrap refits at which no budget reaches that loss.
     #[serde(default)]
     pub unbuyable: f64,
+}
+
+/// An estimate whose value was ∞, written as `null` (JSON has no infinities), reads back as ∞.
+fn infinite_value_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<Estimate, D::Error> {
+    #[derive(Deserialize)]
+    struct Written {
+        value: Option<f64>,
+        se: Option<f64>,
+        ci_low: Option<f64>,
+        ci_high: Option<f64>,
+    }
+    let w = Written::deserialize(d)?;
+    Ok(Estimate {
+        value: w.value.unwrap_or(f64::INFINITY),
+        se: w.se,
+        ci_low: w.ci_low,
+        ci_high: w.ci_high,
+    })
 }
 
 /// `predict --hours`: the optimum at (C, hours) and what more hours are worth.
