@@ -1,6 +1,7 @@
 """Forward prediction of the two-part law (data-constrained law on the selected checkpoint's tokens
 + stopping rule), fitted on every committed row, with a paired bootstrap over runs (the same resample refits both parts).
-   python3 forward.py RESULTS BOOTSTRAP two-part|all-tokens OUT.json
+   python3 forward.py RESULTS BOOTSTRAP two-part|all-tokens OUT.json [PLAN INDICES]
+(PLAN INDICES: predict those runs of the plan instead of the 3e13 ones below.)
 "all-tokens": the current law (every token counts, no stopping rule)."""
 import csv, os, sys, json, warnings, numpy as np
 from scipy.optimize import least_squares
@@ -18,6 +19,13 @@ dsel = dict(d); dsel['D'] = d['D'] * frac
 # the runs of plan-t16.toml: N_nv and the tokens the plan spends at 3e13
 SIZES = {'64x2': (123392, 19858922), '96x2': (258624, 11081560), '128x2': (442880, 7146451), '160x2': (677120, 5009618), '160x4': (1292480, 3098969), '192x4': (1845120, 2241879)}
 TARGETS = [('all-1_8', 3e13, 27076, 0.5078004004079624), ('real-1', 3e13, 112436, 0.0)]
+if len(sys.argv) > 6:   # PLAN INDICES: the runs of one subset and budget, from a plan
+    import tomllib
+    points = tomllib.load(open(sys.argv[5], 'rb'))['points']
+    pts = [points[int(i)] for i in sys.argv[6].split(',')]
+    SIZES = {q['model']: (q['n_nv'], q['tokens']) for q in pts}
+    share = {r['data']: float(r['synth_share']) for r in rows}
+    TARGETS = sorted({(q['data'], q['budget'], q['unique_tokens'], share[q['data']]) for q in pts})
 def stop_rule(idx):
     s = idx[frac[idx] < 0.98]
     X = np.column_stack([np.ones(len(s)), np.log(d['N'][s]), np.log(d['U'][s])])
