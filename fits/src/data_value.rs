@@ -7,7 +7,8 @@
 
 use crate::fitted::RepeatedData;
 use crate::laws::Estimate;
-use crate::parametric::with_draws;
+use crate::parametric::{percentile_of_sorted, with_draws};
+use crate::planner::infinite_if_null;
 use crate::repeated::loss_at;
 use crate::stopping::{stop_epochs, tokens_used};
 use serde::{Deserialize, Deserializer, Serialize};
@@ -55,6 +56,7 @@ impl Law {
         loss_at(&self.theta, n, d, u, h.synth / (h.real + h.synth))
     }
 
+    /// U: the corpus's unique tokens.
     fn unique_tokens(&self, h: Hours) -> f64 {
         (h.real + h.synth) * self.tokens_per_hour
     }
@@ -136,14 +138,15 @@ pub struct HourValue {
 fn infinite_value_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<Estimate, D::Error> {
     #[derive(Deserialize)]
     struct Written {
-        value: Option<f64>,
+        #[serde(deserialize_with = "infinite_if_null")]
+        value: f64,
         se: Option<f64>,
         ci_low: Option<f64>,
         ci_high: Option<f64>,
     }
     let w = Written::deserialize(d)?;
     Ok(Estimate {
-        value: w.value.unwrap_or(f64::INFINITY),
+        value: w.value,
         se: w.se,
         ci_low: w.ci_low,
         ci_high: w.ci_high,
@@ -276,15 +279,7 @@ fn estimate(values: &[f64]) -> Estimate {
 fn unbounded_estimate(values: &[f64]) -> (Estimate, f64) {
     let mut refits = values[1..].to_vec();
     refits.sort_by(f64::total_cmp);
-    let end = |q: f64| {
-        let pos = q * refits.len().saturating_sub(1) as f64;
-        let (lo, hi) = (
-            refits.get(pos.floor() as usize)?,
-            refits.get(pos.ceil() as usize)?,
-        );
-        let v = lo + (hi - lo) * (pos - pos.floor());
-        v.is_finite().then_some(v)
-    };
+    let end = |q: f64| percentile_of_sorted(&refits, q).filter(|v| v.is_finite());
     let infinite = refits.iter().filter(|v| v.is_infinite()).count();
     let estimate = Estimate {
         value: values[0],
@@ -314,7 +309,7 @@ pub fn predict_data(
     }
     let laws = laws(rd)?;
     let optima: Vec<Optimum> = laws.iter().map(|l| l.optimum(budget, hours)).collect();
-    let u = (hours.real + hours.synth) * laws[0].tokens_per_hour;
+    let u = laws[0].unique_tokens(hours);
     let of = |f: fn(&Optimum) -> f64| estimate(&optima.iter().map(f).collect::<Vec<_>>());
     let mut hour_values = Vec::new();
     for (source, add) in [

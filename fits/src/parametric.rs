@@ -431,13 +431,17 @@ pub fn with_draws(value: f64, draws: &[f64]) -> crate::laws::Estimate {
 /// Percentile `q` ∈ [0, 1] of `values` (linear interpolation between order statistics).
 pub fn percentile(values: &[f64], q: f64) -> Option<f64> {
     let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
-    if v.is_empty() {
-        return None;
-    }
     v.sort_by(f64::total_cmp);
-    let pos = q.clamp(0.0, 1.0) * (v.len() - 1) as f64;
+    percentile_of_sorted(&v, q)
+}
+
+/// The q-quantile of ascending `sorted` values, interpolated linearly between order
+/// statistics; `None` when empty. An end at +∞ gives +∞ (or NaN between two infinities).
+pub fn percentile_of_sorted(sorted: &[f64], q: f64) -> Option<f64> {
+    let last = sorted.len().checked_sub(1)?;
+    let pos = q.clamp(0.0, 1.0) * last as f64;
     let (lo, hi) = (pos.floor() as usize, pos.ceil() as usize);
-    Some(v[lo] + (v[hi] - v[lo]) * (pos - lo as f64))
+    Some(sorted[lo] + (sorted[hi] - sorted[lo]) * (pos - lo as f64))
 }
 
 #[cfg(test)]

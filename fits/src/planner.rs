@@ -254,6 +254,9 @@ struct Model {
     floor: f64,
     /// (vocabulary, log10 C, mean excess over that budget's parabola).
     offsets: Vec<(f64, f64, f64)>,
+    /// The SD of every excess in `offsets`: a vocabulary's offset SD where its own line has
+    /// no residual degrees of freedom.
+    offset_spread: f64,
     surrogate: Option<Surrogate>,
 }
 
@@ -292,9 +295,14 @@ impl Model {
             sigma: rms.max(floor),
             floor,
             offsets: Vec::new(),
+            offset_spread: 0.0,
             surrogate: None,
         };
         model.offsets = model.vocabulary_offsets(obs);
+        let excess: Vec<f64> = model.offsets.iter().map(|o| o.2).collect();
+        let mean = excess.iter().sum::<f64>() / excess.len().max(1) as f64;
+        let square = excess.iter().map(|e| (e - mean).powi(2)).sum::<f64>();
+        model.offset_spread = (square / excess.len().max(1) as f64).sqrt();
         model.surrogate = model.surrogate();
         model
     }
@@ -363,18 +371,16 @@ impl Model {
             .filter(|o| o.0 == v)
             .map(|o| (o.1, o.2))
             .unzip();
-        let all: Vec<f64> = self.offsets.iter().map(|o| o.2).collect();
-        let spread = |v: &[f64]| {
-            let m = v.iter().sum::<f64>() / v.len().max(1) as f64;
-            (v.iter().map(|e| (e - m).powi(2)).sum::<f64>() / v.len().max(1) as f64).sqrt()
-        };
         match Line::fit(&x, &y) {
             Some(line) if line.ols.dof > 0 => {
                 let rss: f64 = line.ols.residuals.iter().map(|r| r * r).sum();
                 (line.at(c.log10()), (rss / line.ols.dof as f64).sqrt())
             }
-            Some(line) => (line.at(c.log10()), spread(&all)),
-            None => (y.iter().sum::<f64>() / y.len().max(1) as f64, spread(&all)),
+            Some(line) => (line.at(c.log10()), self.offset_spread),
+            None => (
+                y.iter().sum::<f64>() / y.len().max(1) as f64,
+                self.offset_spread,
+            ),
         }
     }
 
