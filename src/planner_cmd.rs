@@ -58,7 +58,8 @@ pub struct ReplayArgs {
     /// The target's true value (log10 N_opt or the loss), when the table has no runs at C*.
     #[arg(long)]
     pub truth: Option<f64>,
-    /// Output folder: replay.csv, summary.json, replay-width and replay-error charts.
+    /// Output folder: replay.csv, summary.json, replay-width and replay-error charts, and
+    /// predictive-check.csv (the runs active left, against what its model expected of them).
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -226,6 +227,11 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
     std::fs::create_dir_all(&args.out).with_context(|| args.out.display().to_string())?;
     let every: Vec<Vec<ReplayStep>> = curves.iter().flat_map(|(_, c)| c.clone()).collect();
     replay::write_csv(&args.out.join("replay.csv"), &every)?;
+    let active = curves.iter().find(|(name, _)| *name == "active");
+    let check = active.map(|(_, c)| table.predictive_check(&c[0]));
+    if let Some(checks) = &check {
+        replay::write_check_csv(&args.out.join("predictive-check.csv"), checks)?;
+    }
     let summary = replay::ReplaySummary {
         results: args.results.display().to_string(),
         target: args.target.name().into(),
@@ -243,6 +249,7 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
         full_table: full,
         policies: summaries,
         active_at_or_below: replay::at_or_below(&curves, &levels),
+        active_predictive_check: check.as_deref().map(replay::summarise_check),
     };
     motionscale_core::files::write_json(&args.out.join("summary.json"), &summary)?;
     for (chart, stem) in replay::charts(&curves, pool_compute, &levels, &full, unit)
@@ -302,6 +309,17 @@ fn print_summary(summary: &replay::ReplaySummary) {
             reach,
             s.mean_width,
             s.mean_error
+        );
+    }
+    if let Some(c) = &summary.active_predictive_check {
+        println!(
+            "active's model where it stopped, against the {} runs it left: RMS z {:.2}, |z| > 1.96 at {:.0}% (1 and 5% if its predictive SD is right); the {} on the full table's envelopes: RMS z {:.2}, mean z {:+.2}",
+            c.runs,
+            c.rms_z,
+            100.0 * c.beyond_95,
+            c.envelope_runs,
+            c.envelope_rms_z,
+            c.envelope_mean_z
         );
     }
     for b in &summary.active_at_or_below {

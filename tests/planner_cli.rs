@@ -50,6 +50,17 @@ fn replay_scores_every_policy_against_the_runs_at_the_target_and_reports_it() {
     }
     let steps = std::fs::read_to_string(out.join("replay.csv")).unwrap();
     assert!(steps.starts_with("policy,order,step,runs,compute,"));
+    // The planner's predictive check where active stopped: one row per run it left.
+    let check = summary
+        .active_predictive_check
+        .expect("active was replayed");
+    let rows = std::fs::read_to_string(out.join("predictive-check.csv")).unwrap();
+    assert!(rows.starts_with("id,budget,n,vocab,predicted,sd,loss,z,on_envelope\n"));
+    assert_eq!(rows.lines().count(), check.runs + 1);
+    assert!(
+        stdout.contains("active's model where it stopped"),
+        "{stdout}"
+    );
     for f in [
         "replay-width.svg",
         "replay-width.png",

@@ -362,7 +362,9 @@ impl Model {
 
     /// The expected excess of `vocab` at `c` and its SD: the line in log C through its
     /// budgets' excess (their mean with one budget; 0 for a vocabulary not seen yet). The SD
-    /// is the line's residual scatter where it has some, else the spread of every excess seen.
+    /// is the line's residual scatter where it has some, else the spread of every excess seen,
+    /// times the line's leverage at `c`: read decades past its budgets, the line itself is
+    /// uncertain (without it, K = 4,096 at 10¹³ came out 6 SDs from its prediction).
     fn offset(&self, vocab: Option<f64>, c: f64) -> (f64, f64) {
         let Some(v) = vocab else { return (0.0, 0.0) };
         let (x, y): (Vec<f64>, Vec<f64>) = self
@@ -374,9 +376,13 @@ impl Model {
         match Line::fit(&x, &y) {
             Some(line) if line.ols.dof > 0 => {
                 let rss: f64 = line.ols.residuals.iter().map(|r| r * r).sum();
-                (line.at(c.log10()), (rss / line.ols.dof as f64).sqrt())
+                let sd = (rss / line.ols.dof as f64).sqrt();
+                (line.at(c.log10()), sd * lever(&x, c.log10()))
             }
-            Some(line) => (line.at(c.log10()), self.offset_spread),
+            Some(line) => (
+                line.at(c.log10()),
+                self.offset_spread * lever(&x, c.log10()),
+            ),
             None => (
                 y.iter().sum::<f64>() / y.len().max(1) as f64,
                 self.offset_spread,
@@ -428,14 +434,19 @@ impl Model {
             return form_draw(form, &x, &y, x_star, rng);
         }
         let line = Line::fit(&x, &y)?;
-        let k = x.len() as f64;
-        let mean = x.iter().sum::<f64>() / k;
-        let sxx: f64 = x.iter().map(|v| (v - mean).powi(2)).sum();
         let dof = line.ols.dof;
         let s = (line.ols.residuals.iter().map(|r| r * r).sum::<f64>() / dof as f64).sqrt();
-        let lever = (1.0 + 1.0 / k + (x_star - mean).powi(2) / sxx).sqrt();
-        Some(line.at(x_star) + s * lever * student_t(rng, dof))
+        Some(line.at(x_star) + s * lever(&x, x_star) * student_t(rng, dof))
     }
+}
+
+/// How much a new point at `x_star` of a line fitted at `x` scatters, in residual SDs:
+/// √(1 + 1/k + (x* − x̄)²/Sxx), the line's own uncertainty there beside the point's.
+fn lever(x: &[f64], x_star: f64) -> f64 {
+    let k = x.len() as f64;
+    let mean = x.iter().sum::<f64>() / k;
+    let sxx: f64 = x.iter().map(|v| (v - mean).powi(2)).sum();
+    (1.0 + 1.0 / k + (x_star - mean).powi(2) / sxx).sqrt()
 }
 
 /// One draw of the loss at `x_star` from `form` fitted on the vertices (`x`, `y`), with the
@@ -573,6 +584,17 @@ pub fn propose(
         out.push(best);
     }
     out
+}
+
+/// What the planner expects of each candidate under the model of `obs`: the predictive mean
+/// and SD of its loss by which `propose` scores it; `None` where nothing predicts its budget.
+pub fn predictive(
+    obs: &[Observation],
+    candidates: &[Candidate],
+    floor: f64,
+) -> Vec<Option<(f64, f64)>> {
+    let model = Model::new(obs, floor);
+    candidates.iter().map(|c| model.predict(c)).collect()
 }
 
 /// The observation a candidate gives with `loss`.
@@ -880,6 +902,31 @@ mod tests {
             let p = propose(&obs, &open, Target::NOpt, 1e21, 1, f64::INFINITY, &s);
             assert!(p.is_empty(), "seed {seed}: {p:?}");
         }
+    }
+
+    #[test]
+    fn a_vocabulary_read_past_its_budgets_is_as_uncertain_as_its_line_there() {
+        let mut obs = Vec::new();
+        for ((c, l), k) in runs(&[1e18, 1e19, 1e20]).iter().zip(0..) {
+            obs.push(Observation {
+                vocab: Some(2.0),
+                loss: l + [0.05, 0.15, 0.05][k / 7],
+                ..observed(c, *l)
+            });
+            obs.push(Observation {
+                vocab: Some(1.0),
+                ..observed(c, *l)
+            });
+        }
+        let model = Model::new(&obs, Settings::default().misfit_floor);
+        let (_, inside) = model.offset(Some(2.0), 1e19);
+        let (_, far) = model.offset(Some(2.0), 1e22);
+        // Budgets at x = 18, 19, 20: leverage √(1 + 1/3 + (x − 19)²/2).
+        let lever = |x: f64| (1.0 + 1.0 / 3.0 + (x - 19.0_f64).powi(2) / 2.0).sqrt();
+        assert!(
+            (far / inside - lever(22.0) / lever(19.0)).abs() < 1e-9,
+            "{inside} vs {far}"
+        );
     }
 
     #[test]

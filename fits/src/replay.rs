@@ -270,6 +270,99 @@ pub fn read_runs(t: &Table, loss: &str) -> Result<(Vec<Candidate>, Vec<f64>), Fi
     Ok((runs, order.iter().map(|&i| losses[i]).collect()))
 }
 
+/// A pool run a policy did not choose, beside what the planner's model expected of it where
+/// the policy stopped.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PredictiveCheck {
+    /// Run id.
+    pub id: String,
+    /// Budget C.
+    pub budget: f64,
+    /// Model size N.
+    pub n: f64,
+    /// Vocabulary, when runs differ in it.
+    pub vocab: Option<f64>,
+    /// Predictive mean of its loss.
+    pub predicted: f64,
+    /// Predictive SD.
+    pub sd: f64,
+    /// Its real loss.
+    pub loss: f64,
+    /// (loss − predicted) / sd.
+    pub z: f64,
+    /// On its budget's envelope in the full table (the lowest loss at its N).
+    pub on_envelope: bool,
+}
+
+/// The predictive check summarised: how far the runs left fell from the planner's
+/// expectation, in its own predictive SDs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CheckSummary {
+    /// Runs checked (those left at budgets the model predicts).
+    pub runs: usize,
+    /// RMS of z (1 when the predictive SD is right).
+    pub rms_z: f64,
+    /// Share with |z| > 1.96 (5% when calibrated).
+    pub beyond_95: f64,
+    /// Runs on the full table's envelopes.
+    pub envelope_runs: usize,
+    /// Their RMS z.
+    pub envelope_rms_z: f64,
+    /// Their mean z (negative: lower than expected).
+    pub envelope_mean_z: f64,
+}
+
+impl ReplayTable {
+    /// The planner's predictive check where `curve` ends: every pool run the curve did not
+    /// choose, at a budget the model predicts, against the model of the runs it chose.
+    pub fn predictive_check(&self, curve: &[ReplayStep]) -> Vec<PredictiveCheck> {
+        let added: Vec<&str> = curve.iter().flat_map(|s| s.added.split(';')).collect();
+        let (chosen, left): (Vec<usize>, Vec<usize>) =
+            (0..self.pool.len()).partition(|&i| added.contains(&self.pool[i].id.as_str()));
+        let envelope = self.envelope_order(&[]);
+        let runs: Vec<Candidate> = left.iter().map(|&i| self.pool[i].clone()).collect();
+        let floor = self.settings.misfit_floor;
+        planner::predictive(&self.observed(&chosen), &runs, floor)
+            .into_iter()
+            .zip(left)
+            .filter_map(|(p, i)| {
+                let (predicted, sd) = p?;
+                let run = &self.pool[i];
+                Some(PredictiveCheck {
+                    id: run.id.clone(),
+                    budget: run.budget,
+                    n: run.n,
+                    vocab: run.vocab,
+                    predicted,
+                    sd,
+                    loss: self.losses[i],
+                    z: (self.losses[i] - predicted) / sd,
+                    on_envelope: envelope.contains(&i),
+                })
+            })
+            .collect()
+    }
+}
+
+/// `checks` summarised.
+pub fn summarise_check(checks: &[PredictiveCheck]) -> CheckSummary {
+    let rms = |z: &[f64]| (z.iter().map(|v| v * v).sum::<f64>() / z.len().max(1) as f64).sqrt();
+    let z: Vec<f64> = checks.iter().map(|c| c.z).collect();
+    let on: Vec<f64> = checks
+        .iter()
+        .filter(|c| c.on_envelope)
+        .map(|c| c.z)
+        .collect();
+    CheckSummary {
+        runs: z.len(),
+        rms_z: rms(&z),
+        beyond_95: z.iter().filter(|v| v.abs() > 1.96).count() as f64 / z.len().max(1) as f64,
+        envelope_runs: on.len(),
+        envelope_rms_z: rms(&on),
+        envelope_mean_z: on.iter().sum::<f64>() / on.len().max(1) as f64,
+    }
+}
+
 /// The last step of `curve` within `compute` FLOPs.
 fn at_compute(curve: &[ReplayStep], compute: f64) -> Option<&ReplayStep> {
     curve.iter().take_while(|s| s.compute <= compute).last()
@@ -362,6 +455,9 @@ pub struct ReplaySummary {
     pub policies: Vec<PolicySummary>,
     /// The active curve against each other policy.
     pub active_at_or_below: Vec<AtOrBelow>,
+    /// The planner's predictive check where the active policy stopped (`predictive-check.csv`).
+    #[serde(default)]
+    pub active_predictive_check: Option<CheckSummary>,
 }
 
 /// The active curve against each other policy's, over `levels` of compute.
@@ -451,6 +547,22 @@ pub fn write_csv(path: &Path, curves: &[Vec<ReplayStep>]) -> Result<(), FitError
             p.draws,
             s.error,
             s.added
+        ));
+    }
+    motionscale_core::files::write_atomic(path, out.as_bytes()).map_err(|source| FitError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Writes the predictive check as CSV.
+pub fn write_check_csv(path: &Path, checks: &[PredictiveCheck]) -> Result<(), FitError> {
+    let mut out = String::from("id,budget,n,vocab,predicted,sd,loss,z,on_envelope\n");
+    for c in checks {
+        let vocab = c.vocab.map(|v| v.to_string()).unwrap_or_default();
+        out.push_str(&format!(
+            "{},{:e},{:e},{vocab},{},{},{},{},{}\n",
+            c.id, c.budget, c.n, c.predicted, c.sd, c.loss, c.z, c.on_envelope
         ));
     }
     motionscale_core::files::write_atomic(path, out.as_bytes()).map_err(|source| FitError::Io {
@@ -567,6 +679,32 @@ mod tests {
             "active error {} vs random median {} ({random:?})",
             active.error,
             random[4]
+        );
+    }
+
+    #[test]
+    fn the_predictive_check_scores_every_run_left_in_the_models_own_sds() {
+        let table = synthetic_table();
+        let curve = table.replay(Policy::Active, 0);
+        let checks = table.predictive_check(&curve);
+        let chosen: usize = curve.iter().map(|s| s.added.split(';').count()).sum();
+        assert_eq!(
+            chosen + checks.len(),
+            table.pool.len(),
+            "every run is chosen or checked"
+        );
+        for c in &checks {
+            let i = table.pool.iter().position(|r| r.id == c.id).unwrap();
+            assert_eq!(c.loss, table.losses[i]);
+            assert!((c.z - (c.loss - c.predicted) / c.sd).abs() < 1e-12);
+        }
+        // The table is the model's own family (a parabola per budget, misfit from the noise
+        // and a ripple the pooled residuals carry): its SDs should fit the runs left.
+        let summary = summarise_check(&checks);
+        assert!(
+            (0.5..2.0).contains(&summary.rms_z),
+            "RMS z {}",
+            summary.rms_z
         );
     }
 
