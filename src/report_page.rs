@@ -181,7 +181,7 @@ fn planner(r: &Replay) -> String {
         "mean error",
     ];
     format!(
-        "<p>Replay of <code>{}</code> from <code>{}</code>: target {} at C* = {} (truth {:.4}); the full table's 95% interval is {:.4} wide; every policy starts from {} runs ({:.1}% of the compute) and stops at {:.0}%.</p>{}{}",
+        "<p>Replay of <code>{}</code> from <code>{}</code>: target {} at C* = {} (truth {:.4}); the full table's 95% interval is {:.4} wide; every policy starts from {} runs ({:.1}% of the compute) and stops at {:.0}%.</p>{}{}{}",
         esc(&r.dir.display().to_string()),
         esc(&s.results),
         esc(&s.target),
@@ -192,6 +192,12 @@ fn planner(r: &Replay) -> String {
         100.0 * s.start_share,
         100.0 * s.max_compute_share,
         table("", &head, rows),
+        s.active_predictive_check.as_ref().map_or_else(String::new, |c| format!(
+            "<p>Active's model where it stopped, against the {} runs it left: RMS z {:.2}, |z| &gt; 1.96 at {:.0}% (1 and 5% if its predictive SD is right).</p>",
+            c.runs,
+            c.rms_z,
+            100.0 * c.beyond_95
+        )),
         r.charts.iter().map(|c| format!("<figure>{c}</figure>")).collect::<String>()
     )
 }

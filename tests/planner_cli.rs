@@ -97,6 +97,10 @@ fn replay_scores_every_policy_against_the_runs_at_the_target_and_reports_it() {
     motionscale_ok(&["report", arg(&out), "--out", arg(&page)]);
     let html = std::fs::read_to_string(&page).unwrap();
     assert!(html.contains("share to the full table"), "planner section");
+    assert!(
+        html.contains("Active's model where it stopped"),
+        "its predictive check"
+    );
 }
 
 /// The ripple in log N and log C that [`write_table`] adds to the law.
