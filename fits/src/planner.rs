@@ -15,7 +15,7 @@
 
 use crate::isoflop::{envelope, group_budget, group_rows};
 use crate::loss_shape::Form;
-use crate::ols::{distinct, Line, Parabola};
+use crate::ols::{distinct, t95, Line, Parabola};
 use motionscale_core::rng::SplitMix64;
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
@@ -362,9 +362,11 @@ impl Model {
 
     /// The expected excess of `vocab` at `c` and its SD: the line in log C through its
     /// budgets' excess (their mean with one budget; 0 for a vocabulary not seen yet). The SD
-    /// is the line's residual scatter where it has some, else the spread of every excess seen,
-    /// times the line's leverage at `c`: read decades past its budgets, the line itself is
-    /// uncertain (without it, K = 4,096 at 10¹³ came out 6 SDs from its prediction).
+    /// is the line's prediction interval at `c` as a normal (its residual scatter times the
+    /// leverage there, widened to the Student-t's 95% interval on the line's few degrees of
+    /// freedom), else the spread of every excess seen times the leverage. Read decades past
+    /// its budgets the line itself is uncertain: with its residual SD alone, K = 4,096 at 10¹³
+    /// came out 6 SDs from its prediction.
     fn offset(&self, vocab: Option<f64>, c: f64) -> (f64, f64) {
         let Some(v) = vocab else { return (0.0, 0.0) };
         let (x, y): (Vec<f64>, Vec<f64>) = self
@@ -376,7 +378,8 @@ impl Model {
         match Line::fit(&x, &y) {
             Some(line) if line.ols.dof > 0 => {
                 let rss: f64 = line.ols.residuals.iter().map(|r| r * r).sum();
-                let sd = (rss / line.ols.dof as f64).sqrt();
+                // The normal with the 95% interval of the line's Student-t prediction.
+                let sd = (rss / line.ols.dof as f64).sqrt() * t95(line.ols.dof) / 1.959_964;
                 (line.at(c.log10()), sd * lever(&x, c.log10()))
             }
             Some(line) => (
@@ -905,7 +908,7 @@ mod tests {
     }
 
     #[test]
-    fn a_vocabulary_read_past_its_budgets_is_as_uncertain_as_its_line_there() {
+    fn a_vocabulary_read_past_its_budgets_is_as_uncertain_as_its_lines_prediction_interval() {
         let mut obs = Vec::new();
         for ((c, l), k) in runs(&[1e18, 1e19, 1e20]).iter().zip(0..) {
             obs.push(Observation {
@@ -921,12 +924,14 @@ mod tests {
         let model = Model::new(&obs, Settings::default().misfit_floor);
         let (_, inside) = model.offset(Some(2.0), 1e19);
         let (_, far) = model.offset(Some(2.0), 1e22);
-        // Budgets at x = 18, 19, 20: leverage √(1 + 1/3 + (x − 19)²/2).
+        // Excess 0.05, 0.15, 0.05 at x = 18, 19, 20: a flat line, residual SD √(0.02/3) on one
+        // degree of freedom, leverage √(1 + 1/3 + (x − 19)²/2); the normal with the 95%
+        // interval of the Student-t prediction has SD s·lever·t95(1)/1.96.
         let lever = |x: f64| (1.0 + 1.0 / 3.0 + (x - 19.0_f64).powi(2) / 2.0).sqrt();
-        assert!(
-            (far / inside - lever(22.0) / lever(19.0)).abs() < 1e-9,
-            "{inside} vs {far}"
-        );
+        let s = (0.02_f64 / 3.0).sqrt();
+        let sd = |x: f64| s * lever(x) * t95(1) / 1.959_964;
+        assert!((inside - sd(19.0)).abs() < 1e-9, "{inside} vs {}", sd(19.0));
+        assert!((far - sd(22.0)).abs() < 1e-9, "{far} vs {}", sd(22.0));
     }
 
     #[test]
