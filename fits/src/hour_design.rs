@@ -19,13 +19,11 @@
 
 use crate::data_value::{fitted_law, hour_loss_change, optimal_size, Hours};
 use crate::fitted::RepeatedData;
+use crate::ols::Z95;
 use crate::planner::{Proposal, GROUP_TOL_DEX, SIZE_WINDOW_DEX};
 use crate::repeated::{coordinates, log_loss_gradient, natural};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-
-/// The 97.5% normal quantile.
-const Z95: f64 = 1.959_963_984_540_054;
 
 /// Central-difference step in θ (logs and exponents, all of order one).
 const STEP: f64 = 1e-4;

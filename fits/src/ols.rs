@@ -67,6 +67,9 @@ pub fn distinct(x: &[f64]) -> usize {
     v.len()
 }
 
+/// The 97.5% normal quantile (the normal's two-sided 95% critical value).
+pub const Z95: f64 = 1.959_963_984_540_054;
+
 /// Two-sided 95% Student-t critical value for `dof` degrees of freedom.
 pub fn t95(dof: usize) -> f64 {
     StudentsT::new(0.0, 1.0, dof.max(1) as f64)

@@ -15,7 +15,7 @@
 
 use crate::isoflop::{envelope, group_budget, group_rows};
 use crate::loss_shape::Form;
-use crate::ols::{distinct, t95, Line, Parabola};
+use crate::ols::{distinct, t95, Line, Parabola, Z95};
 use motionscale_core::rng::SplitMix64;
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
@@ -379,7 +379,7 @@ impl Model {
             Some(line) if line.ols.dof > 0 => {
                 let rss: f64 = line.ols.residuals.iter().map(|r| r * r).sum();
                 // The normal with the 95% interval of the line's Student-t prediction.
-                let sd = (rss / line.ols.dof as f64).sqrt() * t95(line.ols.dof) / 1.959_964;
+                let sd = (rss / line.ols.dof as f64).sqrt() * t95(line.ols.dof) / Z95;
                 (line.at(c.log10()), sd * lever(&x, c.log10()))
             }
             Some(line) => (
@@ -929,7 +929,7 @@ mod tests {
         // interval of the Student-t prediction has SD s·lever·t95(1)/1.96.
         let lever = |x: f64| (1.0 + 1.0 / 3.0 + (x - 19.0_f64).powi(2) / 2.0).sqrt();
         let s = (0.02_f64 / 3.0).sqrt();
-        let sd = |x: f64| s * lever(x) * t95(1) / 1.959_964;
+        let sd = |x: f64| s * lever(x) * t95(1) / Z95;
         assert!((inside - sd(19.0)).abs() < 1e-9, "{inside} vs {}", sd(19.0));
         assert!((far - sd(22.0)).abs() < 1e-9, "{far} vs {}", sd(22.0));
     }

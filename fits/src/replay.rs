@@ -4,6 +4,7 @@
 //! and stops before its compute would pass the cap.
 
 use crate::isoflop::{envelope_rows, group_rows};
+use crate::ols::Z95;
 use crate::planner::{self, Candidate, Observation, Posterior, Settings, Target, WIDTH_CAP};
 use crate::table::Table;
 use crate::FitError;
@@ -356,7 +357,7 @@ pub fn summarise_check(checks: &[PredictiveCheck]) -> CheckSummary {
     CheckSummary {
         runs: z.len(),
         rms_z: rms(&z),
-        beyond_95: z.iter().filter(|v| v.abs() > 1.96).count() as f64 / z.len().max(1) as f64,
+        beyond_95: z.iter().filter(|v| v.abs() > Z95).count() as f64 / z.len().max(1) as f64,
         envelope_runs: on.len(),
         envelope_rms_z: rms(&on),
         envelope_mean_z: on.iter().sum::<f64>() / on.len().max(1) as f64,
