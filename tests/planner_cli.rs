@@ -242,6 +242,15 @@ fn planner_bad_inputs_name_what_is_missing() {
     write_table(&one, &[1e18]);
     fails_with(&replay("1e21", &one), "1 budget(s) below");
 
+    // Two rows of one run id: a replay names its choices by id.
+    let twice = tmp.path().join("twice.csv");
+    let text = std::fs::read_to_string(&csv).unwrap();
+    std::fs::write(&twice, text.replacen("\nr1,", "\nr0,", 1)).unwrap();
+    fails_with(
+        &replay("1e20", &twice),
+        "column \"run_id\", row 2 (data row, 1-based): \"r0\" is row 1's id too",
+    );
+
     // A fit of two budgets has no N_opt law for `--next` to narrow.
     let two = tmp.path().join("two.csv");
     write_table(&two, &[1e18, 3e18]);

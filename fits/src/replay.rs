@@ -253,6 +253,20 @@ pub fn read_runs(t: &Table, loss: &str) -> Result<(Vec<Candidate>, Vec<f64>), Fi
     let ids = t
         .labels("run_id")
         .unwrap_or_else(|| (1..=t.rows()).map(|r| format!("row {r}")).collect());
+    // A replay names its choices by run id: two rows of one id would be one run twice.
+    for (row, id) in ids.iter().enumerate() {
+        if let Some(first) = ids[..row].iter().position(|other| other == id) {
+            return Err(FitError::BadCell {
+                path: t.path().to_path_buf(),
+                column: "run_id".into(),
+                row: row + 1,
+                problem: format!(
+                    "{id:?} is row {}'s id too; each run needs its own",
+                    first + 1
+                ),
+            });
+        }
+    }
     let mut order: Vec<usize> = (0..t.rows()).collect();
     if t.has("index") {
         let index = t.numbers("index", "the sweep's `index` column")?;
