@@ -376,16 +376,17 @@ impl Model {
             .map(|o| (o.1, o.2))
             .unzip();
         match Line::fit(&x, &y) {
-            Some(line) if line.ols.dof > 0 => {
-                let rss: f64 = line.ols.residuals.iter().map(|r| r * r).sum();
-                // The normal with the 95% interval of the line's Student-t prediction.
-                let sd = (rss / line.ols.dof as f64).sqrt() * t95(line.ols.dof) / Z95;
-                (line.at(c.log10()), sd * lever(&x, c.log10()))
+            Some(line) => {
+                let scatter = match line.ols.dof {
+                    0 => self.offset_spread,
+                    dof => {
+                        let rss: f64 = line.ols.residuals.iter().map(|r| r * r).sum();
+                        // The normal with the 95% interval of the line's Student-t prediction.
+                        (rss / dof as f64).sqrt() * t95(dof) / Z95
+                    }
+                };
+                (line.at(c.log10()), scatter * lever(&x, c.log10()))
             }
-            Some(line) => (
-                line.at(c.log10()),
-                self.offset_spread * lever(&x, c.log10()),
-            ),
             None => (
                 y.iter().sum::<f64>() / y.len().max(1) as f64,
                 self.offset_spread,

@@ -564,7 +564,12 @@ pub fn write_csv(path: &Path, curves: &[Vec<ReplayStep>]) -> Result<(), FitError
             s.added
         ));
     }
-    motionscale_core::files::write_atomic(path, out.as_bytes()).map_err(|source| FitError::Io {
+    write_text(path, &out)
+}
+
+/// Writes `text` to `path` atomically.
+fn write_text(path: &Path, text: &str) -> Result<(), FitError> {
+    motionscale_core::files::write_atomic(path, text.as_bytes()).map_err(|source| FitError::Io {
         path: path.to_path_buf(),
         source,
     })
@@ -580,10 +585,7 @@ pub fn write_check_csv(path: &Path, checks: &[PredictiveCheck]) -> Result<(), Fi
             c.id, c.budget, c.n, c.predicted, c.sd, c.loss, c.z, c.on_envelope
         ));
     }
-    motionscale_core::files::write_atomic(path, out.as_bytes()).map_err(|source| FitError::Io {
-        path: path.to_path_buf(),
-        source,
-    })
+    write_text(path, &out)
 }
 
 /// The width and error charts: active, grid and the random orders' median against the
