@@ -7,6 +7,7 @@ mod gru;
 mod ingest;
 mod lm;
 mod lm_gpu;
+mod machine;
 mod tokenizer;
 
 use anyhow::{bail, Context, Result};
@@ -79,6 +80,28 @@ fn foreign_load(a: Option<(u64, u64, u64)>, b: Option<(u64, u64, u64)>) -> Optio
     Some(((busy - (own1 - own0) as f64) / total).max(0.0))
 }
 
+/// Tell `perf record --control` (`scripts/profile-cpu.sh`, through the FIFOs named by
+/// `MOTIONSCALE_PERF_CTL` and `MOTIONSCALE_PERF_ACK`) to `enable` or `disable` sampling, and
+/// wait for its acknowledgement, so that a profile holds the timed calls only. Without the
+/// variables, nothing.
+fn profiler(command: &str) {
+    use std::io::{Read, Write};
+    let (Ok(ctl), Ok(ack)) = (
+        std::env::var("MOTIONSCALE_PERF_CTL"),
+        std::env::var("MOTIONSCALE_PERF_ACK"),
+    ) else {
+        return;
+    };
+    let done = std::fs::OpenOptions::new()
+        .write(true)
+        .open(&ctl)
+        .and_then(|mut f| f.write_all(format!("{command}\n").as_bytes()))
+        .and_then(|()| std::fs::File::open(&ack)?.read_exact(&mut [0u8; 4]));
+    if let Err(e) = done {
+        eprintln!("warning: profiler control through {ctl} and {ack}: {e}");
+    }
+}
+
 /// Median, min and max of `f`'s wall time after `warmup` calls, over at least `reps` calls
 /// and `min_time` seconds, with the foreign CPU load meanwhile.
 pub fn time<F: FnMut() -> Result<()>>(
@@ -90,6 +113,7 @@ pub fn time<F: FnMut() -> Result<()>>(
     for _ in 0..warmup {
         f()?;
     }
+    profiler("enable");
     let before = cpu_snapshot();
     let mut samples = Vec::new();
     let mut total = 0.0;
@@ -103,6 +127,7 @@ pub fn time<F: FnMut() -> Result<()>>(
         }
     }
     let after = cpu_snapshot();
+    profiler("disable");
     let foreign = foreign_load(before, after);
     // /proc reports jiffies of 1/100 s.
     let own_cpu = before.zip(after).map(|(a, b)| (b.2 - a.2) as f64 / 100.0);
@@ -144,46 +169,6 @@ pub fn run_reference(script: &Path, args: &[&str]) -> Result<serde_json::Value> 
         .with_context(|| format!("reading the output of {}", script.display()))
 }
 
-/// The machine a bench ran on: CPU model and vendor, cache sizes, the vector instruction sets
-/// the kernels can choose from (detected at run time) and the one gemm takes, threads.
-fn machine() -> Value {
-    let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
-    let field = |name: &str| {
-        cpuinfo
-            .lines()
-            .find(|l| l.starts_with(name))
-            .and_then(|l| l.split_once(':'))
-            .map(|(_, v)| v.trim().to_string())
-    };
-    let caches: Vec<Value> = (0..8)
-        .map_while(|i| {
-            let dir = format!("/sys/devices/system/cpu/cpu0/cache/index{i}");
-            let read = |f: &str| std::fs::read_to_string(format!("{dir}/{f}")).ok();
-            let (level, kind, size) = (read("level")?, read("type")?, read("size")?);
-            Some(
-                json!({"level": level.trim(), "type": kind.trim(), "size": size.trim(),
-                        "shared_by_cpus": read("shared_cpu_list").map(|s| s.trim().to_string())}),
-            )
-        })
-        .collect();
-    #[cfg(target_arch = "x86_64")]
-    let isa = json!({
-        "avx512f": std::arch::is_x86_feature_detected!("avx512f"),
-        "avx2": std::arch::is_x86_feature_detected!("avx2"),
-        "fma": std::arch::is_x86_feature_detected!("fma"),
-    });
-    #[cfg(not(target_arch = "x86_64"))]
-    let isa = json!({});
-    // gemm (x86-v4 feature on) takes its AVX-512 kernels where the CPU has them.
-    let gemm = match (isa["avx512f"].as_bool(), isa["avx2"].as_bool()) {
-        (Some(true), _) => "avx512",
-        (_, Some(true)) => "avx2",
-        _ => "scalar",
-    };
-    json!({"cpu_model": field("model name"), "vendor": field("vendor_id"), "caches": caches,
-           "isa": isa, "gemm_kernels": gemm, "threads": rayon::current_num_threads()})
-}
-
 /// Write `figures` as pretty JSON to `path` (atomically), when a path is given, with the
 /// machine they were measured on (`machine`; a list of figures goes under `figures`).
 pub fn write_json(path: Option<&PathBuf>, figures: &Value) -> Result<()> {
@@ -192,7 +177,7 @@ pub fn write_json(path: Option<&PathBuf>, figures: &Value) -> Result<()> {
             Value::Object(_) => figures.clone(),
             _ => json!({ "figures": figures }),
         };
-        figures["machine"] = machine();
+        figures["machine"] = machine::machine();
         let text = serde_json::to_string_pretty(&figures)?;
         motionscale_core::write_atomic(path, text.as_bytes())
             .with_context(|| format!("writing {}", path.display()))?;

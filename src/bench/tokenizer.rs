@@ -12,7 +12,6 @@ use nn::device::device_name;
 use serde_json::json;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::time::Instant;
 use tokenizer::model::{MotionTokenizer, TokenizerConfig, FEATURES};
 use tokenizer::train::{optimizer_for, optimizer_step, TrainConfig};
 use tokenizer::{Bound, ConvConfig};
@@ -42,9 +41,9 @@ pub struct BenchTokenizerArgs {
     /// Folder of the PyTorch reference scripts.
     #[arg(long, default_value = "../shared/bench")]
     pub bench_dir: PathBuf,
-    /// fp32 peak of this machine in GFLOP/s (sgemm_peak.py: ≈447 on 2 threads here).
-    #[arg(long, default_value_t = 447.0)]
-    pub peak_gflops: f64,
+    /// fp32 peak in GFLOP/s [default: this machine's FMA peak, measured at the start].
+    #[arg(long)]
+    pub peak_gflops: Option<f64>,
     /// Also write the figures as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -85,18 +84,14 @@ fn time_ours(
     };
     let mut optimizer = optimizer_for(&model, &train);
     let x = Tensor::randn(0f32, 1.0, (batch, train.window, FEATURES), device)?;
-    let mut times = Vec::with_capacity(args.reps);
-    for step in 0..args.warmup + args.reps {
-        let started = Instant::now();
+    let mut step = 0;
+    let timing = super::time(args.warmup, args.reps, 0.0, || {
         optimizer_step(&mut model, &mut optimizer, &x, train.lr, &train, step == 0)?;
+        step += 1;
         // A GPU queues the update: the step ends when it has run.
-        device.synchronize()?;
-        if step >= args.warmup {
-            times.push(started.elapsed().as_secs_f64());
-        }
-    }
-    times.sort_by(f64::total_cmp);
-    let median = times[times.len() / 2];
+        Ok(device.synchronize()?)
+    })?;
+    let median = super::number(&timing, "median_s")?;
     // FSQ's two projections are the reference's "linear" MACs.
     let linear = if quantizer == "fsq" {
         2 * (batch * train.window / conv.downsample_factor()) as u64 * conv.code_dim as u64 * 4
@@ -146,11 +141,11 @@ fn time_reference(
 pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
     let device = args.device.open()?;
+    let (peak, peak_source) = super::machine::mfu_peak(args.peak_gflops);
     println!(
-        "tokenizer training step, width 512, 64 × 263 windows, {}, {} threads, fp32 peak {:.0} GFLOP/s",
+        "tokenizer training step, width 512, 64 × 263 windows, {}, {} threads, fp32 peak {peak:.0} GFLOP/s ({peak_source})",
         device_name(&device),
         rayon::current_num_threads(),
-        args.peak_gflops
     );
     // Both sides count the reference's FLOPs (every conv's multiply-adds × 6); our Winograd
     // convolutions run fewer, so our rate can pass the peak.
@@ -165,7 +160,7 @@ pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
                 ours.steps_per_s,
                 ours.steps_per_s * (batch * 64) as f64,
                 gflops,
-                100.0 * gflops / args.peak_gflops
+                100.0 * gflops / peak
             );
             let mut figure = json!({"what": "tokenizer training step", "quantizer": quantizer,
                 "batch": batch, "device": device_name(&device),

@@ -1,0 +1,224 @@
+//! The machine a bench ran on, recorded beside every figure: CPU model, topology, caches (as
+//! the OS and as gemm read them), the vector instruction sets detected at run time and this
+//! machine's fp32 FMA peak measured now (the MFU denominator, and the ceiling no executor can
+//! pass).
+
+use serde_json::{json, Value};
+use std::sync::OnceLock;
+use std::time::Instant;
+
+/// The fp32 FMA peak of this machine at the clock it runs vector code at now.
+#[derive(Debug, Clone, Copy)]
+pub struct FmaPeak {
+    /// GFLOP/s on all of the pool's threads (an FMA counts as two FLOPs).
+    pub gflops: f64,
+    /// The widest FMA instructions the CPU has (`avx512`, `avx2`), or `none`.
+    pub isa: &'static str,
+    /// Threads that ran FMAs at once (the rayon pool's).
+    pub threads: usize,
+}
+
+/// Independent accumulator chains per thread: enough to cover the FMA latency on two pipes.
+const CHAINS: usize = 12;
+
+/// The chains' multiplier and addend (a chain stays near 1, far from overflow and denormals).
+const FMA_B: f32 = 0.999_999_9;
+const FMA_C: f32 = 1e-7;
+
+/// `self.0` rounds of one FMA on each of `CHAINS` vector registers, then the sum of every
+/// lane (so the work is kept): one kernel, run with the widest vectors the CPU has (pulp, the
+/// SIMD layer gemm dispatches through, chooses them at run time).
+struct FmaChains(u64);
+
+impl pulp::WithSimd for FmaChains {
+    type Output = f32;
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) -> f32 {
+        // Opaque starts, multiplier and addend: the compiler cannot merge the equal chains
+        // into one or fold them away.
+        let starts = std::hint::black_box([1.0f32; CHAINS]);
+        let b = simd.splat_f32s(std::hint::black_box(FMA_B));
+        let c = simd.splat_f32s(std::hint::black_box(FMA_C));
+        let mut acc = starts.map(|x| simd.splat_f32s(x));
+        for _ in 0..self.0 {
+            for a in acc.iter_mut() {
+                *a = simd.mul_add_f32s(*a, b, c);
+            }
+        }
+        acc.iter().map(|&a| simd.reduce_sum_f32s(a)).sum()
+    }
+}
+
+/// `iters` rounds of [`FmaChains`] with the widest vectors this CPU has.
+fn fma_chains(iters: u64) -> f32 {
+    pulp::Arch::new().dispatch(FmaChains(iters))
+}
+
+/// The instruction set [`fma_chains`] runs with here and its f32 lanes.
+fn fma_isa() -> (&'static str, usize) {
+    #[cfg(target_arch = "x86_64")]
+    match pulp::Arch::new() {
+        pulp::Arch::V4(_) => return ("avx512", 16),
+        pulp::Arch::V3(_) => return ("avx2", 8),
+        _ => {}
+    }
+    ("scalar", 1)
+}
+
+/// GFLOP/s of [`fma_chains`] (`lanes` wide) on every pool thread at once, `iters` rounds each.
+fn fma_rate(lanes: usize, iters: u64) -> f64 {
+    let started = Instant::now();
+    let sums = rayon::broadcast(|_| fma_chains(std::hint::black_box(iters)));
+    std::hint::black_box(sums);
+    let flops = (rayon::current_num_threads() * CHAINS * lanes * 2) as f64 * iters as f64;
+    flops / started.elapsed().as_secs_f64() / 1e9
+}
+
+/// This machine's fp32 FMA peak, measured once per process (about half a second): the best of
+/// three runs of 0.15 s on every pool thread (`../shared/bench/peak_fma.c`'s method).
+pub fn fma_peak() -> FmaPeak {
+    static PEAK: OnceLock<FmaPeak> = OnceLock::new();
+    *PEAK.get_or_init(|| {
+        let threads = rayon::current_num_threads();
+        let (isa, lanes) = fma_isa();
+        let probe = 100_000;
+        let per_thread = fma_rate(lanes, probe) * 1e9 / (threads * CHAINS * lanes * 2) as f64;
+        let iters = ((0.15 * per_thread) as u64).max(probe);
+        let gflops = (0..3).map(|_| fma_rate(lanes, iters)).fold(0.0, f64::max);
+        FmaPeak {
+            gflops,
+            isa,
+            threads,
+        }
+    })
+}
+
+/// The fp32 peak MFU is measured against: `flag` where given, else this machine's FMA peak
+/// measured now; with the words that say which.
+pub fn mfu_peak(flag: Option<f64>) -> (f64, String) {
+    match flag {
+        Some(gflops) => (gflops, "--peak-gflops".into()),
+        None => {
+            let peak = fma_peak();
+            let source = format!(
+                "FMA peak measured now, {}, {} threads",
+                peak.isa, peak.threads
+            );
+            (peak.gflops, source)
+        }
+    }
+}
+
+/// Logical CPUs online and the distinct (package, core) pairs among them.
+fn topology() -> Value {
+    let mut cores = std::collections::BTreeSet::new();
+    let mut logical = 0;
+    let cpus = std::fs::read_dir("/sys/devices/system/cpu")
+        .into_iter()
+        .flatten();
+    for entry in cpus.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let numbered = name.strip_prefix("cpu").map(|n| n.parse::<u32>().is_ok());
+        if numbered != Some(true) {
+            continue;
+        }
+        let read = |f: &str| std::fs::read_to_string(entry.path().join("topology").join(f));
+        if let (Ok(package), Ok(core)) = (read("physical_package_id"), read("core_id")) {
+            logical += 1;
+            cores.insert((package.trim().to_string(), core.trim().to_string()));
+        }
+    }
+    json!({"logical_cpus": logical, "physical_cores": cores.len(),
+           "threads_per_core": (!cores.is_empty()).then(|| logical as f64 / cores.len() as f64)})
+}
+
+/// Cache levels of CPU 0 as the OS reports them.
+fn caches() -> Vec<Value> {
+    (0..8)
+        .map_while(|i| {
+            let dir = format!("/sys/devices/system/cpu/cpu0/cache/index{i}");
+            let read = |f: &str| std::fs::read_to_string(format!("{dir}/{f}")).ok();
+            let (level, kind, size) = (read("level")?, read("type")?, read("size")?);
+            Some(
+                json!({"level": level.trim(), "type": kind.trim(), "size": size.trim(),
+                        "ways": read("ways_of_associativity").map(|s| s.trim().to_string()),
+                        "shared_by_cpus": read("shared_cpu_list").map(|s| s.trim().to_string())}),
+            )
+        })
+        .collect()
+}
+
+/// The machine a bench ran on: CPU model and vendor, topology, caches, the vector instruction
+/// sets the kernels can choose from (detected at run time) and the ones gemm and our element-wise
+/// kernels take, the cache sizes gemm blocks for, the FMA peak measured now, threads.
+pub fn machine() -> Value {
+    let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+    let field = |name: &str| {
+        cpuinfo
+            .lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split_once(':'))
+            .map(|(_, v)| v.trim().to_string())
+    };
+    #[cfg(target_arch = "x86_64")]
+    let isa = json!({
+        "avx512f": std::arch::is_x86_feature_detected!("avx512f"),
+        "avx2": std::arch::is_x86_feature_detected!("avx2"),
+        "fma": std::arch::is_x86_feature_detected!("fma"),
+    });
+    #[cfg(not(target_arch = "x86_64"))]
+    let isa = json!({});
+    // gemm (x86-v4 feature on) takes its AVX-512 kernels where the CPU has them; our
+    // element-wise kernels take AVX2 + FMA where the CPU has them.
+    let gemm = match (isa["avx512f"].as_bool(), isa["avx2"].as_bool()) {
+        (Some(true), _) => "avx512",
+        (_, Some(true)) => "avx2",
+        _ => "scalar",
+    };
+    let gemm_caches: Vec<usize> = gemm_common::cache::CACHE_INFO
+        .iter()
+        .map(|c| c.cache_bytes)
+        .collect();
+    let peak = fma_peak();
+    json!({"cpu_model": field("model name"), "vendor": field("vendor_id"),
+           "cpu_family": field("cpu family"), "cpu_model_number": field("model\t"),
+           "topology": topology(), "caches": caches(),
+           "gemm_cache_bytes_per_core": gemm_caches, "isa": isa, "gemm_kernels": gemm,
+           "fma_peak_gflops": peak.gflops, "fma_peak_isa": peak.isa,
+           "threads": rayon::current_num_threads()})
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_fma_chains_compute_the_scalar_recurrence_in_every_lane() {
+        let x = (0..3).fold(1.0f32, |x, _| x.mul_add(FMA_B, FMA_C));
+        let (_, lanes) = fma_isa();
+        let expected = x * (CHAINS * lanes) as f32;
+        // The lanes are summed in a tree, so to rounding.
+        let sum = fma_chains(3);
+        assert!(
+            (sum - expected).abs() <= 1e-5 * expected,
+            "{sum} vs {expected}"
+        );
+    }
+
+    #[test]
+    fn the_machine_record_names_its_topology_and_peak() {
+        let m = machine();
+        let topology = &m["topology"];
+        assert!(topology["logical_cpus"].as_u64().unwrap_or(0) >= 1, "{m}");
+        assert!(
+            topology["physical_cores"].as_u64() <= topology["logical_cpus"].as_u64(),
+            "{m}"
+        );
+        assert_eq!(
+            m["gemm_cache_bytes_per_core"].as_array().map(Vec::len),
+            Some(3)
+        );
+        assert!(m["fma_peak_gflops"].as_f64().unwrap_or(0.0) > 0.0, "{m}");
+    }
+}
