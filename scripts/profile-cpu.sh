@@ -3,7 +3,8 @@
 # kernels, memory, threads and the OS), to compare machine classes (#40):
 #
 #   scripts/profile-cpu.sh OUT [BENCH ARGS...]
-#   (default: bench train --sizes 256x4 --no-generate --min-time 10)
+#   (default: bench train --sizes 256x4 --no-generate --min-time 10; generation alone:
+#   train --no-train)
 #
 # perf samples the cpu-clock (so it works in VMs without hardware counters) over the timed
 # calls only: the bench enables and disables it through perf's control FIFOs. Writes

@@ -57,6 +57,9 @@ pub struct BenchTrainArgs {
     /// Skip the generation benchmark.
     #[arg(long)]
     pub no_generate: bool,
+    /// Skip the training steps (generation only).
+    #[arg(long, conflicts_with = "no_generate")]
+    pub no_train: bool,
     /// Write all figures as JSON to this file.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -327,7 +330,9 @@ pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
     );
     let mut sizes = Vec::new();
     let cpu_sizes = ["256x4".to_string(), "512x8".to_string()];
-    let sizes_asked = if args.sizes.is_empty() {
+    let sizes_asked = if args.no_train {
+        &[][..]
+    } else if args.sizes.is_empty() {
         &cpu_sizes[..]
     } else {
         &args.sizes[..]
