@@ -5,13 +5,19 @@
 /// activations every step, pays a page fault per 4 KiB of them (~110 K faults per d512 LM
 /// step; a batch-256 tokenizer step's 100 MB im2col buffers are far past even the largest
 /// mmap threshold glibc accepts, 32 MiB). Every block then comes from the heap, and the heap
-/// is never trimmed.
+/// is never trimmed. And a pad of 64 MiB above each heap's top: a worker thread's arena lives
+/// in mmapped heaps of 64 MiB (glibc's largest) that glibc unmaps whenever one falls empty,
+/// whatever the trim threshold, unless the pad asks to keep that much. Without it a d512 LM
+/// step still faulted 57,000–437,000 times over eight timed steps, with it 3,300–9,600, at
+/// the same step time (d256, evaluator: unchanged; `docs/results/bench.md`, #40). One arena
+/// for all threads would also stop the faults, but cost the d256 step 3–6% in lock waits.
 pub fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only tunes the allocator; it is called before any worker thread starts.
     unsafe {
         libc::mallopt(libc::M_MMAP_MAX, 0);
         libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+        libc::mallopt(libc::M_TOP_PAD, 64 << 20);
     }
 }
 
