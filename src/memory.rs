@@ -8,9 +8,10 @@
 /// is never trimmed. And a pad of 64 MiB above each heap's top: a worker thread's arena lives
 /// in mmapped heaps of 64 MiB (glibc's largest) that glibc unmaps whenever one falls empty,
 /// whatever the trim threshold, unless the pad asks to keep that much. Without it a d512 LM
-/// step still faulted 57,000–437,000 times over eight timed steps, with it 3,300–9,600, at
-/// the same step time (d256, evaluator: unchanged; `docs/results/bench.md`, #40). One arena
-/// for all threads would also stop the faults, but cost the d256 step 3–6% in lock waits.
+/// step still faulted 5,000–470,000 times over eight timed steps, erratic from run to run
+/// (and up to a third slower); with it 3,300–9,600, d256 and the tokenizer unchanged
+/// (`docs/results/bench.md`, #40). One arena for all threads would also stop the faults, but
+/// cost the d256 step 3–6% in lock waits.
 pub fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only tunes the allocator; it is called before any worker thread starts.
