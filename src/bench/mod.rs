@@ -83,7 +83,7 @@ fn foreign_load(a: Option<(u64, u64, u64)>, b: Option<(u64, u64, u64)>) -> Optio
 /// Tell `perf record --control` (`scripts/profile-cpu.sh`, through the FIFOs named by
 /// `MOTIONSCALE_PERF_CTL` and `MOTIONSCALE_PERF_ACK`) to `enable` or `disable` sampling, and
 /// wait for its acknowledgement, so that a profile holds the timed calls only. Without the
-/// variables, nothing.
+/// variables, nothing; with them, perf must hold the other ends (it blocks until it answers).
 fn profiler(command: &str) {
     use std::io::{Read, Write};
     let (Ok(ctl), Ok(ack)) = (
