@@ -8,12 +8,12 @@ use std::sync::OnceLock;
 use std::time::Instant;
 
 /// The fp32 FMA peak of this machine at the clock it runs vector code at now.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct FmaPeak {
     /// GFLOP/s on all of the pool's threads (an FMA counts as two FLOPs).
     pub gflops: f64,
-    /// The widest FMA instructions the CPU has (`avx512`, `avx2`), or `none`.
-    pub isa: &'static str,
+    /// The vectors it ran with: `avx512`, `avx2` (x86), `scalar`, else their width in bits.
+    pub isa: String,
     /// Threads that ran FMAs at once (the rayon pool's).
     pub threads: usize,
 }
@@ -31,10 +31,11 @@ const FMA_C: f32 = 1e-7;
 struct FmaChains(u64);
 
 impl pulp::WithSimd for FmaChains {
-    type Output = f32;
+    /// The sum, and the f32 lanes of the vectors it ran with.
+    type Output = (f32, usize);
 
     #[inline(always)]
-    fn with_simd<S: pulp::Simd>(self, simd: S) -> f32 {
+    fn with_simd<S: pulp::Simd>(self, simd: S) -> (f32, usize) {
         // Opaque starts, multiplier and addend: the compiler cannot merge the equal chains
         // into one or fold them away.
         let starts = std::hint::black_box([1.0f32; CHAINS]);
@@ -46,49 +47,50 @@ impl pulp::WithSimd for FmaChains {
                 *a = simd.mul_add_f32s(*a, b, c);
             }
         }
-        acc.iter().map(|&a| simd.reduce_sum_f32s(a)).sum()
+        let sum = acc.iter().map(|&a| simd.reduce_sum_f32s(a)).sum();
+        (sum, std::mem::size_of::<S::f32s>() / 4)
     }
 }
 
-/// `iters` rounds of [`FmaChains`] with the widest vectors this CPU has.
-fn fma_chains(iters: u64) -> f32 {
+/// `iters` rounds of [`FmaChains`] with the widest vectors this CPU has: the sum and the lanes.
+fn fma_chains(iters: u64) -> (f32, usize) {
     pulp::Arch::new().dispatch(FmaChains(iters))
 }
 
-/// The instruction set [`fma_chains`] runs with here and its f32 lanes.
-fn fma_isa() -> (&'static str, usize) {
-    #[cfg(target_arch = "x86_64")]
-    match pulp::Arch::new() {
-        pulp::Arch::V4(_) => return ("avx512", 16),
-        pulp::Arch::V3(_) => return ("avx2", 8),
-        _ => {}
+/// The name of `lanes`-wide f32 vectors (x86's instruction sets by name, as gemm's kernels).
+fn vector_isa(lanes: usize) -> String {
+    match (cfg!(target_arch = "x86_64"), lanes) {
+        (true, 16) => "avx512".into(),
+        (true, 8) => "avx2".into(),
+        (_, 1) => "scalar".into(),
+        _ => format!("{}-bit", 32 * lanes),
     }
-    ("scalar", 1)
 }
 
-/// GFLOP/s of [`fma_chains`] (`lanes` wide) on every pool thread at once, `iters` rounds each.
-fn fma_rate(lanes: usize, iters: u64) -> f64 {
+/// GFLOP/s of [`fma_chains`] on every pool thread at once, `iters` rounds each; the lanes.
+fn fma_rate(iters: u64) -> (f64, usize) {
     let started = Instant::now();
-    let sums = rayon::broadcast(|_| fma_chains(std::hint::black_box(iters)));
-    std::hint::black_box(sums);
+    let runs = rayon::broadcast(|_| fma_chains(std::hint::black_box(iters)));
+    let seconds = started.elapsed().as_secs_f64();
+    let lanes = std::hint::black_box(runs)[0].1;
     let flops = (rayon::current_num_threads() * CHAINS * lanes * 2) as f64 * iters as f64;
-    flops / started.elapsed().as_secs_f64() / 1e9
+    (flops / seconds / 1e9, lanes)
 }
 
 /// This machine's fp32 FMA peak, measured once per process (about half a second): the best of
 /// three runs of 0.15 s on every pool thread (`../shared/bench/peak_fma.c`'s method).
-pub fn fma_peak() -> FmaPeak {
+pub fn fma_peak() -> &'static FmaPeak {
     static PEAK: OnceLock<FmaPeak> = OnceLock::new();
-    *PEAK.get_or_init(|| {
+    PEAK.get_or_init(|| {
         let threads = rayon::current_num_threads();
-        let (isa, lanes) = fma_isa();
         let probe = 100_000;
-        let per_thread = fma_rate(lanes, probe) * 1e9 / (threads * CHAINS * lanes * 2) as f64;
+        let (rate, lanes) = fma_rate(probe);
+        let per_thread = rate * 1e9 / (threads * CHAINS * lanes * 2) as f64;
         let iters = ((0.15 * per_thread) as u64).max(probe);
-        let gflops = (0..3).map(|_| fma_rate(lanes, iters)).fold(0.0, f64::max);
+        let gflops = (0..3).map(|_| fma_rate(iters).0).fold(0.0, f64::max);
         FmaPeak {
             gflops,
-            isa,
+            isa: vector_isa(lanes),
             threads,
         }
     })
@@ -196,10 +198,9 @@ mod tests {
     #[test]
     fn the_fma_chains_compute_the_scalar_recurrence_in_every_lane() {
         let x = (0..3).fold(1.0f32, |x, _| x.mul_add(FMA_B, FMA_C));
-        let (_, lanes) = fma_isa();
+        let (sum, lanes) = fma_chains(3);
         let expected = x * (CHAINS * lanes) as f32;
         // The lanes are summed in a tree, so to rounding.
-        let sum = fma_chains(3);
         assert!(
             (sum - expected).abs() <= 1e-5 * expected,
             "{sum} vs {expected}"
