@@ -141,11 +141,17 @@ fn time_reference(
 pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
     let device = args.device.open()?;
-    let (peak, peak_source) = super::machine::mfu_peak(args.peak_gflops);
+    // The CPU's peak: on a GPU the share of it would mean nothing.
+    let peak = device
+        .is_cpu()
+        .then(|| super::machine::mfu_peak(args.peak_gflops));
     println!(
-        "tokenizer training step, width 512, 64 × 263 windows, {}, {} threads, fp32 peak {peak:.0} GFLOP/s ({peak_source})",
+        "tokenizer training step, width 512, 64 × 263 windows, {}, {} threads{}",
         device_name(&device),
         rayon::current_num_threads(),
+        peak.as_ref()
+            .map(|(gflops, source)| format!(", fp32 peak {gflops:.0} GFLOP/s ({source})"))
+            .unwrap_or_default(),
     );
     // Both sides count the reference's FLOPs (every conv's multiply-adds × 6); our Winograd
     // convolutions run fewer, so our rate can pass the peak.
@@ -156,11 +162,13 @@ pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
             let ours = time_ours(quantizer, batch, &args, &device)?;
             let gflops = ours.flops_per_step * ours.steps_per_s / 1e9;
             let mut line = format!(
-                "{quantizer} batch {batch:>3}: {:.3} steps/s, {:.0} frames/s, {:.0} nominal GFLOP/s ({:.0}% of peak)",
+                "{quantizer} batch {batch:>3}: {:.3} steps/s, {:.0} frames/s, {:.0} nominal GFLOP/s{}",
                 ours.steps_per_s,
                 ours.steps_per_s * (batch * 64) as f64,
                 gflops,
-                100.0 * gflops / peak
+                peak.as_ref()
+                    .map(|(p, _)| format!(" ({:.0}% of peak)", 100.0 * gflops / p))
+                    .unwrap_or_default(),
             );
             let mut figure = json!({"what": "tokenizer training step", "quantizer": quantizer,
                 "batch": batch, "device": device_name(&device),
