@@ -173,10 +173,10 @@ pub fn machine() -> Value {
     let isa = json!({});
     // gemm (x86-v4 feature on) takes its AVX-512 kernels where the CPU has them; our
     // element-wise kernels take AVX2 + FMA where the CPU has them.
-    let gemm = match (isa["avx512f"].as_bool(), isa["avx2"].as_bool()) {
-        (Some(true), _) => "avx512",
-        (_, Some(true)) => "avx2",
-        _ => "scalar",
+    let gemm_lanes = match (isa["avx512f"].as_bool(), isa["avx2"].as_bool()) {
+        (Some(true), _) => 16,
+        (_, Some(true)) => 8,
+        _ => 1,
     };
     let gemm_caches: Vec<usize> = gemm_common::cache::CACHE_INFO
         .iter()
@@ -186,7 +186,7 @@ pub fn machine() -> Value {
     json!({"cpu_model": field("model name"), "vendor": field("vendor_id"),
            "cpu_family": field("cpu family"), "cpu_model_number": field("model\t"),
            "topology": topology(), "caches": caches(),
-           "gemm_cache_bytes_per_core": gemm_caches, "isa": isa, "gemm_kernels": gemm,
+           "gemm_cache_bytes_per_core": gemm_caches, "isa": isa, "gemm_kernels": vector_isa(gemm_lanes),
            "fma_peak_gflops": peak.gflops, "fma_peak_isa": peak.isa,
            "threads": rayon::current_num_threads()})
 }
