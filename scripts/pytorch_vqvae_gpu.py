@@ -1,7 +1,7 @@
 """The tokenizer's training step in PyTorch on a GPU: the T2M-GPT-shape VQ-VAE / FSQ-VAE of
 pytorch_vqvae.py in --bench-dir (../shared/bench; imported, not copied), its loss and AdamW,
 on CUDA, each step timed between synchronisations. `motionscale bench tokenizer --device cuda
---reference` runs it in the same session and prints the ratio.
+--reference` runs it in the same invocation and prints the ratio.
 
     python3 scripts/pytorch_vqvae_gpu.py --bench-dir ../shared/bench --quant fsq --batch 256 --out fig.json
 """

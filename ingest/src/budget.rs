@@ -1,7 +1,7 @@
 //! Per-input budgets and plausibility bounds. Every input is checked against the budgets
 //! before the memory it would need is allocated, so one absurd header cannot sink a whole
 //! ingest; values that are finite but physically impossible are rejected naming the clip
-//! and frame instead of being ingested. README "Input budgets" states why each bound is
+//! and frame instead of being ingested. docs/stages.md "Input budgets" states why each bound is
 //! safe for real motion capture.
 
 use crate::error::IngestError;

@@ -3,7 +3,7 @@
 //! [`read_checked`]), so a flipped byte, a swapped or extra shard, a changed
 //! statistics file or a manifest whose totals do not add up is refused with the file named
 //! instead of being read as if it were fine. Hashing every shard costs one sequential read
-//! of the corpus (README "Corpus integrity" gives the measured cost).
+//! of the corpus (docs/stages.md, "Corpus format", gives the measured cost).
 
 use super::manifest::Manifest;
 use crate::error::IngestError;
