@@ -113,9 +113,12 @@ pub struct FitArgs {
     pub bootstrap: usize,
     /// Starts per bootstrap refit: K (the K best distinct local optima of the full-data grid,
     /// distinct = objectives more than 1e-6 apart) or `full` (the whole grid for every
-    /// resample: slow).
-    #[arg(long, default_value = "16", value_name = "K|full")]
-    pub bootstrap_starts: String,
+    /// resample: slow) [default: 16; 4 with --law].
+    #[arg(long, value_name = "K|full")]
+    pub bootstrap_starts: Option<String>,
+    /// With --law: bootstrap every scored family, not only the adopted one.
+    #[arg(long, requires = "law")]
+    pub bootstrap_all: bool,
     /// Bootstrap seed (recorded in fits.json).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -125,6 +128,37 @@ pub struct FitArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub workers: Option<usize>,
+    /// Fit these law families instead of the IsoFLOP analysis, each by the one fitter (Huber,
+    /// L-BFGS from its start grid, bootstrap): chinchilla, data-constrained, vocab, farseer, or
+    /// `all` (those the table's columns allow). Each is scored on held-out runs (--select),
+    /// the lowest error adopted; writes OUT/laws.json. The loss may be negative (then
+    /// residuals are taken in loss space instead of log space).
+    #[arg(long, value_name = "NAME[,NAME…]", value_delimiter = ',')]
+    pub law: Vec<String>,
+    /// With --law: unique-tokens column U [default: unique_tokens; else tokens/epochs].
+    #[arg(long, value_name = "COL", requires = "law")]
+    pub u_col: Option<String>,
+    /// With --law: how families are ranked: `top` holds out the --top-share most expensive
+    /// runs (6·(N + N_v)·D), `budget` each budget group in turn.
+    #[arg(long, value_enum, default_value = "top", requires = "law")]
+    pub select: LawSelection,
+    /// With --law --select top: the share of runs held out.
+    #[arg(long, default_value_t = 0.1, value_name = "SHARE", requires = "law")]
+    pub top_share: f64,
+    /// With --law: a held-out table with the same columns, on which every fitted family is
+    /// scored (R² of the loss, clipped to [-1, 1] as ScaleBench reports it; mean |relative
+    /// error|).
+    #[arg(long, value_name = "FILE", requires = "law")]
+    pub test: Option<PathBuf>,
+}
+
+/// How `fit --law` ranks the families.
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum LawSelection {
+    /// Leave the most expensive runs out.
+    Top,
+    /// Leave each budget group out in turn.
+    Budget,
 }
 
 impl FitArgs {
@@ -133,7 +167,7 @@ impl FitArgs {
             ColumnChoice::or_default(given.clone(), default)
         };
         let d = ColumnSpec::default();
-        let bootstrap_starts = match self.bootstrap_starts.as_str() {
+        let bootstrap_starts = match self.bootstrap_starts.as_deref().unwrap_or("16") {
             "full" => None,
             k => Some(
                 k.parse::<usize>()
@@ -184,6 +218,9 @@ pub fn fit(args: FitArgs) -> Result<ExitCode> {
     let t0 = Instant::now();
     let opts = args.options()?;
     let pool = crate::commands::thread_pool(args.workers)?;
+    if !args.law.is_empty() {
+        return pool.install(|| crate::fit_laws::fit_laws(&args, &opts, t0));
+    }
     let table = Table::read(&args.results)?;
     let mut result = pool.install(|| fits::fit_table(&table, &opts))?;
     let written = fits::report::write_outputs(&mut result, &args.out)?;

@@ -8,6 +8,7 @@ mod continual_cmd;
 mod device_args;
 mod eval_cmd;
 mod fit;
+mod fit_laws;
 mod generate_batch;
 mod lm_cmd;
 mod memory;

@@ -14,6 +14,8 @@ pub struct LbfgsOptions {
     pub c1: f64,
     /// Curvature constant of the strong Wolfe condition.
     pub c2: f64,
+    /// Stalled when 10 steps in a row lower f by at most this much, relative.
+    pub ftol: f64,
 }
 
 impl Default for LbfgsOptions {
@@ -24,6 +26,7 @@ impl Default for LbfgsOptions {
             gtol: 1e-10,
             c1: 1e-4,
             c2: 0.9,
+            ftol: 1e-15,
         }
     }
 }
@@ -35,7 +38,7 @@ pub enum Termination {
     /// The gradient is below `gtol`.
     Gradient,
     /// No decrease is possible at floating-point precision (line search fails from a
-    /// steepest-descent direction, or 10 steps in a row change f by < 1e-15 relative).
+    /// steepest-descent direction, or 10 steps in a row change f by at most `ftol` relative).
     Stalled,
     /// `max_iter` reached.
     MaxIter,
@@ -165,7 +168,7 @@ where
                     y_hist.push(y);
                     rho_hist.push(1.0 / sy);
                 }
-                flat = if fx - p.f <= 1e-15 * fx.abs() {
+                flat = if fx - p.f <= opts.ftol * fx.abs() {
                     flat + 1
                 } else {
                     0

@@ -5,6 +5,7 @@
 pub mod analysis;
 pub mod data_value;
 mod error;
+pub mod family;
 mod fastmath;
 pub mod fitted;
 pub mod holdout;

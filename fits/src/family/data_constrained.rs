@@ -1,0 +1,74 @@
+//! Muennighoff et al. (2023)'s data-constrained law: L = E + A/N^α + B/D'^β with the
+//! effective data D' = U + U·R*_D·(1 − e^(−R/R*_D)), R = D/U − 1 the repetitions past the
+//! first epoch; θ = (a, b, e, α, β, r) with A = eᵃ, B = eᵇ, E = eᵉ, R*_D = eʳ.
+
+use super::chinchilla::epoch_starts;
+use super::{Axis, Law, Point};
+
+/// The data-constrained family (effective data; parameters counted as they are).
+pub struct DataConstrained;
+
+impl Law<6> for DataConstrained {
+    fn name(&self) -> &'static str {
+        "data-constrained"
+    }
+
+    fn equation(&self) -> &'static str {
+        "L = E + A/N^alpha + B/D'^beta, D' = U + U*R_D*(1 - exp(-(D/U - 1)/R_D))"
+    }
+
+    fn needs(&self) -> &'static [Axis] {
+        &[Axis::N, Axis::D, Axis::U]
+    }
+
+    fn positive(&self) -> bool {
+        true
+    }
+
+    fn param_names(&self) -> [&'static str; 6] {
+        ["a", "b", "e", "alpha", "beta", "r"]
+    }
+
+    fn start_values(&self, _loss: &[f64]) -> [Vec<f64>; 6] {
+        let [a, b, e, alpha, beta] = epoch_starts();
+        [a, b, e, alpha, beta, vec![0.0, 1.5, 3.0, 4.5]]
+    }
+
+    fn predict(&self, t: &[f64; 6], x: &Point, g: &mut [f64; 6]) -> f64 {
+        let u = x.u.unwrap_or(x.d);
+        let r_star = t[5].exp();
+        let reps = (x.d / u - 1.0).max(0.0);
+        let decay = (-reps / r_star).exp();
+        let d_eff = u * (1.0 + r_star * (1.0 - decay));
+        // ∂D'/∂r = R*·∂D'/∂R* = R*·U·((1 − e^(−R/R*)) − (R/R*)·e^(−R/R*)).
+        let dd_dr = r_star * u * ((1.0 - decay) - reps / r_star * decay);
+        let ln_n = x.n.ln();
+        let t1 = (t[0] - t[3] * ln_n).exp();
+        let t2 = (t[1] - t[4] * d_eff.ln()).exp();
+        let e = t[2].exp();
+        *g = [
+            t1,
+            t2,
+            e,
+            -t1 * ln_n,
+            -t2 * d_eff.ln(),
+            -t[4] * t2 * dd_dr / d_eff,
+        ];
+        e + t1 + t2
+    }
+
+    fn natural(&self, t: &[f64; 6]) -> Vec<(&'static str, f64)> {
+        vec![
+            ("E", t[2].exp()),
+            ("A", t[0].exp()),
+            ("B", t[1].exp()),
+            ("alpha", t[3]),
+            ("beta", t[4]),
+            ("R*_D", t[5].exp()),
+        ]
+    }
+
+    fn theta_from_natural(&self, p: &[f64; 6]) -> [f64; 6] {
+        [p[1].ln(), p[2].ln(), p[0].ln(), p[3], p[4], p[5].ln()]
+    }
+}

@@ -1,0 +1,282 @@
+//! `fit --law`: the named families (or every one the columns allow) fitted to a table,
+//! ranked by held-out error, the best adopted, and optionally scored on a held-out table.
+
+use super::engine::{Family, FamilyFit, Settings, Space};
+use super::select::{rank, score, Holdout, Ranking, Score};
+use super::{registry, Point};
+use crate::table::Table;
+use crate::FitError;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The columns a law fit reads.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LawColumns {
+    /// Model parameters N.
+    pub n: String,
+    /// Training tokens D.
+    pub d: String,
+    /// The loss.
+    pub loss: String,
+    /// Unique tokens U (`None`: no data-constrained law unless `epochs` gives U = D/epochs).
+    pub u: Option<String>,
+    /// Epochs over the unique tokens, for U = D/epochs where no U column is named.
+    pub epochs: Option<String>,
+    /// Vocabulary parameters N_v (or the vocabulary size).
+    pub nv: Option<String>,
+}
+
+/// A held-out table's scores.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TestScores {
+    /// The table.
+    pub path: PathBuf,
+    /// (family, score) for every fitted family, the adopted one first.
+    pub scores: Vec<(String, Score)>,
+}
+
+/// What `fit --law` writes to laws.json.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LawReport {
+    /// The table fitted.
+    pub table: PathBuf,
+    /// Its columns.
+    pub columns: LawColumns,
+    /// Runs fitted.
+    pub rows: usize,
+    /// Residual space (log unless a loss is ≤ 0).
+    pub space: Space,
+    /// The fitter's settings.
+    pub settings: Settings,
+    /// The families scored on held-out runs.
+    pub ranking: Ranking,
+    /// The adopted family.
+    pub adopted: String,
+    /// Every scored family fitted to all runs, adopted first; bootstrap intervals for the
+    /// adopted one (every one with `Settings::bootstrap_all`).
+    pub fits: Vec<FamilyFit>,
+    /// Scores on a held-out table, where one was given.
+    pub test: Option<TestScores>,
+}
+
+/// Reads the runs of `table` on `cols`.
+pub fn read_points(table: &Table, cols: &LawColumns) -> Result<(Vec<Point>, Vec<f64>), FitError> {
+    let n = table.numbers(&cols.n, "--n-col")?;
+    let d = table.numbers(&cols.d, "--d-col")?;
+    let loss = table.numbers(&cols.loss, "--loss-col")?;
+    let optional = |c: &Option<String>, flag: &str| -> Result<Option<Vec<f64>>, FitError> {
+        c.as_deref()
+            .filter(|c| table.has(c))
+            .map(|c| table.numbers(c, flag))
+            .transpose()
+    };
+    let u = match optional(&cols.u, "--u-col")? {
+        Some(u) => Some(u),
+        None => optional(&cols.epochs, "--epochs-col")?
+            .map(|e| d.iter().zip(e).map(|(d, e)| d / e).collect()),
+    };
+    let nv = optional(&cols.nv, "--nv-col")?;
+    let points = (0..n.len())
+        .map(|i| Point {
+            n: n[i],
+            d: d[i],
+            u: u.as_ref().map(|u| u[i]),
+            nv: nv.as_ref().map(|v| v[i]),
+        })
+        .collect();
+    Ok((points, loss))
+}
+
+/// The families named (`all`: every one), or an error naming the unknown one.
+pub fn families(names: &[String]) -> Result<Vec<Box<dyn Family>>, FitError> {
+    let all = registry();
+    if names.iter().any(|n| n == "all") {
+        return Ok(all);
+    }
+    let known = super::names().join(", ");
+    let mut out = Vec::new();
+    let mut pool: Vec<Option<Box<dyn Family>>> = all.into_iter().map(Some).collect();
+    for name in names {
+        let i = pool
+            .iter()
+            .position(|f| f.as_ref().is_some_and(|f| f.name() == name))
+            .ok_or_else(|| {
+                FitError::Invalid(format!("--law {name:?}: the laws are {known} (or all)"))
+            })?;
+        out.push(pool[i].take().expect("each family is taken once"));
+    }
+    Ok(out)
+}
+
+/// Fits `families` to `table`, ranks them by `holdout`, adopts the best and scores every fit
+/// on `test` (a table with the same columns) where given.
+pub fn fit_laws(
+    table: &Table,
+    cols: &LawColumns,
+    families: &[Box<dyn Family>],
+    holdout: Holdout,
+    test: Option<&Path>,
+    s: &Settings,
+) -> Result<LawReport, FitError> {
+    let (rows, loss) = read_points(table, cols)?;
+    let ranking = rank(families, &rows, &loss, holdout, s);
+    let adopted = ranking
+        .adopted()
+        .map(str::to_string)
+        .ok_or_else(|| FitError::TooFew {
+            path: table.path().to_path_buf(),
+            fit: "any law".into(),
+            message: ranking
+                .ranked
+                .iter()
+                .map(|r| format!("{}: {}", r.law, r.refusal.as_deref().unwrap_or("?")))
+                .collect::<Vec<_>>()
+                .join("; "),
+        })?;
+    let fits: Vec<FamilyFit> = ranking
+        .ranked
+        .iter()
+        .filter(|r| r.holdout.is_some())
+        .map(|r| {
+            let f = families
+                .iter()
+                .find(|f| f.name() == r.law)
+                .expect("ranked family");
+            let boot = s.bootstrap_all || r.law == adopted;
+            f.fit(
+                &rows,
+                &loss,
+                None,
+                &Settings {
+                    bootstrap: if boot { s.bootstrap } else { 0 },
+                    ..s.clone()
+                },
+            )
+        })
+        .collect::<Result<_, _>>()?;
+    let test = test
+        .map(|path| -> Result<TestScores, FitError> {
+            let (t_rows, t_loss) = read_points(&Table::read(path)?, cols)?;
+            let scores = fits
+                .iter()
+                .map(|fit| {
+                    let f = families
+                        .iter()
+                        .find(|f| f.name() == fit.law)
+                        .expect("fitted family");
+                    (
+                        fit.law.clone(),
+                        score(f.as_ref(), &fit.theta, &t_rows, &t_loss, fit.space),
+                    )
+                })
+                .collect();
+            Ok(TestScores {
+                path: path.to_path_buf(),
+                scores,
+            })
+        })
+        .transpose()?;
+    Ok(LawReport {
+        table: table.path().to_path_buf(),
+        columns: cols.clone(),
+        rows: rows.len(),
+        space: Space::for_losses(&loss),
+        settings: s.clone(),
+        ranking,
+        adopted,
+        fits,
+        test,
+    })
+}
+
+impl LawReport {
+    /// The ranking, the adopted law's parameters and the held-out table's scores, as text.
+    pub fn summary(&self) -> String {
+        use crate::report::sig;
+        use std::fmt::Write;
+        let mut s = String::new();
+        let held = match &self.ranking.holdout {
+            Holdout::TopCost { share } => {
+                format!("the {:.0}% most expensive runs held out", 100.0 * share)
+            }
+            Holdout::Groups { groups } => format!(
+                "each of {} budget groups held out in turn",
+                groups.iter().max().map_or(0, |m| m + 1)
+            ),
+        };
+        let space = match self.space {
+            Space::Log => "log",
+            Space::Loss => "loss",
+        };
+        let _ = writeln!(
+            s,
+            "{} runs; laws ranked by RMS {space} residual, {held}:",
+            self.rows
+        );
+        for r in &self.ranking.ranked {
+            match (&r.holdout, &r.refusal) {
+                (Some(h), _) => {
+                    let _ = writeln!(
+                        s,
+                        "  {:<17} held-out RMS {}  R² {:.3}  mean |rel. error| {:.2}%{}",
+                        r.law,
+                        sig(h.rms_residual),
+                        h.r2,
+                        100.0 * h.mean_abs_rel_error,
+                        if r.law == self.adopted {
+                            "  ← adopted"
+                        } else {
+                            ""
+                        }
+                    );
+                }
+                (None, why) => {
+                    let _ = writeln!(
+                        s,
+                        "  {:<17} not fitted: {}",
+                        r.law,
+                        why.as_deref().unwrap_or("?")
+                    );
+                }
+            }
+        }
+        if let Some(fit) = self.fits.first() {
+            let _ = writeln!(
+                s,
+                "{}: {} ({} runs, {} of {} starts at the optimum, {} of {} bootstrap refits)",
+                fit.law,
+                fit.equation,
+                fit.rows,
+                fit.at_optimum,
+                fit.starts,
+                fit.bootstrap_converged,
+                fit.bootstrap_resamples
+            );
+            for p in &fit.natural {
+                let ci = match (p.ci_low, p.ci_high) {
+                    (Some(lo), Some(hi)) => format!(" [{}, {}]", sig(lo), sig(hi)),
+                    _ => String::new(),
+                };
+                let _ = writeln!(s, "  {:<8} {}{ci}", p.name, sig(p.value));
+            }
+        }
+        if let Some(t) = &self.test {
+            let _ = writeln!(
+                s,
+                "held-out table {} ({} runs):",
+                t.path.display(),
+                t.scores.first().map_or(0, |x| x.1.rows)
+            );
+            for (law, sc) in &t.scores {
+                let _ = writeln!(
+                    s,
+                    "  {law:<17} R² {:.4} (clipped {:.4})  mean |rel. error| {:.2}%",
+                    sc.r2,
+                    sc.r2_clipped,
+                    100.0 * sc.mean_abs_rel_error
+                );
+            }
+        }
+        s
+    }
+}

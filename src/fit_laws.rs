@@ -1,0 +1,96 @@
+//! `motionscale fit --law`: the law families of `fits::family` on any table.
+
+use crate::fit::{FitArgs, LawSelection};
+use anyhow::{Context, Result};
+use fits::family::engine::Settings;
+use fits::family::run::{families, fit_laws as fit_table_laws, LawColumns};
+use fits::family::select::Holdout;
+use fits::fitted::FitOptions;
+use fits::isoflop::group_rows;
+use fits::Table;
+use std::process::ExitCode;
+use std::time::Instant;
+
+/// Runs the law families named by `--law` and writes OUT/laws.json.
+pub fn fit_laws(args: &FitArgs, opts: &FitOptions, t0: Instant) -> Result<ExitCode> {
+    let table = Table::read(&args.results)?;
+    let c = &opts.columns;
+    let loss = args
+        .param_loss_col
+        .clone()
+        .or_else(|| args.loss_col.clone())
+        .unwrap_or_else(|| c.param_loss.name.clone());
+    let cols = LawColumns {
+        n: c.n.name.clone(),
+        d: c.d.name.clone(),
+        loss,
+        u: Some(args.u_col.clone().unwrap_or_else(|| "unique_tokens".into())),
+        epochs: Some(c.epochs.name.clone()),
+        nv: Some(c.nv.name.clone()),
+    };
+    let holdout = match args.select {
+        LawSelection::Top => Holdout::TopCost {
+            share: args.top_share,
+        },
+        LawSelection::Budget => Holdout::Groups {
+            groups: budget_groups(&table, &cols, opts)?,
+        },
+    };
+    let settings = Settings {
+        delta: args.huber_delta,
+        bootstrap: args.bootstrap,
+        bootstrap_starts: match args.bootstrap_starts {
+            Some(_) => opts.bootstrap_starts.unwrap_or(Settings::default().starts),
+            None => Settings::default().bootstrap_starts,
+        },
+        bootstrap_all: args.bootstrap_all,
+        seed: args.seed,
+        ..Settings::default()
+    };
+    let chosen = families(&args.law)?;
+    let report = fit_table_laws(
+        &table,
+        &cols,
+        &chosen,
+        holdout,
+        args.test.as_deref(),
+        &settings,
+    )?;
+    let path = args.out.join("laws.json");
+    motionscale_core::files::write_atomic(&path, serde_json::to_string_pretty(&report)?.as_bytes())
+        .with_context(|| path.display().to_string())?;
+    print!("{}", report.summary());
+    println!(
+        "wrote {} in {:.2} s on {} threads",
+        path.display(),
+        t0.elapsed().as_secs_f64(),
+        rayon::current_num_threads()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Each run's budget group: the group column where the table has it, else its compute
+/// (the budget column, or 6·N·D) within --group-tol dex.
+fn budget_groups(table: &Table, cols: &LawColumns, opts: &FitOptions) -> Result<Vec<usize>> {
+    let c = &opts.columns;
+    let compute = if table.has(&c.c.name) {
+        table.numbers(&c.c.name, "--c-col")?
+    } else {
+        let n = table.numbers(&cols.n, "--n-col")?;
+        let d = table.numbers(&cols.d, "--d-col")?;
+        n.iter().zip(&d).map(|(n, d)| 6.0 * n * d).collect()
+    };
+    let group = if table.has(&c.group.name) {
+        Some(table.numbers(&c.group.name, "--group-col")?)
+    } else {
+        None
+    };
+    let mut of_row = vec![0; compute.len()];
+    for (g, rows) in group_rows(&compute, group.as_deref(), opts.group_tol_dex)
+        .into_iter()
+        .enumerate()
+    {
+        rows.into_iter().for_each(|i| of_row[i] = g);
+    }
+    Ok(of_row)
+}
