@@ -160,7 +160,7 @@ fn parse<T: serde::de::DeserializeOwned>(
 /// A sweep folder: its plan, point states and results table, its fit and its tokenizer
 /// evaluations when it has them.
 fn add_sweep(study: &mut Study, dir: &Path) -> Result<()> {
-    let plan = experiments::local::read_adopted_plan(dir)?;
+    let plan = experiments::plan::read_adopted_plan(dir)?;
     let points = experiments::status::status(&plan, dir)?;
     let csv = dir.join("results.csv");
     let rows = if csv.is_file() {

@@ -319,7 +319,7 @@ pub fn run_cmd(args: RunArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
     let plan = IsoFlopPlan::read(&args.plan)?;
     if args.prepare_only {
-        let runs = local::adopt_plan(&plan, &args.out)?;
+        let runs = plan::adopt_plan(&plan, &args.out)?;
         let points = local::select(&plan, None)?;
         local::prepare_all(&plan, &runs, &points, &args.device.open()?, &log_line)?;
         println!("vocabularies ready in {}", runs.display());
@@ -327,7 +327,7 @@ pub fn run_cmd(args: RunArgs) -> Result<ExitCode> {
     }
     let exe = std::env::current_exe().context("locating the motionscale executable")?;
     let runs = std::path::absolute(&args.out)?;
-    let plan_file = runs.join(local::PLAN_FILE);
+    let plan_file = runs.join(plan::PLAN_FILE);
     let device = args.device.open()?;
     let worker = |index: usize, gpu: Option<nn::device::DeviceSpec>| {
         let mut c = Command::new(&exe);
@@ -387,7 +387,7 @@ pub struct StatusArgs {
 
 /// `motionscale sweep status`.
 pub fn status_cmd(args: StatusArgs) -> Result<ExitCode> {
-    let plan = local::read_adopted_plan(&args.out)?;
+    let plan = plan::read_adopted_plan(&args.out)?;
     let points = experiments::status::status(&plan, &args.out)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&points)?);
@@ -511,7 +511,7 @@ pub struct CollectArgs {
 /// result.json; exit 2 when some runnable points have none.
 pub fn collect_cmd(args: CollectArgs) -> Result<ExitCode> {
     if args.reselect {
-        let plan = local::read_adopted_plan(&args.out)?;
+        let plan = plan::read_adopted_plan(&args.out)?;
         let changed = experiments::run::reselect(&plan, &args.out)?;
         for c in &changed {
             println!(

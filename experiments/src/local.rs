@@ -8,7 +8,7 @@
 //! runs leave most of a GPU idle and share one, while a large run (at least
 //! `exclusive_params` parameters) only starts on an idle GPU and keeps it to itself.
 
-use crate::plan::{IsoFlopPlan, PlanPoint};
+use crate::plan::{adopt_plan, read_adopted_plan, IsoFlopPlan, PlanPoint};
 use crate::prepare::prepare_vocabulary;
 use crate::results::{self, read_row, run_dir};
 use crate::run::{run_point, Outcome, RunError};
@@ -16,12 +16,9 @@ use crate::SweepError;
 use candle_core::Device;
 use nn::device::DeviceSpec;
 use std::os::unix::process::CommandExt;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, Command};
 use std::time::Duration;
-
-/// File name of the plan copy inside a sweep folder.
-pub const PLAN_FILE: &str = "plan.toml";
 
 /// How [`run_local`] runs the points.
 pub struct LocalOptions<'a> {
@@ -55,38 +52,6 @@ pub struct Summary {
     pub not_runnable: Vec<String>,
     /// Rows in the rebuilt results table.
     pub rows: usize,
-}
-
-/// Create the sweep folder `runs` (made absolute) and give it `plan`: write `runs/plan.toml`,
-/// or check that the one there is the same plan, or one that `plan` extends (then `plan`
-/// replaces it: its first points are the ones already run), or one that extends `plan` (then
-/// the folder keeps its own: `plan`'s points are its first ones, so a run of an older plan
-/// can go on beside one of its extension).
-pub fn adopt_plan(plan: &IsoFlopPlan, runs: &Path) -> Result<PathBuf, SweepError> {
-    std::fs::create_dir_all(runs).map_err(|e| SweepError::io(runs, e))?;
-    let runs = std::fs::canonicalize(runs).map_err(|e| SweepError::io(runs, e))?;
-    let path = runs.join(PLAN_FILE);
-    if path.exists() {
-        let adopted = IsoFlopPlan::read(&path)?;
-        if adopted != *plan {
-            if plan.extends(&adopted) {
-                plan.write(&path)?;
-            } else if !adopted.extends(plan) {
-                return Err(SweepError::invalid(
-                    &path,
-                    "this sweep folder holds a different plan (neither one this plan extends nor an extension of it); use another --out",
-                ));
-            }
-        }
-    } else {
-        plan.write(&path)?;
-    }
-    Ok(runs)
-}
-
-/// The sweep folder's own plan (`runs/plan.toml`).
-pub fn read_adopted_plan(runs: &Path) -> Result<IsoFlopPlan, SweepError> {
-    IsoFlopPlan::read(&runs.join(PLAN_FILE))
 }
 
 /// The points of `plan` in `only` (all when `None`); an index outside the plan is an error.

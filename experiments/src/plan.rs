@@ -925,6 +925,41 @@ impl IsoFlopPlan {
     }
 }
 
+/// File name of the plan copy inside a sweep folder.
+pub const PLAN_FILE: &str = "plan.toml";
+
+/// Create the sweep folder `runs` (made absolute) and give it `plan`: write `runs/plan.toml`,
+/// or check that the one there is the same plan, or one that `plan` extends (then `plan`
+/// replaces it: its first points are the ones already run), or one that extends `plan` (then
+/// the folder keeps its own: `plan`'s points are its first ones, so a run of an older plan
+/// can go on beside one of its extension).
+pub fn adopt_plan(plan: &IsoFlopPlan, runs: &Path) -> Result<PathBuf, SweepError> {
+    std::fs::create_dir_all(runs).map_err(|e| SweepError::io(runs, e))?;
+    let runs = std::fs::canonicalize(runs).map_err(|e| SweepError::io(runs, e))?;
+    let path = runs.join(PLAN_FILE);
+    if path.exists() {
+        let adopted = IsoFlopPlan::read(&path)?;
+        if adopted != *plan {
+            if plan.extends(&adopted) {
+                plan.write(&path)?;
+            } else if !adopted.extends(plan) {
+                return Err(SweepError::invalid(
+                    &path,
+                    "this sweep folder holds a different plan (neither one this plan extends nor an extension of it); use another --out",
+                ));
+            }
+        }
+    } else {
+        plan.write(&path)?;
+    }
+    Ok(runs)
+}
+
+/// The sweep folder's own plan (`runs/plan.toml`).
+pub fn read_adopted_plan(runs: &Path) -> Result<IsoFlopPlan, SweepError> {
+    IsoFlopPlan::read(&runs.join(PLAN_FILE))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1166,16 +1201,16 @@ mod tests {
         refused(repeat(&["c1e12-cpu-50K-v256"], &[]), "go together");
 
         let dir = tempfile::tempdir().unwrap();
-        crate::local::adopt_plan(&base, dir.path()).unwrap();
-        crate::local::adopt_plan(&plan, dir.path()).unwrap();
-        assert_eq!(crate::local::read_adopted_plan(dir.path()).unwrap(), plan);
+        adopt_plan(&base, dir.path()).unwrap();
+        adopt_plan(&plan, dir.path()).unwrap();
+        assert_eq!(read_adopted_plan(dir.path()).unwrap(), plan);
         // The base plan may still run there (its points are the extension's first ones); the
         // folder keeps the extension.
-        crate::local::adopt_plan(&base, dir.path()).unwrap();
-        assert_eq!(crate::local::read_adopted_plan(dir.path()).unwrap(), plan);
+        adopt_plan(&base, dir.path()).unwrap();
+        assert_eq!(read_adopted_plan(dir.path()).unwrap(), plan);
         let mut other = base.clone();
         other.train.checkpoint_every += 1;
-        let e = crate::local::adopt_plan(&other, dir.path()).unwrap_err();
+        let e = adopt_plan(&other, dir.path()).unwrap_err();
         assert!(e.to_string().contains("different plan"), "{e}");
     }
 

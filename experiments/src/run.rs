@@ -14,7 +14,7 @@
 //! same weights (training is a pure function of its config).
 
 use crate::data_ladder;
-use crate::plan::{IsoFlopPlan, PlanPoint};
+use crate::plan::{read_adopted_plan, IsoFlopPlan, PlanPoint};
 use crate::prepare::prepare_vocabulary;
 use crate::results::{self, read_row, run_dir, RunRow};
 use crate::SweepError;
@@ -95,7 +95,7 @@ pub fn run_point(
         Ok(row) => {
             results::write_row(runs, &row)?;
             // From the folder's own plan: `plan` may be an older one that it extends.
-            results::rebuild_tables(runs, &crate::local::read_adopted_plan(runs)?)?;
+            results::rebuild_tables(runs, &read_adopted_plan(runs)?)?;
             Ok(Outcome::Trained(row))
         }
         Err(e) => {

@@ -14,8 +14,7 @@
 //! Only the points not yet done go into the array, so submitting again after a failure
 //! finishes the sweep. Every task exports `RAYON_NUM_THREADS=$SLURM_CPUS_PER_TASK`.
 
-use crate::local::{adopt_plan, PLAN_FILE};
-use crate::plan::IsoFlopPlan;
+use crate::plan::{adopt_plan, IsoFlopPlan, PLAN_FILE};
 use crate::results::read_row;
 use crate::SweepError;
 use serde::{Deserialize, Serialize};
