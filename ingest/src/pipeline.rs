@@ -21,42 +21,7 @@ use std::collections::{BTreeMap, HashSet};
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
-/// Kinds of `--source`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum SourceKind {
-    /// BVH files, searched recursively.
-    Bvh,
-    /// `.npy` joint arrays (T × J × 3).
-    Joints,
-    /// AMASS `.npz` sequences (needs a body model).
-    Amass,
-    /// A HumanML3D-layout folder.
-    Hml3d,
-    /// Procedural labelled motion, `synth:CLIPS[:SEED]`.
-    Synth,
-}
-
-impl SourceKind {
-    /// Name used on the command line and in outputs.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Bvh => "bvh",
-            Self::Joints => "joints",
-            Self::Amass => "amass",
-            Self::Hml3d => "hml3d",
-            Self::Synth => "synth",
-        }
-    }
-
-    fn extension(self) -> &'static str {
-        match self {
-            Self::Bvh => "bvh",
-            Self::Joints | Self::Hml3d => "npy",
-            Self::Amass => "npz",
-            Self::Synth => "",
-        }
-    }
-}
+pub use crate::source::SourceKind;
 
 /// A parsed `KIND:PATH` source argument.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -31,7 +31,7 @@ pub enum Origin {
 impl Origin {
     /// The origin of a clip of source kind `source` (the `source` column).
     pub fn of(source: &str) -> Self {
-        if source == crate::pipeline::SourceKind::Synth.name() {
+        if source == crate::source::SourceKind::Synth.name() {
             Self::Synth
         } else {
             Self::Real

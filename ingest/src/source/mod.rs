@@ -13,6 +13,45 @@ use crate::skeleton::Pose;
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
+/// Kinds of `--source`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SourceKind {
+    /// BVH files, searched recursively.
+    Bvh,
+    /// `.npy` joint arrays (T × J × 3).
+    Joints,
+    /// AMASS `.npz` sequences (needs a body model).
+    Amass,
+    /// A HumanML3D-layout folder.
+    Hml3d,
+    /// Procedural labelled motion, `synth:CLIPS[:SEED]`.
+    Synth,
+}
+
+impl SourceKind {
+    /// Name used on the command line and in outputs.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Bvh => "bvh",
+            Self::Joints => "joints",
+            Self::Amass => "amass",
+            Self::Hml3d => "hml3d",
+            Self::Synth => "synth",
+        }
+    }
+
+    /// Extension of the input files searched for in a source folder of this kind (empty for
+    /// `synth`, which reads no files).
+    pub(crate) fn extension(self) -> &'static str {
+        match self {
+            Self::Bvh => "bvh",
+            Self::Joints | Self::Hml3d => "npy",
+            Self::Amass => "npz",
+            Self::Synth => "",
+        }
+    }
+}
+
 /// Where a clip cut from a captioned time span sits in the clip it was cut from.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CaptionSpan {
