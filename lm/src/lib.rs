@@ -6,6 +6,7 @@
 pub mod accounting;
 pub mod caption_set;
 pub mod es_moe;
+pub mod eval_record;
 pub mod executor_check;
 pub mod generate;
 pub mod lm_data;

@@ -7,8 +7,8 @@
 //! selects as it goes; [`reselect`] selects again from a finished run's `evals.jsonl`, by
 //! the same rule, e.g. under another choice of clips.
 
+use crate::eval_record::{BestEval, EvalRecord};
 use crate::test_loss::SplitLoss;
-use crate::train::{BestEval, EvalRecord};
 use ingest::corpus::Origin;
 use motionscale_core::files::read_json_lines;
 use nn::ModelError;
