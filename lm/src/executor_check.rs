@@ -30,7 +30,7 @@ pub struct Agreement {
     /// The largest |Δlogit| of KV-cached decoding, step by step, against the cpu executor's.
     pub cached_logits_max_abs: f32,
     /// Each fused op's outputs and the AdamW update on the device against the CPU
-    /// (`nn::fused_ops::self_check`): largest relative difference per output.
+    /// (`nn::device_check::self_check`): largest relative difference per output.
     pub fused_ops: Vec<(String, f32)>,
 }
 
@@ -158,7 +158,7 @@ pub fn compare(
         fused_step,
         logits_relative: logits,
         cached_logits_max_abs: cached,
-        fused_ops: nn::fused_ops::self_check(device)?,
+        fused_ops: nn::device_check::self_check(device)?,
     })
 }
 

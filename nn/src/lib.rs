@@ -10,7 +10,7 @@
 //!   scan with a hand-written backward through time;
 //! - [`fused_ops`]: RMSNorm, SwiGLU, rotary QKV heads, the masked softmax and the
 //!   cross-entropy as single ops with a backward, on the CPU and (`cuda`) the GPU, for the
-//!   graph executor;
+//!   graph executor; [`device_check`]: those ops and the AdamW step on a device against the CPU;
 //! - [`optim`] (AdamW with saveable state, warm-up + cosine schedule), [`checkpoint`]
 //!   (safetensors written atomically, resumable run files), [`kmeans`], and [`gradcheck`]
 //!   (the finite-difference reference of the gradient tests).
@@ -23,6 +23,7 @@ pub mod checkpoint;
 pub mod conv_op;
 pub mod cpu_f32;
 pub mod device;
+pub mod device_check;
 pub mod error;
 pub mod fast_exp;
 pub mod fused_ops;
