@@ -4,7 +4,7 @@
 //! `../shared/bench/gpu/pytorch_prefix_lm_gpu.py` on the same GPU in the same run, eager bf16
 //! and `torch.compile`, with both ratios.
 
-use super::lm::{bench_train_step, parse_size, shape_flags, BenchTrainArgs};
+use super::lm_step::{bench_train_step, parse_size, shape_flags, BenchTrainArgs};
 use anyhow::{bail, Context, Result};
 use candle_core::Device;
 use nn::device::Precision;

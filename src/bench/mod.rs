@@ -7,6 +7,7 @@ mod gru;
 mod ingest;
 mod lm;
 mod lm_gpu;
+mod lm_step;
 mod machine;
 mod tokenizer;
 
@@ -25,7 +26,7 @@ pub enum BenchCommand {
     /// Time synthetic corpus building: generation + features, and the whole ingest.
     Synth(ingest::BenchSynthArgs),
     /// Prefix-LM training step and generation: tokens/s, GFLOP/s, MFU, PyTorch ratio.
-    Train(lm::BenchTrainArgs),
+    Train(lm_step::BenchTrainArgs),
     /// Time tokenizer training steps (FSQ, VQ) at the T2M-GPT shape; --reference runs PyTorch too.
     Tokenizer(tokenizer::BenchTokenizerArgs),
     /// Time caption embedding (MiniLM) over a corpus's captions; --reference runs PyTorch too.
