@@ -12,6 +12,7 @@ mod fit_laws;
 mod generate_batch;
 mod lm_cmd;
 mod memory;
+mod plan_args;
 mod planner_cmd;
 mod quickstart;
 mod report;
@@ -115,7 +116,7 @@ enum Command {
 #[derive(Subcommand)]
 enum SweepCommand {
     /// Plan every (budget, model, vocabulary) point: D = C / (6·(N_nv + N_v)), as TOML.
-    Plan(Box<sweep_cmd::PlanArgs>),
+    Plan(Box<plan_args::PlanArgs>),
     /// Run every missing point of a plan (resumable; kill it at any time and run it again).
     Run(sweep_cmd::RunArgs),
     /// Done / running / failed / pending per point of a sweep folder.

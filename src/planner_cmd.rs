@@ -1,7 +1,7 @@
 //! `motionscale sweep replay` and `sweep plan --next`: the active sweep planner
 //! (`fits::planner`), judged on finished tables and used to choose a study's next runs.
 
-use crate::sweep_cmd::PlanArgs;
+use crate::plan_args::PlanArgs;
 use anyhow::{bail, Context, Result};
 use experiments::plan;
 use experiments::IsoFlopPlan;
