@@ -15,6 +15,7 @@ mod farseer;
 pub mod run;
 pub mod select;
 mod vocab;
+pub mod vpnls;
 
 pub use chinchilla::Chinchilla;
 pub use data_constrained::DataConstrained;

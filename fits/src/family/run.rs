@@ -3,6 +3,7 @@
 
 use super::engine::{Family, FamilyFit, Settings, Space};
 use super::select::{rank, score, Holdout, Ranking, Score};
+use super::vpnls::{lobo, LoboPoint};
 use super::{registry, Point};
 use crate::table::Table;
 use crate::FitError;
@@ -57,6 +58,9 @@ pub struct LawReport {
     pub fits: Vec<FamilyFit>,
     /// Scores on a held-out table, where one was given.
     pub test: Option<TestScores>,
+    /// With budget groups: N_opt at each budget left out, by the parabola vertices of the
+    /// others and by variable projection, beside its own vertex.
+    pub n_opt_lobo: Option<Vec<LoboPoint>>,
 }
 
 /// Reads the runs of `table` on `cols`.
@@ -119,6 +123,10 @@ pub fn fit_laws(
     s: &Settings,
 ) -> Result<LawReport, FitError> {
     let (rows, loss) = read_points(table, cols)?;
+    let n_opt_lobo = match &holdout {
+        Holdout::Groups { groups } => Some(lobo(&rows, &loss, groups)),
+        Holdout::TopCost { .. } => None,
+    };
     let ranking = rank(families, &rows, &loss, holdout, s);
     let adopted = ranking
         .adopted()
@@ -186,6 +194,7 @@ pub fn fit_laws(
         adopted,
         fits,
         test,
+        n_opt_lobo,
     })
 }
 
@@ -260,6 +269,9 @@ impl LawReport {
                 let _ = writeln!(s, "  {:<8} {}{ci}", p.name, sig(p.value));
             }
         }
+        if let Some(points) = &self.n_opt_lobo {
+            n_opt_lobo_lines(points, &mut s);
+        }
         if let Some(t) = &self.test {
             let _ = writeln!(
                 s,
@@ -279,4 +291,39 @@ impl LawReport {
         }
         s
     }
+}
+
+/// The leave-one-budget-out N_opt errors of both approaches, a line each and their means.
+fn n_opt_lobo_lines(points: &[LoboPoint], s: &mut String) {
+    use crate::report::sig;
+    use std::fmt::Write;
+    let _ = writeln!(
+        s,
+        "N_opt with each budget left out (log10 error against its own vertex, decades):"
+    );
+    let (mut par, mut vp) = (Vec::new(), Vec::new());
+    for p in points {
+        let err = |x: Option<f64>| x.map(|x| x - p.vertex);
+        let text = |e: Option<f64>| e.map_or("—".into(), |e| format!("{e:+.3}"));
+        let (ep, ev) = (err(p.parabola), err(p.vpnls));
+        par.extend(ep);
+        vp.extend(ev);
+        let _ = writeln!(
+            s,
+            "  C {:<10} vertex {:<10} parabola vertices {:<7} VPNLS {}",
+            sig(p.budget),
+            sig(10f64.powf(p.vertex)),
+            text(ep),
+            text(ev)
+        );
+    }
+    let mean_abs = |v: &[f64]| v.iter().map(|e| e.abs()).sum::<f64>() / v.len().max(1) as f64;
+    let _ = writeln!(
+        s,
+        "  mean |error|: parabola vertices {:.3} ({} budgets), VPNLS {:.3} ({} budgets)",
+        mean_abs(&par),
+        par.len(),
+        mean_abs(&vp),
+        vp.len()
+    );
 }
