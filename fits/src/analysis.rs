@@ -167,8 +167,19 @@ fn fit_runs(t: &Table, runs: &Runs, opts: &FitOptions) -> Result<Fits, FitError>
     })
 }
 
-/// Warnings about budgets and vocabulary minima that are not interior.
+/// Warnings about budgets and vocabulary minima that are not interior: a line per budget on
+/// an IsoFLOP grid, one line for a table that is not one (at most two interior minima among
+/// more than three budget groups).
 fn minima_warnings(budgets: &[BudgetMinimum], vocab: &[IsoMinimum], warnings: &mut Vec<String>) {
+    let interior = budgets.iter().filter(|b| b.min.interior).count();
+    if budgets.len() > 3 && interior <= 2 {
+        warnings.push(format!(
+            "not an IsoFLOP grid: {interior} of {} budget groups have an interior minimum over N, \
+             so approach 2 does not apply (`fit --law` fits the parametric laws to any table)",
+            budgets.len()
+        ));
+        return;
+    }
     for b in budgets {
         if let (false, Some(reason)) = (b.min.interior, &b.min.reason) {
             warnings.push(format!(
@@ -424,6 +435,58 @@ mod tests {
         let path = dir.path().join("results.csv");
         std::fs::write(&path, csv).unwrap();
         Table::read(&path).unwrap()
+    }
+
+    /// Budgets whose loss falls monotonically in N (`interior` = false) or has a vertex.
+    fn budgets(interior: &[bool]) -> Vec<BudgetMinimum> {
+        let n = [1e5, 1e6, 1e7, 1e8];
+        interior
+            .iter()
+            .enumerate()
+            .map(|(i, &bowl)| {
+                let loss: Vec<f64> = n
+                    .iter()
+                    .map(|x: &f64| match bowl {
+                        true => (x.log10() - 6.5).powi(2),
+                        false => -x.log10(),
+                    })
+                    .collect();
+                let min = crate::isoflop::parabola_minimum(
+                    10f64.powi(i as i32 + 12),
+                    "N",
+                    None,
+                    &n,
+                    &loss,
+                );
+                assert_eq!(min.interior, bowl);
+                BudgetMinimum {
+                    min,
+                    runs: 4,
+                    d_opt: None,
+                    nv_opt: None,
+                    nv_reason: None,
+                    v_opt: None,
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_table_that_is_no_isoflop_grid_gets_one_line_not_one_per_budget() {
+        let mut w = Vec::new();
+        minima_warnings(&budgets(&[false, false, true, false, false]), &[], &mut w);
+        assert_eq!(w.len(), 1, "{w:?}");
+        assert!(
+            w[0].starts_with("not an IsoFLOP grid: 1 of 5 budget groups"),
+            "{w:?}"
+        );
+        let mut w = Vec::new();
+        minima_warnings(&budgets(&[true, false, true, true, false]), &[], &mut w);
+        assert_eq!(w.len(), 2, "a grid with two bad budgets names each: {w:?}");
+        assert!(
+            w.iter().all(|l| l.contains("no interior minimum over N")),
+            "{w:?}"
+        );
     }
 
     fn quick() -> FitOptions {
