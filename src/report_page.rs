@@ -7,6 +7,7 @@ use anyhow::Result;
 use experiments::plan::IsoFlopPlan;
 use experiments::results::RunRow;
 use experiments::status::{PointState, PointStatus};
+use fits::fitted::{Holdout, RepeatedData};
 use fits::laws::Estimate;
 use fits::report::{estimate_text, sig};
 use fits::{Fits, Prediction};
@@ -25,16 +26,21 @@ table.kv td{text-align:left}tr.fail td{background:#fde2e2}.absent{color:#666;fon
 figure{margin:16px 0}figcaption{font-size:14px;color:#444}\
 svg{max-width:100%;height:auto;display:block}code{font-size:14px}";
 
-/// The section ids and titles, in page order.
+/// The section ids and titles, in page order: the answer (the predictions, their verdicts and
+/// the law they extrapolate) first, then what it was built from.
 const SECTIONS: [(&str, &str); 7] = [
+    ("predictions", "Predictions"),
     ("corpus", "Corpus"),
     ("tokenizers", "Tokenizers"),
     ("sweep", "Sweep status"),
     ("isoflop", "IsoFLOP curves"),
     ("laws", "Scaling laws"),
-    ("predictions", "Predictions"),
     ("planner", "Sweep planner"),
 ];
+
+/// The fit's chart that the predictions rest on: the N_opt law they extrapolate to each
+/// budget. It is drawn under the predictions, not again under the laws.
+const PREDICTION_CHART: &str = "law_n_opt_vs_c";
 
 /// A `sweep replay` folder: its summary and its charts (SVG documents).
 pub struct Replay {
@@ -102,7 +108,7 @@ pub fn page(study: &Study) -> Result<String> {
                 Some((path, f)) => laws(&path.display().to_string(), f)?,
                 None => absent("fit"),
             },
-            "predictions" => predictions(study),
+            "predictions" => predictions(study)?,
             _ => study.replay.as_ref().map_or_else(String::new, planner),
         };
         let _ = writeln!(
@@ -129,23 +135,25 @@ pub fn page(study: &Study) -> Result<String> {
     ))
 }
 
-/// The titles of the sections that have content.
+/// The titles of the sections that have content, in page order.
 pub fn contents(study: &Study) -> Vec<&'static str> {
-    let present = [
-        study.corpus.is_some(),
-        !study.tokenizers.is_empty(),
-        study.sweep.is_some(),
-        study.fits.is_some(),
-        study.fits.is_some(),
-        !study.predictions.is_empty(),
-        study.replay.is_some(),
-    ];
     SECTIONS
         .iter()
-        .zip(present)
-        .filter(|(_, p)| *p)
-        .map(|((_, title), _)| *title)
+        .filter(|(id, _)| has_content(study, id))
+        .map(|(_, title)| *title)
         .collect()
+}
+
+/// Whether the inputs gave section `id` something to show.
+fn has_content(study: &Study, id: &str) -> bool {
+    match id {
+        "predictions" => !study.predictions.is_empty(),
+        "corpus" => study.corpus.is_some(),
+        "tokenizers" => !study.tokenizers.is_empty(),
+        "sweep" => study.sweep.is_some(),
+        "isoflop" | "laws" => study.fits.is_some(),
+        _ => study.replay.is_some(),
+    }
 }
 
 /// The planner's replay: each policy's summary against the full table, and its curves.
@@ -520,7 +528,9 @@ fn laws(path: &str, f: &Fits) -> Result<String> {
     s.push_str(&list("Input notes:", "", &f.input.notes));
     s.push_str(&list("Fits not done:", "warn", &f.skipped));
     s.push_str(&list("Warnings:", "warn", &f.warnings));
-    s.push_str(&charts(f, |k| !k.starts_with("isoflop"))?);
+    s.push_str(&charts(f, |k| {
+        !k.starts_with("isoflop") && k != PREDICTION_CHART
+    })?);
     Ok(s)
 }
 
@@ -529,113 +539,134 @@ fn laws(path: &str, f: &Fits) -> Result<String> {
 fn checks_of_the_law(f: &Fits) -> String {
     let mut s = String::new();
     if !f.agreement.is_empty() {
-        let rows = f.agreement.iter().map(|a| {
-            let overlap = match a.overlap {
-                Some(true) => "yes",
-                Some(false) => "no",
-                None => "n/a",
-            };
-            let class = (a.overlap == Some(false)).then_some("fail");
-            let cells = vec![
-                format!("{} ∝ C^", a.quantity),
-                estimate_text(&a.isoflop),
-                estimate_text(&a.parametric),
-                overlap.to_string(),
-            ];
-            (class, cells)
-        });
-        s.push_str("<h3>Approach 2 (IsoFLOP minima) vs approach 3 (parametric)</h3>");
-        let head = ["exponent", "approach 2", "approach 3", "intervals overlap"];
-        s.push_str(&table("", &head, rows));
+        s.push_str(&approaches(f));
     }
     if let Some(t) = &f.total_n {
-        let exponent = |g: &Fits, k: &str| {
-            g.power_laws
-                .get(k)
-                .map_or("–".into(), |l| estimate_text(&l.fit.slope))
-        };
-        let row = |name: &str, g: &Fits| {
-            let p = g.parametric.as_ref();
-            let cells = vec![
-                name.to_string(),
-                exponent(g, "n_opt_vs_c"),
-                exponent(g, "d_opt_vs_c"),
-                p.map_or("–".into(), |p| estimate_text(&p.n_opt_exponent)),
-            ];
-            (None, cells)
-        };
-        s.push_str("<h3>Parameter conventions</h3>");
-        let head = [
-            "N counts",
-            "N_opt ∝ C^ (approach 2)",
-            "D_opt ∝ C^",
-            "N_opt ∝ C^ (approach 3)",
-        ];
-        let rows = [
-            row("non-vocabulary (N_nv)", f),
-            row("every parameter (N_nv + N_v)", t),
-        ];
-        s.push_str(&table("", &head, rows));
+        s.push_str(&conventions(f, t));
     }
     if let Some(r) = &f.repeated_data {
-        let _ = write!(
-            s,
-            "<h3>Data-constrained L({}, D')</h3><p>R*_D = {}{}, α = {}, β = {} ({} of {} runs repeat data, up to {:.1} epochs).{}{}</p>",
-            if r.r_star_n.is_some() { "N'" } else { "N" },
-            esc(&estimate_text(&r.r_star)),
-            r.r_star_n.as_ref().map_or(String::new(), |rn| format!(
-                ", R*_N = {} ({} runs larger than U_N)",
-                esc(&estimate_text(rn)),
-                r.past_base_size
-            )),
-            esc(&estimate_text(&r.law.alpha)),
-            esc(&estimate_text(&r.law.beta)),
-            r.repeated_runs,
-            r.n_runs,
-            r.max_epochs,
-            r.exchange.as_ref().map_or(String::new(), |rho| format!(
-                " A synthetic token is worth {} captured tokens.",
-                esc(&estimate_text(rho))
-            )),
-            r.held_out.as_ref().map_or(String::new(), |h| format!(
-                " Leave-one-budget-out RMS log error: plain {}, data-constrained {}.",
-                sig(h.plain_rms),
-                sig(h.repeated_rms)
-            ))
-        );
+        s.push_str(&repeated_data(r));
     }
     if let Some(h) = &f.holdout {
-        let rows = h.checks.iter().map(|c| {
-            let inside = c
-                .inside
-                .map_or("n/a", |i| if i { "inside" } else { "outside" });
-            let class = (c.inside == Some(false)).then_some("fail");
-            let cells = vec![
-                c.quantity.clone(),
-                estimate_text(&c.predicted),
-                sig(c.trained),
-                format!("{:.3}", c.ratio),
-                inside.to_string(),
-            ];
-            (class, cells)
-        });
-        let _ = write!(
-            s,
-            "<h3>Held-out budget C = {} ({} runs, not fitted)</h3>",
-            sig(h.budget),
-            h.runs
-        );
-        let head = [
-            "quantity",
-            "predicted [95% prediction interval]",
-            "trained",
-            "ratio",
-            "",
-        ];
-        s.push_str(&table("", &head, rows));
-        s.push_str(&list("Not predicted:", "warn", &h.missing));
+        s.push_str(&holdout(h));
     }
     s
+}
+
+/// The exponents of approach 2 (IsoFLOP minima) against approach 3 (parametric).
+fn approaches(f: &Fits) -> String {
+    let rows = f.agreement.iter().map(|a| {
+        let overlap = match a.overlap {
+            Some(true) => "yes",
+            Some(false) => "no",
+            None => "n/a",
+        };
+        let class = (a.overlap == Some(false)).then_some("fail");
+        let cells = vec![
+            format!("{} ∝ C^", a.quantity),
+            estimate_text(&a.isoflop),
+            estimate_text(&a.parametric),
+            overlap.to_string(),
+        ];
+        (class, cells)
+    });
+    let head = ["exponent", "approach 2", "approach 3", "intervals overlap"];
+    format!(
+        "<h3>Approach 2 (IsoFLOP minima) vs approach 3 (parametric)</h3>{}",
+        table("", &head, rows)
+    )
+}
+
+/// The exponents of the fit `f` (N counts non-vocabulary parameters) beside those of `total`
+/// (N counts every parameter).
+fn conventions(f: &Fits, total: &Fits) -> String {
+    let exponent = |g: &Fits, k: &str| {
+        g.power_laws
+            .get(k)
+            .map_or("–".into(), |l| estimate_text(&l.fit.slope))
+    };
+    let row = |name: &str, g: &Fits| {
+        let p = g.parametric.as_ref();
+        let cells = vec![
+            name.to_string(),
+            exponent(g, "n_opt_vs_c"),
+            exponent(g, "d_opt_vs_c"),
+            p.map_or("–".into(), |p| estimate_text(&p.n_opt_exponent)),
+        ];
+        (None, cells)
+    };
+    let head = [
+        "N counts",
+        "N_opt ∝ C^ (approach 2)",
+        "D_opt ∝ C^",
+        "N_opt ∝ C^ (approach 3)",
+    ];
+    let rows = [
+        row("non-vocabulary (N_nv)", f),
+        row("every parameter (N_nv + N_v)", total),
+    ];
+    format!("<h3>Parameter conventions</h3>{}", table("", &head, rows))
+}
+
+/// The data-constrained law L(N, D'): its constants, the exchange rate of synthetic tokens and
+/// its leave-one-budget-out error against the plain law.
+fn repeated_data(r: &RepeatedData) -> String {
+    format!(
+        "<h3>Data-constrained L({}, D')</h3><p>R*_D = {}{}, α = {}, β = {} ({} of {} runs repeat data, up to {:.1} epochs).{}{}</p>",
+        if r.r_star_n.is_some() { "N'" } else { "N" },
+        esc(&estimate_text(&r.r_star)),
+        r.r_star_n.as_ref().map_or(String::new(), |rn| format!(
+            ", R*_N = {} ({} runs larger than U_N)",
+            esc(&estimate_text(rn)),
+            r.past_base_size
+        )),
+        esc(&estimate_text(&r.law.alpha)),
+        esc(&estimate_text(&r.law.beta)),
+        r.repeated_runs,
+        r.n_runs,
+        r.max_epochs,
+        r.exchange.as_ref().map_or(String::new(), |rho| format!(
+            " A synthetic token is worth {} captured tokens.",
+            esc(&estimate_text(rho))
+        )),
+        r.held_out.as_ref().map_or(String::new(), |h| format!(
+            " Leave-one-budget-out RMS log error: plain {}, data-constrained {}.",
+            sig(h.plain_rms),
+            sig(h.repeated_rms)
+        ))
+    )
+}
+
+/// The held-out budget's trained optimum against what the laws predicted for it.
+fn holdout(h: &Holdout) -> String {
+    let rows = h.checks.iter().map(|c| {
+        let inside = c
+            .inside
+            .map_or("n/a", |i| if i { "inside" } else { "outside" });
+        let class = (c.inside == Some(false)).then_some("fail");
+        let cells = vec![
+            c.quantity.clone(),
+            estimate_text(&c.predicted),
+            sig(c.trained),
+            format!("{:.3}", c.ratio),
+            inside.to_string(),
+        ];
+        (class, cells)
+    });
+    let head = [
+        "quantity",
+        "predicted [95% prediction interval]",
+        "trained",
+        "ratio",
+        "",
+    ];
+    format!(
+        "<h3>Held-out budget C = {} ({} runs, not fitted)</h3>{}{}",
+        sig(h.budget),
+        h.runs,
+        table("", &head, rows),
+        list("Not predicted:", "warn", &h.missing)
+    )
 }
 
 /// An integer in full below 10^5, else in scientific notation like [`sig`].
@@ -651,9 +682,11 @@ fn r2(r2: Option<f64>) -> String {
     r2.map_or("n/a".into(), |v| format!("{v:.4}"))
 }
 
-fn predictions(study: &Study) -> String {
+/// The predictions at each budget with predict's verdict on them, the chart of the law they
+/// extrapolate, and the consistency checks between the laws.
+fn predictions(study: &Study) -> Result<String> {
     if study.predictions.is_empty() {
-        return absent("fit to predict from");
+        return Ok(absent("fit to predict from"));
     }
     let mut s = String::new();
     for (budget, p) in &study.predictions {
@@ -665,13 +698,48 @@ fn predictions(study: &Study) -> String {
             }
         }
     }
-    s
+    if let Some((_, f)) = &study.fits {
+        s.push_str(&charts(f, |k| k == PREDICTION_CHART)?);
+    }
+    for (budget, p) in &study.predictions {
+        if let Ok(p) = p {
+            let _ = write!(
+                s,
+                "<p>Consistency checks between the laws at C = {} FLOPs:</p>{}",
+                sig(*budget),
+                consistency(p)
+            );
+        }
+    }
+    Ok(s)
 }
 
+/// The predicted quantities with their 95% intervals, then predict's verdict on them.
 fn prediction(p: &Prediction) -> String {
     let rows = crate::fit::prediction_rows(p)
         .into_iter()
         .map(|(name, value)| (None, vec![name.to_string(), value]));
+    format!(
+        "{}{}",
+        table("kv", &["quantity", "prediction [95% interval]"], rows),
+        verdict(p)
+    )
+}
+
+/// predict's verdict on `p`: its warnings (intervals too wide to act on, laws that disagree),
+/// or that it has none.
+fn verdict(p: &Prediction) -> String {
+    if p.warnings.is_empty() {
+        return "<p class=\"verdict\">Verdict: no warnings from predict.</p>".into();
+    }
+    format!(
+        "<div class=\"verdict\">{}</div>",
+        list("Verdict:", "warn", &p.warnings)
+    )
+}
+
+/// The consistency checks between the laws at `p`'s budget, failed ones highlighted.
+fn consistency(p: &Prediction) -> String {
     let checks = p.consistency.iter().map(|c| {
         let cells = vec![
             c.name.clone(),
@@ -683,14 +751,9 @@ fn prediction(p: &Prediction) -> String {
         ];
         ((!c.ok).then_some("fail"), cells)
     });
-    format!(
-        "{}<p>Consistency checks between the laws:</p>{}{}",
-        table("kv", &["quantity", "prediction [95% interval]"], rows),
-        table(
-            "",
-            &["check", "value", "reference", "ratio", "rule", "result"],
-            checks
-        ),
-        list("Warnings:", "warn", &p.warnings)
+    table(
+        "",
+        &["check", "value", "reference", "ratio", "rule", "result"],
+        checks,
     )
 }

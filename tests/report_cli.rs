@@ -1,8 +1,10 @@
 //! `motionscale report` on the committed scaling sweep (`docs/results/scaling-sweep`: plan,
 //! results table, fits.json, tokenizer evaluations) and a small synthetic corpus: the page
-//! holds every section, the fit's laws and charts inline and nothing external; headless
-//! Chromium renders it at 1280 px with no console output, a non-blank screenshot, no
-//! horizontal overflow, charts at full width and no text below 12 px.
+//! opens with the predictions, predict's verdict and the law they extrapolate, then holds
+//! every other section, the fit's laws and charts inline and nothing external; headless
+//! Chromium renders it at 1280 px with no console output, a non-blank screenshot, the first
+//! prediction and its verdict on the first screen (900 px), no horizontal overflow, charts at
+//! full width and no text below 12 px.
 
 mod common;
 
@@ -25,9 +27,14 @@ pre.textContent = JSON.stringify({
   svgs: svgs.length,
   min_svg_width: Math.min(...svgs.map(r => r.width)),
   max_svg_right: Math.max(...svgs.map(r => r.right)),
+  prediction_bottom: document.querySelector('#predictions table').getBoundingClientRect().bottom,
+  verdict_bottom: document.querySelector('#predictions .verdict').getBoundingClientRect().bottom,
 });
 document.body.appendChild(pre);
 </script></body>"#;
+
+/// The height of the first screen (a 1280 × 900 window), where the answer must be.
+const FIRST_SCREEN_PX: f64 = 900.0;
 
 /// The Chromium binary, or `None` (a recorded skip; a failure in strict runs).
 fn chromium() -> Option<&'static str> {
@@ -123,19 +130,20 @@ fn report_of_the_committed_sweep_renders_in_headless_chromium() {
     for external in ["<script", "src=", "url(", "@import", "<link", "href=\"http"] {
         assert!(!html.contains(external), "the page holds {external:?}");
     }
-    for id in [
-        "corpus",
-        "tokenizers",
-        "sweep",
-        "isoflop",
-        "laws",
-        "predictions",
-    ] {
-        assert!(
-            html.contains(&format!("<section id=\"{id}\">")),
-            "section {id}"
-        );
+    // The answer first: the predictions before every other section, each budget's verdict
+    // (the committed fit's intervals are too wide at 1e18) and the law chart in its section.
+    let section = |id: &str| {
+        html.find(&format!("<section id=\"{id}\">"))
+            .unwrap_or_else(|| panic!("section {id}"))
+    };
+    let predictions = section("predictions");
+    for id in ["corpus", "tokenizers", "sweep", "isoflop", "laws"] {
+        assert!(predictions < section(id), "predictions after {id}");
     }
+    let answer = &html[predictions..section("corpus")];
+    assert_eq!(answer.matches("class=\"verdict\"").count(), 2, "{answer}");
+    assert!(answer.contains("too wide to act on"), "{answer}");
+    assert_eq!(answer.matches("<svg").count(), 1, "the law chart: {answer}");
     assert!(
         !html.contains("class=\"absent\""),
         "every section has content"
@@ -205,5 +213,9 @@ fn report_of_the_committed_sweep_renders_in_headless_chromium() {
     assert!(
         num("max_svg_right") <= 1280.0,
         "a chart overflows: {layout}"
+    );
+    assert!(
+        num("prediction_bottom") <= FIRST_SCREEN_PX && num("verdict_bottom") <= FIRST_SCREEN_PX,
+        "the first prediction and its verdict below the first screen: {layout}"
     );
 }
