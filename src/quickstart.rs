@@ -118,16 +118,34 @@ pub fn quickstart(args: QuickstartArgs) -> Result<ExitCode> {
     let model = best_run(&sweep)?;
     let bvh = generate_steps(&mut steps, &args, &out, &model, &tokenizer)?;
     eval_steps(&mut steps, &args, &out, &corpus, &model, &tokenizer)?;
+    let report = report_step(&mut steps, &args, &out, &corpus, &sweep, &eval_json)?;
 
+    let secs = steps.started.elapsed().as_secs();
+    println!("\nquickstart done in {}:{:02}", secs / 60, secs % 60);
+    println!("report:          {}", report.display());
+    println!("generated BVH:   {} (\"{}\")", bvh.display(), args.caption);
+    print_prediction(&sweep, args.budget)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Step 12: the HTML report of the corpus, the sweep and the tokenizer's test metrics.
+fn report_step(
+    steps: &mut Steps,
+    args: &QuickstartArgs,
+    out: &Path,
+    corpus: &Path,
+    sweep: &Path,
+    eval_json: &Path,
+) -> Result<PathBuf> {
     steps.step("the HTML report");
     let report = out.join("report.html");
     let budget = args.budget.to_string();
     steps.run(
         &args![
             "report",
-            &sweep,
-            &corpus,
-            &eval_json,
+            sweep,
+            corpus,
+            eval_json,
             "--budgets",
             &budget,
             "--out",
@@ -135,23 +153,31 @@ pub fn quickstart(args: QuickstartArgs) -> Result<ExitCode> {
         ],
         &[0],
     )?;
+    Ok(report)
+}
 
+/// The closing summary's last lines: the sweep's prediction at `budget` and under the numbers
+/// predict's verdict on them (its warnings), so that the output ends on the answer with its
+/// caveats, not on numbers whose warnings scrolled past with the predict step.
+fn print_prediction(sweep: &Path, budget: f64) -> Result<()> {
     let laws = fits::Laws::read(&sweep.join("fits").join("fits.json"))?;
     let opts = fits::PredictOptions {
-        budget: args.budget,
+        budget,
         width: None,
         vocab: None,
     };
     let prediction = fits::predict(&laws, &opts)?;
-    let secs = steps.started.elapsed().as_secs();
-    println!("\nquickstart done in {}:{:02}", secs / 60, secs % 60);
-    println!("report:          {}", report.display());
-    println!("predicted optimum at C = {:.1e} FLOPs:", args.budget);
+    println!("predicted optimum at C = {budget:.1e} FLOPs:");
     for (name, value) in crate::fit::prediction_rows(&prediction) {
         println!("  {name:<22} {value}");
     }
-    println!("generated BVH:   {} (\"{}\")", bvh.display(), args.caption);
-    Ok(ExitCode::SUCCESS)
+    if prediction.warnings.is_empty() {
+        println!("  verdict: no warnings from predict");
+    }
+    for warning in &prediction.warnings {
+        println!("  verdict: {warning}");
+    }
+    Ok(())
 }
 
 /// Steps 1–3: the corpus (synthetic + Bandai set 1), verified, its captions embedded.
@@ -427,35 +453,8 @@ fn eval_steps(
     model: &Path,
     tokenizer: &Path,
 ) -> Result<()> {
+    let evaluator = evaluator_step(steps, args, out, corpus)?;
     let seed = args.seed.to_string();
-    steps.step("a small text–motion evaluator");
-    let evaluator = out.join("evaluator");
-    steps.run(
-        &args![
-            "evaluator",
-            "train",
-            "--corpus",
-            corpus,
-            "--out",
-            &evaluator,
-            "--hidden",
-            "64",
-            "--embed-dim",
-            "64",
-            "--max-frames",
-            "128",
-            "--batch",
-            "32",
-            "--steps",
-            "300",
-            "--eval-every",
-            "100",
-            "--seed",
-            &seed,
-        ],
-        &[0],
-    )?;
-
     steps.step("generate the test captions and evaluate them");
     let generated = out.join("generated-test");
     steps.run(
@@ -499,4 +498,42 @@ fn eval_steps(
         &[0],
     )?;
     Ok(())
+}
+
+/// Step 10: a small text–motion evaluator trained on the corpus.
+fn evaluator_step(
+    steps: &mut Steps,
+    args: &QuickstartArgs,
+    out: &Path,
+    corpus: &Path,
+) -> Result<PathBuf> {
+    let seed = args.seed.to_string();
+    steps.step("a small text–motion evaluator");
+    let evaluator = out.join("evaluator");
+    steps.run(
+        &args![
+            "evaluator",
+            "train",
+            "--corpus",
+            corpus,
+            "--out",
+            &evaluator,
+            "--hidden",
+            "64",
+            "--embed-dim",
+            "64",
+            "--max-frames",
+            "128",
+            "--batch",
+            "32",
+            "--steps",
+            "300",
+            "--eval-every",
+            "100",
+            "--seed",
+            &seed,
+        ],
+        &[0],
+    )?;
+    Ok(evaluator)
 }
