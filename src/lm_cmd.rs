@@ -8,7 +8,7 @@ use lm::accounting::{Accounting, SequenceShape};
 use lm::generate::Sampling;
 use lm::lm_data::{Limits, LmData};
 use lm::prefix_lm::{PrefixLmConfig, PRESETS};
-use lm::train::{Hyperparams, ModelShape, RunConfig, TrainConfig, TrainEvent};
+use lm::train::{Hyperparams, ModelShape, RunConfig, TrainConfig, TrainEvent, TrainReport};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -486,20 +486,7 @@ impl ComputeArgs {
 /// `motionscale train`.
 pub fn train(args: TrainArgs) -> Result<ExitCode> {
     crate::memory::keep_freed_memory();
-    let mut config = TrainConfig::new(
-        &args.tokens,
-        args.shape.shape()?,
-        args.tokens_budget,
-        &args.out,
-    );
-    config.corpus = args.corpus.clone();
-    config.text_encoder = args.text_emb.clone();
-    config.splits = args.splits.clone();
-    config.hyper = args.hyper.clone();
-    config.stop_after = args.stop_after;
-    config.eval_every = args.eval_every;
-    config.checkpoint_every = args.checkpoint_every;
-    config.compute = args.compute.compute();
+    let config = train_config(&args)?;
     let device = args.device.open()?;
     let bar = crate::commands::progress_bar("train", "steps");
     bar.set_style(
@@ -558,9 +545,33 @@ pub fn train(args: TrainArgs) -> Result<ExitCode> {
         )),
     });
     bar.finish_and_clear();
-    let report = report?;
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
+    print_train_report(&report?, args.json)?;
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The run's configuration from the command line.
+fn train_config(args: &TrainArgs) -> Result<TrainConfig> {
+    let mut config = TrainConfig::new(
+        &args.tokens,
+        args.shape.shape()?,
+        args.tokens_budget,
+        &args.out,
+    );
+    config.corpus = args.corpus.clone();
+    config.text_encoder = args.text_emb.clone();
+    config.splits = args.splits.clone();
+    config.hyper = args.hyper.clone();
+    config.stop_after = args.stop_after;
+    config.eval_every = args.eval_every;
+    config.checkpoint_every = args.checkpoint_every;
+    config.compute = args.compute.compute();
+    Ok(config)
+}
+
+/// The finished run: its report as JSON, or one line of its final evaluation.
+fn print_train_report(report: &TrainReport, json: bool) -> Result<()> {
+    if json {
+        println!("{}", serde_json::to_string_pretty(report)?);
     } else {
         let e = &report.eval;
         println!(
@@ -577,7 +588,7 @@ pub fn train(args: TrainArgs) -> Result<ExitCode> {
             report.out.display()
         );
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(())
 }
 
 fn check_vocab(expected: Option<usize>, run: &RunConfig) {

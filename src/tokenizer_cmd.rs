@@ -464,6 +464,18 @@ pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
         },
     )?;
     bar.finish_and_clear();
+    print_sweep_table(&rows, &args.split);
+    println!(
+        "{} runs in {:.1} s → {}",
+        rows.len(),
+        started.elapsed().as_secs_f64(),
+        args.out.join("sweep.csv").display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The sweep's rows as a text table: the training figures, then those on the `split`.
+fn print_sweep_table(rows: &[experiments::codebook_sweep::SweepRow], split: &str) {
     println!(
         "{:<6} {:>8} {:>8} {:>10} {:>10} {:>8} | {} split: {:>8} {:>6} {:>9} {:>9} {:>8} {:>8}",
         "quant",
@@ -472,7 +484,7 @@ pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
         "train util%",
         "perplexity",
         "entropy",
-        args.split,
+        split,
         "N/K",
         "util%",
         "uniform%",
@@ -480,7 +492,7 @@ pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
         "root_mm",
         "mpjpe_mm"
     );
-    for r in &rows {
+    for r in rows {
         println!(
             "{:<6} {:>8} {:>8} {:>11.1} {:>10.1} {:>8.3} | {:>w$} {:>8.1} {:>6.1} {:>9.1} {:>9.4} {:>8.1} {:>8.1}",
             r.quantizer,
@@ -496,14 +508,7 @@ pub fn sweep_cmd(args: SweepArgs) -> Result<ExitCode> {
             r.recon_l1,
             r.mpjpe_root_mm,
             r.mpjpe_mm,
-            w = args.split.len() + 7
+            w = split.len() + 7
         );
     }
-    println!(
-        "{} runs in {:.1} s → {}",
-        rows.len(),
-        started.elapsed().as_secs_f64(),
-        args.out.join("sweep.csv").display()
-    );
-    Ok(ExitCode::SUCCESS)
 }

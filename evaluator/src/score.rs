@@ -452,17 +452,11 @@ pub fn evaluate_motions(
     let text_embedding = caption_space(evaluator, reference, set, encoder)?;
     let reference_embeddings = match options.halves {
         true => Vec::new(),
-        false => {
-            let motions: Vec<&[f32]> = reference.motions.iter().map(features).collect();
-            evaluator.embed_motions(&motions, 128)?.embeddings
-        }
+        false => motion_predictions(evaluator, reference)?.embeddings,
     };
     let clean = match options.noise > 0.0 {
         true => None,
-        false => {
-            let motions: Vec<&[f32]> = set.motions.iter().map(features).collect();
-            Some(evaluator.embed_motions(&motions, 128)?)
-        }
+        false => Some(motion_predictions(evaluator, set)?),
     };
     let config = &evaluator.net.config;
     let group_list: Vec<&Vec<usize>> = groups.values().collect();
@@ -475,69 +469,35 @@ pub fn evaluate_motions(
         let predictions = match &clean {
             Some(p) => p,
             None => {
-                let noisy: Vec<Vec<f32>> = set
-                    .motions
-                    .iter()
-                    .map(|m| add_noise(&m.clip.features, evaluator, options.noise, &mut rng))
-                    .collect();
-                let motions: Vec<&[f32]> = noisy.iter().map(Vec::as_slice).collect();
-                noisy_predictions = evaluator.embed_motions(&motions, 128)?;
+                noisy_predictions =
+                    noisy_motion_predictions(evaluator, set, options.noise, &mut rng)?;
                 &noisy_predictions
             }
         };
-        // One motion per group and one of its captions, in a random order.
-        let mut picks: Vec<usize> = group_list.iter().map(|g| g[rng.index(g.len())]).collect();
-        rng.shuffle(&mut picks);
-        let mut texts: Vec<&str> = picks
-            .iter()
-            .map(|&i| {
-                let c = &set.motions[i].clip.captions;
-                c[rng.index(c.len())].as_str()
-            })
-            .collect();
-        if options.shuffle_captions {
-            rng.shuffle(&mut texts);
-        }
+        let (picks, texts) = draw_pairs(&group_list, set, options.shuffle_captions, &mut rng);
         let embedding = |i: usize| predictions.embeddings[i].clone();
-        let (matched, fid) = if options.halves {
-            let half = picks.len() / 2;
-            let a: Vec<Vec<f32>> = picks[..half].iter().map(|&i| embedding(i)).collect();
-            let b: Vec<Vec<f32>> = picks[half..2 * half]
-                .iter()
-                .map(|&i| embedding(i))
-                .collect();
-            (half, metrics::fid(&a, &b))
-        } else {
-            let a: Vec<Vec<f32>> = picks.iter().map(|&i| embedding(i)).collect();
-            (picks.len(), metrics::fid(&a, &reference_embeddings))
+        let (matched, fid) = match options.halves {
+            true => fid_of_halves(&picks, predictions),
+            false => {
+                let a: Vec<Vec<f32>> = picks.iter().map(|&i| embedding(i)).collect();
+                (picks.len(), metrics::fid(&a, &reference_embeddings))
+            }
         };
         push("fid", fid);
-        let motion_rows: Vec<Vec<f32>> = picks[..matched].iter().map(|&i| embedding(i)).collect();
-        let text_rows: Vec<Vec<f32>> = texts[..matched]
-            .iter()
-            .map(|t| text_embedding[*t].clone())
-            .collect();
-        let r = metrics::r_precision::<3>(&text_rows, &motion_rows, options.pool);
+        let pairs = (&picks[..matched], &texts[..matched]);
+        let (r, matching) = text_metrics(pairs, predictions, &text_embedding, options.pool);
         push("top1", r[0]);
         push("top2", r[1]);
         push("top3", r[2]);
-        push(
-            "matching",
-            metrics::matching_score(&text_rows, &motion_rows),
-        );
+        push("matching", matching);
         let all: Vec<Vec<f32>> = picks.iter().map(|&i| embedding(i)).collect();
         if let Some(d) = metrics::diversity(&all, options.diversity_pairs, &mut rng) {
             push("diversity", d);
         }
-        let mm_groups: Vec<Vec<Vec<f32>>> = group_list
-            .iter()
-            .filter(|g| g.len() >= options.multimodality_samples)
-            .map(|g| g.iter().map(|&i| embedding(i)).collect())
-            .collect();
-        multimodality_groups = mm_groups.len();
-        if let Some(mm) =
-            metrics::multimodality(&mm_groups, options.multimodality_samples, &mut rng)
-        {
+        let samples = options.multimodality_samples;
+        let (groups_scored, mm) = multimodality(&group_list, predictions, samples, &mut rng);
+        multimodality_groups = groups_scored;
+        if let Some(mm) = mm {
             push("multimodality", mm);
         }
         let (emotion_f1, action_accuracy) = classifier_scores(config, set, &picks, predictions);
@@ -557,6 +517,106 @@ pub fn evaluate_motions(
         values,
         counts,
     )
+}
+
+/// The evaluator's predictions for every motion of `set`.
+fn motion_predictions(
+    evaluator: &TrainedEvaluator,
+    set: &MotionSet,
+) -> Result<MotionPredictions, ModelError> {
+    let motions: Vec<&[f32]> = set.motions.iter().map(features).collect();
+    evaluator.embed_motions(&motions, 128)
+}
+
+/// The evaluator's predictions for every motion of `set` with Gaussian noise of standard
+/// deviation `noise` added to its normalised features (the check that FID grows with noise).
+fn noisy_motion_predictions(
+    evaluator: &TrainedEvaluator,
+    set: &MotionSet,
+    noise: f64,
+    rng: &mut SplitMix64,
+) -> Result<MotionPredictions, ModelError> {
+    let noisy: Vec<Vec<f32>> = set
+        .motions
+        .iter()
+        .map(|m| add_noise(&m.clip.features, evaluator, noise, rng))
+        .collect();
+    let motions: Vec<&[f32]> = noisy.iter().map(Vec::as_slice).collect();
+    evaluator.embed_motions(&motions, 128)
+}
+
+/// One motion per group and one of its captions, in a random order (the captions shuffled
+/// apart from their motions when `shuffle_captions`, the check that retrieval falls to chance).
+fn draw_pairs<'a>(
+    groups: &[&Vec<usize>],
+    set: &'a MotionSet,
+    shuffle_captions: bool,
+    rng: &mut SplitMix64,
+) -> (Vec<usize>, Vec<&'a str>) {
+    let mut picks: Vec<usize> = groups.iter().map(|g| g[rng.index(g.len())]).collect();
+    rng.shuffle(&mut picks);
+    let mut texts: Vec<&str> = picks
+        .iter()
+        .map(|&i| {
+            let c = &set.motions[i].clip.captions;
+            c[rng.index(c.len())].as_str()
+        })
+        .collect();
+    if shuffle_captions {
+        rng.shuffle(&mut texts);
+    }
+    (picks, texts)
+}
+
+/// FID between the two halves of `picks` (the set against itself), with the half's size:
+/// the number of pairs the text metrics use.
+fn fid_of_halves(picks: &[usize], predictions: &MotionPredictions) -> (usize, f64) {
+    let embedding = |i: usize| predictions.embeddings[i].clone();
+    let half = picks.len() / 2;
+    let a: Vec<Vec<f32>> = picks[..half].iter().map(|&i| embedding(i)).collect();
+    let b: Vec<Vec<f32>> = picks[half..2 * half]
+        .iter()
+        .map(|&i| embedding(i))
+        .collect();
+    (half, metrics::fid(&a, &b))
+}
+
+/// R-precision at 1–3 and the matching score of the motions `pairs.0` against their captions
+/// `pairs.1`, in retrieval pools of `pool`.
+fn text_metrics(
+    pairs: (&[usize], &[&str]),
+    predictions: &MotionPredictions,
+    text_embedding: &HashMap<String, Vec<f32>>,
+    pool: usize,
+) -> ([f64; 3], f64) {
+    let (picks, texts) = pairs;
+    let motion_rows: Vec<Vec<f32>> = picks
+        .iter()
+        .map(|&i| predictions.embeddings[i].clone())
+        .collect();
+    let text_rows: Vec<Vec<f32>> = texts.iter().map(|t| text_embedding[*t].clone()).collect();
+    let r = metrics::r_precision::<3>(&text_rows, &motion_rows, pool);
+    (r, metrics::matching_score(&text_rows, &motion_rows))
+}
+
+/// Multimodality over the groups with at least `samples` motions, with how many there are.
+fn multimodality(
+    groups: &[&Vec<usize>],
+    predictions: &MotionPredictions,
+    samples: usize,
+    rng: &mut SplitMix64,
+) -> (usize, Option<f64>) {
+    let mm_groups: Vec<Vec<Vec<f32>>> = groups
+        .iter()
+        .filter(|g| g.len() >= samples)
+        .map(|g| {
+            g.iter()
+                .map(|&i| predictions.embeddings[i].clone())
+                .collect()
+        })
+        .collect();
+    let mm = metrics::multimodality(&mm_groups, samples, rng);
+    (mm_groups.len(), mm)
 }
 
 /// Every motion of a set in the evaluator's space, with the first caption's embedding and
@@ -584,9 +644,8 @@ pub fn embed_set(
         .collect();
     let tokens = caption_embeddings(&first, &stored, encoder)?;
     let rows: Vec<&[f32]> = first.iter().map(|c| tokens[c].as_slice()).collect();
-    let motions: Vec<&[f32]> = set.motions.iter().map(features).collect();
     Ok(SetEmbeddings {
-        motions: evaluator.embed_motions(&motions, 128)?,
+        motions: motion_predictions(evaluator, set)?,
         texts: evaluator.embed_texts(&rows, 128)?,
     })
 }

@@ -539,23 +539,8 @@ fn vocabularies_and_data(
 
 /// Plan every (budget, model, vocabulary) point of `request`.
 pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
+    check_grid(request)?;
     let grid = !request.budgets.is_empty();
-    if (grid || request.extend.is_none())
-        && (!grid || request.models.is_empty() || request.vocabularies.is_empty())
-    {
-        return Err(SweepError::Argument(
-            "a plan needs at least one budget, model and vocabulary (or --extend)".into(),
-        ));
-    }
-    if let Some(b) = request
-        .budgets
-        .iter()
-        .find(|b| !(b.is_finite() && **b > 0.0))
-    {
-        return Err(SweepError::Argument(format!(
-            "budget {b} must be a positive number"
-        )));
-    }
     let corpus =
         std::fs::canonicalize(&request.corpus).map_err(|e| SweepError::io(&request.corpus, e))?;
     let text_encoder = text::resolve_encoder(&corpus, request.text_encoder.as_deref())?;
@@ -604,18 +589,8 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
                 if !(request.only.is_empty() || request.only.contains(&point.run_id)) {
                     continue;
                 }
-                match request.max_epochs {
-                    Some(limit) if point.epochs > limit.epochs && limit.drop => {
-                        warnings.push(format!(
-                            "dropped {}: {:.1} epochs of the train split > --max-epochs {}",
-                            point.run_id, point.epochs, limit.epochs
-                        ));
-                        continue;
-                    }
-                    Some(limit) if point.epochs > limit.epochs => {
-                        point.flags.push(PointFlag::AboveMaxEpochs)
-                    }
-                    _ => {}
+                if !within_max_epochs(&mut point, request, &mut warnings) {
+                    continue;
                 }
                 point.index = points.len();
                 points.push(point);
@@ -642,6 +617,52 @@ pub fn plan(request: &PlanRequest) -> Result<IsoFlopPlan, SweepError> {
     plan.add_repeats(&request.repeat, &request.repeat_seeds)?;
     plan.validate(Path::new("plan"))?;
     Ok(plan)
+}
+
+/// Fails unless `request` has a grid to plan (a budget, a model and a vocabulary) or a plan
+/// to extend, and only positive budgets.
+fn check_grid(request: &PlanRequest) -> Result<(), SweepError> {
+    let grid = !request.budgets.is_empty();
+    if (grid || request.extend.is_none())
+        && (!grid || request.models.is_empty() || request.vocabularies.is_empty())
+    {
+        return Err(SweepError::Argument(
+            "a plan needs at least one budget, model and vocabulary (or --extend)".into(),
+        ));
+    }
+    if let Some(b) = request
+        .budgets
+        .iter()
+        .find(|b| !(b.is_finite() && **b > 0.0))
+    {
+        return Err(SweepError::Argument(format!(
+            "budget {b} must be a positive number"
+        )));
+    }
+    Ok(())
+}
+
+/// Whether `point` stays in the plan under `--max-epochs`: one above the limit is flagged, or
+/// dropped with a warning when the request says so.
+fn within_max_epochs(
+    point: &mut PlanPoint,
+    request: &PlanRequest,
+    warnings: &mut Vec<String>,
+) -> bool {
+    match request.max_epochs {
+        Some(limit) if point.epochs > limit.epochs && limit.drop => {
+            warnings.push(format!(
+                "dropped {}: {:.1} epochs of the train split > --max-epochs {}",
+                point.run_id, point.epochs, limit.epochs
+            ));
+            false
+        }
+        Some(limit) if point.epochs > limit.epochs => {
+            point.flags.push(PointFlag::AboveMaxEpochs);
+            true
+        }
+        _ => true,
+    }
 }
 
 /// The point of `budget`, model `name` and `vocab`, on `data` (a subset and its loss
