@@ -150,6 +150,20 @@ pub struct FitArgs {
     /// error|).
     #[arg(long, value_name = "FILE", requires = "law")]
     pub test: Option<PathBuf>,
+    /// With one --law and --test: replay a design that buys runs of the table (the pool) up to
+    /// each cap, a share of the pool's cost 6·(N + N_v)·D, to predict the --test points
+    /// (greedy V-optimal from a seeded cheap start); prints the target-region R² per cap
+    /// over --replay-seeds and writes OUT/replays.json.
+    #[arg(
+        long,
+        value_name = "SHARE[,SHARE…]",
+        value_delimiter = ',',
+        requires = "test"
+    )]
+    pub replay: Vec<f64>,
+    /// Seeds of each cap's replays.
+    #[arg(long, default_value_t = 10, value_name = "N", requires = "replay")]
+    pub replay_seeds: u64,
 }
 
 /// How `fit --law` ranks the families.

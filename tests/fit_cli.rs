@@ -405,7 +405,7 @@ fn fit_law_all_on_scalebench_beats_the_all_data_rows() {
                 "--loss-col",
                 "unigram_normalized_loss",
             ],
-            "vocab",
+            "vocab-effective",
             0.93,
         ),
         (
@@ -468,7 +468,7 @@ fn fit_law_names_an_unknown_family_and_a_missing_axis() {
     args.extend_from_slice(&[arg(&out), "--law", "chinchila"]);
     fails_with(
         &motionscale(&args),
-        "--law \"chinchila\": the laws are chinchilla, data-constrained, vocab, farseer (or all)",
+        "--law \"chinchila\": the laws are chinchilla, data-constrained, vocab, vocab-effective, farseer (or all)",
     );
     let mut args = base.to_vec();
     args.extend_from_slice(&[arg(&out), "--law", "data-constrained"]);

@@ -170,6 +170,8 @@ pub trait Family: Sync {
     fn equation(&self) -> &'static str;
     /// The axes it reads.
     fn needs(&self) -> &'static [Axis];
+    /// Parameters fitted.
+    fn param_count(&self) -> usize;
     /// Why the family cannot be fitted to these runs (`None`: it can).
     fn refusal(&self, rows: &[Point], loss: &[f64]) -> Option<String>;
     /// Fits the runs with row weights `weights` (`None`: all 1) and clusters for the
@@ -381,6 +383,10 @@ impl<const P: usize, L: Law<P>> Family for Declared<L, P> {
 
     fn needs(&self) -> &'static [Axis] {
         self.0.needs()
+    }
+
+    fn param_count(&self) -> usize {
+        P
     }
 
     fn refusal(&self, rows: &[Point], loss: &[f64]) -> Option<String> {

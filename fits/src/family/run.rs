@@ -1,6 +1,7 @@
 //! `fit --law`: the named families (or every one the columns allow) fitted to a table,
 //! ranked by held-out error, the best adopted, and optionally scored on a held-out table.
 
+use super::design::{replay, Policy, Replay};
 use super::engine::{Family, FamilyFit, Settings, Space};
 use super::select::{rank, score, Holdout, Ranking, Score};
 use super::vpnls::{lobo, LoboPoint};
@@ -326,4 +327,72 @@ fn n_opt_lobo_lines(points: &[LoboPoint], s: &mut String) {
         mean_abs(&vp),
         vp.len()
     );
+}
+
+/// Replays of [`super::design::replay`] at every cap and seed, with the pool's losses read from
+/// `table` and the target region from `test`.
+pub fn replays(
+    table: &Table,
+    test: &Path,
+    cols: &LawColumns,
+    family: &dyn Family,
+    caps: &[f64],
+    seeds: u64,
+    s: &Settings,
+) -> Result<Vec<Replay>, FitError> {
+    use rayon::prelude::*;
+    let (pool, loss) = read_points(table, cols)?;
+    let (t_rows, t_loss) = read_points(&Table::read(test)?, cols)?;
+    let cost: Vec<f64> = pool.iter().map(Point::compute).collect();
+    let quick = Settings {
+        bootstrap: 0,
+        starts: 16,
+        ..s.clone()
+    };
+    let jobs: Vec<(Policy, f64, u64)> = [Policy::VOptimal, Policy::Random]
+        .into_iter()
+        .flat_map(|p| {
+            caps.iter()
+                .flat_map(move |&c| (0..seeds).map(move |k| (p, c, k)))
+        })
+        .collect();
+    Ok(jobs
+        .par_iter()
+        .map(|&job| replay(family, &pool, &loss, &cost, (&t_rows, &t_loss), job, &quick))
+        .collect())
+}
+
+/// Mean ± SD of the target R² (clipped) per policy and cap, a line each.
+pub fn replay_summary(family: &str, replays: &[Replay]) -> String {
+    use std::fmt::Write;
+    let mut caps: Vec<f64> = replays.iter().map(|r| r.cap).collect();
+    caps.sort_by(f64::total_cmp);
+    caps.dedup();
+    let mut s = format!(
+        "{family}: replays, target-region R² (clipped; a failed fit counts −1) over seeds:\n"
+    );
+    for (policy, name) in [(Policy::VOptimal, "V-optimal"), (Policy::Random, "random")] {
+        for &cap in &caps {
+            let these: Vec<&Replay> = replays
+                .iter()
+                .filter(|r| r.cap == cap && r.policy == policy)
+                .collect();
+            let r2: Vec<f64> = these
+                .iter()
+                .map(|r| r.target.map_or(-1.0, |t| t.r2_clipped))
+                .collect();
+            let n = r2.len() as f64;
+            let mean = r2.iter().sum::<f64>() / n;
+            let sd =
+                (r2.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+            let runs = these.iter().map(|r| r.chosen.len()).sum::<usize>() as f64 / n;
+            let _ = writeln!(
+                s,
+                "  {name:<9} cap {:>5.1}%: R² {mean:.3} ± {sd:.3} ({} seeds, {runs:.0} runs bought on average)",
+                100.0 * cap,
+                r2.len()
+            );
+        }
+    }
+    s
 }
