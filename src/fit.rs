@@ -25,6 +25,10 @@ use std::time::Instant;
     intervals do not overlap), and with an N_v column the whole fit is repeated with N counted \
     as every parameter (N + N_v, `total_n` in fits.json).\n\n\
     Writes OUT/fits.json and plots (isoflop_n, isoflop_v, law_*, log_law; .svg and .png).\n\n\
+    With --law, the named law families instead, on any table (an IsoFLOP grid or not, a \
+    negative loss allowed): each fitted by one engine, ranked by its error on held-out runs, \
+    the best adopted, optionally scored on a --test table and replayed under cost caps \
+    (--replay); writes OUT/laws.json.\n\n\
     Columns default to the sweep's results table: n_nv, tokens, budget, norm_test_loss, \
     test_loss, vocab, n_v, d_model. A default column that is missing only disables what needs \
     it; a column named with a flag must exist."

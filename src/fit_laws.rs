@@ -2,9 +2,11 @@
 
 use crate::fit::{FitArgs, LawSelection};
 use anyhow::{Context, Result};
-use fits::family::engine::Settings;
 use fits::family::engine::Family;
-use fits::family::run::{families, fit_laws as fit_table_laws, replay_summary, replays, LawColumns};
+use fits::family::engine::Settings;
+use fits::family::run::{
+    families, fit_laws as fit_table_laws, replay_summary, replays, LawColumns,
+};
 use fits::family::select::Holdout;
 use fits::fitted::FitOptions;
 use fits::isoflop::group_rows;
@@ -114,12 +116,27 @@ fn replay(
     if let Some(bad) = args.replay.iter().find(|c| !(**c > 0.0 && **c <= 1.0)) {
         anyhow::bail!("--replay {bad}: a cap is a share of the pool's cost in (0, 1]");
     }
-    let test = args.test.as_deref().expect("clap requires --test with --replay");
-    let done = replays(table, test, cols, family.as_ref(), &args.replay, args.replay_seeds, settings)?;
+    let test = args
+        .test
+        .as_deref()
+        .expect("clap requires --test with --replay");
+    let done = replays(
+        table,
+        test,
+        cols,
+        family.as_ref(),
+        &args.replay,
+        args.replay_seeds,
+        settings,
+    )?;
     let path = args.out.join("replays.json");
     motionscale_core::files::write_atomic(&path, serde_json::to_string_pretty(&done)?.as_bytes())
         .with_context(|| path.display().to_string())?;
     print!("{}", replay_summary(family.name(), &done));
-    println!("wrote {} in {:.2} s", path.display(), t0.elapsed().as_secs_f64());
+    println!(
+        "wrote {} in {:.2} s",
+        path.display(),
+        t0.elapsed().as_secs_f64()
+    );
     Ok(ExitCode::SUCCESS)
 }
