@@ -180,7 +180,8 @@ pub enum LawSelection {
 }
 
 impl FitArgs {
-    fn options(&self) -> Result<FitOptions> {
+    /// The fit's options from the arguments (columns, grid, bootstrap).
+    pub(crate) fn options(&self) -> Result<FitOptions> {
         let col = |given: &Option<String>, default: &str| {
             ColumnChoice::or_default(given.clone(), default)
         };
@@ -236,9 +237,6 @@ pub fn fit(args: FitArgs) -> Result<ExitCode> {
     let t0 = Instant::now();
     let opts = args.options()?;
     let pool = crate::commands::thread_pool(args.workers)?;
-    if !args.law.is_empty() {
-        return pool.install(|| crate::fit_laws::fit_laws(&args, &opts, t0));
-    }
     let table = Table::read(&args.results)?;
     let mut result = pool.install(|| fits::fit_table(&table, &opts))?;
     let written = fits::report::write_outputs(&mut result, &args.out)?;

@@ -14,8 +14,16 @@ use fits::Table;
 use std::process::ExitCode;
 use std::time::Instant;
 
-/// Runs the law families named by `--law` and writes OUT/laws.json.
-pub fn fit_laws(args: &FitArgs, opts: &FitOptions, t0: Instant) -> Result<ExitCode> {
+/// `motionscale fit --law`: runs the law families named and writes OUT/laws.json.
+pub fn fit_laws(args: &FitArgs) -> Result<ExitCode> {
+    let t0 = Instant::now();
+    let opts = args.options()?;
+    let pool = crate::commands::thread_pool(args.workers)?;
+    pool.install(|| fit_laws_in_pool(args, &opts, t0))
+}
+
+/// The fit inside the worker pool.
+fn fit_laws_in_pool(args: &FitArgs, opts: &FitOptions, t0: Instant) -> Result<ExitCode> {
     let table = Table::read(&args.results)?;
     let c = &opts.columns;
     let loss = args

@@ -263,6 +263,7 @@ fn main() -> ExitCode {
         Command::Eval(args) => eval_cmd::eval(args),
         Command::Cl2gen(args) => cl2gen_cmd::cl2gen(*args),
         Command::Continual(args) => continual_cmd::continual(*args),
+        Command::Fit(args) if !args.law.is_empty() => fit_laws::fit_laws(&args),
         Command::Fit(args) => fit::fit(args),
         Command::Predict(args) => fit::predict(args),
         Command::Sweep(SweepCommand::Plan(args)) => sweep_cmd::plan_cmd(*args),

@@ -164,26 +164,7 @@ pub fn fit_laws(
         })
         .collect::<Result<_, _>>()?;
     let test = test
-        .map(|path| -> Result<TestScores, FitError> {
-            let (t_rows, t_loss) = read_points(&Table::read(path)?, cols)?;
-            let scores = fits
-                .iter()
-                .map(|fit| {
-                    let f = families
-                        .iter()
-                        .find(|f| f.name() == fit.law)
-                        .expect("fitted family");
-                    (
-                        fit.law.clone(),
-                        score(f.as_ref(), &fit.theta, &t_rows, &t_loss, fit.space),
-                    )
-                })
-                .collect();
-            Ok(TestScores {
-                path: path.to_path_buf(),
-                scores,
-            })
-        })
+        .map(|path| test_scores(path, cols, families, &fits))
         .transpose()?;
     Ok(LawReport {
         table: table.path().to_path_buf(),
@@ -199,12 +180,52 @@ pub fn fit_laws(
     })
 }
 
+/// Every fit scored on the held-out table at `path`.
+fn test_scores(
+    path: &Path,
+    cols: &LawColumns,
+    families: &[Box<dyn Family>],
+    fits: &[FamilyFit],
+) -> Result<TestScores, FitError> {
+    let (rows, loss) = read_points(&Table::read(path)?, cols)?;
+    let scores = fits
+        .iter()
+        .map(|fit| {
+            let f = families
+                .iter()
+                .find(|f| f.name() == fit.law)
+                .expect("fitted family");
+            let sc = score(f.as_ref(), &fit.theta, &rows, &loss, fit.space);
+            (fit.law.clone(), sc)
+        })
+        .collect();
+    Ok(TestScores {
+        path: path.to_path_buf(),
+        scores,
+    })
+}
+
 impl LawReport {
     /// The ranking, the adopted law's parameters and the held-out table's scores, as text.
     pub fn summary(&self) -> String {
+        let mut s = String::new();
+        self.ranking_lines(&mut s);
+        if let Some(fit) = self.fits.first() {
+            fit_lines(fit, &mut s);
+        }
+        if let Some(points) = &self.n_opt_lobo {
+            n_opt_lobo_lines(points, &mut s);
+        }
+        if let Some(t) = &self.test {
+            test_lines(t, &mut s);
+        }
+        s
+    }
+
+    /// How the families were held out, and each one's error or why it was not fitted.
+    fn ranking_lines(&self, s: &mut String) {
         use crate::report::sig;
         use std::fmt::Write;
-        let mut s = String::new();
         let held = match &self.ranking.holdout {
             Holdout::TopCost { share } => {
                 format!("the {:.0}% most expensive runs held out", 100.0 * share)
@@ -224,73 +245,68 @@ impl LawReport {
             self.rows
         );
         for r in &self.ranking.ranked {
-            match (&r.holdout, &r.refusal) {
-                (Some(h), _) => {
-                    let _ = writeln!(
-                        s,
-                        "  {:<17} held-out RMS {}  R² {:.3}  mean |rel. error| {:.2}%{}",
-                        r.law,
-                        sig(h.rms_residual),
-                        h.r2,
-                        100.0 * h.mean_abs_rel_error,
-                        if r.law == self.adopted {
-                            "  ← adopted"
-                        } else {
-                            ""
-                        }
-                    );
-                }
-                (None, why) => {
-                    let _ = writeln!(
-                        s,
-                        "  {:<17} not fitted: {}",
-                        r.law,
-                        why.as_deref().unwrap_or("?")
-                    );
-                }
-            }
-        }
-        if let Some(fit) = self.fits.first() {
-            let _ = writeln!(
-                s,
-                "{}: {} ({} runs, {} of {} starts at the optimum, {} of {} bootstrap refits)",
-                fit.law,
-                fit.equation,
-                fit.rows,
-                fit.at_optimum,
-                fit.starts,
-                fit.bootstrap_converged,
-                fit.bootstrap_resamples
-            );
-            for p in &fit.natural {
-                let ci = match (p.ci_low, p.ci_high) {
-                    (Some(lo), Some(hi)) => format!(" [{}, {}]", sig(lo), sig(hi)),
-                    _ => String::new(),
-                };
-                let _ = writeln!(s, "  {:<8} {}{ci}", p.name, sig(p.value));
-            }
-        }
-        if let Some(points) = &self.n_opt_lobo {
-            n_opt_lobo_lines(points, &mut s);
-        }
-        if let Some(t) = &self.test {
-            let _ = writeln!(
-                s,
-                "held-out table {} ({} runs):",
-                t.path.display(),
-                t.scores.first().map_or(0, |x| x.1.rows)
-            );
-            for (law, sc) in &t.scores {
-                let _ = writeln!(
+            let _ = match (&r.holdout, &r.refusal) {
+                (Some(h), _) => writeln!(
                     s,
-                    "  {law:<17} R² {:.4} (clipped {:.4})  mean |rel. error| {:.2}%",
-                    sc.r2,
-                    sc.r2_clipped,
-                    100.0 * sc.mean_abs_rel_error
-                );
-            }
+                    "  {:<17} held-out RMS {}  R² {:.3}  mean |rel. error| {:.2}%{}",
+                    r.law,
+                    sig(h.rms_residual),
+                    h.r2,
+                    100.0 * h.mean_abs_rel_error,
+                    if r.law == self.adopted {
+                        "  ← adopted"
+                    } else {
+                        ""
+                    }
+                ),
+                (None, why) => writeln!(
+                    s,
+                    "  {:<17} not fitted: {}",
+                    r.law,
+                    why.as_deref().unwrap_or("?")
+                ),
+            };
         }
-        s
+    }
+}
+
+/// A fit's equation, convergence and natural parameters with their intervals.
+fn fit_lines(fit: &FamilyFit, s: &mut String) {
+    use crate::report::sig;
+    use std::fmt::Write;
+    let _ = writeln!(
+        s,
+        "{}: {} ({} runs, {} of {} starts at the optimum, {} of {} bootstrap refits)",
+        fit.law,
+        fit.equation,
+        fit.rows,
+        fit.at_optimum,
+        fit.starts,
+        fit.bootstrap_converged,
+        fit.bootstrap_resamples
+    );
+    for p in &fit.natural {
+        let ci = match (p.ci_low, p.ci_high) {
+            (Some(lo), Some(hi)) => format!(" [{}, {}]", sig(lo), sig(hi)),
+            _ => String::new(),
+        };
+        let _ = writeln!(s, "  {:<8} {}{ci}", p.name, sig(p.value));
+    }
+}
+
+/// Every fit's score on the held-out table.
+fn test_lines(t: &TestScores, s: &mut String) {
+    use std::fmt::Write;
+    let rows = t.scores.first().map_or(0, |x| x.1.rows);
+    let _ = writeln!(s, "held-out table {} ({rows} runs):", t.path.display());
+    for (law, sc) in &t.scores {
+        let _ = writeln!(
+            s,
+            "  {law:<17} R² {:.4} (clipped {:.4})  mean |rel. error| {:.2}%",
+            sc.r2,
+            sc.r2_clipped,
+            100.0 * sc.mean_abs_rel_error
+        );
     }
 }
 
