@@ -2,7 +2,7 @@
 //! effective data D' = U + U·R*_D·(1 − e^(−R/R*_D)), R = D/U − 1 the repetitions past the
 //! first epoch; θ = (a, b, e, α, β, r) with A = eᵃ, B = eᵇ, E = eᵉ, R*_D = eʳ.
 
-use super::chinchilla::epoch_starts;
+use super::chinchilla::{epoch_starts, Chinchilla};
 use super::{Axis, Law, Point};
 
 /// The data-constrained family (effective data; parameters counted as they are).
@@ -40,21 +40,15 @@ impl Law<6> for DataConstrained {
         let reps = (x.d / u - 1.0).max(0.0);
         let decay = (-reps / r_star).exp();
         let d_eff = u * (1.0 + r_star * (1.0 - decay));
-        // ∂D'/∂r = R*·∂D'/∂R* = R*·U·((1 − e^(−R/R*)) − (R/R*)·e^(−R/R*)).
+        // Chinchilla at the effective data; then ∂D'/∂r = R*·∂D'/∂R*
+        // = R*·U·((1 − e^(−R/R*)) − (R/R*)·e^(−R/R*)).
+        let mut g5 = [0.0; 5];
+        let core = [t[0], t[1], t[2], t[3], t[4]];
+        let loss = Chinchilla.predict(&core, &Point { d: d_eff, ..*x }, &mut g5);
         let dd_dr = r_star * u * ((1.0 - decay) - reps / r_star * decay);
-        let ln_n = x.n.ln();
-        let t1 = (t[0] - t[3] * ln_n).exp();
-        let t2 = (t[1] - t[4] * d_eff.ln()).exp();
-        let e = t[2].exp();
-        *g = [
-            t1,
-            t2,
-            e,
-            -t1 * ln_n,
-            -t2 * d_eff.ln(),
-            -t[4] * t2 * dd_dr / d_eff,
-        ];
-        e + t1 + t2
+        g[..5].copy_from_slice(&g5);
+        g[5] = -t[4] * g5[1] * dd_dr / d_eff;
+        loss
     }
 
     fn natural(&self, t: &[f64; 6]) -> Vec<(&'static str, f64)> {

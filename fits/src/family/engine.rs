@@ -174,8 +174,8 @@ pub trait Family: Sync {
     fn param_count(&self) -> usize;
     /// Why the family cannot be fitted to these runs (`None`: it can).
     fn refusal(&self, rows: &[Point], loss: &[f64]) -> Option<String>;
-    /// Fits the runs with row weights `weights` (`None`: all 1) and clusters for the
-    /// bootstrap (`None`: rows).
+    /// Fits the runs; `clusters[i]` is run i's cluster for the bootstrap (`None`: rows are
+    /// resampled one by one).
     fn fit(
         &self,
         rows: &[Point],
