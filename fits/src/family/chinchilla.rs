@@ -18,6 +18,13 @@ pub(super) fn epoch_starts() -> [Vec<f64>; 5] {
     ]
 }
 
+/// Chinchilla's compute-optimal N at budget C = 6·N·D, from ln A, ln B and the exponents:
+/// G·(C/6)^(β/(α+β)) with G = (αA/(βB))^(1/(α+β)).
+pub(super) fn n_opt(ln_a: f64, ln_b: f64, alpha: f64, beta: f64, c: f64) -> f64 {
+    let ln_g = ((alpha / beta).ln() + ln_a - ln_b) / (alpha + beta);
+    (ln_g + beta / (alpha + beta) * (c / 6.0).ln()).exp()
+}
+
 impl Law<5> for Chinchilla {
     fn name(&self) -> &'static str {
         "chinchilla"
@@ -71,9 +78,7 @@ impl Law<5> for Chinchilla {
         if !(alpha > 0.0 && beta > 0.0) {
             return None;
         }
-        // G = (αA/(βB))^(1/(α+β)); N_opt = G·(C/6)^(β/(α+β)).
-        let ln_g = ((alpha / beta).ln() + t[0] - t[1]) / (alpha + beta);
-        let n = (ln_g + beta / (alpha + beta) * (c / 6.0).ln()).exp();
+        let n = n_opt(t[0], t[1], alpha, beta, c);
         let d = c / (6.0 * n);
         let x = Point {
             n,

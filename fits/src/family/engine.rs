@@ -140,26 +140,10 @@ pub struct FamilyFit {
     pub bootstrap_resamples: usize,
     /// Clusters resampled (`None`: rows).
     pub bootstrap_clusters: Option<usize>,
-    /// θ of each converged resample (for prediction intervals).
+    /// θ of each converged resample.
     pub draws: Vec<Vec<f64>>,
-    /// Residuals of the fitted rows, for prediction intervals.
+    /// Residuals of the fitted rows (in `space`).
     pub residuals: Vec<f64>,
-}
-
-/// A prediction with its 95% intervals.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Predicted {
-    /// The full fit's loss.
-    pub loss: f64,
-    /// The law's 95% interval (bootstrap draws of the curve).
-    pub mean_low: Option<f64>,
-    /// Upper end of the law's interval.
-    pub mean_high: Option<f64>,
-    /// The 95% prediction interval of one new run (the curve's draws plus a residual drawn
-    /// from the fit's residuals).
-    pub low: Option<f64>,
-    /// Upper end of the prediction interval.
-    pub high: Option<f64>,
 }
 
 /// A law family behind one object-safe interface (any parameter count).
@@ -185,8 +169,8 @@ pub trait Family: Sync {
     ) -> Result<FamilyFit, FitError>;
     /// The loss θ predicts at `x`.
     fn predict(&self, theta: &[f64], x: &Point) -> f64;
-    /// ∂L̂/∂θ at `x`.
-    fn gradient(&self, theta: &[f64], x: &Point) -> Vec<f64>;
+    /// The loss θ predicts at `x` and ∂L̂/∂θ there.
+    fn value_and_gradient(&self, theta: &[f64], x: &Point) -> (f64, Vec<f64>);
     /// The compute-optimal allocation at `c`, where the family has one.
     fn allocation(&self, theta: &[f64], c: f64) -> Option<Allocation>;
     /// The natural parameters (name, value) of the optimiser's θ.
@@ -199,6 +183,7 @@ pub trait Family: Sync {
 pub struct Declared<L, const P: usize>(pub L);
 
 /// The rows of one fit with their weights (bootstrap multiplicities).
+#[derive(Clone)]
 struct Data<'a> {
     rows: &'a [Point],
     loss: &'a [f64],
@@ -434,10 +419,9 @@ impl<const P: usize, L: Law<P>> Family for Declared<L, P> {
         let draws: Vec<[f64; P]> = (0..s.bootstrap)
             .into_par_iter()
             .filter_map(|i| {
-                let weights = resample_weights(rows.len(), clusters, s.seed, i);
                 let d = Data {
-                    weights,
-                    ..self.data(rows, loss, s)
+                    weights: resample_weights(rows.len(), clusters, s.seed, i),
+                    ..data.clone()
                 };
                 let ends: Vec<Minimum<P>> = boot_starts
                     .iter()
@@ -465,10 +449,10 @@ impl<const P: usize, L: Law<P>> Family for Declared<L, P> {
         self.0.predict(&as_array(theta), x, &mut g)
     }
 
-    fn gradient(&self, theta: &[f64], x: &Point) -> Vec<f64> {
+    fn value_and_gradient(&self, theta: &[f64], x: &Point) -> (f64, Vec<f64>) {
         let mut g = [0.0; P];
-        self.0.predict(&as_array(theta), x, &mut g);
-        g.to_vec()
+        let value = self.0.predict(&as_array(theta), x, &mut g);
+        (value, g.to_vec())
     }
 
     fn allocation(&self, theta: &[f64], c: f64) -> Option<Allocation> {
@@ -545,31 +529,6 @@ impl<const P: usize, L: Law<P>> Declared<L, P> {
 
 fn as_array<const P: usize>(theta: &[f64]) -> [f64; P] {
     std::array::from_fn(|k| theta[k])
-}
-
-/// The fitted family's loss at `x` with its 95% intervals: the curve's bootstrap draws, and
-/// for one new run those draws plus a residual of the fit (seeded, one per draw).
-pub fn predict_with_intervals(family: &dyn Family, fit: &FamilyFit, x: &Point) -> Predicted {
-    let loss = family.predict(&fit.theta, x);
-    let curve: Vec<f64> = fit.draws.iter().map(|t| family.predict(t, x)).collect();
-    let mut rng = SplitMix64::stream(0x9e37, fit.draws.len() as u64);
-    let noisy: Vec<f64> = curve
-        .iter()
-        .map(|&c| {
-            let r = fit.residuals[rng.index(fit.residuals.len())];
-            match fit.space {
-                Space::Log => c * r.exp(),
-                Space::Loss => c + r,
-            }
-        })
-        .collect();
-    Predicted {
-        loss,
-        mean_low: percentile(&curve, 0.025),
-        mean_high: percentile(&curve, 0.975),
-        low: percentile(&noisy, 0.025),
-        high: percentile(&noisy, 0.975),
-    }
 }
 
 #[cfg(test)]

@@ -137,6 +137,20 @@ pub fn registry() -> Vec<Box<dyn engine::Family>> {
     ]
 }
 
+/// The family called `name`, if there is one.
+pub fn family(name: &str) -> Option<Box<dyn engine::Family>> {
+    registry().into_iter().find(|f| f.name() == name)
+}
+
+/// Start values of a free irreducible loss E: 0.1, 0.5 and 1 times the losses' span below
+/// the lowest (a negative loss has no logarithm to start from).
+fn free_floor_starts(loss: &[f64]) -> Vec<f64> {
+    let lo = loss.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = loss.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let span = (hi - lo).max(1e-3);
+    vec![lo - 0.1 * span, lo - 0.5 * span, lo - span]
+}
+
 /// Names of every family, for help texts and errors.
 pub fn names() -> Vec<&'static str> {
     registry().iter().map(|f| f.name()).collect()
@@ -183,39 +197,30 @@ mod tests {
             .flat_map(|p| [4096.0, 16384.0, 65536.0].map(|v| Point { nv: Some(v), ..p }))
             .collect();
         let farseer = grid(&logspace(8.0, 10.4, 8), &logspace(9.0, 11.7, 8));
-        let reg = registry();
-        let by_name = |name: &str| reg.iter().position(|f| f.name() == name).expect(name);
-        let (c, dc, v, ve, f) = (
-            by_name("chinchilla"),
-            by_name("data-constrained"),
-            by_name("vocab"),
-            by_name("vocab-effective"),
-            by_name("farseer"),
-        );
-        let mut reg: Vec<Option<Box<dyn Family>>> = reg.into_iter().map(Some).collect();
+        let by_name = |name: &str| family(name).expect(name);
         vec![
             (
-                reg[c].take().unwrap(),
+                by_name("chinchilla"),
                 vec![1.69, 406.4, 410.7, 0.34, 0.28],
                 chinchilla,
             ),
             (
-                reg[dc].take().unwrap(),
+                by_name("data-constrained"),
                 vec![1.9, 300.0, 2000.0, 0.33, 0.35, 15.4],
                 repeated,
             ),
             (
-                reg[v].take().unwrap(),
+                by_name("vocab"),
                 vec![-5.84, 80.6, 0.319, 1.35e-4, -0.656, 5770.0, 0.372],
                 vocab.clone(),
             ),
             (
-                reg[ve].take().unwrap(),
+                by_name("vocab-effective"),
                 vec![-6.21, 13.1, 0.0898, 1.389, 2343.0, 0.388, -0.324],
                 vocab,
             ),
             (
-                reg[f].take().unwrap(),
+                by_name("farseer"),
                 vec![3.13, -0.93, 0.13, 0.128, 6.4, -0.173, -1.54, -4.3, 0.046],
                 farseer,
             ),
@@ -235,7 +240,7 @@ mod tests {
                     let numeric = (family.predict(&hi, x) - family.predict(&lo, x)) / (2.0 * h);
                     lo[k] = theta[k];
                     hi[k] = theta[k];
-                    let analytic = family.gradient(&theta, x)[k];
+                    let analytic = family.value_and_gradient(&theta, x).1[k];
                     let scale = numeric.abs().max(1e-6);
                     assert!(
                         (analytic - numeric).abs() <= 1e-4 * scale,

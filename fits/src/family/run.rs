@@ -5,7 +5,7 @@ use super::design::{replay, Policy, Replay};
 use super::engine::{Family, FamilyFit, Settings, Space};
 use super::select::{rank, score, Holdout, Ranking, Score};
 use super::vpnls::{lobo, LoboPoint};
-use super::{registry, Point};
+use super::{family, registry, Point};
 use crate::table::Table;
 use crate::FitError;
 use serde::{Deserialize, Serialize};
@@ -94,23 +94,18 @@ pub fn read_points(table: &Table, cols: &LawColumns) -> Result<(Vec<Point>, Vec<
 
 /// The families named (`all`: every one), or an error naming the unknown one.
 pub fn families(names: &[String]) -> Result<Vec<Box<dyn Family>>, FitError> {
-    let all = registry();
     if names.iter().any(|n| n == "all") {
-        return Ok(all);
+        return Ok(registry());
     }
-    let known = super::names().join(", ");
-    let mut out = Vec::new();
-    let mut pool: Vec<Option<Box<dyn Family>>> = all.into_iter().map(Some).collect();
-    for name in names {
-        let i = pool
-            .iter()
-            .position(|f| f.as_ref().is_some_and(|f| f.name() == name))
-            .ok_or_else(|| {
+    names
+        .iter()
+        .map(|name| {
+            family(name).ok_or_else(|| {
+                let known = super::names().join(", ");
                 FitError::Invalid(format!("--law {name:?}: the laws are {known} (or all)"))
-            })?;
-        out.push(pool[i].take().expect("each family is taken once"));
-    }
-    Ok(out)
+            })
+        })
+        .collect()
 }
 
 /// Fits `families` to `table`, ranks them by `holdout`, adopts the best and scores every fit

@@ -4,7 +4,7 @@
 //! characters D. E is free (the loss is negative), A₁ = e^a₁, A₂ = e^a₂, B = eᵇ; α₂ may take
 //! either sign, so the vocabulary term can rise or fall with N_v.
 
-use super::{Axis, Law, Point};
+use super::{free_floor_starts, Axis, Law, Point};
 
 /// The vocabulary family.
 pub struct Vocabulary;
@@ -31,13 +31,10 @@ impl Law<7> for Vocabulary {
     }
 
     fn start_values(&self, loss: &[f64]) -> [Vec<f64>; 7] {
-        let lo = loss.iter().copied().fold(f64::INFINITY, f64::min);
-        let hi = loss.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        let span = (hi - lo).max(1e-3);
         let coef = vec![0.0, 5.0, 10.0, 20.0];
         let exponent = vec![0.2, 0.5, 1.0];
         [
-            vec![lo - 0.1 * span, lo - 0.5 * span, lo - span],
+            free_floor_starts(loss),
             coef.clone(),
             exponent.clone(),
             coef.clone(),

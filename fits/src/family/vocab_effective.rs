@@ -3,7 +3,7 @@
 //! acts as more parameters and, through its compression, as more data. E is free (the loss is
 //! negative), A = eᵃ, B = eᵇ.
 
-use super::{Axis, Law, Point};
+use super::{free_floor_starts, Axis, Law, Point};
 
 /// The effective-vocabulary family.
 pub struct VocabEffective;
@@ -30,9 +30,6 @@ impl Law<7> for VocabEffective {
     }
 
     fn start_values(&self, loss: &[f64]) -> [Vec<f64>; 7] {
-        let lo = loss.iter().copied().fold(f64::INFINITY, f64::min);
-        let hi = loss.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-        let span = (hi - lo).max(1e-3);
         [
             vec![0.0, 5.0, 10.0],
             vec![0.1, 0.3, 0.6],
@@ -40,7 +37,7 @@ impl Law<7> for VocabEffective {
             vec![5.0, 10.0, 15.0],
             vec![0.2, 0.4],
             vec![-0.5, 0.0, 0.5],
-            vec![lo - 0.1 * span, lo - 0.5 * span, lo - span],
+            free_floor_starts(loss),
         ]
     }
 

@@ -74,8 +74,7 @@ impl Vpnls {
 
     /// The compute-optimal N at budget C (C = 6·N·D).
     pub fn n_opt(&self, c: f64) -> f64 {
-        let g = (self.alpha * self.a / (self.beta * self.b)).powf(1.0 / (self.alpha + self.beta));
-        g * (c / 6.0).powf(self.beta / (self.alpha + self.beta))
+        super::chinchilla::n_opt(self.a.ln(), self.b.ln(), self.alpha, self.beta, c)
     }
 }
 
