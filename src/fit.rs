@@ -3,7 +3,10 @@
 
 use anyhow::{bail, Context, Result};
 use fits::data_value::{predict_data, Hours};
-use fits::fitted::{ColumnChoice, ColumnSpec, FitOptions};
+use fits::family::predict::predict_at;
+use fits::family::run::LawReport;
+use fits::family::Point;
+use fits::fitted::{ColumnChoice, ColumnSpec, FitFile, FitOptions};
 use fits::parametric::StartGrid;
 use fits::report::{estimate_text, sig};
 use fits::{Fits, Laws, PredictOptions, Prediction, Table};
@@ -267,10 +270,14 @@ pub enum Preset {
     2^8..2^16, real 240, 1000, 4375, 15360, 64000), D and the loss at a compute budget, with \
     95% intervals where the laws carry uncertainty (OLS standard errors, parametric bootstrap). \
     Consistency checks between the laws (6·N·D vs C, the two N_v laws, the exponents, and for \
-    the scamo preset the paper's own 1e18 run) are printed; failed ones become warnings."
+    the scamo preset the paper's own 1e18 run) are printed; failed ones become warnings.\n\n\
+    With a laws.json of `fit --law`: the adopted law's compute-optimal N and D at the budget \
+    and the loss there, 95% intervals over its bootstrap refits (the loss's a prediction \
+    interval, holding the runs' scatter); a law of unique tokens or vocabulary parameters \
+    needs --unique-tokens or --vocab-params."
 )]
 pub struct PredictArgs {
-    /// A fits.json written by `motionscale fit`.
+    /// A fits.json written by `motionscale fit`, or a laws.json of `fit --law`.
     #[arg(
         long,
         value_name = "FILE",
@@ -295,6 +302,12 @@ pub struct PredictArgs {
     /// these hours, and what +1 h and +10 h of each source are worth.
     #[arg(long, value_name = "real=H,synth=H", value_parser = parse_hours, requires = "fits")]
     pub hours: Option<Hours>,
+    /// Unique tokens U held at the budget (a laws.json whose law reads U).
+    #[arg(long, value_name = "U")]
+    pub unique_tokens: Option<f64>,
+    /// Vocabulary parameters N_v held at the budget (a laws.json whose law reads N_v).
+    #[arg(long, value_name = "N_V")]
+    pub vocab_params: Option<f64>,
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
@@ -347,9 +360,7 @@ fn worth_text(v: &fits::data_value::HourValue) -> String {
 
 /// `predict --hours`: the data question.
 fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCode> {
-    let fits: Fits =
-        serde_json::from_slice(&std::fs::read(path).with_context(|| path.display().to_string())?)
-            .with_context(|| format!("{}: not a fits.json of `motionscale fit`", path.display()))?;
+    let fits = Fits::read(path)?;
     let Some(rd) = &fits.repeated_data else {
         bail!(
             "{}: no data-constrained law (fit with --repeated-data on a table with an epochs column)",
@@ -403,7 +414,10 @@ pub fn predict(args: PredictArgs) -> Result<ExitCode> {
         return predict_hours(path, &args, h);
     }
     let laws = match (&args.fits, args.preset) {
-        (Some(path), _) => Laws::read(path)?,
+        (Some(path), _) => match FitFile::read(path)? {
+            FitFile::IsoFlop(fits) => Laws::from_fits(&fits, &path.display().to_string()),
+            FitFile::Families(report) => return predict_family(&report, &args),
+        },
         (None, Some(Preset::Scamo)) => Laws::scamo(),
         (None, None) => bail!("give --fits FILE or --preset scamo"),
     };
@@ -420,6 +434,37 @@ pub fn predict(args: PredictArgs) -> Result<ExitCode> {
     } else {
         print!("{}", prediction_text(&p));
     }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `predict` on a laws.json: the adopted family at the budget.
+fn predict_family(report: &LawReport, args: &PredictArgs) -> Result<ExitCode> {
+    let at = Point {
+        u: args.unique_tokens,
+        nv: args.vocab_params,
+        ..Point::default()
+    };
+    let p = predict_at(report, args.budget, at)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&p)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let held = [("U", p.unique_tokens), ("N_v", p.vocab_params)]
+        .into_iter()
+        .filter_map(|(k, v)| v.map(|v| format!(", {k} = {}", sig(v))))
+        .collect::<String>();
+    println!(
+        "{} at C = {}{held} (95% intervals over {} bootstrap refits):",
+        p.law,
+        sig(p.compute),
+        p.draws
+    );
+    println!("  N_opt    {}", estimate_text(&p.n));
+    println!("  D_opt    {}", estimate_text(&p.d));
+    println!(
+        "  loss     {} (prediction interval: the law's uncertainty and the runs' scatter)",
+        estimate_text(&p.loss)
+    );
     Ok(ExitCode::SUCCESS)
 }
 

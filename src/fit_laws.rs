@@ -38,6 +38,7 @@ fn fit_laws_in_pool(args: &FitArgs, opts: &FitOptions, t0: Instant) -> Result<Ex
         u: Some(args.u_col.clone().unwrap_or_else(|| "unique_tokens".into())),
         epochs: Some(c.epochs.name.clone()),
         nv: Some(c.nv.name.clone()),
+        vocab: Some(c.v.name.clone()),
     };
     let holdout = match args.select {
         LawSelection::Top => Holdout::TopCost {

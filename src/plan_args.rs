@@ -185,15 +185,11 @@ impl PlanArgs {
             models: self.models.clone(),
             vocabularies,
             train: self.settings(),
-            centring: match &self.fits {
-                None => None,
-                Some(path) => Some(plan::Centring {
-                    fits: serde_json::from_slice(
-                        &std::fs::read(path).with_context(|| path.display().to_string())?,
-                    )
-                    .with_context(|| {
-                        format!("{}: not a fits.json of `motionscale fit`", path.display())
-                    })?,
+            // With --next, --fits is the planner's fit, not the grid's centre.
+            centring: match (&self.fits, self.next) {
+                (None, _) | (_, Some(_)) => None,
+                (Some(path), None) => Some(plan::Centring {
+                    fits: fits::Fits::read(path)?,
                     sizes: self.sizes_per_budget,
                 }),
             },

@@ -6,6 +6,10 @@ use anyhow::{bail, Context, Result};
 use experiments::plan;
 use experiments::IsoFlopPlan;
 use fits::data_value::{predict_data, Hours};
+use fits::family::design::next_runs;
+use fits::family::run::{read_points, LawReport};
+use fits::family::Point;
+use fits::fitted::FitFile;
 use fits::hour_design::{self, DataCandidate};
 use fits::isoflop::{self, parabola_minimum};
 use fits::loss_shape::Form;
@@ -332,15 +336,9 @@ fn print_summary(summary: &replay::ReplaySummary) {
     }
 }
 
-/// A fits.json of `motionscale fit`.
-fn read_fits(path: &Path) -> Result<fits::Fits> {
-    serde_json::from_slice(&std::fs::read(path).with_context(|| path.display().to_string())?)
-        .with_context(|| format!("{}: not a fits.json of `motionscale fit`", path.display()))
-}
-
 /// The fit `--next` narrows, checked to have the target's law.
 fn fit_with_law(path: &Path, goal: Goal) -> Result<fits::Fits> {
-    let fits = read_fits(path)?;
+    let fits = fits::Fits::read(path)?;
     let (has, law) = match goal {
         Goal::IsoFlop(Target::NOpt) => (
             fits.power_laws.contains_key("n_opt_vs_c"),
@@ -441,20 +439,104 @@ pub fn next_plan(args: &PlanArgs, k: usize) -> Result<IsoFlopPlan> {
     else {
         bail!("--next needs --target-budget, --fits and --extend");
     };
-    let fit = fit_with_law(fits_path, args.target)?;
     let base = IsoFlopPlan::read(base_path)?;
     let mut request = args.request()?;
-    request.centring = None;
     request.extend = None;
     let grid = plan::plan(&request)?;
     let room = args.max_compute.unwrap_or(f64::INFINITY);
-    let chosen = match args.target {
-        Goal::IsoFlop(target) => next_isoflop(args, &fit, &grid, &base, target, (c_star, k, room))?,
-        Goal::HourValue => next_hours(args, &fit, fits_path, &grid, &base, (c_star, k, room))?,
+    let chosen = match FitFile::read(fits_path)? {
+        FitFile::Families(report) => {
+            next_by_design(args, &report, &grid, &base, (c_star, k, room))?
+        }
+        FitFile::IsoFlop(_) => {
+            let fit = fit_with_law(fits_path, args.target)?;
+            match args.target {
+                Goal::IsoFlop(t) => next_isoflop(args, &fit, &grid, &base, t, (c_star, k, room))?,
+                Goal::HourValue => {
+                    next_hours(args, &fit, fits_path, &grid, &base, (c_star, k, room))?
+                }
+            }
+        }
     };
     request.only = chosen;
     request.extend = Some(base);
     Ok(plan::plan(&request)?)
+}
+
+/// A plan point as a law family reads it: N = N_nv, D its tokens, N_v, and U (its data
+/// subset's unique tokens, else its vocabulary's train tokens).
+fn as_point(grid: &IsoFlopPlan, p: &experiments::plan::PlanPoint, d: f64) -> Point {
+    let u = p
+        .unique_tokens
+        .or_else(|| grid.vocabulary(p.codebook).map(|v| v.train_tokens))
+        .map(|u| u as f64);
+    Point {
+        n: p.n_nv as f64,
+        d,
+        u,
+        nv: Some(p.n_v as f64),
+    }
+}
+
+/// `--next` on a laws.json: greedy V-optimal runs for the adopted family's loss at C* over
+/// the grid's model sizes (`fits::family::design::next_runs`), at the fit's θ.
+fn next_by_design(
+    args: &PlanArgs,
+    report: &LawReport,
+    grid: &IsoFlopPlan,
+    base: &IsoFlopPlan,
+    (c_star, k, room): (f64, usize, f64),
+) -> Result<Vec<String>> {
+    let fit = report
+        .fits
+        .iter()
+        .find(|f| f.law == report.adopted)
+        .context("the laws.json has no fit of its adopted law")?;
+    let family = fits::family::family(&fit.law).context("unknown law in the laws.json")?;
+    let results = args.results.clone().unwrap_or_else(|| report.table.clone());
+    let (trained, _) = read_points(&Table::read(&results)?, &report.columns)?;
+    let open: Vec<_> = open_points(grid, base, c_star).collect();
+    let candidates: Vec<Point> = open
+        .iter()
+        .map(|p| as_point(grid, p, p.tokens as f64))
+        .collect();
+    let cost: Vec<f64> = open.iter().map(|p| p.budget).collect();
+    let mut target: Vec<Point> = grid
+        .points
+        .iter()
+        .map(|p| as_point(grid, p, c_star / (6.0 * (p.n_nv + p.n_v) as f64)))
+        .collect();
+    target.dedup_by(|a, b| a.n == b.n && a.nv == b.nv && a.u == b.u);
+    let picks = next_runs(
+        family.as_ref(),
+        (&fit.theta, fit.space),
+        &trained,
+        &candidates,
+        &cost,
+        &target,
+        (k, room),
+    );
+    if picks.is_empty() {
+        bail!("no candidate below --target-budget fits --max-compute or is informative for the {} law", fit.law);
+    }
+    println!(
+        "planner: {} law ({} trained runs of {}), {} candidates; loss at {c_star:.3e} over {} model sizes, V-optimal:",
+        fit.law,
+        trained.len(),
+        results.display(),
+        candidates.len(),
+        target.len()
+    );
+    for (i, (j, variance)) in picks.iter().enumerate() {
+        println!(
+            "next {}: {} ({:.3e} FLOPs): mean prediction variance at C* {:.4} (noise units)",
+            i + 1,
+            open[*j].run_id,
+            cost[*j],
+            variance
+        );
+    }
+    Ok(picks.iter().map(|(j, _)| open[*j].run_id.clone()).collect())
 }
 
 /// The proposals' run ids, printed with what each costs and buys.

@@ -485,4 +485,34 @@ fn fit_law_names_an_unknown_family_and_a_missing_axis() {
     );
     let report: serde_json::Value = read_json(&out.join("laws.json"));
     assert_eq!(report["adopted"], "chinchilla", "{stdout}");
+    predict_reads_a_laws_json(&out.join("laws.json"));
+}
+
+/// `predict` on the laws.json of the Chinchilla stand-in: the adopted law's N_opt at a budget
+/// 3× past the table near the truth's, and `--hours` refused for want of the IsoFLOP fit.
+fn predict_reads_a_laws_json(laws: &std::path::Path) {
+    let c = 1e22;
+    let stdout = motionscale_ok(&["predict", "--fits", arg(laws), "--budget", "1e22", "--json"]);
+    let p: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(p["law"], "chinchilla", "{stdout}");
+    let n = p["n"]["value"].as_f64().unwrap();
+    let truth = synth::CHINCHILLA.n_opt(c);
+    assert!(
+        (n / truth).log10().abs() < 0.1,
+        "N_opt {n} vs truth {truth}"
+    );
+    let d = p["d"]["value"].as_f64().unwrap();
+    assert!((6.0 * n * d / c - 1.0).abs() < 1e-9, "{stdout}");
+    fails_with(
+        &motionscale(&[
+            "predict",
+            "--fits",
+            arg(laws),
+            "--budget",
+            "1e22",
+            "--hours",
+            "real=1",
+        ]),
+        "a laws.json of `fit --law`; this needs the IsoFLOP fit",
+    );
 }

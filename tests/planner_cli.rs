@@ -202,6 +202,59 @@ fn next_extends_the_plan_with_runs_that_enter_the_next_budget_around_the_law() {
     for p in new {
         assert!(stdout.contains(&p.run_id), "{} printed: {stdout}", p.run_id);
     }
+    next_from_a_law_family(&corpus, models, (&base_path, &results));
+}
+
+/// `--next` on the laws.json of `fit --law chinchilla` over the same runs: the V-optimal
+/// design's runs for the loss at C*, appended to the base plan.
+fn next_from_a_law_family(corpus: &Path, models: &str, (base_path, results): (&Path, &Path)) {
+    let tmp = tempfile::tempdir().unwrap();
+    let fit = tmp.path().join("laws");
+    motionscale_ok(&[
+        "fit",
+        "--law",
+        "chinchilla",
+        "--results",
+        arg(results),
+        "--loss-col",
+        "norm_test_loss",
+        "--bootstrap",
+        "0",
+        "--out",
+        arg(&fit),
+    ]);
+    let next_path = tmp.path().join("next.toml");
+    let laws = fit.join("laws.json");
+    let stdout = sweep_plan(
+        corpus,
+        "3e11",
+        models,
+        "256",
+        &[
+            "--extend",
+            arg(base_path),
+            "--next",
+            "2",
+            "--fits",
+            arg(&laws),
+            "--target-budget",
+            "1e12",
+        ],
+        &next_path,
+    );
+    assert!(stdout.contains("planner: chinchilla law"), "{stdout}");
+    let (base, next) = (
+        IsoFlopPlan::read(base_path).unwrap(),
+        IsoFlopPlan::read(&next_path).unwrap(),
+    );
+    let new = &next.points[base.points.len()..];
+    assert_eq!(new.len(), 2, "{stdout}");
+    for p in new {
+        assert!(
+            p.budget == 3e11 && stdout.contains(&p.run_id),
+            "{p:?}: {stdout}"
+        );
+    }
 }
 
 #[test]

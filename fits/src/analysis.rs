@@ -23,16 +23,13 @@ type LawPoints = (&'static str, &'static str, &'static str, Vec<(f64, f64)>);
 pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
     let mut all = Runs::read(t, opts)?;
     if let Some(k) = opts.vocab {
-        all = all.of_vocabulary(k).map_err(|message| {
-            FitError::Invalid(format!("{}: --vocab {k}: {message}", t.path().display()))
-        })?;
+        all = all.of_vocabulary(k).map_err(|e| in_file(t, e))?;
     }
     let (runs, held_out) = match opts.holdout_budget {
         None => (all, None),
         Some(c) => {
-            let (kept, held) = holdout::split(&all, c, opts.group_tol_dex).map_err(|message| {
-                FitError::Invalid(format!("{}: {message}", t.path().display()))
-            })?;
+            let (kept, held) =
+                holdout::split(&all, c, opts.group_tol_dex).map_err(|e| in_file(t, e))?;
             (all.select(&kept), Some(all.select(&held)))
         }
     };
@@ -60,12 +57,18 @@ pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
     if opts.repeated_data {
         match repeated::fit(&runs, &fits, opts) {
             Ok(r) => fits.repeated_data = Some(r),
-            Err(why) => fits
-                .skipped
-                .push(format!("data-constrained L(N, D'): {why}")),
+            Err(why) => fits.skipped.push(why.to_string()),
         }
     }
     Ok(fits)
+}
+
+/// `e`, said of table `t`'s file.
+fn in_file(t: &Table, e: FitError) -> FitError {
+    FitError::InFile {
+        path: t.path().to_path_buf(),
+        source: Box::new(e),
+    }
 }
 
 /// Fits every law `runs` allow, in one parameter convention.

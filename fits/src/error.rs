@@ -58,6 +58,40 @@ pub enum FitError {
     /// A fits file or option is inconsistent.
     #[error("{0}")]
     Invalid(String),
+    /// A flag's value is not one of the names it takes.
+    #[error("{flag} {given:?}: expected {expected}")]
+    UnknownChoice {
+        /// The flag.
+        flag: &'static str,
+        /// The value given.
+        given: String,
+        /// The names it takes.
+        expected: &'static str,
+    },
+    /// A flag's value does not fit the table.
+    #[error("{flag}: {problem}")]
+    BadOption {
+        /// The flag.
+        flag: String,
+        /// What is wrong, with what the table offers.
+        problem: String,
+    },
+    /// A fit these runs cannot support: which column or which spread is missing.
+    #[error("{fit}: {needs}")]
+    CannotFit {
+        /// The fit.
+        fit: &'static str,
+        /// What it needs that the runs lack.
+        needs: String,
+    },
+    /// An error about one file's contents.
+    #[error("{}: {source}", path.display())]
+    InFile {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        source: Box<FitError>,
+    },
     /// A plot could not be written.
     #[error(transparent)]
     Plot(#[from] plot::PlotError),

@@ -10,11 +10,13 @@ use crate::FitError;
 
 /// Row indices of `runs` outside and inside the budget group at `c` (within `tol_dex`, at
 /// least 0.05 dex); an error names the budgets there are.
-pub fn split(runs: &Runs, c: f64, tol_dex: f64) -> Result<(Vec<usize>, Vec<usize>), String> {
+pub fn split(runs: &Runs, c: f64, tol_dex: f64) -> Result<(Vec<usize>, Vec<usize>), FitError> {
+    let bad = |problem: String| FitError::BadOption {
+        flag: format!("--holdout-budget {c:.3e}"),
+        problem,
+    };
     if !(c.is_finite() && c > 0.0) {
-        return Err(format!(
-            "--holdout-budget {c}: must be a positive number of FLOPs"
-        ));
+        return Err(bad("must be a positive number of FLOPs".into()));
     }
     let groups = isoflop::group_rows(&runs.c, runs.group.as_deref(), tol_dex);
     let budgets: Vec<f64> = groups
@@ -24,10 +26,10 @@ pub fn split(runs: &Runs, c: f64, tol_dex: f64) -> Result<(Vec<usize>, Vec<usize
     let close = |b: f64| (b.log10() - c.log10()).abs() <= tol_dex.max(0.05);
     let Some(held) = budgets.iter().position(|&b| close(b)) else {
         let list: Vec<String> = budgets.iter().map(|b| format!("{b:.3e}")).collect();
-        return Err(format!(
-            "--holdout-budget {c:.3e}: no budget group there (budgets: {})",
+        return Err(bad(format!(
+            "no budget group there (budgets: {})",
             list.join(", ")
-        ));
+        )));
     };
     let kept = groups
         .iter()

@@ -16,6 +16,7 @@
 use crate::isoflop::{envelope, group_budget, group_rows};
 use crate::loss_shape::Form;
 use crate::ols::{distinct, t95, Line, Parabola, Z95};
+use crate::FitError;
 use motionscale_core::rng::SplitMix64;
 use nalgebra::{DMatrix, DVector};
 use rayon::prelude::*;
@@ -39,15 +40,15 @@ pub enum Target {
 
 impl Target {
     /// Parses `n_opt` or `loss`.
-    pub fn parse(name: &str) -> Result<Self, String> {
+    pub fn parse(name: &str) -> Result<Self, FitError> {
         match name {
             "n_opt" => Ok(Self::NOpt),
             "loss" => Ok(Self::Loss),
-            "hour_value" => Err(
-                "--target hour_value: `sweep plan --next` only (a replay scores n_opt or loss)"
-                    .into(),
-            ),
-            other => Err(format!("--target {other:?}: expected n_opt or loss")),
+            other => Err(FitError::UnknownChoice {
+                flag: "--target",
+                given: other.into(),
+                expected: "n_opt or loss (hour_value is `sweep plan --next`'s only)",
+            }),
         }
     }
 
@@ -96,12 +97,16 @@ impl Goal {
     }
 
     /// Parses `n_opt`, `loss` or `hour_value`.
-    pub fn parse(name: &str) -> Result<Self, String> {
+    pub fn parse(name: &str) -> Result<Self, FitError> {
         match name {
             "hour_value" => Ok(Self::HourValue),
             other => Target::parse(other)
                 .map(Self::IsoFlop)
-                .map_err(|_| format!("--target {other:?}: expected n_opt, loss or hour_value")),
+                .map_err(|_| FitError::UnknownChoice {
+                    flag: "--target",
+                    given: other.into(),
+                    expected: "n_opt, loss or hour_value",
+                }),
         }
     }
 }

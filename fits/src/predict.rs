@@ -96,15 +96,10 @@ impl Laws {
 
     /// Reads a `fits.json`.
     pub fn read(path: &Path) -> Result<Self, FitError> {
-        let text = std::fs::read_to_string(path).map_err(|source| FitError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let fits: Fits = serde_json::from_str(&text).map_err(|e| FitError::Format {
-            path: path.to_path_buf(),
-            message: format!("not a fits.json written by `motionscale fit`: {e}"),
-        })?;
-        Ok(Self::from_fits(&fits, &path.display().to_string()))
+        Ok(Self::from_fits(
+            &Fits::read(path)?,
+            &path.display().to_string(),
+        ))
     }
 }
 

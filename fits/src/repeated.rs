@@ -27,6 +27,7 @@ use crate::ols::Line;
 use crate::parametric::{self, huber, lse3, LogRuns, StartGrid};
 use crate::runs::Runs;
 use crate::stopping::{tokens_used, StopRuns};
+use crate::FitError;
 use motionscale_core::rng::SplitMix64;
 use rayon::prelude::*;
 
@@ -474,13 +475,17 @@ fn frontier(runs: &Runs, u: &[f64], groups: &[(f64, Vec<usize>)]) -> Vec<DataFro
 
 /// The data-constrained fit of `runs` (the plain parametric fit in `fits` seeds it); the error
 /// says why it cannot be fitted.
-pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, String> {
+pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, FitError> {
+    let cannot = |needs: String| FitError::CannotFit {
+        fit: "data-constrained L(N, D')",
+        needs,
+    };
     let (Some(d_run), Some(u), Some(epochs_run)) = (&runs.d, runs.unique_tokens(), &runs.epochs)
     else {
-        return Err(format!(
+        return Err(cannot(format!(
             "needs a tokens column and an epochs column ({:?}: epochs over the unique tokens)",
             opts.columns.epochs.name
-        ));
+        )));
     };
     // With early stopping the law sees the tokens of each run's selected checkpoint.
     let stop = runs
@@ -496,13 +501,13 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
     let plain = fits
         .parametric
         .as_ref()
-        .ok_or("needs the plain parametric fit (see its skip reason)")?;
+        .ok_or_else(|| cannot("needs the plain parametric fit (see its skip reason)".into()))?;
     let max_epochs = epochs.iter().copied().fold(0.0, f64::max);
     let repeated_runs = epochs.iter().filter(|&&e| e > 1.0).count();
     if repeated_runs == 0 {
-        return Err(format!(
+        return Err(cannot(format!(
             "no run repeats data (at most {max_epochs:.2} epochs): R* cannot be fitted"
-        ));
+        )));
     }
     let mut data = DataRuns::new(&runs.n, &d, &u, &runs.param_loss.1)
         .with_effective_params(opts.effective_params);
@@ -510,7 +515,7 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
         data = data.with_synthetic_shares(shares);
     }
     let best = best_of(&data, opts, &starts(&plain.theta, data.effective_params))
-        .ok_or("the objective is not finite at any start")?;
+        .ok_or_else(|| cannot("the objective is not finite at any start".into()))?;
     let refits = bootstrap(&data, stop.as_ref(), &best.x, opts);
     let draws: Vec<[f64; 8]> = refits.iter().map(|r| r.0).collect();
     if let Some(rule) = &mut stopping {

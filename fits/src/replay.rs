@@ -36,15 +36,17 @@ pub enum Policy {
 
 impl Policy {
     /// Parses `active`, `grid` or `random`.
-    pub fn parse(name: &str) -> Result<Self, String> {
+    pub fn parse(name: &str) -> Result<Self, FitError> {
         match name {
             "active" => Ok(Self::Active),
             "grid" => Ok(Self::Grid),
             "random" => Ok(Self::Random),
             "oracle" => Ok(Self::Oracle),
-            other => Err(format!(
-                "--policy {other:?}: expected active, grid, random or oracle"
-            )),
+            other => Err(FitError::UnknownChoice {
+                flag: "--policy",
+                given: other.into(),
+                expected: "active, grid, random or oracle",
+            }),
         }
     }
 

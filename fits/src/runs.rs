@@ -303,19 +303,23 @@ impl Runs {
     }
 
     /// The runs of vocabulary size `k`; an error without a V column or without such runs.
-    pub fn of_vocabulary(&self, k: f64) -> Result<Self, String> {
+    pub fn of_vocabulary(&self, k: f64) -> Result<Self, FitError> {
+        let bad = |problem: String| FitError::BadOption {
+            flag: format!("--vocab {k}"),
+            problem,
+        };
         let v = self
             .v
             .as_ref()
-            .ok_or("the table has no vocabulary column")?;
+            .ok_or_else(|| bad("the table has no vocabulary column".into()))?;
         let rows: Vec<usize> = (0..v.len()).filter(|&i| v[i] == k).collect();
         if rows.is_empty() {
             let mut sizes: Vec<f64> = v.clone();
             sizes.sort_by(f64::total_cmp);
             sizes.dedup();
-            return Err(format!(
+            return Err(bad(format!(
                 "no runs of this vocabulary; the table has {sizes:?}"
-            ));
+            )));
         }
         let mut out = self.select(&rows);
         out.notes
@@ -425,7 +429,7 @@ mod tests {
         r.v.as_mut().unwrap()[1] = 1000.0;
         let k = r.of_vocabulary(1000.0).unwrap();
         assert_eq!((k.n.clone(), k.loss.clone()), (vec![24_672.0], vec![-3.3]));
-        let err = r.of_vocabulary(4375.0).unwrap_err();
+        let err = r.of_vocabulary(4375.0).unwrap_err().to_string();
         assert!(err.contains("[240.0, 1000.0]"), "{err}");
     }
 

@@ -9,6 +9,7 @@
 
 use crate::fitted::StoppingRule;
 use crate::ols::{distinct, Ols};
+use crate::FitError;
 
 /// A selected step before this share of a run's steps counts as stopped early.
 pub const STOPPED_BEFORE: f64 = 0.98;
@@ -64,11 +65,14 @@ impl StopRuns {
     }
 
     /// The rule on every run, as recorded (its bootstrap refits added by the caller).
-    pub fn rule(&self) -> Result<StoppingRule, String> {
+    pub fn rule(&self) -> Result<StoppingRule, FitError> {
         let all: Vec<usize> = (0..self.ln_n.len()).collect();
-        let (ols, coef) = self.fit(&all).ok_or(
-            "the stopping rule needs at least 5 runs that stopped before the end of their schedule, at 2 or more sizes",
-        )?;
+        let (ols, coef) = self.fit(&all).ok_or_else(|| FitError::CannotFit {
+            fit: "the stopping rule",
+            needs:
+                "at least 5 runs that stopped before the end of their schedule, at 2 or more sizes"
+                    .into(),
+        })?;
         let se = |i: usize| ols.se(i).unwrap_or(0.0);
         let n = ols.residuals.len();
         let rss: f64 = ols.residuals.iter().map(|r| r * r).sum();
@@ -134,6 +138,10 @@ mod tests {
         );
         // Four stopped runs are too few.
         let few = StopRuns::new(&n[..8], &u[..8], &epochs[..8], &selected[..8]);
-        assert!(few.rule().unwrap_err().contains("at least 5 runs"));
+        assert!(few
+            .rule()
+            .unwrap_err()
+            .to_string()
+            .contains("at least 5 runs"));
     }
 }

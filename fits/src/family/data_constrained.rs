@@ -1,6 +1,6 @@
 //! Muennighoff et al. (2023)'s data-constrained law: L = E + A/N^α + B/D'^β with the
 //! effective data D' = U + U·R*_D·(1 − e^(−R/R*_D)), R = D/U − 1 the repetitions past the
-//! first epoch; θ = (a, b, e, α, β, r) with A = eᵃ, B = eᵇ, E = eᵉ, R*_D = eʳ.
+//! first epoch, U capped at D; θ = (a, b, e, α, β, r) with A = eᵃ, B = eᵇ, E = eᵉ, R*_D = eʳ.
 
 use super::chinchilla::{epoch_starts, Chinchilla};
 use super::{Axis, Law, Point};
@@ -14,7 +14,7 @@ impl Law<6> for DataConstrained {
     }
 
     fn equation(&self) -> &'static str {
-        "L = E + A/N^alpha + B/D'^beta, D' = U + U*R_D*(1 - exp(-(D/U - 1)/R_D))"
+        "L = E + A/N^alpha + B/D'^beta, D' = U_D + U_D*R_D*(1 - exp(-(D/U_D - 1)/R_D)), U_D = min(U, D)"
     }
 
     fn needs(&self) -> &'static [Axis] {
@@ -35,7 +35,8 @@ impl Law<6> for DataConstrained {
     }
 
     fn predict(&self, t: &[f64; 6], x: &Point, g: &mut [f64; 6]) -> f64 {
-        let u = x.u.unwrap_or(x.d);
+        // U_D = min(U, D): a run shorter than its pool sees D unique tokens (D' = D).
+        let u = x.u.unwrap_or(x.d).min(x.d);
         let r_star = t[5].exp();
         let reps = (x.d / u - 1.0).max(0.0);
         let decay = (-reps / r_star).exp();
@@ -64,5 +65,31 @@ impl Law<6> for DataConstrained {
 
     fn theta_from_natural(&self, p: &[f64; 6]) -> [f64; 6] {
         [p[1].ln(), p[2].ln(), p[0].ln(), p[3], p[4], p[5].ln()]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A run shorter than its pool is Chinchilla's at D (D' = D, not U); one repeating its
+    /// pool sees less than D.
+    #[test]
+    fn effective_data_is_the_tokens_seen_until_the_pool_repeats() {
+        let t = [5.0, 6.0, 0.5, 0.34, 0.28, 2.0];
+        let core = [t[0], t[1], t[2], t[3], t[4]];
+        let mut g = [0.0; 6];
+        let at = |d: f64, u: f64| Point {
+            n: 1e8,
+            d,
+            u: Some(u),
+            ..Point::default()
+        };
+        let plain = |d: f64| Chinchilla.predict(&core, &at(d, d), &mut [0.0; 5]);
+        let short = DataConstrained.predict(&t, &at(1e9, 1e11), &mut g);
+        let (p9, p11) = (plain(1e9), plain(1e11));
+        assert!((short - p9).abs() < 1e-12, "{short} vs {p9}");
+        let repeated = DataConstrained.predict(&t, &at(1e11, 1e9), &mut g);
+        assert!(repeated > p11, "{repeated} vs {p11}");
     }
 }

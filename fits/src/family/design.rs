@@ -104,6 +104,51 @@ pub fn replay(
     }
 }
 
+/// A live study's next `k` runs (`room`: the compute they may spend): greedy V-optimal
+/// additions to `trained` from `candidates` (costing `cost`), at the fit θ in `space`, for the
+/// `target` points; each candidate's index with the target's mean prediction variance (in
+/// units of the noise) once it is added.
+#[allow(clippy::too_many_arguments)]
+pub fn next_runs(
+    family: &dyn Family,
+    (theta, space): (&[f64], Space),
+    trained: &[Point],
+    candidates: &[Point],
+    cost: &[f64],
+    target: &[Point],
+    (k, room): (usize, f64),
+) -> Vec<(usize, f64)> {
+    let rows: Vec<Point> = trained.iter().chain(candidates).copied().collect();
+    let all_cost: Vec<f64> = vec![0.0; trained.len()]
+        .into_iter()
+        .chain(cost.iter().copied())
+        .collect();
+    let loss = vec![f64::NAN; rows.len()];
+    let s = Settings::default();
+    let pool = Pool {
+        family,
+        rows: &rows,
+        loss: &loss,
+        cost: &all_cost,
+        target,
+        space,
+        s: &s,
+    };
+    let mut chosen: Vec<usize> = (0..trained.len()).collect();
+    let mut out = Vec::new();
+    let mut left = room;
+    while out.len() < k {
+        let Some(best) = pool.best_addition(theta, &chosen, left, true) else {
+            break;
+        };
+        chosen.push(best);
+        left -= all_cost[best];
+        let variance = pool.variance(theta, &chosen).unwrap_or(f64::NAN);
+        out.push((best - trained.len(), variance));
+    }
+    out
+}
+
 /// The pool, its target and the fitter, for the greedy designs.
 struct Pool<'a> {
     family: &'a dyn Family,
@@ -238,11 +283,12 @@ mod tests {
     use super::*;
 
     /// A Chinchilla pool of 12 × 12 runs with 0.5% noise, and targets a decade past its
-    /// largest compute: at 1% and 5% of the pool's cost, V-optimal buys beat random purchases
-    /// on the target's R² over three seeds. At 10% they do not (0.981 against 0.996 at this
-    /// revision): the open part of #56, stated in docs/results/law-benchmarks.md.
+    /// largest compute: at 1%, 5% and 10% of the pool's cost, V-optimal buys beat random
+    /// purchases on the target's mean R² over eight replicates. Each replicate draws the pool's
+    /// noise afresh: with one draw shared by every seed, V-optimal (which buys nearly the same
+    /// runs from any start) is scored on a single realisation of the noise.
     #[test]
-    fn v_optimal_beats_random_at_1_and_5_percent_on_a_synthetic_pool() {
+    fn v_optimal_beats_random_at_every_cap_on_a_synthetic_pool() {
         let family = crate::family::family("chinchilla").unwrap();
         let theta = family.theta_from_natural(&[1.69, 406.4, 410.7, 0.34, 0.28]);
         let log = |lo: f64, hi: f64, i: usize, k: usize| {
@@ -255,11 +301,12 @@ mod tests {
                 ..Point::default()
             })
             .collect();
-        let mut rng = SplitMix64(11);
-        let loss: Vec<f64> = pool
-            .iter()
-            .map(|x| family.predict(&theta, x) * (1.0 + 5e-3 * rng.normal()))
-            .collect();
+        let noisy = |seed: u64| {
+            let mut rng = SplitMix64(11 + seed);
+            pool.iter()
+                .map(|x| family.predict(&theta, x) * (1.0 + 5e-3 * rng.normal()))
+                .collect::<Vec<f64>>()
+        };
         let target: Vec<Point> = (0..9)
             .map(|i| Point {
                 n: log(9.0, 10.0, i / 3, 3),
@@ -274,14 +321,14 @@ mod tests {
             starts: 16,
             ..Settings::default()
         };
-        for cap in [0.01, 0.05] {
+        for cap in [0.01, 0.05, 0.1] {
             let mean_r2 = |policy| {
-                (0..3)
+                (0..8)
                     .map(|seed| {
                         let r = replay(
                             family.as_ref(),
                             &pool,
-                            &loss,
+                            &noisy(seed),
                             &cost,
                             (&target, &t_loss),
                             (policy, cap, seed),
@@ -290,7 +337,7 @@ mod tests {
                         r.target.map_or(-1.0, |t| t.r2_clipped)
                     })
                     .sum::<f64>()
-                    / 3.0
+                    / 8.0
             };
             let (v, r) = (mean_r2(Policy::VOptimal), mean_r2(Policy::Random));
             assert!(v > r, "cap {cap}: V-optimal R² {v} ≤ random {r}");

@@ -171,8 +171,10 @@ pub trait Family: Sync {
     fn predict(&self, theta: &[f64], x: &Point) -> f64;
     /// The loss θ predicts at `x` and ∂L̂/∂θ there.
     fn value_and_gradient(&self, theta: &[f64], x: &Point) -> (f64, Vec<f64>);
-    /// The compute-optimal allocation at `c`, where the family has one.
-    fn allocation(&self, theta: &[f64], c: f64) -> Option<Allocation>;
+    /// The compute-optimal allocation at `c` with the other axes of `at` (U, N_v) held: the
+    /// law's closed form where it has one, else the lowest predicted loss over N with
+    /// D = C/(6·(N + N_v)).
+    fn allocation(&self, theta: &[f64], c: f64, at: &Point) -> Option<Allocation>;
     /// The natural parameters (name, value) of the optimiser's θ.
     fn natural(&self, theta: &[f64]) -> Vec<(&'static str, f64)>;
     /// The optimiser's θ of natural parameters listed as [`Family::natural`] lists them.
@@ -340,7 +342,53 @@ fn distinct<const P: usize>(ends: &[Minimum<P>], k: usize) -> Vec<[f64; P]> {
 }
 
 /// Bootstrap weights of resample `i`: rows (or whole clusters) drawn with replacement.
-fn resample_weights(n: usize, clusters: Option<&[usize]>, seed: u64, i: usize) -> Vec<f64> {
+/// The allocation at `c` of the lowest `loss` over N (a grid of 400 in log N, then golden
+/// section between the grid point's neighbours), D = C/(6·(N + N_v)), U and N_v from `at`.
+fn lowest_over_n(loss: impl Fn(&Point) -> f64, c: f64, at: &Point) -> Option<Allocation> {
+    let nv = at.nv.unwrap_or(0.0);
+    let point = |ln_n: f64| {
+        let n = ln_n.exp();
+        Point {
+            n,
+            d: c / (6.0 * (n + nv)),
+            ..*at
+        }
+    };
+    let f = |ln_n: f64| loss(&point(ln_n));
+    let (lo, hi) = (100f64.ln(), (c / 600.0).ln());
+    if hi.is_nan() || hi <= lo {
+        return None;
+    }
+    let step = (hi - lo) / 399.0;
+    let best = (0..400)
+        .map(|i| lo + step * i as f64)
+        .filter(|&x| f(x).is_finite())
+        .min_by(|&a, &b| f(a).total_cmp(&f(b)))?;
+    let (mut a, mut b) = (best - step, best + step);
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    for _ in 0..60 {
+        let (x1, x2) = (b - g * (b - a), a + g * (b - a));
+        if f(x1) < f(x2) {
+            b = x2;
+        } else {
+            a = x1;
+        }
+    }
+    let x = point((a + b) / 2.0);
+    Some(Allocation {
+        compute: c,
+        n: x.n,
+        d: x.d,
+        loss: loss(&x),
+    })
+}
+
+pub(super) fn resample_weights(
+    n: usize,
+    clusters: Option<&[usize]>,
+    seed: u64,
+    i: usize,
+) -> Vec<f64> {
     let mut rng = SplitMix64::stream(seed, i as u64 + 1);
     let mut w = vec![0.0; n];
     match clusters {
@@ -380,6 +428,14 @@ impl<const P: usize, L: Law<P>> Family for Declared<L, P> {
                 .any(|r| r.get(**a).is_none_or(|v| v.is_nan() || v <= 0.0))
         }) {
             return Some(format!("needs a positive {} for every run", a.symbol()));
+        }
+        // A vocabulary term of one N_v is a constant: not identified beside E. (One U is
+        // fine: D/U still varies.)
+        let nv = |r: &Point| r.nv;
+        if self.needs().contains(&Axis::Nv)
+            && rows.iter().all(|r| nv(r) == rows.first().and_then(nv))
+        {
+            return Some("N_v takes one value in every run: its terms are not identified".into());
         }
         if self.0.positive() && Space::for_losses(loss) == Space::Loss {
             return Some("predicts a positive loss and the table has a loss ≤ 0".into());
@@ -455,8 +511,14 @@ impl<const P: usize, L: Law<P>> Family for Declared<L, P> {
         (value, g.to_vec())
     }
 
-    fn allocation(&self, theta: &[f64], c: f64) -> Option<Allocation> {
-        self.0.allocation(&as_array(theta), c)
+    fn allocation(&self, theta: &[f64], c: f64, at: &Point) -> Option<Allocation> {
+        let theta = as_array(theta);
+        let held = |a: Axis| matches!(a, Axis::U | Axis::Nv) && at.get(a).is_some();
+        match self.needs().iter().any(|&a| held(a)) {
+            false => self.0.allocation(&theta, c),
+            true => None,
+        }
+        .or_else(|| lowest_over_n(|x| self.predict(&theta, x), c, at))
     }
 
     fn natural(&self, theta: &[f64]) -> Vec<(&'static str, f64)> {

@@ -13,9 +13,11 @@ mod data_constrained;
 pub mod design;
 pub mod engine;
 mod farseer;
+pub mod predict;
 pub mod run;
 pub mod select;
 mod vocab;
+pub mod vocab_choice;
 mod vocab_effective;
 pub mod vpnls;
 

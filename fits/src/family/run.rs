@@ -4,7 +4,9 @@
 use super::design::{replay, Policy, Replay};
 use super::engine::{Family, FamilyFit, Settings, Space};
 use super::select::{rank, score, Holdout, Ranking, Score};
+use super::vocab_choice::{vocab_lobo, VocabLoboPoint};
 use super::vpnls::{lobo, LoboPoint};
+use super::Axis;
 use super::{family, registry, Point};
 use crate::table::Table;
 use crate::FitError;
@@ -26,6 +28,9 @@ pub struct LawColumns {
     pub epochs: Option<String>,
     /// Vocabulary parameters N_v (or the vocabulary size).
     pub nv: Option<String>,
+    /// The vocabulary size, for the choice of vocabulary at a left-out budget.
+    #[serde(default)]
+    pub vocab: Option<String>,
 }
 
 /// A held-out table's scores.
@@ -62,6 +67,10 @@ pub struct LawReport {
     /// With budget groups: N_opt at each budget left out, by the parabola vertices of the
     /// others and by variable projection, beside its own vertex.
     pub n_opt_lobo: Option<Vec<LoboPoint>>,
+    /// With budget groups and a vocabulary column: each vocabulary law's choice of vocabulary
+    /// at each budget left out, beside the per-vocabulary parabolas' (law name, points).
+    #[serde(default)]
+    pub vocab_lobo: Vec<(String, Vec<VocabLoboPoint>)>,
 }
 
 /// Reads the runs of `table` on `cols`.
@@ -161,6 +170,7 @@ pub fn fit_laws(
     let test = test
         .map(|path| test_scores(path, cols, families, &fits))
         .transpose()?;
+    let vocab_lobo = vocab_choices(table, cols, families, (&rows, &loss), &ranking, s)?;
     Ok(LawReport {
         table: table.path().to_path_buf(),
         columns: cols.clone(),
@@ -172,7 +182,48 @@ pub fn fit_laws(
         fits,
         test,
         n_opt_lobo,
+        vocab_lobo,
     })
+}
+
+/// With budget groups and a vocabulary column, every fitted family with a vocabulary axis
+/// chooses the vocabulary at each budget left out.
+fn vocab_choices(
+    table: &Table,
+    cols: &LawColumns,
+    families: &[Box<dyn Family>],
+    (rows, loss): (&[Point], &[f64]),
+    ranking: &Ranking,
+    s: &Settings,
+) -> Result<Vec<(String, Vec<VocabLoboPoint>)>, FitError> {
+    let (Holdout::Groups { groups }, Some(col)) = (&ranking.holdout, &cols.vocab) else {
+        return Ok(Vec::new());
+    };
+    if !table.has(col) {
+        return Ok(Vec::new());
+    }
+    let vocab = table.numbers(col, "--v-col")?;
+    if vocab.iter().all(|&v| v == vocab[0]) {
+        return Ok(Vec::new());
+    }
+    let quick = Settings {
+        bootstrap: 0,
+        ..s.clone()
+    };
+    Ok(families
+        .iter()
+        .filter(|f| f.needs().contains(&Axis::Nv))
+        .filter(|f| {
+            ranking
+                .ranked
+                .iter()
+                .any(|r| r.law == f.name() && r.holdout.is_some())
+        })
+        .map(|f| {
+            let points = vocab_lobo(f.as_ref(), (rows, loss, &vocab), groups, &quick);
+            (f.name().to_string(), points)
+        })
+        .collect())
 }
 
 /// Every fit scored on the held-out table at `path`.
@@ -210,6 +261,9 @@ impl LawReport {
         }
         if let Some(points) = &self.n_opt_lobo {
             n_opt_lobo_lines(points, &mut s);
+        }
+        for (law, points) in &self.vocab_lobo {
+            vocab_lobo_lines(law, points, &mut s);
         }
         if let Some(t) = &self.test {
             test_lines(t, &mut s);
@@ -313,16 +367,21 @@ fn n_opt_lobo_lines(points: &[LoboPoint], s: &mut String) {
         s,
         "N_opt with each budget left out (log10 error against its own vertex, decades):"
     );
-    let (mut par, mut vp) = (Vec::new(), Vec::new());
+    let (mut par, mut vp, mut covered) = (Vec::new(), Vec::new(), [0, 0]);
     for p in points {
         let err = |x: Option<f64>| x.map(|x| x - p.vertex);
         let text = |e: Option<f64>| e.map_or("—".into(), |e| format!("{e:+.3}"));
         let (ep, ev) = (err(p.parabola), err(p.vpnls));
         par.extend(ep);
         vp.extend(ev);
+        let interval = p.vpnls_interval.map_or(String::new(), |[lo, hi]| {
+            covered[0] += usize::from(lo <= p.vertex && p.vertex <= hi);
+            covered[1] += 1;
+            format!(" [{:+.3}, {:+.3}]", lo - p.vertex, hi - p.vertex)
+        });
         let _ = writeln!(
             s,
-            "  C {:<10} vertex {:<10} parabola vertices {:<7} VPNLS {}",
+            "  C {:<10} vertex {:<10} parabola vertices {:<7} VPNLS {}{interval}",
             sig(p.budget),
             sig(10f64.powf(p.vertex)),
             text(ep),
@@ -337,6 +396,49 @@ fn n_opt_lobo_lines(points: &[LoboPoint], s: &mut String) {
         par.len(),
         mean_abs(&vp),
         vp.len()
+    );
+    let _ = writeln!(
+        s,
+        "  the budget's own vertex inside VPNLS's 95% interval (other budgets resampled whole): {}/{}",
+        covered[0], covered[1]
+    );
+}
+
+/// The vocabulary each way picks at each budget left out, its hits and mean |log2 error|.
+fn vocab_lobo_lines(law: &str, points: &[VocabLoboPoint], s: &mut String) {
+    use crate::report::sig;
+    use std::fmt::Write;
+    let _ = writeln!(
+        s,
+        "Vocabulary with each budget left out: {law} law against the per-vocabulary parabolas (V picked; the budget's own best):"
+    );
+    let show = |v: Option<f64>| v.map_or("—".into(), |v| format!("{v:.0}"));
+    let log2_err = |v: Option<f64>, t: f64| v.map(|v| (v / t).log2().abs());
+    let (mut law_err, mut par_err, mut hits) = (Vec::new(), Vec::new(), [0, 0]);
+    for p in points {
+        law_err.extend(log2_err(p.law, p.truth));
+        par_err.extend(log2_err(p.parabola, p.truth));
+        hits[0] += usize::from(p.law == Some(p.truth));
+        hits[1] += usize::from(p.parabola_nearest == Some(p.truth));
+        let _ = writeln!(
+            s,
+            "  C {:<10} best V {:<6} law {:<6} parabolas {:<6} (nearest {})",
+            sig(p.budget),
+            show(Some(p.truth)),
+            show(p.law),
+            show(p.parabola),
+            show(p.parabola_nearest)
+        );
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let _ = writeln!(
+        s,
+        "  right vocabulary: law {}/{n}, parabolas {}/{n}; mean |log2 error|: law {:.2}, parabolas {:.2}",
+        hits[0],
+        hits[1],
+        mean(&law_err),
+        mean(&par_err),
+        n = points.len()
     );
 }
 

@@ -3,11 +3,15 @@
 //! are, for fixed exponents, a linear least-squares solve, so only (α, β) are searched — a
 //! grid, then a finer grid around its best — and N_opt = G·(C/6)^(β/(α+β)) follows in closed
 //! form. Beside it, the parabola vertices of Chinchilla's approach 2; `lobo` scores both by
-//! leaving each budget out in turn against that budget's own vertex.
+//! leaving each budget out in turn against that budget's own vertex, VPNLS with a 95%
+//! interval from the other budgets resampled whole (runs of one budget share its noise).
 
+use super::engine::resample_weights;
 use super::Point;
 use crate::isoflop::parabola_minimum;
 use crate::ols::{Line, Ols};
+use crate::parametric::percentile;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// Chinchilla's law fitted by variable projection (least squares on the loss).
@@ -89,6 +93,31 @@ pub struct LoboPoint {
     pub parabola: Option<f64>,
     /// log10 N_opt from VPNLS on the other budgets' runs.
     pub vpnls: Option<f64>,
+    /// Its 95% interval: VPNLS refitted to the other budgets resampled whole.
+    #[serde(default)]
+    pub vpnls_interval: Option<[f64; 2]>,
+}
+
+/// Resamples in VPNLS's interval of N_opt.
+const VPNLS_RESAMPLES: usize = 100;
+
+/// The 95% interval of log10 N_opt at `c` of VPNLS refitted to `rows` resampled by
+/// `clusters` (each cluster drawn whole; `clusters[i]` in 0..k), seeded.
+fn n_opt_interval(rows: &[Point], loss: &[f64], clusters: &[usize], c: f64) -> Option<[f64; 2]> {
+    let draws: Vec<f64> = (0..VPNLS_RESAMPLES)
+        .into_par_iter()
+        .filter_map(|b| {
+            let w = resample_weights(rows.len(), Some(clusters), 0x7695, b);
+            let (r, l): (Vec<Point>, Vec<f64>) = (0..rows.len())
+                .flat_map(|i| std::iter::repeat_n((rows[i], loss[i]), w[i] as usize))
+                .unzip();
+            Vpnls::fit(&r, &l).map(|v| v.n_opt(c).log10())
+        })
+        .collect();
+    if draws.len() * 10 < VPNLS_RESAMPLES * 9 {
+        return None;
+    }
+    Some([percentile(&draws, 0.025)?, percentile(&draws, 0.975)?])
 }
 
 /// Each budget group with an interior vertex left out in turn (`groups[i]`: run i's group).
@@ -126,11 +155,17 @@ pub fn lobo(rows: &[Point], loss: &[f64], groups: &[usize]) -> Vec<LoboPoint> {
             let tr: Vec<Point> = train.iter().map(|&i| rows[i]).collect();
             let tl: Vec<f64> = train.iter().map(|&i| loss[i]).collect();
             let vpnls = Vpnls::fit(&tr, &tl).map(|v| v.n_opt(c).log10());
+            // The other budgets, numbered 0..k−1 for the cluster resample.
+            let clusters: Vec<usize> = train
+                .iter()
+                .map(|&i| groups[i] - usize::from(groups[i] > h))
+                .collect();
             Some(LoboPoint {
                 budget: c,
                 vertex: truth,
                 parabola,
                 vpnls,
+                vpnls_interval: vpnls.and_then(|_| n_opt_interval(&tr, &tl, &clusters, c)),
             })
         })
         .collect()
