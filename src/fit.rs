@@ -2,10 +2,11 @@
 //! predictions at a compute budget.
 
 use anyhow::{bail, Context, Result};
-use fits::data_value::{predict_data, Hours};
+use fits::data_value::{data_bound, predict_data, DataBound, DataPrediction, Hours};
 use fits::family::predict::predict_at;
 use fits::family::run::LawReport;
 use fits::family::Point;
+use fits::fitted::RepeatedData;
 use fits::fitted::{ColumnChoice, ColumnSpec, FitFile, FitOptions};
 use fits::parametric::StartGrid;
 use fits::report::{estimate_text, sig};
@@ -302,6 +303,14 @@ pub struct PredictArgs {
     /// these hours, and what +1 h and +10 h of each source are worth.
     #[arg(long, value_name = "real=H,synth=H", value_parser = parse_hours, requires = "fits")]
     pub hours: Option<Hours>,
+    /// With --hours: the seed SD of the loss, below which more compute is not worth buying
+    /// [default: the fit's pooled seed SD of its parametric loss, where runs were repeated].
+    #[arg(long, value_name = "NATS", requires = "hours")]
+    pub noise: Option<f64>,
+    /// With --hours: the hours given are distinct capture and the fit's hours count mirrored
+    /// copies, so each is doubled.
+    #[arg(long, requires = "hours")]
+    pub mirrored: bool,
     /// Unique tokens U held at the budget (a laws.json whose law reads U).
     #[arg(long, value_name = "U")]
     pub unique_tokens: Option<f64>,
@@ -337,24 +346,29 @@ pub(crate) fn parse_hours(text: &str) -> Result<Hours, String> {
 
 /// What an hour buys in compute: C'/C with its interval, or "more than any compute", with the
 /// share of refits at which no budget reaches the loss.
-fn worth_text(v: &fits::data_value::HourValue) -> String {
+fn worth_text(v: &fits::data_value::HourValue, data_bound: bool) -> String {
     let e = &v.compute_equivalent;
     let share = 100.0 * v.unbuyable;
     let end = |x: Option<f64>| x.map_or("∞".into(), sig);
-    match (e.value.is_infinite(), v.unbuyable > 0.0) {
-        (true, _) => format!(
-            "more than any compute: no budget reaches that loss with today's hours (nor at {share:.0}% of refits)"
+    let interval = format!(
+        "{} [{}, {}]× compute",
+        sig(e.value),
+        end(e.ci_low),
+        end(e.ci_high)
+    );
+    let why = match v.unbuyable > 0.0 {
+        true => format!("no budget reaches that loss at {share:.0}% of refits"),
+        false => "the loss change's sign is not resolved".into(),
+    };
+    match (e.value.is_infinite(), data_bound, v.resolved()) {
+        (true, ..) => format!(
+            "worth more than any compute: no budget reaches that loss with today's hours (nor at {share:.0}% of refits)"
         ),
-        (false, refits) => format!(
-            "{} [{}, {}]× compute{}",
-            sig(e.value),
-            end(e.ci_low),
-            end(e.ci_high),
-            match refits {
-                true => format!(" (no budget reaches it at {share:.0}% of refits)"),
-                false => String::new(),
-            }
-        ),
+        (false, true, _) => {
+            "no compute equivalent: past C_sat compute buys less than the seed SD".into()
+        }
+        (false, false, true) => format!("worth {interval}"),
+        (false, false, false) => format!("no compute equivalent to act on ({interval}: {why})"),
     }
 }
 
@@ -367,17 +381,32 @@ fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCo
             path.display()
         );
     };
-    let p = predict_data(rd, args.budget, hours)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    let scale = if args.mirrored { 2.0 } else { 1.0 };
+    let fit_hours = Hours {
+        real: scale * hours.real,
+        synth: scale * hours.synth,
+    };
+    let in_file = |e: String| anyhow::anyhow!("{}: {e}", path.display());
+    let p = predict_data(rd, args.budget, fit_hours).map_err(in_file)?;
+    let noise = args.noise.or_else(|| fits.param_seed_sd());
+    let bound = noise
+        .map(|sd| data_bound(rd, args.budget, fit_hours, sd))
+        .transpose()
+        .map_err(in_file)?;
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&p)?);
+        let both = serde_json::json!({ "prediction": p, "data_bound": bound });
+        println!("{}", serde_json::to_string_pretty(&both)?);
         return Ok(ExitCode::SUCCESS);
     }
+    let mirrors = |h: f64| match args.mirrored {
+        true => format!("{h} h distinct = {} h with mirrors", scale * h),
+        false => format!("{h} h"),
+    };
     println!(
-        "C = {} with {} h real + {} h synthetic ({} unique tokens, vocabulary {}):",
+        "C = {} with {} real + {} synthetic ({} unique tokens, vocabulary {}):",
         sig(p.budget),
-        p.hours.real,
-        p.hours.synth,
+        mirrors(hours.real),
+        mirrors(hours.synth),
         sig(p.unique_tokens),
         p.vocab.map_or("mixed".into(), |v| format!("{v:.0}"))
     );
@@ -395,17 +424,79 @@ fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCo
     println!("  N_v {} ; 6·(N + N_v)·D / C = {:.4}", sig(p.n_v), p.spends);
     for v in &p.hour_values {
         println!(
-            "  +{} h {:<5}: loss {} ; worth {}",
+            "  +{} h {:<5}: loss {} ; {}",
             v.hours,
             v.source,
             estimate_text(&v.loss_change),
-            worth_text(v)
+            worth_text(v, bound.as_ref().is_some_and(|b| b.bound))
         );
     }
     for v in &p.verdicts {
         println!("  {v}");
     }
+    baseline_lines(rd, &p);
+    match &bound {
+        Some(b) => println!("  {}", bound_text(b, p.budget, p.stop_epochs.as_ref())),
+        None => println!(
+            "  no seed SD (no repeated runs in the fit; give --noise): no data-bound verdict"
+        ),
+    }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The two naive baselines beside N_opt and the loss, from the fit's frontier on the unique
+/// set nearest these hours: no growth (its last budget carried forward) and N ∝ C from its
+/// last best run (that run's tokens).
+fn baseline_lines(rd: &RepeatedData, p: &DataPrediction) {
+    let distance = |u: f64| (u / p.unique_tokens).ln().abs();
+    let Some(set) = rd
+        .frontier
+        .iter()
+        .min_by(|a, b| distance(a.unique_tokens).total_cmp(&distance(b.unique_tokens)))
+    else {
+        return;
+    };
+    let same_set = |u: f64| (u / set.unique_tokens).ln().abs() < 0.01;
+    let Some(last) = rd
+        .frontier
+        .iter()
+        .filter(|f| same_set(f.unique_tokens) && f.budget <= p.budget)
+        .max_by(|a, b| a.budget.total_cmp(&b.budget))
+    else {
+        return;
+    };
+    println!(
+        "  baselines from the best run at C = {} on {} unique tokens: no growth N {} loss {}; N ∝ C N {}",
+        sig(last.budget),
+        sig(last.unique_tokens),
+        sig(last.n),
+        sig(last.loss),
+        sig(last.n * p.budget / last.budget)
+    );
+}
+
+/// The data-bound verdict: whether compute past C_sat is worth buying on these hours, and
+/// what doubling the captured hours buys.
+fn bound_text(b: &DataBound, budget: f64, stop: Option<&fits::laws::Estimate>) -> String {
+    let doubling = format!(
+        "doubling the captured hours changes the loss by {}",
+        estimate_text(&b.doubling)
+    );
+    match b.bound {
+        true => format!(
+            "data-bound above {} FLOPs (past it all further compute lowers the loss by less than the seed SD {}; floor {}): {}buy data — {doubling}",
+            sig(b.saturation.value),
+            sig(b.noise),
+            sig(b.floor.value),
+            stop.map_or(String::new(), |e| format!("stop at {:.1} epochs; ", e.value)),
+        ),
+        false => format!(
+            "compute-bound at {}: compute keeps paying up to {} FLOPs [{}]; {doubling}",
+            sig(budget),
+            sig(b.saturation.value),
+            estimate_text(&b.saturation)
+        ),
+    }
 }
 
 /// `motionscale predict`.

@@ -357,18 +357,60 @@ fn predict_hours_from_an_early_stopping_fit_says_what_compute_cannot_buy() {
     }
     let json = motionscale_ok(&[&args[..], &["--hours", "real=5", "--json"]].concat());
     let raw: serde_json::Value = serde_json::from_str(&json).unwrap();
-    let real = &raw["hour_values"][0];
+    let real = &raw["prediction"]["hour_values"][0];
     assert!(
         real["compute_equivalent"]["value"].is_null(),
         "∞ is null in JSON: {real}"
     );
     // … and reads back as ∞.
-    let p: fits::data_value::DataPrediction = serde_json::from_str(&json).unwrap();
+    let p: fits::data_value::DataPrediction =
+        serde_json::from_value(raw["prediction"].clone()).unwrap();
     let stop = p.stop_epochs.expect("the stopping rule's epochs at N_opt");
     assert!(p.epochs.value > 10.0 * stop.value, "{p:?}");
     let real = &p.hour_values[0];
     assert_eq!((real.source.as_str(), real.unbuyable), ("real", 1.0));
     assert!(real.compute_equivalent.value.is_infinite(), "{real:?}");
+    data_bound_verdict(&fits);
+}
+
+/// On the same fit, at 10¹⁸ FLOPs and 2.5 h distinct captured hours mirrored (5 h in the
+/// fit's units), with a seed SD of 0.005 nats: the budget is data-bound, the verdict says
+/// where compute stops paying, when to stop and what doubling the captured hours buys, the
+/// two naive baselines are printed and no hour is given a compute price.
+fn data_bound_verdict(fits: &std::path::Path) {
+    let args = [
+        "predict",
+        "--fits",
+        arg(fits),
+        "--budget",
+        "1e18",
+        "--hours",
+        "real=2.5",
+        "--mirrored",
+        "--noise",
+        "0.005",
+    ];
+    let text = motionscale_ok(&args);
+    for needle in [
+        "2.5 h distinct = 5 h with mirrors",
+        "data-bound above ",
+        "stop at ",
+        "buy data — doubling the captured hours changes the loss by -",
+        "baselines from the best run at C = 1.000e15",
+        "no growth N",
+        "N ∝ C N",
+    ] {
+        assert!(text.contains(needle), "{needle:?} in {text}");
+    }
+    assert!(!text.contains("× compute"), "no compute price: {text}");
+    let json = motionscale_ok(&[&args[..], &["--json"]].concat());
+    let raw: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let b: fits::data_value::DataBound = serde_json::from_value(raw["data_bound"].clone()).unwrap();
+    assert!(b.bound && b.saturation.value < 1e18, "{b:?}");
+    assert!(
+        b.doubling.value < 0.0 && b.doubling.ci_high.unwrap() < 0.0,
+        "{b:?}"
+    );
 }
 
 /// ScaleBench's tasks (arXiv 2604.22753) through `fit --law all`: each task's family chosen

@@ -12,6 +12,7 @@ use crate::planner::infinite_if_null;
 use crate::repeated::loss_at;
 use crate::stopping::{stop_epochs, tokens_used};
 use serde::{Deserialize, Deserializer, Serialize};
+use std::f64::consts::LN_10;
 
 /// Hours of each source in the corpus.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -95,12 +96,28 @@ impl Law {
         self.at(c, 10f64.powf(0.5 * (a + b)), h)
     }
 
+    /// C_sat, the budget past which all further compute lowers the loss by less than `noise`,
+    /// and the loss unlimited compute reaches on `h` (at 10¹⁰·C).
+    fn saturation(&self, c: f64, h: Hours, noise: f64) -> (f64, f64) {
+        let floor = self.optimum(c * 1e10, h).loss;
+        let excess = |ln_c: f64| self.optimum(ln_c.exp(), h).loss - floor - noise;
+        let (mut lo, mut hi) = (c.ln() - 8.0 * LN_10, c.ln() + 10.0 * LN_10);
+        if excess(lo) <= 0.0 {
+            return (lo.exp(), floor);
+        }
+        for _ in 0..50 {
+            let mid = 0.5 * (lo + hi);
+            match excess(mid) > 0.0 {
+                true => lo = mid,
+                false => hi = mid,
+            }
+        }
+        ((0.5 * (lo + hi)).exp(), floor)
+    }
+
     /// The budget C' at which today's hours reach `loss` (∞ when no budget does).
     fn compute_for(&self, loss: f64, c: f64, h: Hours) -> f64 {
-        let (mut lo, mut hi) = (
-            c.ln() - 3.0 * std::f64::consts::LN_10,
-            c.ln() + 12.0 * std::f64::consts::LN_10,
-        );
+        let (mut lo, mut hi) = (c.ln() - 3.0 * LN_10, c.ln() + 12.0 * LN_10);
         if self.optimum(hi.exp(), h).loss > loss {
             return f64::INFINITY;
         }
@@ -132,6 +149,71 @@ pub struct HourValue {
     /// The share of the bootstrap refits at which no budget reaches that loss.
     #[serde(default)]
     pub unbuyable: f64,
+}
+
+impl HourValue {
+    /// Whether the compute equivalent can be acted on: every refit reaches the loss at some
+    /// budget, both interval ends are finite, and the loss change's interval excludes 0.
+    pub fn resolved(&self) -> bool {
+        let finite = |e: &Estimate| {
+            e.value.is_finite()
+                && e.ci_low.is_some_and(f64::is_finite)
+                && e.ci_high.is_some_and(f64::is_finite)
+        };
+        let signed = matches!(
+            (self.loss_change.ci_low, self.loss_change.ci_high),
+            (Some(lo), Some(hi)) if lo > 0.0 || hi < 0.0
+        );
+        self.unbuyable == 0.0 && finite(&self.compute_equivalent) && signed
+    }
+}
+
+/// Where more compute stops paying on a corpus's hours.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DataBound {
+    /// The seed SD of the loss that sets the threshold.
+    pub noise: f64,
+    /// C_sat: the budget past which all further compute lowers the loss by less than `noise`.
+    pub saturation: Estimate,
+    /// The loss unlimited compute reaches on these hours.
+    pub floor: Estimate,
+    /// The loss change of doubling the captured hours at the budget, the model re-optimised.
+    pub doubling: Estimate,
+    /// Whether the budget is past C_sat (point law).
+    pub bound: bool,
+}
+
+/// Whether `budget` is past the point where compute stops paying on `hours` (by more than
+/// `noise`, the seed SD of the loss), and what doubling the captured hours buys there.
+pub fn data_bound(
+    rd: &RepeatedData,
+    budget: f64,
+    hours: Hours,
+    noise: f64,
+) -> Result<DataBound, String> {
+    if !(noise.is_finite() && noise > 0.0) {
+        return Err(format!("--noise {noise}: the seed SD must be positive"));
+    }
+    let laws = laws(rd)?;
+    let (sat, floor): (Vec<f64>, Vec<f64>) = laws
+        .iter()
+        .map(|l| l.saturation(budget, hours, noise))
+        .unzip();
+    let doubled = Hours {
+        real: 2.0 * hours.real,
+        ..hours
+    };
+    let doubling: Vec<f64> = laws
+        .iter()
+        .map(|l| l.optimum(budget, doubled).loss - l.optimum(budget, hours).loss)
+        .collect();
+    Ok(DataBound {
+        noise,
+        saturation: estimate(&sat),
+        floor: estimate(&floor),
+        doubling: estimate(&doubling),
+        bound: budget >= sat[0],
+    })
 }
 
 /// An estimate whose value was ∞, written as `null` (JSON has no infinities), reads back as ∞.
@@ -453,6 +535,29 @@ mod tests {
     // A = βB/α: the law allocates U_N = U^(β/α) = U^0.82 parameters to U unique tokens
     // (8.9e4 for 10^6), so that R*_N = 5 bites above 5e5.
     const THETA: [f64; 8] = [1.2, 330.0, 400.0, 0.34, 0.28, 15.0, 0.4, 5.0];
+
+    #[test]
+    fn compute_stops_paying_past_the_saturation_budget() {
+        let rd = fit(THETA);
+        let h = Hours {
+            real: 2.0,
+            synth: 0.0,
+        };
+        let small = data_bound(&rd, 1e10, h, 0.01).unwrap();
+        assert!(!small.bound, "{small:?}");
+        let c_sat = small.saturation.value;
+        let law = laws(&rd).unwrap()[0];
+        let gain = law.optimum(c_sat, h).loss - law.optimum(1e6 * c_sat, h).loss;
+        assert!(
+            (gain - 0.01).abs() < 1e-3,
+            "past C_sat compute buys the seed SD: {gain}"
+        );
+        let big = data_bound(&rd, 10.0 * c_sat, h, 0.01).unwrap();
+        assert!(big.bound && big.doubling.value < 0.0, "{big:?}");
+        assert!(data_bound(&rd, 1e15, h, 0.0)
+            .unwrap_err()
+            .contains("--noise"));
+    }
 
     #[test]
     fn the_optimum_spends_the_budget_and_beats_its_neighbours() {

@@ -53,6 +53,18 @@ impl FitFile {
 }
 
 impl Fits {
+    /// The seed SD of the parametric loss pooled over the repeated runs (√ of the mean
+    /// variance), where runs were repeated.
+    pub fn param_seed_sd(&self) -> Option<f64> {
+        let v: Vec<f64> = self
+            .seed_noise
+            .iter()
+            .filter_map(|s| s.param_sd)
+            .map(|s| s * s)
+            .collect();
+        (!v.is_empty()).then(|| (v.iter().sum::<f64>() / v.len() as f64).sqrt())
+    }
+
     /// Reads a `fits.json`; a `laws.json` is refused, saying what is needed instead.
     pub fn read(path: &Path) -> Result<Self, FitError> {
         match FitFile::read(path)? {
@@ -434,6 +446,9 @@ pub struct SeedNoise {
     pub mean: f64,
     /// Sample standard deviation over the seeds.
     pub sd: f64,
+    /// The same of the parametric loss column (the data-constrained law's loss).
+    #[serde(default)]
+    pub param_sd: Option<f64>,
     /// The budget's parabola rise one sampled size step (the median gap in log10 N) from its
     /// vertex: the loss difference that separates the minimum from its neighbours.
     pub resolved_gap: Option<f64>,

@@ -7,17 +7,25 @@ use crate::isoflop::{self, BudgetMinimum};
 use crate::runs::Runs;
 use std::collections::BTreeMap;
 
-/// `runs` with the rows that share a budget group, N and V but not the seed averaged into one
-/// (the loss columns; the rest from the first such row), and the spread of each such set.
+/// `runs` with the rows that share a budget group, N, V and unique tokens (the data subset)
+/// but not the seed averaged into one (the loss columns; the rest from the first such row),
+/// and the spread of each such set.
 pub fn average(runs: &Runs, groups: &[Vec<usize>]) -> (Runs, Vec<SeedNoise>) {
     let Some(seed) = &runs.seed else {
         return (runs.clone(), Vec::new());
     };
-    let mut sets: BTreeMap<(usize, u64, u64), Vec<usize>> = BTreeMap::new();
+    // U = D/epochs to 0.1%: one data subset's runs agree to rounding, different subsets not.
+    let unique = runs.unique_tokens();
+    let mut sets: BTreeMap<(usize, u64, u64, i64), Vec<usize>> = BTreeMap::new();
     for (g, rows) in groups.iter().enumerate() {
         for &i in rows {
             let v = runs.v.as_ref().map_or(0, |v| v[i].to_bits());
-            sets.entry((g, runs.n[i].to_bits(), v)).or_default().push(i);
+            let u = unique
+                .as_ref()
+                .map_or(0, |u| (1e3 * u[i].ln()).round() as i64);
+            sets.entry((g, runs.n[i].to_bits(), v, u))
+                .or_default()
+                .push(i);
         }
     }
     if sets.values().all(|rows| rows.len() == 1) {
@@ -26,23 +34,23 @@ pub fn average(runs: &Runs, groups: &[Vec<usize>]) -> (Runs, Vec<SeedNoise>) {
     // (first row, mean loss, mean parametric loss) per set, in table order.
     let mut kept: Vec<(usize, f64, f64)> = Vec::new();
     let mut noise = Vec::new();
-    for ((g, _, _), rows) in &sets {
+    for ((g, ..), rows) in &sets {
         let mean = |col: &[f64]| rows.iter().map(|&i| col[i]).sum::<f64>() / rows.len() as f64;
         kept.push((rows[0], mean(&runs.loss), mean(&runs.param_loss.1)));
         if rows.len() > 1 {
-            let m = mean(&runs.loss);
-            let var = rows
-                .iter()
-                .map(|&i| (runs.loss[i] - m).powi(2))
-                .sum::<f64>()
-                / (rows.len() - 1) as f64;
+            let sd = |col: &[f64]| {
+                let m = mean(col);
+                let ss: f64 = rows.iter().map(|&i| (col[i] - m).powi(2)).sum();
+                (ss / (rows.len() - 1) as f64).sqrt()
+            };
             noise.push(SeedNoise {
                 budget: isoflop::group_budget(&runs.c, &groups[*g]),
                 n: runs.n[rows[0]],
                 v: runs.v.as_ref().map(|v| v[rows[0]]),
                 seeds: rows.iter().map(|&i| seed[i]).collect(),
-                mean: m,
-                sd: var.sqrt(),
+                mean: mean(&runs.loss),
+                sd: sd(&runs.loss),
+                param_sd: Some(sd(&runs.param_loss.1)),
                 resolved_gap: None,
             });
         }
@@ -110,5 +118,13 @@ mod tests {
         let mut no_seed = runs.clone();
         no_seed.seed = None;
         assert_eq!(average(&no_seed, &groups).0, no_seed);
+        // The same point on two data subsets (U = D/epochs differs) is not a seed repeat.
+        let mut subsets = runs.clone();
+        subsets.d = Some(vec![1e6; 4]);
+        subsets.epochs = Some(vec![2.0, 2.0, 4.0, 2.0]);
+        let (avg, noise) = average(&subsets, &groups);
+        assert_eq!(avg.n, vec![1e5, 1e5, 2e5]);
+        assert_eq!(noise[0].seeds, vec![0.0, 1.0]);
+        assert_eq!(noise[0].param_sd, Some(noise[0].sd));
     }
 }
