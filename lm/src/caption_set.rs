@@ -16,7 +16,7 @@
 //! samples each for multimodality; every other clip gets one.
 
 use crate::generate::{generate, Sampling};
-use crate::train::RunConfig;
+use crate::run_config::RunConfig;
 use crate::MotionLm;
 use ingest::corpus::reader::Corpus;
 use ingest::corpus::split::SplitAssignment;

@@ -1,5 +1,6 @@
 //! The text-prefix autoregressive motion transformer ([`PrefixLm`]) with its parameter/FLOP
-//! [`accounting`], training ([`train()`](train::train)) and generation
+//! [`accounting`], training ([`train()`](train::train), with the run's settings and records in
+//! [`run_config`] and the loaders of a trained run in [`load`]) and generation
 //! ([`generate()`](generate::generate)), conditioned on the caption embeddings of the `text`
 //! crate.
 
@@ -10,8 +11,10 @@ pub mod eval_record;
 pub mod executor_check;
 pub mod generate;
 pub mod lm_data;
+pub mod load;
 pub mod lora;
 pub mod prefix_lm;
+pub mod run_config;
 pub mod selection;
 pub mod test_loss;
 pub mod train;
