@@ -1,4 +1,5 @@
-//! `motionscale bench fit`: the timing of a whole `fit` command on a Chinchilla-like stand-in.
+//! `motionscale bench fit`: the timing of a whole `fit` command on a Chinchilla-like stand-in
+//! or on a given table (e.g. ScaleBench's data-constrained runs), beside SciPy's.
 
 use anyhow::{bail, Context, Result};
 use std::path::PathBuf;
@@ -20,8 +21,8 @@ pub struct BenchFitArgs {
     /// Worker threads passed to `fit` (default: all cores).
     #[arg(long)]
     pub workers: Option<usize>,
-    /// Keep the stand-in CSV (DIR/chinchilla_standin.csv) and the fit (DIR/fits/) here
-    /// instead of a temporary folder.
+    /// Keep the CSV timed (DIR/chinchilla_standin.csv, or DIR/table.csv with --table) and the
+    /// fit (DIR/fits/) here instead of a temporary folder.
     #[arg(long, value_name = "DIR")]
     pub keep: Option<PathBuf>,
     /// Also time the multi-start parametric fit alone, ours in this process and SciPy's
@@ -34,9 +35,42 @@ pub struct BenchFitArgs {
     /// The SciPy reference script.
     #[arg(long, default_value = "scripts/scipy_fit.py")]
     pub reference_script: PathBuf,
+    /// A table (CSV or Parquet) to time instead of the stand-in, e.g. ScaleBench's
+    /// `data_constrained_scaling_law-train.parquet`; it is rewritten with Epoch's column names
+    /// (C = 6·N·D) so that `fit` and SciPy read the same file.
+    #[arg(long, value_name = "FILE")]
+    pub table: Option<PathBuf>,
+    /// With --table: its N column.
+    #[arg(long, default_value = "params", requires = "table")]
+    pub n_col: String,
+    /// With --table: its D column.
+    #[arg(long, default_value = "tokens", requires = "table")]
+    pub d_col: String,
+    /// With --table: its loss column.
+    #[arg(long, default_value = "loss", requires = "table")]
+    pub loss_col: String,
     /// Also write the figures as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+}
+
+/// The runs timed: `--table`'s, or the seeded Chinchilla stand-in.
+fn runs_of(args: &BenchFitArgs) -> Result<Vec<fits::synth::Run>> {
+    let Some(path) = &args.table else {
+        return Ok(fits::synth::chinchilla_standin(args.seed));
+    };
+    let t = fits::Table::read(path)?;
+    let n = t.numbers(&args.n_col, "--n-col")?;
+    let d = t.numbers(&args.d_col, "--d-col")?;
+    let loss = t.numbers(&args.loss_col, "--loss-col")?;
+    Ok((0..n.len())
+        .map(|i| fits::synth::Run {
+            n: n[i],
+            d: d[i],
+            c: 6.0 * n[i] * d[i],
+            loss: loss[i],
+        })
+        .collect())
 }
 
 /// Target wall time of a full 4,500-start fit of ~250 runs on 2 cores.
@@ -54,8 +88,11 @@ pub fn bench(args: BenchFitArgs) -> Result<ExitCode> {
         }
         None => tmp.path().to_path_buf(),
     };
-    let csv = dir.join("chinchilla_standin.csv");
-    let runs = fits::synth::chinchilla_standin(args.seed);
+    let csv = dir.join(match args.table {
+        Some(_) => "table.csv",
+        None => "chinchilla_standin.csv",
+    });
+    let runs = runs_of(&args)?;
     fits::synth::write_epoch_csv(&csv, &runs)
         .with_context(|| format!("writing {}", csv.display()))?;
     let out = dir.join("fits");
@@ -87,13 +124,15 @@ pub fn bench(args: BenchFitArgs) -> Result<ExitCode> {
         .workers
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     println!(
-        "bench fit: {} runs, grid {:?}, {} bootstrap resamples, {threads} threads: whole command {secs:.2} s (target < {TARGET_SECONDS} s on 2 cores: {})",
+        "bench fit: {} runs of {}, grid {:?}, {} bootstrap resamples, {threads} threads: whole command {secs:.2} s (target < {TARGET_SECONDS} s on 2 cores: {})",
         runs.len(),
+        args.table.as_ref().map_or("the Chinchilla stand-in".into(), |p| p.display().to_string()),
         args.starts_grid,
         args.bootstrap,
         if secs < TARGET_SECONDS { "met" } else { "MISSED" }
     );
     let mut figures = serde_json::json!({"what": "fit command", "runs": runs.len(),
+        "table": args.table,
         "grid": args.starts_grid, "bootstrap": args.bootstrap, "threads": threads,
         "command_s": secs});
     if args.reference {
