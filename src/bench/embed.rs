@@ -6,6 +6,7 @@
 use crate::device_args::DeviceArgs;
 use anyhow::{bail, Context, Result};
 use nn::device::device_name;
+use serde::{Deserialize, Serialize};
 use std::io::Write;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -46,6 +47,47 @@ pub struct BenchEmbedArgs {
     pub device: DeviceArgs,
 }
 
+/// The figures of `bench embed` (its `--json`).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct EmbedFigures {
+    /// What was timed: "caption embedding".
+    pub what: String,
+    /// The encoder's id.
+    pub encoder: String,
+    /// The corpus's folder name (not its path: a committed figure names no machine's folders).
+    pub corpus: Option<String>,
+    /// Distinct captions embedded per pass.
+    pub captions: usize,
+    /// Their tokens.
+    pub tokens: usize,
+    /// Captions per forward pass.
+    pub batch: usize,
+    /// Where the encoder ran.
+    pub device: String,
+    /// Threads of the pool.
+    pub threads: usize,
+    /// Wall time of one pass over the captions.
+    pub time: super::Timing,
+    /// Captions per second at the median pass.
+    pub captions_per_s: f64,
+    /// With `--reference`: the PyTorch + transformers run's output.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub reference: Option<EmbedReference>,
+    /// With `--reference`: its median seconds over ours.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub ratio: Option<f64>,
+}
+
+/// The output of `scripts/pytorch_embed_text.py`.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct EmbedReference {
+    /// Median seconds of one pass over the captions.
+    pub median_s: f64,
+    /// The rest of its output (torch version, samples, rates), kept as it wrote them.
+    #[serde(flatten)]
+    pub other: serde_json::Map<String, serde_json::Value>,
+}
+
 /// `motionscale bench embed`.
 pub fn bench_embed(args: BenchEmbedArgs) -> Result<ExitCode> {
     let dir = args
@@ -70,7 +112,7 @@ pub fn bench_embed(args: BenchEmbedArgs) -> Result<ExitCode> {
         tokens = embedded.iter().map(|e| e.tokens.len()).sum::<usize>();
         Ok(())
     })?;
-    let ours = super::number(&timing, "median_s")?;
+    let ours = timing.median_s;
     let mut line = format!(
         "caption embedding, {} ({}), {} captions ({tokens} tokens), batch {}, {}, {} threads: {ours:.2} s, {:.0} captions/s, {:.0} tokens/s",
         encoder.id(),
@@ -83,21 +125,34 @@ pub fn bench_embed(args: BenchEmbedArgs) -> Result<ExitCode> {
         tokens as f64 / ours
     );
     // The corpus's folder name, not its path: a committed figure names no machine's folders.
-    let corpus = args.corpus.file_name().map(|n| n.to_string_lossy());
-    let mut figures = serde_json::json!({"what": "caption embedding", "encoder": encoder.id(),
-        "corpus": corpus, "captions": captions.len(), "tokens": tokens, "batch": args.batch,
-        "device": device_name(&device), "threads": rayon::current_num_threads(), "time": timing,
-        "captions_per_s": captions.len() as f64 / ours});
+    let corpus = args
+        .corpus
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned());
+    let mut figures = EmbedFigures {
+        what: "caption embedding".into(),
+        encoder: encoder.id().to_string(),
+        corpus,
+        captions: captions.len(),
+        tokens,
+        batch: args.batch,
+        device: device_name(&device),
+        threads: rayon::current_num_threads(),
+        time: timing,
+        captions_per_s: captions.len() as f64 / ours,
+        reference: None,
+        ratio: None,
+    };
     if args.reference {
         let reference = reference(&args, &dir, &captions)?;
-        let theirs = super::number(&reference, "median_s")?;
+        let theirs = reference.median_s;
         line.push_str(&format!(
             "; PyTorch + transformers {theirs:.2} s ({:.0} captions/s) → ratio {:.2}×",
             captions.len() as f64 / theirs,
             theirs / ours
         ));
-        figures["reference"] = reference;
-        figures["ratio"] = (theirs / ours).into();
+        figures.reference = Some(reference);
+        figures.ratio = Some(theirs / ours);
     }
     println!("{line}");
     super::write_json(args.json.as_ref(), &figures)?;
@@ -109,7 +164,7 @@ fn reference(
     args: &BenchEmbedArgs,
     dir: &std::path::Path,
     captions: &[String],
-) -> Result<serde_json::Value> {
+) -> Result<EmbedReference> {
     let mut file = tempfile::NamedTempFile::new()?;
     for caption in captions {
         writeln!(file, "{}", caption.replace('\n', " "))?;

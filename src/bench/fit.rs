@@ -2,6 +2,7 @@
 //! or on a given table (e.g. ScaleBench's data-constrained runs), beside SciPy's.
 
 use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
@@ -52,6 +53,79 @@ pub struct BenchFitArgs {
     /// Also write the figures as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+}
+
+/// The figures of `bench fit` (its `--json`).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct FitFigures {
+    /// What was timed: "fit command".
+    pub what: String,
+    /// Runs in the table fitted.
+    pub runs: usize,
+    /// `--table`, or none for the Chinchilla stand-in.
+    pub table: Option<PathBuf>,
+    /// The start grid passed to `fit`.
+    pub grid: String,
+    /// Bootstrap resamples passed to `fit`.
+    pub bootstrap: usize,
+    /// Worker threads of `fit`.
+    pub threads: usize,
+    /// Wall seconds of the whole `fit` command.
+    pub command_s: f64,
+    /// With `--reference`: the multi-start parametric fit alone, ours beside SciPy's.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub parametric: Option<ParametricFigures>,
+}
+
+/// The multi-start parametric fit of L(N, D), ours in this process beside SciPy's.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct ParametricFigures {
+    /// Starts of Epoch's grid both fitted from (every `--reference-stride`-th).
+    pub starts: usize,
+    /// Our wall seconds.
+    pub ours_s: f64,
+    /// Our best fit.
+    pub ours: LawFit,
+    /// SciPy's run, as `scripts/scipy_fit.py` wrote it.
+    pub reference: ScipyFit,
+    /// SciPy's seconds over ours.
+    pub ratio: f64,
+}
+
+/// The fitted L(N, D) = E + A/N^α + B/D^β and its objective.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct LawFit {
+    /// Irreducible loss E.
+    #[serde(rename = "E")]
+    pub e: f64,
+    /// Coefficient A of the parameter term.
+    #[serde(rename = "A")]
+    pub a: f64,
+    /// Coefficient B of the data term.
+    #[serde(rename = "B")]
+    pub b: f64,
+    /// Parameter exponent.
+    pub alpha: f64,
+    /// Data exponent.
+    pub beta: f64,
+    /// The best start's objective (Huber loss of the log residuals).
+    pub objective: f64,
+}
+
+/// The output of `scripts/scipy_fit.py`: L-BFGS-B from every start, its best fit and time.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct ScipyFit {
+    /// Runs it read.
+    pub runs: usize,
+    /// Starts it fitted from.
+    pub starts: usize,
+    /// Its gradient: "analytic" or "finite differences".
+    pub jac: String,
+    /// Wall seconds of all its starts.
+    pub seconds: f64,
+    /// Its best fit (the same keys as ours).
+    #[serde(flatten)]
+    pub fit: LawFit,
 }
 
 /// The runs timed: `--table`'s, or the seeded Chinchilla stand-in.
@@ -131,13 +205,20 @@ pub fn bench(args: BenchFitArgs) -> Result<ExitCode> {
         args.bootstrap,
         if secs < TARGET_SECONDS { "met" } else { "MISSED" }
     );
-    let mut figures = serde_json::json!({"what": "fit command", "runs": runs.len(),
-        "table": args.table,
-        "grid": args.starts_grid, "bootstrap": args.bootstrap, "threads": threads,
-        "command_s": secs});
-    if args.reference {
-        figures["parametric"] = parametric_beside_scipy(&args, &csv, &runs)?;
-    }
+    let parametric = match args.reference {
+        true => Some(parametric_beside_scipy(&args, &csv, &runs)?),
+        false => None,
+    };
+    let figures = FitFigures {
+        what: "fit command".into(),
+        runs: runs.len(),
+        table: args.table.clone(),
+        grid: args.starts_grid.clone(),
+        bootstrap: args.bootstrap,
+        threads,
+        command_s: secs,
+        parametric,
+    };
     super::write_json(args.json.as_ref(), &figures)?;
     Ok(ExitCode::SUCCESS)
 }
@@ -148,7 +229,7 @@ fn parametric_beside_scipy(
     args: &BenchFitArgs,
     csv: &std::path::Path,
     runs: &[fits::synth::Run],
-) -> Result<serde_json::Value> {
+) -> Result<ParametricFigures> {
     use fits::parametric::{multi_start, natural, LogRuns, StartGrid};
     let column = |f: fn(&fits::synth::Run) -> f64| runs.iter().map(f).collect::<Vec<_>>();
     let log_runs = LogRuns::new(&column(|r| r.n), &column(|r| r.d), &column(|r| r.loss));
@@ -164,17 +245,28 @@ fn parametric_beside_scipy(
     let csv_arg = csv.to_string_lossy();
     let stride = args.reference_stride.max(1).to_string();
     let flags = ["--results", &csv_arg, "--stride", &stride];
-    let theirs = super::run_reference(&args.reference_script, &flags)?;
-    let scipy_s = super::number(&theirs, "seconds")?;
+    let theirs: ScipyFit = super::run_reference(&args.reference_script, &flags)?;
+    let scipy_s = theirs.seconds;
     println!(
         "parametric fit, {} starts of Epoch's grid: ours {ours:.2} s (α {alpha:.4}, β {beta:.4}, E {e:.4}); SciPy L-BFGS-B {scipy_s:.1} s (α {:.4}, β {:.4}, E {:.4}) → ratio {:.0}×",
         starts.len(),
-        super::number(&theirs, "alpha")?,
-        super::number(&theirs, "beta")?,
-        super::number(&theirs, "E")?,
+        theirs.fit.alpha,
+        theirs.fit.beta,
+        theirs.fit.e,
         scipy_s / ours
     );
-    Ok(serde_json::json!({"starts": starts.len(), "ours_s": ours,
-        "ours": {"E": e, "A": a, "B": b, "alpha": alpha, "beta": beta, "objective": fit.best().f},
-        "reference": theirs, "ratio": scipy_s / ours}))
+    Ok(ParametricFigures {
+        starts: starts.len(),
+        ours_s: ours,
+        ours: LawFit {
+            e,
+            a,
+            b,
+            alpha,
+            beta,
+            objective: fit.best().f,
+        },
+        reference: theirs,
+        ratio: scipy_s / ours,
+    })
 }

@@ -17,6 +17,7 @@ use experiments::ctvae_train::{CtvaeTrainer, LossWeights, Sample};
 use motionscale_core::rng::SplitMix64;
 use nn::device::device_name;
 use nn::optim::{AdamW, AdamWConfig};
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -79,6 +80,71 @@ pub struct BenchCtvaeArgs {
     /// Where BI-CTVAE trains.
     #[command(flatten)]
     pub device: DeviceArgs,
+}
+
+/// The figures of `bench evaluator` (its `--json`).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct EvaluatorFigures {
+    /// What was timed: "evaluator training step".
+    pub what: String,
+    /// Clips per step.
+    pub batch: usize,
+    /// GRU and convolution width.
+    pub hidden: usize,
+    /// Mean frames per clip.
+    pub mean_frames: f64,
+    /// Mean caption tokens per clip.
+    pub mean_tokens: f64,
+    /// Where the evaluator trained.
+    pub device: String,
+    /// Threads of the pool.
+    pub threads: usize,
+    /// Our median step, seconds.
+    pub median_step_s: f64,
+    /// With `--reference`: the PyTorch step beside ours.
+    #[serde(flatten)]
+    pub compared: Compared,
+}
+
+/// The figures of one shape of `bench ctvae` (its `--json` lists them under `figures`).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct CtvaeFigure {
+    /// What was timed: "BI-CTVAE training step".
+    pub what: String,
+    /// `cl2gen --shape`.
+    pub shape: String,
+    /// Sequences per step.
+    pub batch: usize,
+    /// Where BI-CTVAE trained.
+    pub device: String,
+    /// Threads of the pool.
+    pub threads: usize,
+    /// Our median step, seconds.
+    pub median_step_s: f64,
+    /// With `--reference`: the PyTorch step beside ours.
+    #[serde(flatten)]
+    pub compared: Compared,
+}
+
+/// A PyTorch reference's step beside ours: both absent without `--reference`.
+#[derive(Debug, Default, Serialize, Deserialize)]
+pub struct Compared {
+    /// The reference script's output.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub reference: Option<StepReference>,
+    /// Its median step over ours.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub ratio: Option<f64>,
+}
+
+/// The output of a training-step reference (`pytorch_evaluator.py`, `pytorch_ctvae.py`).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct StepReference {
+    /// Its median step, seconds.
+    pub median_step_s: f64,
+    /// The rest of its output (torch version, shape, samples), kept as it wrote them.
+    #[serde(flatten)]
+    pub other: serde_json::Map<String, serde_json::Value>,
 }
 
 /// Frames and caption tokens of each clip as `pytorch_evaluator.py` draws them.
@@ -167,7 +233,7 @@ fn time_evaluator(
         device.synchronize()?;
         Ok(())
     })?;
-    super::number(&timing, "median_s")
+    Ok(timing.median_s)
 }
 
 /// `motionscale bench evaluator`.
@@ -192,17 +258,25 @@ pub fn evaluator(args: BenchEvaluatorArgs) -> Result<ExitCode> {
         ours,
         1.0 / ours
     );
-    let mut figures = serde_json::json!({"what": "evaluator training step", "batch": args.batch,
-        "hidden": args.hidden, "mean_frames": mean(&frames), "mean_tokens": mean(&tokens),
-        "device": device_name(&device), "threads": rayon::current_num_threads(),
-        "median_step_s": ours});
+    let mut compared = Compared::default();
     if args.reference {
         let script = args.bench_dir.join("pytorch_evaluator.py");
         let (batch, hidden) = (args.batch.to_string(), args.hidden.to_string());
         let flags = ["--batch", &batch, "--hidden", &hidden];
         let repeats = (args.warmup, args.reps);
-        add_reference(&script, &flags, repeats, ours, &mut line, &mut figures)?;
+        compared = add_reference(&script, &flags, repeats, ours, &mut line)?;
     }
+    let figures = EvaluatorFigures {
+        what: "evaluator training step".into(),
+        batch: args.batch,
+        hidden: args.hidden,
+        mean_frames: mean(&frames),
+        mean_tokens: mean(&tokens),
+        device: device_name(&device),
+        threads: rayon::current_num_threads(),
+        median_step_s: ours,
+        compared,
+    };
     println!("{line}");
     super::write_json(args.json.as_ref(), &figures)?;
     Ok(ExitCode::SUCCESS)
@@ -241,7 +315,7 @@ fn time_ctvae(args: &BenchCtvaeArgs, shape: &str, device: &Device) -> Result<f64
         trainer.step(&batch, 1e-3, None, &mut rng)?;
         Ok(())
     })?;
-    super::number(&timing, "median_s")
+    Ok(timing.median_s)
 }
 
 /// `motionscale bench ctvae`.
@@ -258,50 +332,49 @@ pub fn ctvae(args: BenchCtvaeArgs) -> Result<ExitCode> {
             rayon::current_num_threads(),
             1.0 / ours
         );
-        let mut figure = serde_json::json!({"what": "BI-CTVAE training step", "shape": shape,
-            "batch": args.batch, "device": device_name(&device),
-            "threads": rayon::current_num_threads(), "median_step_s": ours});
+        let mut compared = Compared::default();
         if args.reference {
             let (batch, classes) = (args.batch.to_string(), args.classes.to_string());
             let flags = ["--shape", shape, "--batch", &batch, "--classes", &classes];
             let repeats = (args.warmup, args.reps);
-            add_reference(
-                &args.reference_script,
-                &flags,
-                repeats,
-                ours,
-                &mut line,
-                &mut figure,
-            )?;
+            compared = add_reference(&args.reference_script, &flags, repeats, ours, &mut line)?;
         }
         println!("{line}");
-        figures.push(figure);
+        figures.push(CtvaeFigure {
+            what: "BI-CTVAE training step".into(),
+            shape: shape.clone(),
+            batch: args.batch,
+            device: device_name(&device),
+            threads: rayon::current_num_threads(),
+            median_step_s: ours,
+            compared,
+        });
     }
-    super::write_json(args.json.as_ref(), &serde_json::Value::Array(figures))?;
+    super::write_json(args.json.as_ref(), &figures)?;
     Ok(ExitCode::SUCCESS)
 }
 
-/// Run the reference `script` with `flags` on 2 threads (`(warm-up, timed)` steps) and add its
-/// median step, and our ratio to it, to `line` and `figure`.
+/// Run the reference `script` with `flags` on 2 threads (`(warm-up, timed)` steps), add its
+/// median step and our ratio to it to `line`, and return both.
 fn add_reference(
     script: &Path,
     flags: &[&str],
     (warmup, reps): (usize, usize),
     ours: f64,
     line: &mut String,
-    figure: &mut serde_json::Value,
-) -> Result<()> {
+) -> Result<Compared> {
     let (warmup, reps) = (warmup.to_string(), reps.to_string());
     let mut all = flags.to_vec();
     all.extend(["--threads", "2", "--warmup", &warmup, "--reps", &reps]);
-    let reference = super::run_reference(script, &all)?;
-    let theirs = super::number(&reference, "median_step_s")?;
+    let reference: StepReference = super::run_reference(script, &all)?;
+    let theirs = reference.median_step_s;
     line.push_str(&format!(
         "; PyTorch {theirs:.3} s ({:.2} steps/s) → ratio {:.2}×",
         1.0 / theirs,
         theirs / ours
     ));
-    figure["reference"] = reference;
-    figure["ratio"] = (theirs / ours).into();
-    Ok(())
+    Ok(Compared {
+        reference: Some(reference),
+        ratio: Some(theirs / ours),
+    })
 }

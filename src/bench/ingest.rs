@@ -4,6 +4,7 @@
 use anyhow::{bail, Context, Result};
 use ingest::hml263::{Hml263, Hml263Extractor, Hml263Options};
 use ingest::pipeline::{IngestOptions, SourceKind, SourceSpec};
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
@@ -34,6 +35,47 @@ pub struct BenchIngestArgs {
     /// Also write the figures as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+}
+
+/// The figures of `bench ingest` (its `--json`).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct IngestFigures {
+    /// What was timed: "ingest".
+    pub what: String,
+    /// Input files found.
+    pub inputs: u64,
+    /// Clips written.
+    pub clips: u64,
+    /// Inputs rejected.
+    pub rejects: u64,
+    /// Worker threads.
+    pub threads: usize,
+    /// Wall seconds of the whole ingest (extraction apart).
+    pub ingest_s: f64,
+    /// Source frames read per second.
+    pub source_frames_per_s: f64,
+    /// Joints → 263 features on fixture (a), beside the original HumanML3D code.
+    pub features: FeatureFigures,
+}
+
+/// Joints → 263 features on fixture (a), one thread, beside the original HumanML3D code.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct FeatureFigures {
+    /// Our input frames per second.
+    pub frames_per_s: f64,
+    /// The reference's input frames per second.
+    pub reference_frames_per_s: f64,
+    /// Where the reference's figure comes from.
+    pub reference: String,
+    /// Ours over the reference's.
+    pub ratio: f64,
+}
+
+/// The output of `scripts/humanml3d_speed.py`: the original `process_file`'s speed.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct HumanMl3dSpeed {
+    /// Input frames per second.
+    pub frames_per_s: f64,
 }
 
 fn peak_rss_mib() -> Option<f64> {
@@ -155,17 +197,23 @@ pub fn ingest(args: BenchIngestArgs) -> Result<ExitCode> {
         peak_rss_mib().unwrap_or(f64::NAN),
     );
 
-    let mut figures = serde_json::json!({"what": "ingest", "inputs": report.inputs,
-        "clips": report.clips, "rejects": report.rejects, "threads": threads, "ingest_s": secs,
-        "source_frames_per_s": report.source_frames as f64 / secs});
-    figures["features"] = features(&args)?;
+    let figures = IngestFigures {
+        what: "ingest".into(),
+        inputs: report.inputs,
+        clips: report.clips,
+        rejects: report.rejects,
+        threads,
+        ingest_s: secs,
+        source_frames_per_s: report.source_frames as f64 / secs,
+        features: features(&args)?,
+    };
     super::write_json(args.json.as_ref(), &figures)?;
     Ok(ExitCode::SUCCESS)
 }
 
 /// Joints → 263 features on fixture (a), one thread, beside the original HumanML3D code:
 /// timed in this run with `--reference`, else the fixtures README's figure.
-fn features(args: &BenchIngestArgs) -> Result<serde_json::Value> {
+fn features(args: &BenchIngestArgs) -> Result<FeatureFigures> {
     let fixtures = args.data.join("humanml3d-fixtures");
     let arr = ingest::npy::read(&fixtures.join("a_asis_joints.npy"))?;
     let poses = ingest::source::joints::poses_of(&arr)?;
@@ -187,9 +235,9 @@ fn features(args: &BenchIngestArgs) -> Result<serde_json::Value> {
         Some(checkout) => {
             let (checkout, fixtures) = (checkout.to_string_lossy(), fixtures.to_string_lossy());
             let flags = ["--humanml3d", &checkout, "--fixtures", &fixtures];
-            let json = super::run_reference(&args.reference_script, &flags)?;
+            let speed: HumanMl3dSpeed = super::run_reference(&args.reference_script, &flags)?;
             (
-                super::number(&json, "frames_per_s")?,
+                speed.frames_per_s,
                 "the original HumanML3D process_file, timed in this run",
             )
         }
@@ -204,8 +252,10 @@ fn features(args: &BenchIngestArgs) -> Result<serde_json::Value> {
         poses.len(),
         fps / reference_fps,
     );
-    Ok(
-        serde_json::json!({"frames_per_s": fps, "reference_frames_per_s": reference_fps,
-        "reference": source, "ratio": fps / reference_fps}),
-    )
+    Ok(FeatureFigures {
+        frames_per_s: fps,
+        reference_frames_per_s: reference_fps,
+        reference: source.into(),
+        ratio: fps / reference_fps,
+    })
 }

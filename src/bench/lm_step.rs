@@ -10,7 +10,8 @@ use lm::prefix_lm::{
     init_model, record_stage_times, stage_times, Compute, Executor, LmBatch, PrefixLmConfig,
 };
 use nn::optim::{AdamW, AdamWConfig};
-use serde_json::{json, Value};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -71,6 +72,82 @@ pub struct BenchTrainArgs {
     pub gpu_reference_script: PathBuf,
 }
 
+/// The figures of one timed training step of the prefix LM ([`bench_train_step`]), with the
+/// reference beside it (`R`: the CPU's [`super::lm::CpuComparison`], a GPU's
+/// [`super::lm_gpu::GpuComparisons`]).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct TrainStep<R> {
+    /// Model width.
+    pub d_model: usize,
+    /// Transformer layers.
+    pub n_layers: usize,
+    /// Attention heads (of width 64).
+    pub n_heads: usize,
+    /// SwiGLU hidden width.
+    pub ffn_hidden: usize,
+    /// Vocabulary (codes and specials).
+    pub vocab: usize,
+    /// Sequences per step.
+    pub batch: usize,
+    /// Non-vocabulary parameters.
+    pub n_nv: u64,
+    /// Vocabulary parameters.
+    pub n_v: u64,
+    /// Where it trained.
+    pub device: String,
+    /// Compute precision.
+    pub precision: String,
+    /// The executor that ran it, lower case.
+    pub executor: String,
+    /// Wall time of whole steps.
+    pub step_time: super::Timing,
+    /// Median seconds of each phase.
+    pub phase_median_s: Phases,
+    /// On a GPU with the fused executor: ms per step of each of its stages (each synchronised).
+    pub fused_stage_ms: Option<BTreeMap<String, f64>>,
+    /// Motion tokens per second at the median step.
+    pub motion_tokens_per_s: f64,
+    /// On a GPU: the peak memory allocated, GiB.
+    pub peak_gpu_memory_allocated_gib: Option<f64>,
+    /// FLOPs of one step, counted exactly.
+    pub flops_per_step_exact: f64,
+    /// 6·N·tokens of one step.
+    #[serde(rename = "flops_per_step_6N")]
+    pub flops_per_step_6n: f64,
+    /// GFLOP/s at the exact count.
+    pub achieved_gflops_exact: f64,
+    /// Achieved over the peak given.
+    pub mfu: f64,
+    /// The step if this process's CPU time were spread over all threads without waiting.
+    pub cpu_time_equivalent: CpuTimeEquivalent,
+    /// With `--reference`: the PyTorch step beside ours (absent, or read back as none, without).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reference: Option<R>,
+}
+
+/// Median seconds of a training step's phases.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct Phases {
+    /// Forward and backward.
+    pub fwd_bwd: f64,
+    /// The clipped AdamW update.
+    pub opt: f64,
+    /// On a GPU: the forward pass alone.
+    pub fwd: Option<f64>,
+}
+
+/// A step's figures at this process's CPU time per step over the threads (a lower bound of a
+/// quiet machine's step; 0 s when unmeasured).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct CpuTimeEquivalent {
+    /// Seconds per step.
+    pub step_s: f64,
+    /// Motion tokens per second.
+    pub motion_tokens_per_s: f64,
+    /// GFLOP/s at the exact count.
+    pub gflops_exact: f64,
+}
+
 /// A `WIDTHxLAYERS` size: (width, layers).
 pub(super) fn parse_size(s: &str) -> Result<(usize, usize)> {
     let (d, l) = s.split_once('x').context("sizes look like 512x8")?;
@@ -96,15 +173,15 @@ pub(super) fn bench_batch(config: &PrefixLmConfig, batch: usize, seed: u64) -> R
     Ok(LmBatch::new(config, &texts, &motions))
 }
 
-/// One AdamW training step of a d×layers model at `batch` on `device`, timed; the figures
-/// as JSON (the MFU against `peak_gflops`).
-pub(super) fn bench_train_step(
+/// One AdamW training step of a d×layers model at `batch` on `device`, timed; its figures
+/// (the MFU against `peak_gflops`), no reference yet.
+pub(super) fn bench_train_step<R>(
     args: &BenchTrainArgs,
     (d, layers, batch): (usize, usize, usize),
     device: &Device,
     compute: Compute,
     peak_gflops: f64,
-) -> Result<Value> {
+) -> Result<TrainStep<R>> {
     let config = PrefixLmConfig::new(d, layers, d / 64, CODES, TEXT_DIM);
     let (model, varmap) = init_model(&config, 0, device)?;
     let model = model.with_compute(compute);
@@ -163,16 +240,13 @@ pub(super) fn bench_train_step(
             for _ in 0..args.reps.max(3) {
                 model.loss_and_grads(&lm_batch)?;
             }
-            let stages: serde_json::Map<String, Value> = stage_times()
-                .into_iter()
-                .map(|(k, ms)| (k, json!(ms)))
-                .collect();
+            let stages: BTreeMap<String, f64> = stage_times().into_iter().collect();
             record_stage_times(false);
             Some(stages)
         }
         false => None,
     };
-    let step_s = st["median_s"].as_f64().expect("median");
+    let step_s = st.median_s;
     let flops = batch as f64 * accounting::train_flops_exact(&config, SequenceShape::BENCH);
     let six_n =
         batch as f64 * SequenceShape::BENCH.motion as f64 * accounting::flops_6n_per_token(&config);
@@ -181,21 +255,39 @@ pub(super) fn bench_train_step(
     let params = accounting::param_count(&config);
     // On a busy machine: the step time if this process's CPU time were spread over all
     // threads without waiting (a lower bound of a quiet run's time; 0 when unmeasured).
-    let cpu_bound_s =
-        st["own_cpu_s_per_call"].as_f64().unwrap_or(0.0) / rayon::current_num_threads() as f64;
-    Ok(json!({
-        "d_model": d, "n_layers": layers, "n_heads": d / 64, "ffn_hidden": config.ffn_hidden,
-        "vocab": config.vocab_size(), "batch": batch, "n_nv": params.n_nv, "n_v": params.n_v,
-        "device": nn::device::device_name(device), "precision": compute.precision.to_string(),
-        "executor": format!("{:?}", model.executor()?).to_lowercase(),
-        "step_time": st, "phase_median_s": {"fwd_bwd": fwd_bwd, "opt": optim, "fwd": forward},
-        "fused_stage_ms": stages,
-        "motion_tokens_per_s": tokens / step_s, "peak_gpu_memory_allocated_gib": peak_gib,
-        "flops_per_step_exact": flops, "flops_per_step_6N": six_n,
-        "achieved_gflops_exact": gflops, "mfu": gflops / peak_gflops,
-        "cpu_time_equivalent": {"step_s": cpu_bound_s, "motion_tokens_per_s": tokens / cpu_bound_s,
-                                "gflops_exact": flops / cpu_bound_s / 1e9},
-    }))
+    let cpu_bound_s = st.own_cpu_s_per_call.unwrap_or(0.0) / rayon::current_num_threads() as f64;
+    Ok(TrainStep {
+        d_model: d,
+        n_layers: layers,
+        n_heads: d / 64,
+        ffn_hidden: config.ffn_hidden,
+        vocab: config.vocab_size(),
+        batch,
+        n_nv: params.n_nv,
+        n_v: params.n_v,
+        device: nn::device::device_name(device),
+        precision: compute.precision.to_string(),
+        executor: format!("{:?}", model.executor()?).to_lowercase(),
+        step_time: st,
+        phase_median_s: Phases {
+            fwd_bwd,
+            opt: optim,
+            fwd: forward,
+        },
+        fused_stage_ms: stages,
+        motion_tokens_per_s: tokens / step_s,
+        peak_gpu_memory_allocated_gib: peak_gib,
+        flops_per_step_exact: flops,
+        flops_per_step_6n: six_n,
+        achieved_gflops_exact: gflops,
+        mfu: gflops / peak_gflops,
+        cpu_time_equivalent: CpuTimeEquivalent {
+            step_s: cpu_bound_s,
+            motion_tokens_per_s: tokens / cpu_bound_s,
+            gflops_exact: flops / cpu_bound_s / 1e9,
+        },
+        reference: None,
+    })
 }
 
 /// The PyTorch references' flags of a d×layers model (heads of width 64) at `batch`.

@@ -3,7 +3,7 @@
 //! machine's fp32 FMA peak measured now (the MFU denominator, and the ceiling no executor can
 //! pass).
 
-use serde_json::{json, Value};
+use serde::{Deserialize, Serialize};
 use std::sync::OnceLock;
 use std::time::Instant;
 
@@ -112,8 +112,78 @@ pub fn mfu_peak(flag: Option<f64>) -> (f64, String) {
     }
 }
 
+/// The machine a bench ran on (the `machine` of every bench's `--json`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Machine {
+    /// `/proc/cpuinfo`'s model name.
+    pub cpu_model: Option<String>,
+    /// Its vendor_id.
+    pub vendor: Option<String>,
+    /// Its cpu family.
+    pub cpu_family: Option<String>,
+    /// Its model (number).
+    pub cpu_model_number: Option<String>,
+    /// CPUs and cores.
+    pub topology: Topology,
+    /// Cache levels of CPU 0 as the OS reports them.
+    pub caches: Vec<Cache>,
+    /// The cache sizes gemm blocks for (L1, L2, L3), bytes per core.
+    pub gemm_cache_bytes_per_core: Vec<usize>,
+    /// The vector instruction sets detected at run time (x86 only; empty elsewhere).
+    pub isa: Isa,
+    /// The vectors gemm's kernels take ([`vector_isa`]'s names).
+    pub gemm_kernels: String,
+    /// This machine's fp32 FMA peak measured now, GFLOP/s ([`fma_peak`]).
+    pub fma_peak_gflops: f64,
+    /// The vectors that peak ran with.
+    pub fma_peak_isa: String,
+    /// Threads of the pool.
+    pub threads: usize,
+}
+
 /// Logical CPUs online and the distinct (package, core) pairs among them.
-fn topology() -> Value {
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Topology {
+    /// Logical CPUs online.
+    pub logical_cpus: usize,
+    /// Distinct (package, core) pairs.
+    pub physical_cores: usize,
+    /// Logical CPUs per core (none without cores).
+    pub threads_per_core: Option<f64>,
+}
+
+/// One cache level of CPU 0, as `/sys/devices/system/cpu/cpu0/cache/index*` words it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Cache {
+    /// Level (1, 2, 3).
+    pub level: String,
+    /// Data, Instruction or Unified.
+    #[serde(rename = "type")]
+    pub kind: String,
+    /// Size, e.g. "48K".
+    pub size: String,
+    /// Ways of associativity.
+    pub ways: Option<String>,
+    /// The CPUs sharing it, as a list.
+    pub shared_by_cpus: Option<String>,
+}
+
+/// The x86 vector instruction sets detected at run time (absent elsewhere).
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct Isa {
+    /// AVX-512 F.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub avx512f: Option<bool>,
+    /// AVX2.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub avx2: Option<bool>,
+    /// FMA.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub fma: Option<bool>,
+}
+
+/// Logical CPUs online and the distinct (package, core) pairs among them.
+fn topology() -> Topology {
     let mut cores = std::collections::BTreeSet::new();
     let mut logical = 0;
     let cpus = std::fs::read_dir("/sys/devices/system/cpu")
@@ -131,22 +201,27 @@ fn topology() -> Value {
             cores.insert((package.trim().to_string(), core.trim().to_string()));
         }
     }
-    json!({"logical_cpus": logical, "physical_cores": cores.len(),
-           "threads_per_core": (!cores.is_empty()).then(|| logical as f64 / cores.len() as f64)})
+    Topology {
+        logical_cpus: logical,
+        physical_cores: cores.len(),
+        threads_per_core: (!cores.is_empty()).then(|| logical as f64 / cores.len() as f64),
+    }
 }
 
 /// Cache levels of CPU 0 as the OS reports them.
-fn caches() -> Vec<Value> {
+fn caches() -> Vec<Cache> {
     (0..8)
         .map_while(|i| {
             let dir = format!("/sys/devices/system/cpu/cpu0/cache/index{i}");
             let read = |f: &str| std::fs::read_to_string(format!("{dir}/{f}")).ok();
             let (level, kind, size) = (read("level")?, read("type")?, read("size")?);
-            Some(
-                json!({"level": level.trim(), "type": kind.trim(), "size": size.trim(),
-                        "ways": read("ways_of_associativity").map(|s| s.trim().to_string()),
-                        "shared_by_cpus": read("shared_cpu_list").map(|s| s.trim().to_string())}),
-            )
+            Some(Cache {
+                level: level.trim().into(),
+                kind: kind.trim().into(),
+                size: size.trim().into(),
+                ways: read("ways_of_associativity").map(|s| s.trim().to_string()),
+                shared_by_cpus: read("shared_cpu_list").map(|s| s.trim().to_string()),
+            })
         })
         .collect()
 }
@@ -154,7 +229,7 @@ fn caches() -> Vec<Value> {
 /// The machine a bench ran on: CPU model and vendor, topology, caches, the vector instruction
 /// sets the kernels can choose from (detected at run time) and the ones gemm and our element-wise
 /// kernels take, the cache sizes gemm blocks for, the FMA peak measured now, threads.
-pub fn machine() -> Value {
+pub fn machine() -> Machine {
     let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
     let field = |name: &str| {
         cpuinfo
@@ -164,16 +239,16 @@ pub fn machine() -> Value {
             .map(|(_, v)| v.trim().to_string())
     };
     #[cfg(target_arch = "x86_64")]
-    let isa = json!({
-        "avx512f": std::arch::is_x86_feature_detected!("avx512f"),
-        "avx2": std::arch::is_x86_feature_detected!("avx2"),
-        "fma": std::arch::is_x86_feature_detected!("fma"),
-    });
+    let isa = Isa {
+        avx512f: Some(std::arch::is_x86_feature_detected!("avx512f")),
+        avx2: Some(std::arch::is_x86_feature_detected!("avx2")),
+        fma: Some(std::arch::is_x86_feature_detected!("fma")),
+    };
     #[cfg(not(target_arch = "x86_64"))]
-    let isa = json!({});
+    let isa = Isa::default();
     // gemm (x86-v4 feature on) takes its AVX-512 kernels where the CPU has them; our
     // element-wise kernels take AVX2 + FMA where the CPU has them.
-    let gemm_lanes = match (isa["avx512f"].as_bool(), isa["avx2"].as_bool()) {
+    let gemm_lanes = match (isa.avx512f, isa.avx2) {
         (Some(true), _) => 16,
         (_, Some(true)) => 8,
         _ => 1,
@@ -183,12 +258,20 @@ pub fn machine() -> Value {
         .map(|c| c.cache_bytes)
         .collect();
     let peak = fma_peak();
-    json!({"cpu_model": field("model name"), "vendor": field("vendor_id"),
-           "cpu_family": field("cpu family"), "cpu_model_number": field("model\t"),
-           "topology": topology(), "caches": caches(),
-           "gemm_cache_bytes_per_core": gemm_caches, "isa": isa, "gemm_kernels": vector_isa(gemm_lanes),
-           "fma_peak_gflops": peak.gflops, "fma_peak_isa": peak.isa,
-           "threads": rayon::current_num_threads()})
+    Machine {
+        cpu_model: field("model name"),
+        vendor: field("vendor_id"),
+        cpu_family: field("cpu family"),
+        cpu_model_number: field("model\t"),
+        topology: topology(),
+        caches: caches(),
+        gemm_cache_bytes_per_core: gemm_caches,
+        isa,
+        gemm_kernels: vector_isa(gemm_lanes),
+        fma_peak_gflops: peak.gflops,
+        fma_peak_isa: peak.isa.clone(),
+        threads: rayon::current_num_threads(),
+    }
 }
 
 #[cfg(test)]
@@ -210,16 +293,10 @@ mod tests {
     #[test]
     fn the_machine_record_names_its_topology_and_peak() {
         let m = machine();
-        let topology = &m["topology"];
-        assert!(topology["logical_cpus"].as_u64().unwrap_or(0) >= 1, "{m}");
-        assert!(
-            topology["physical_cores"].as_u64() <= topology["logical_cpus"].as_u64(),
-            "{m}"
-        );
-        assert_eq!(
-            m["gemm_cache_bytes_per_core"].as_array().map(Vec::len),
-            Some(3)
-        );
-        assert!(m["fma_peak_gflops"].as_f64().unwrap_or(0.0) > 0.0, "{m}");
+        let topology = &m.topology;
+        assert!(topology.logical_cpus >= 1, "{m:?}");
+        assert!(topology.physical_cores <= topology.logical_cpus, "{m:?}");
+        assert_eq!(m.gemm_cache_bytes_per_core.len(), 3);
+        assert!(m.fma_peak_gflops > 0.0, "{m:?}");
     }
 }

@@ -13,7 +13,9 @@ mod tokenizer;
 
 use anyhow::{bail, Context, Result};
 use clap::Subcommand;
-use serde_json::{json, Value};
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -103,6 +105,26 @@ fn profiler(command: &str) {
     }
 }
 
+/// Wall times of repeated calls of one function, as [`time`] measures them (the keys of
+/// `../shared/bench/common.py`'s `timeit`, which the references write).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Timing {
+    /// Median seconds per call.
+    pub median_s: f64,
+    /// Fastest call, seconds.
+    pub min_s: f64,
+    /// Slowest call, seconds.
+    pub max_s: f64,
+    /// Calls timed.
+    pub n: usize,
+    /// Share of all cores' time that other processes used meanwhile ([`foreign_load`]; none
+    /// where `/proc` cannot be read).
+    pub foreign_cpu_fraction: Option<f64>,
+    /// This process's CPU seconds per call, all threads together (none where `/proc` cannot
+    /// be read).
+    pub own_cpu_s_per_call: Option<f64>,
+}
+
 /// Median, min and max of `f`'s wall time after `warmup` calls, over at least `reps` calls
 /// and `min_time` seconds, with the foreign CPU load meanwhile.
 pub fn time<F: FnMut() -> Result<()>>(
@@ -110,7 +132,7 @@ pub fn time<F: FnMut() -> Result<()>>(
     reps: usize,
     min_time: f64,
     mut f: F,
-) -> Result<Value> {
+) -> Result<Timing> {
     for _ in 0..warmup {
         f()?;
     }
@@ -134,23 +156,26 @@ pub fn time<F: FnMut() -> Result<()>>(
     let own_cpu = before.zip(after).map(|(a, b)| (b.2 - a.2) as f64 / 100.0);
     let calls = samples.len() as f64;
     samples.sort_by(f64::total_cmp);
-    Ok(
-        json!({"median_s": samples[samples.len() / 2], "min_s": samples[0],
-              "max_s": samples[samples.len() - 1], "n": samples.len(),
-              "foreign_cpu_fraction": foreign,
-              "own_cpu_s_per_call": own_cpu.map(|c| c / calls)}),
-    )
+    Ok(Timing {
+        median_s: samples[samples.len() / 2],
+        min_s: samples[0],
+        max_s: samples[samples.len() - 1],
+        n: samples.len(),
+        foreign_cpu_fraction: foreign,
+        own_cpu_s_per_call: own_cpu.map(|c| c / calls),
+    })
 }
 
-/// A number of a reference script's JSON output.
-pub fn number(json: &serde_json::Value, key: &str) -> Result<f64> {
-    json[key]
-        .as_f64()
-        .with_context(|| format!("the reference's output has no number {key:?}"))
+/// Read a reference script's JSON output `text` as a `T`: a missing or mistyped key is an
+/// error naming the script and the key.
+pub fn reference_output<T: DeserializeOwned>(script: &Path, text: &[u8]) -> Result<T> {
+    serde_json::from_slice(text)
+        .map_err(|e| anyhow::anyhow!("reading the output of {}: {e}", script.display()))
 }
 
-/// Run the PyTorch reference `script` with `args` plus `--out FILE` and read the JSON it wrote.
-pub fn run_reference(script: &Path, args: &[&str]) -> Result<serde_json::Value> {
+/// Run the PyTorch reference `script` with `args` plus `--out FILE` and read the JSON it wrote
+/// as a `T` ([`reference_output`]).
+pub fn run_reference<T: DeserializeOwned>(script: &Path, args: &[&str]) -> Result<T> {
     let out = tempfile::NamedTempFile::new()?;
     let status = std::process::Command::new("python3")
         .arg(script)
@@ -166,22 +191,74 @@ pub fn run_reference(script: &Path, args: &[&str]) -> Result<serde_json::Value> 
             script.display()
         );
     }
-    serde_json::from_slice(&std::fs::read(out.path())?)
-        .with_context(|| format!("reading the output of {}", script.display()))
+    let text = std::fs::read(out.path())
+        .with_context(|| format!("reading the output of {}", script.display()))?;
+    reference_output(script, &text)
 }
 
 /// Write `figures` as pretty JSON to `path` (atomically), when a path is given, with the
-/// machine they were measured on (`machine`; a list of figures goes under `figures`).
-pub fn write_json(path: Option<&PathBuf>, figures: &Value) -> Result<()> {
+/// machine they were measured on (`machine`; a list of figures goes under `figures`). Keys
+/// come out sorted, as `serde_json`'s maps keep them.
+pub fn write_json<T: Serialize + ?Sized>(path: Option<&PathBuf>, figures: &T) -> Result<()> {
     if let Some(path) = path {
-        let mut figures = match figures {
-            Value::Object(_) => figures.clone(),
-            _ => json!({ "figures": figures }),
+        let mut figures = match serde_json::to_value(figures)? {
+            Value::Object(map) => map,
+            other => serde_json::Map::from_iter([("figures".to_string(), other)]),
         };
-        figures["machine"] = machine::machine();
+        figures.insert("machine".into(), serde_json::to_value(machine::machine())?);
         let text = serde_json::to_string_pretty(&figures)?;
         motionscale_core::write_atomic(path, text.as_bytes())
             .with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A committed bench figure file (`docs/results/bench/NAME`).
+    fn committed(name: &str) -> Value {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("docs/results/bench")
+            .join(name);
+        serde_json::from_slice(&std::fs::read(&path).expect("a committed figure")).expect("JSON")
+    }
+
+    #[test]
+    fn the_committed_figures_read_back_as_the_typed_structs() {
+        let fit: fit::FitFigures = serde_json::from_value(committed("fit.json")).expect("fit");
+        let parametric = fit.parametric.expect("the SciPy comparison");
+        assert!(parametric.reference.seconds > 0.0 && parametric.reference.fit.e > 0.0);
+        let embed = committed("embed.json")["reference"].clone();
+        let embed: embed::EmbedReference = serde_json::from_value(embed).expect("embed");
+        assert!(embed.median_s > 0.0 && embed.other.contains_key("torch"));
+        let evaluator = committed("evaluator.json")["reference"].clone();
+        let evaluator: gru::StepReference = serde_json::from_value(evaluator).expect("evaluator");
+        assert!(evaluator.median_step_s > 0.0);
+        let ctvae = committed("ctvae.json")[0]["reference"].clone();
+        let ctvae: gru::StepReference = serde_json::from_value(ctvae).expect("ctvae");
+        assert!(ctvae.median_step_s > 0.0);
+    }
+
+    #[test]
+    fn a_missing_key_of_a_reference_names_the_script_and_the_key() {
+        let text = br#"{"runs": 3, "starts": 1, "jac": "analytic", "E": 1, "A": 2, "B": 3,
+            "alpha": 0.3, "beta": 0.3, "objective": 0.1}"#;
+        let err = reference_output::<fit::ScipyFit>(Path::new("scripts/scipy_fit.py"), text)
+            .expect_err("no seconds");
+        let message = format!("{err:#}");
+        assert!(message.contains("scripts/scipy_fit.py"), "{message}");
+        assert!(message.contains("`seconds`"), "{message}");
+    }
+
+    #[test]
+    fn a_list_of_figures_goes_under_figures_beside_the_machine() {
+        let tmp = tempfile::tempdir().expect("tmp");
+        let path = tmp.path().join("figures.json");
+        write_json(Some(&path), &[1.0, 2.0]).expect("written");
+        let written: Value = serde_json::from_slice(&std::fs::read(&path).expect("read")).unwrap();
+        assert_eq!(written["figures"], serde_json::json!([1.0, 2.0]));
+        assert!(written["machine"]["fma_peak_gflops"].as_f64() > Some(0.0));
+    }
 }

@@ -9,7 +9,7 @@ use crate::device_args::DeviceArgs;
 use anyhow::{bail, Context, Result};
 use candle_core::{Device, Tensor};
 use nn::device::device_name;
-use serde_json::json;
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use tokenizer::model::{MotionTokenizer, TokenizerConfig, FEATURES};
@@ -58,6 +58,52 @@ struct Timing {
     flops_per_step: f64,
 }
 
+/// The figures of one quantizer and batch of `bench tokenizer` (its `--json` lists them under
+/// `figures`).
+#[derive(Debug, Serialize, Deserialize)]
+pub struct TokenizerFigure {
+    /// What was timed: "tokenizer training step".
+    pub what: String,
+    /// `fsq` or `vq`.
+    pub quantizer: String,
+    /// Windows per step.
+    pub batch: usize,
+    /// Where the tokenizer trained.
+    pub device: String,
+    /// Threads of the pool.
+    pub threads: usize,
+    /// Our training steps per second.
+    pub steps_per_s: f64,
+    /// Our GFLOP/s at the reference's FLOP count.
+    pub gflops: f64,
+    /// The reference's FLOP count of one step.
+    pub flops_per_step: f64,
+    /// With `--reference`: PyTorch's rate.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub reference: Option<TokenizerReferenceFigure>,
+    /// With `--reference`: our steps/s over PyTorch's.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub ratio: Option<f64>,
+}
+
+/// PyTorch's rate at one quantizer and batch.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct TokenizerReferenceFigure {
+    /// Its training steps per second.
+    pub steps_per_s: f64,
+    /// Its GFLOP/s at its own FLOP count.
+    pub gflops: f64,
+}
+
+/// The output of `pytorch_vqvae.py` (and `scripts/pytorch_vqvae_gpu.py`) this bench reads.
+#[derive(Debug, Serialize, Deserialize)]
+pub struct VqvaeReference {
+    /// Training steps per second.
+    pub steps_per_s: f64,
+    /// Its FLOP count of one step (conv + linear multiply-accumulates × 6).
+    pub model_flops_per_step: f64,
+}
+
 /// The reference's shapes: FSQ [8,5,5,5] (1000 codes), VQ 512 codes × 512.
 fn reference_config(quantizer: &str) -> Result<TokenizerConfig> {
     let conv = ConvConfig::default();
@@ -91,7 +137,7 @@ fn time_ours(
         // A GPU queues the update: the step ends when it has run.
         Ok(device.synchronize()?)
     })?;
-    let median = super::number(&timing, "median_s")?;
+    let median = timing.median_s;
     // FSQ's two projections are the reference's "linear" MACs.
     let linear = if quantizer == "fsq" {
         2 * (batch * train.window / conv.downsample_factor()) as u64 * conv.code_dim as u64 * 4
@@ -130,10 +176,10 @@ fn time_reference(
         flags.extend(["--bench-dir", bench_dir]);
         args.gpu_reference_script.clone()
     };
-    let json = super::run_reference(&script, &flags)?;
+    let theirs: VqvaeReference = super::run_reference(&script, &flags)?;
     Ok(Timing {
-        steps_per_s: super::number(&json, "steps_per_s")?,
-        flops_per_step: super::number(&json, "model_flops_per_step")?,
+        steps_per_s: theirs.steps_per_s,
+        flops_per_step: theirs.model_flops_per_step,
     })
 }
 
@@ -170,11 +216,18 @@ pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
                     .map(|(p, _)| format!(" ({:.0}% of peak)", 100.0 * gflops / p))
                     .unwrap_or_default(),
             );
-            let mut figure = json!({"what": "tokenizer training step", "quantizer": quantizer,
-                "batch": batch, "device": device_name(&device),
-                "threads": rayon::current_num_threads(),
-                "steps_per_s": ours.steps_per_s, "gflops": gflops,
-                "flops_per_step": ours.flops_per_step});
+            let mut figure = TokenizerFigure {
+                what: "tokenizer training step".into(),
+                quantizer: quantizer.clone(),
+                batch,
+                device: device_name(&device),
+                threads: rayon::current_num_threads(),
+                steps_per_s: ours.steps_per_s,
+                gflops,
+                flops_per_step: ours.flops_per_step,
+                reference: None,
+                ratio: None,
+            };
             if args.reference {
                 let theirs = time_reference(quantizer, batch, &args, &device)?;
                 if (theirs.flops_per_step / ours.flops_per_step - 1.0).abs() > 1e-6 {
@@ -189,14 +242,16 @@ pub fn bench_tokenizer(args: BenchTokenizerArgs) -> Result<ExitCode> {
                     "; PyTorch {:.3} steps/s → ratio {ratio:.2}×",
                     theirs.steps_per_s
                 ));
-                figure["reference"] = json!({"steps_per_s": theirs.steps_per_s,
-                    "gflops": theirs.flops_per_step * theirs.steps_per_s / 1e9});
-                figure["ratio"] = ratio.into();
+                figure.reference = Some(TokenizerReferenceFigure {
+                    steps_per_s: theirs.steps_per_s,
+                    gflops: theirs.flops_per_step * theirs.steps_per_s / 1e9,
+                });
+                figure.ratio = Some(ratio);
             }
             println!("{line}");
             figures.push(figure);
         }
     }
-    super::write_json(args.json.as_ref(), &serde_json::Value::Array(figures))?;
+    super::write_json(args.json.as_ref(), &figures)?;
     Ok(ExitCode::SUCCESS)
 }
