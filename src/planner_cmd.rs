@@ -3,17 +3,12 @@
 
 use crate::plan_args::PlanArgs;
 use anyhow::{bail, Context, Result};
+use experiments::next::{self, listed};
 use experiments::plan;
 use experiments::IsoFlopPlan;
-use fits::data_value::{predict_data, Hours};
-use fits::family::design::next_runs;
-use fits::family::run::{read_points, LawReport};
-use fits::family::Point;
-use fits::fitted::FitFile;
-use fits::hour_design::{self, DataCandidate};
-use fits::isoflop::{self, parabola_minimum};
+use fits::isoflop::parabola_minimum;
 use fits::loss_shape::Form;
-use fits::planner::{self, Candidate, Goal, Observation, Settings, Target};
+use fits::planner::{budget_groups, Candidate, Settings, Target, GROUP_TOL_DEX};
 use fits::replay::{self, Policy, ReplayStep, ReplayTable};
 use fits::Table;
 use std::path::{Path, PathBuf};
@@ -68,34 +63,9 @@ pub struct ReplayArgs {
     pub out: PathBuf,
 }
 
-/// " (the … law)" after a `loss` target's name, naming the form it extrapolates by.
-fn by_law(target: Target, form: Form) -> String {
-    match target {
-        Target::Loss => format!(" (the {} law)", form.name()),
-        Target::NOpt => String::new(),
-    }
-}
-
 /// Parses `--loss-form`.
 fn parse_form(name: &str) -> Result<Form, String> {
     Form::parse(name).ok_or_else(|| format!("{name:?}: expected log, curved or floor"))
-}
-
-/// log10 distance under which two budgets are one group (as `fit`).
-const TOL_DEX: f64 = 0.05;
-
-/// The budget groups of `c`, ascending.
-fn budget_groups(c: &[f64]) -> Vec<f64> {
-    isoflop::group_rows(c, None, TOL_DEX)
-        .iter()
-        .map(|g| isoflop::group_budget(c, g))
-        .collect()
-}
-
-/// The budgets listed for an error message.
-fn listed(budgets: &[f64]) -> String {
-    let list: Vec<String> = budgets.iter().map(|b| format!("{b:.3e}")).collect();
-    list.join(", ")
 }
 
 /// The target's value in the runs at C* (their envelope parabola's interior vertex).
@@ -107,7 +77,7 @@ fn truth_at(
     c_star: f64,
 ) -> Result<f64> {
     let at: Vec<usize> = (0..runs.len())
-        .filter(|&i| (runs[i].budget.log10() - c_star.log10()).abs() <= TOL_DEX)
+        .filter(|&i| (runs[i].budget.log10() - c_star.log10()).abs() <= GROUP_TOL_DEX)
         .collect();
     if at.is_empty() {
         bail!(
@@ -140,7 +110,7 @@ fn replay_table(args: &ReplayArgs) -> Result<ReplayTable> {
     let below: Vec<f64> = all
         .iter()
         .copied()
-        .filter(|b| b.log10() < args.target_budget.log10() - TOL_DEX)
+        .filter(|b| b.log10() < args.target_budget.log10() - GROUP_TOL_DEX)
         .collect();
     if below.is_empty() {
         bail!(
@@ -170,8 +140,8 @@ fn replay_table(args: &ReplayArgs) -> Result<ReplayTable> {
             args.target_budget,
         )?,
     };
-    let top = below[below.len() - 1].log10() + TOL_DEX;
-    let first = below[args.start_budgets - 1].log10() + TOL_DEX;
+    let top = below[below.len() - 1].log10() + GROUP_TOL_DEX;
+    let first = below[args.start_budgets - 1].log10() + GROUP_TOL_DEX;
     let keep: Vec<usize> = (0..runs.len())
         .filter(|&i| runs[i].budget.log10() <= top)
         .collect();
@@ -211,7 +181,7 @@ pub fn replay_cmd(args: ReplayArgs) -> Result<ExitCode> {
         pool_compute,
         table.start.len(),
         loss_form
-            .map(|f| format!("loss{}: ", by_law(args.target, f)))
+            .map(|f| format!("loss{}: ", args.target.by_law(f)))
             .unwrap_or_default(),
         table.truth,
         full.median,
@@ -336,337 +306,40 @@ fn print_summary(summary: &replay::ReplaySummary) {
     }
 }
 
-/// The fit `--next` narrows, checked to have the target's law.
-fn fit_with_law(path: &Path, goal: Goal) -> Result<fits::Fits> {
-    let fits = fits::Fits::read(path)?;
-    let (has, law) = match goal {
-        Goal::IsoFlop(Target::NOpt) => (
-            fits.power_laws.contains_key("n_opt_vs_c"),
-            "N_opt ∝ C^b law (n_opt_vs_c)",
-        ),
-        Goal::IsoFlop(Target::Loss) => (fits.log_law.is_some(), "law of the loss at N_opt"),
-        Goal::HourValue => (
-            fits.repeated_data.is_some(),
-            "data-constrained fit (`fit --repeated-data`)",
-        ),
-    };
-    if !has {
-        bail!(
-            "{}: no {law} to narrow for --target {} (skipped: {})",
-            path.display(),
-            goal.name(),
-            fits.skipped.join("; ")
-        );
-    }
-    Ok(fits)
-}
-
-/// The trained runs of `base` on the grid's data subset, as the planner sees them; the error
-/// says why they cannot support a law at C*.
-fn trained_runs(
-    args: &PlanArgs,
-    fit: &fits::Fits,
-    base: &IsoFlopPlan,
-    subset: Option<&String>,
-    c_star: f64,
-) -> Result<Vec<Observation>> {
-    let results = args
-        .results
-        .clone()
-        .unwrap_or_else(|| PathBuf::from(&fit.input.file));
-    let loss_col = fit
-        .input
-        .columns
-        .get("loss")
-        .cloned()
-        .flatten()
-        .unwrap_or_else(|| "norm_test_loss".into());
-    let (rows, losses) = replay::read_runs(&Table::read(&results)?, &loss_col)?;
-    let obs: Vec<Observation> = (0..rows.len())
-        .filter(|&i| {
-            base.points
-                .iter()
-                .any(|p| p.run_id == rows[i].id && p.data.as_ref() == subset)
-        })
-        .map(|i| planner::observed(&rows[i], losses[i]))
-        .collect();
-    let trained = budget_groups(&obs.iter().map(|o| o.budget).collect::<Vec<_>>());
-    if trained.len() < 3 {
-        bail!(
-            "{}: {} budget(s) trained in the plan's subset ({}); the planner needs three for a law",
-            results.display(),
-            trained.len(),
-            listed(&trained)
-        );
-    }
-    if c_star.log10() <= trained[trained.len() - 1].log10() + TOL_DEX {
-        bail!(
-            "--target-budget {c_star:.3e} is not above the budgets trained ({})",
-            listed(&trained)
-        );
-    }
-    Ok(obs)
-}
-
-/// The grid's runnable points below C* that `base` does not have.
-fn open_points<'a>(
-    grid: &'a IsoFlopPlan,
-    base: &'a IsoFlopPlan,
-    c_star: f64,
-) -> impl Iterator<Item = &'a experiments::plan::PlanPoint> {
-    grid.points.iter().filter(move |p| {
-        p.runnable() && p.budget < c_star && !base.points.iter().any(|b| b.run_id == p.run_id)
-    })
-}
-
-/// The grid's runnable points below C* that `base` does not have, as candidates.
-fn candidates(grid: &IsoFlopPlan, base: &IsoFlopPlan, c_star: f64) -> Vec<Candidate> {
-    open_points(grid, base, c_star)
-        .map(|p| Candidate {
-            id: p.run_id.clone(),
-            budget: p.budget,
-            n: p.n_nv as f64,
-            vocab: grid.vocabulary(p.codebook).map(|v| v.codebook_size as f64),
-            cost: p.budget,
-        })
-        .collect()
-}
-
-/// `sweep plan --next K`: the base plan (--extend) extended by the K proposals.
+/// `sweep plan --next K`: the base plan (--extend) extended by the K proposals
+/// (`experiments::next`), printed with what each costs and buys.
 pub fn next_plan(args: &PlanArgs, k: usize) -> Result<IsoFlopPlan> {
     let (Some(c_star), Some(fits_path), Some(base_path)) =
         (args.target_budget, &args.fits, &args.extend)
     else {
         bail!("--next needs --target-budget, --fits and --extend");
     };
+    let fit = next::read_fit(fits_path, args.target)?;
     let base = IsoFlopPlan::read(base_path)?;
     let mut request = args.request()?;
     request.extend = None;
     let grid = plan::plan(&request)?;
-    let room = args.max_compute.unwrap_or(f64::INFINITY);
-    let chosen = match FitFile::read(fits_path)? {
-        FitFile::Families(report) => {
-            next_by_design(args, &report, &grid, &base, (c_star, k, room))?
-        }
-        FitFile::IsoFlop(_) => {
-            let fit = fit_with_law(fits_path, args.target)?;
-            match args.target {
-                Goal::IsoFlop(t) => next_isoflop(args, &fit, &grid, &base, t, (c_star, k, room))?,
-                Goal::HourValue => {
-                    next_hours(args, &fit, fits_path, &grid, &base, (c_star, k, room))?
-                }
-            }
-        }
+    let req = next::Request {
+        fits: fits_path,
+        goal: args.target,
+        target_budget: c_star,
+        k,
+        max_compute: args.max_compute.unwrap_or(f64::INFINITY),
+        results: args.results.as_deref(),
+        hours: args.hours,
     };
-    request.only = chosen;
-    request.extend = Some(base);
-    Ok(plan::plan(&request)?)
-}
-
-/// A plan point as a law family reads it: N = N_nv, D its tokens, N_v, and U (its data
-/// subset's unique tokens, else its vocabulary's train tokens).
-fn as_point(grid: &IsoFlopPlan, p: &experiments::plan::PlanPoint, d: f64) -> Point {
-    let u = p
-        .unique_tokens
-        .or_else(|| grid.vocabulary(p.codebook).map(|v| v.train_tokens))
-        .map(|u| u as f64);
-    Point {
-        n: p.n_nv as f64,
-        d,
-        u,
-        nv: Some(p.n_v as f64),
-    }
-}
-
-/// `--next` on a laws.json: greedy V-optimal runs for the adopted family's loss at C* over
-/// the grid's model sizes (`fits::family::design::next_runs`), at the fit's θ.
-fn next_by_design(
-    args: &PlanArgs,
-    report: &LawReport,
-    grid: &IsoFlopPlan,
-    base: &IsoFlopPlan,
-    (c_star, k, room): (f64, usize, f64),
-) -> Result<Vec<String>> {
-    let fit = report
-        .fits
-        .iter()
-        .find(|f| f.law == report.adopted)
-        .context("the laws.json has no fit of its adopted law")?;
-    let family = fits::family::family(&fit.law).context("unknown law in the laws.json")?;
-    let results = args.results.clone().unwrap_or_else(|| report.table.clone());
-    let (trained, _) = read_points(&Table::read(&results)?, &report.columns)?;
-    let open: Vec<_> = open_points(grid, base, c_star).collect();
-    let candidates: Vec<Point> = open
-        .iter()
-        .map(|p| as_point(grid, p, p.tokens as f64))
-        .collect();
-    let cost: Vec<f64> = open.iter().map(|p| p.budget).collect();
-    let mut target: Vec<Point> = grid
-        .points
-        .iter()
-        .map(|p| as_point(grid, p, c_star / (6.0 * (p.n_nv + p.n_v) as f64)))
-        .collect();
-    target.dedup_by(|a, b| a.n == b.n && a.nv == b.nv && a.u == b.u);
-    let picks = next_runs(
-        family.as_ref(),
-        (&fit.theta, fit.space),
-        &trained,
-        &candidates,
-        &cost,
-        &target,
-        (k, room),
-    );
-    if picks.is_empty() {
-        bail!("no candidate below --target-budget fits --max-compute or is informative for the {} law", fit.law);
-    }
-    println!(
-        "planner: {} law ({} trained runs of {}), {} candidates; loss at {c_star:.3e} over {} model sizes, V-optimal:",
-        fit.law,
-        trained.len(),
-        results.display(),
-        candidates.len(),
-        target.len()
-    );
-    for (i, (j, variance)) in picks.iter().enumerate() {
-        println!(
-            "next {}: {} ({:.3e} FLOPs): mean prediction variance at C* {:.4} (noise units)",
-            i + 1,
-            open[*j].run_id,
-            cost[*j],
-            variance
-        );
-    }
-    Ok(picks.iter().map(|(j, _)| open[*j].run_id.clone()).collect())
-}
-
-/// The proposals' run ids, printed with what each costs and buys.
-fn chosen_ids(proposals: &[planner::Proposal], ids: &[&str]) -> Result<Vec<String>> {
-    if proposals.is_empty() {
-        bail!("no candidate fits --max-compute, is predictable from the trained runs, or is expected to narrow the interval");
-    }
-    for (i, p) in proposals.iter().enumerate() {
-        let these: Vec<&str> = p.runs.iter().map(|&j| ids[j]).collect();
+    let runs = next::next_runs(&req, &fit, &grid, &base)?;
+    println!("{}", runs.state);
+    for (i, p) in runs.proposals.iter().enumerate() {
         println!(
             "next {}: {} ({:.3e} FLOPs): {}",
             i + 1,
-            these.join(", "),
+            p.runs.join(", "),
             p.cost,
             p.why
         );
     }
-    Ok(proposals
-        .iter()
-        .flat_map(|p| p.runs.iter().map(|&j| ids[j].to_string()))
-        .collect())
-}
-
-/// `--next` on N_opt or the loss at N_opt: the IsoFLOP bootstrap (`fits::planner`).
-fn next_isoflop(
-    args: &PlanArgs,
-    fit: &fits::Fits,
-    grid: &IsoFlopPlan,
-    base: &IsoFlopPlan,
-    target: Target,
-    (c_star, k, room): (f64, usize, f64),
-) -> Result<Vec<String>> {
-    // The study's subset: the data of the grid's points (trained rows of other subsets differ).
-    let subset = grid.points.first().and_then(|p| p.data.clone());
-    let obs = trained_runs(args, fit, base, subset.as_ref(), c_star)?;
-    let pool = candidates(grid, base, c_star);
-    // The loss extrapolates by the form `fit` chose for it (leave-one-budget-out error).
-    let loss_form = fit
-        .loss_shape
-        .as_ref()
-        .and_then(|shape| shape.chosen.as_deref())
-        .and_then(Form::parse)
-        .unwrap_or_default();
-    let settings = Settings {
-        loss_form,
-        ..Settings::default()
-    };
-    let now = planner::posterior(&obs, target, c_star, &settings);
-    println!(
-        "planner: {} trained runs of the plan; {}{} at {c_star:.3e} now: median {:.4}, 95% [{:.4}, {:.4}], width {:.4} {}, {} of {} draws with a law, spread {:.3} ({} candidates)",
-        obs.len(), target.name(), by_law(target, loss_form), now.median, now.low, now.high, now.width, target.unit(), now.valid, now.draws, now.spread(), pool.len()
-    );
-    let proposals = planner::propose(&obs, &pool, target, c_star, k, room, &settings);
-    let ids: Vec<&str> = pool.iter().map(|c| c.id.as_str()).collect();
-    chosen_ids(&proposals, &ids)
-}
-
-/// `--next --target hour_value`: the data-constrained fit's Laplace posterior
-/// (`fits::hour_design`) over the grid's points of every data subset.
-fn next_hours(
-    args: &PlanArgs,
-    fit: &fits::Fits,
-    fits_path: &Path,
-    grid: &IsoFlopPlan,
-    base: &IsoFlopPlan,
-    (c_star, k, room): (f64, usize, f64),
-) -> Result<Vec<String>> {
-    let rd = fit
-        .repeated_data
-        .as_ref()
-        .context("checked by fit_with_law")?;
-    let n_col = fit.input.columns.get("N").cloned().flatten();
-    if n_col.as_deref() != Some("n_nv") {
-        bail!(
-            "{}: the fit's N column is {n_col:?}; --target hour_value reads the plan's N as n_nv",
-            fits_path.display()
-        );
-    }
-    let hours = match args.hours {
-        Some(h) => h,
-        None => corpus_hours(grid).context(
-            "--target hour_value: the plan has no full-data subset; pass --hours real=H,synth=H",
-        )?,
-    };
-    let pool = data_candidates(grid, base, c_star);
-    if pool.is_empty() {
-        bail!("--target hour_value: no point of the grid below {c_star:.3e} has a data subset (plan with --data-fractions)");
-    }
-    let (now, proposals) = hour_design::propose_hours(rd, &pool, c_star, hours, k, room)
-        .map_err(anyhow::Error::msg)?;
-    let refits = predict_data(rd, c_star, hours).map_err(anyhow::Error::msg)?;
-    let by_refits = &refits.hour_values[0].loss_change;
-    println!(
-        "planner: +1 h of captured motion at {c_star:.3e} with {:.2} h captured, {:.2} h synthetic: {:.4e} nats, Laplace 95% [{:.4e}, {:.4e}], width {:.3e} (the fit's refits: [{:.4e}, {:.4e}]); {} candidates",
-        hours.real, hours.synth, now.value, now.low, now.high, now.width,
-        by_refits.ci_low.unwrap_or(f64::NAN), by_refits.ci_high.unwrap_or(f64::NAN), pool.len()
-    );
-    let ids: Vec<&str> = pool.iter().map(|c| c.id.as_str()).collect();
-    chosen_ids(&proposals, &ids)
-}
-
-/// The hours per source of the plan's full data (`all` at fraction 1).
-fn corpus_hours(grid: &IsoFlopPlan) -> Option<Hours> {
-    grid.data
-        .iter()
-        .filter(|d| d.fraction == 1.0)
-        .max_by(|a, b| a.hours.total_cmp(&b.hours))
-        .map(|d| Hours {
-            real: d.hours - d.synth_hours,
-            synth: d.synth_hours,
-        })
-}
-
-/// The grid's runnable points below C* with a data subset that `base` does not have.
-fn data_candidates(grid: &IsoFlopPlan, base: &IsoFlopPlan, c_star: f64) -> Vec<DataCandidate> {
-    open_points(grid, base, c_star)
-        .filter_map(|p| {
-            let subset = grid
-                .data
-                .iter()
-                .find(|d| Some(&d.name) == p.data.as_ref())?;
-            Some(DataCandidate {
-                id: p.run_id.clone(),
-                budget: p.budget,
-                n: p.n_nv as f64,
-                d: p.tokens as f64,
-                u: p.unique_tokens? as f64,
-                synth: subset.synth_hours / subset.hours,
-                cost: p.budget,
-            })
-        })
-        .collect()
+    request.only = runs.proposals.into_iter().flat_map(|p| p.runs).collect();
+    request.extend = Some(base);
+    Ok(plan::plan(&request)?)
 }

@@ -16,6 +16,9 @@ pub enum SweepError {
     /// A tokenizer stage failed.
     #[error("tokenizer: {0}")]
     Tokenizer(#[from] tokenizer::TokenizerError),
+    /// A fit could not be read or used.
+    #[error(transparent)]
+    Fit(#[from] fits::FitError),
     /// A model stage (text encoder, LM, evaluator) failed.
     #[error("model: {0}")]
     Model(#[from] nn::ModelError),

@@ -25,6 +25,7 @@ pub mod ctvae_train;
 pub mod data_ladder;
 pub mod error;
 pub mod local;
+pub mod next;
 pub mod plan;
 pub mod prepare;
 pub mod results;

@@ -28,6 +28,14 @@ pub const WIDTH_CAP: f64 = 10.0;
 /// Budgets within this many decades are one budget group (as `fit`'s default).
 pub const GROUP_TOL_DEX: f64 = 0.05;
 
+/// The budget groups of `c` (within [`GROUP_TOL_DEX`]), ascending.
+pub fn budget_groups(c: &[f64]) -> Vec<f64> {
+    group_rows(c, None, GROUP_TOL_DEX)
+        .iter()
+        .map(|g| group_budget(c, g))
+        .collect()
+}
+
 /// The quantity the planner narrows, both extrapolated to the target budget.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -57,6 +65,14 @@ impl Target {
         match self {
             Self::NOpt => "n_opt",
             Self::Loss => "loss",
+        }
+    }
+
+    /// " (the … law)" after a `loss` target's name, naming the form it extrapolates by.
+    pub fn by_law(self, form: Form) -> String {
+        match self {
+            Self::Loss => format!(" (the {} law)", form.name()),
+            Self::NOpt => String::new(),
         }
     }
 
