@@ -625,6 +625,29 @@ mod tests {
             r.law.beta
         );
 
+        // Budgets and data subsets resampled whole: both clusterings, each interval holding
+        // the truth on this exact table.
+        let names: Vec<&str> = r
+            .block_intervals
+            .iter()
+            .map(|b| b.clusters.as_str())
+            .collect();
+        assert_eq!(
+            names,
+            ["budgets", "data subsets"],
+            "{:?}",
+            r.block_intervals
+        );
+        for b in &r.block_intervals {
+            assert!(b.count >= 3 && b.refits > 0, "{b:?}");
+            assert!(
+                b.r_star[0] <= r_star * 1.05 && r_star * 0.95 <= b.r_star[1],
+                "{b:?}"
+            );
+            let [lo, hi] = b.exchange.expect("ρ is fitted");
+            assert!(lo <= rho * 1.05 && rho * 0.95 <= hi, "{b:?}");
+        }
+
         // The charts' points: each corpus's lowest loss over the sizes, per budget.
         assert_eq!(r.frontier.len(), 4 * 3, "{:?}", r.frontier);
         let half = r

@@ -508,6 +508,7 @@ mod tests {
             t
         };
         RepeatedData {
+            block_intervals: Vec::new(),
             law: LawEstimates::from_fn(|k| Estimate::exact(theta[k])),
             r_star: Estimate::exact(theta[5]),
             r_star_n: Some(Estimate::exact(theta[7])),

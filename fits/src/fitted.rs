@@ -515,12 +515,31 @@ pub struct DataFrontierPoint {
     pub n: f64,
 }
 
+/// R*_D's and ρ's 95% intervals with whole clusters of runs resampled.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BlockInterval {
+    /// What a cluster is: `budgets` or `data subsets`.
+    pub clusters: String,
+    /// How many clusters there are.
+    pub count: usize,
+    /// Resamples whose refit converged.
+    pub refits: usize,
+    /// R*_D's interval.
+    pub r_star: [f64; 2],
+    /// ρ's interval, where ρ is fitted.
+    pub exchange: Option<[f64; 2]>,
+}
+
 /// The data-constrained fit as recorded in `fits.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RepeatedData {
     /// The law's parameters.
     #[serde(flatten)]
     pub law: LawEstimates,
+    /// R*_D's and ρ's intervals with budgets, and data subsets, resampled whole (beside the
+    /// single-run bootstrap of `r_star` and `exchange`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub block_intervals: Vec<BlockInterval>,
     /// R*_D, the repetitions of data after which extra epochs are worth 1/e of fresh data.
     pub r_star: Estimate,
     /// R*_N, the same for parameters past U_N, the size the law allocates to the unique data

@@ -17,14 +17,14 @@
 //! ln D' gains ln k. It is identified only when the runs' synthetic shares differ.
 
 use crate::fitted::{
-    BudgetInformation, DataFrontierPoint, FitOptions, Fits, HeldOutError, Information,
-    LawEstimates, RepeatedData,
+    BlockInterval, BudgetInformation, DataFrontierPoint, FitOptions, Fits, HeldOutError,
+    Information, LawEstimates, RepeatedData,
 };
 use crate::isoflop;
 use crate::laws::Estimate;
 use crate::lbfgs::{minimize, Minimum};
 use crate::ols::Line;
-use crate::parametric::{self, huber, lse3, LogRuns, StartGrid};
+use crate::parametric::{self, huber, lse3, percentile, LogRuns, StartGrid};
 use crate::runs::Runs;
 use crate::stopping::{tokens_used, StopRuns};
 use crate::FitError;
@@ -532,6 +532,19 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
             .into_iter()
             .map(|rows| (isoflop::group_budget(&runs.c, &rows), rows))
             .collect();
+    let block = block_intervals(
+        &data,
+        &best.x,
+        opts,
+        [
+            ("budgets", groups.iter().map(|g| g.1.clone()).collect()),
+            (
+                "data subsets",
+                data_subsets(&u, runs.synth_share.as_deref()),
+            ),
+        ],
+        data.mixes_sources(),
+    );
     let identified = [note.is_none(), !matches!(note_n, Some(Some(_)))];
     let information = data.information(&best.x, identified, &groups);
     let est = |k: usize| {
@@ -546,6 +559,7 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
     };
     Ok(RepeatedData {
         law: LawEstimates::from_fn(est),
+        block_intervals: block,
         r_star: r_star(5, &note),
         r_star_n: note_n.as_ref().map(|n| r_star(7, n)),
         past_base_size: match data.effective_params {
@@ -598,11 +612,24 @@ fn bootstrap(
     from: &[f64; 8],
     opts: &FitOptions,
 ) -> Vec<([f64; 8], Option<[f64; 3]>)> {
+    let rows = |rng: &mut SplitMix64| (0..data.len()).map(|_| rng.index(data.len())).collect();
+    resample(data, stop, from, opts, (0, rows))
+}
+
+/// Refits on `opts.bootstrap` resamples of the runs drawn by `draw` (seeded by `opts.seed`
+/// and `stream`).
+fn resample(
+    data: &DataRuns,
+    stop: Option<&StopRuns>,
+    from: &[f64; 8],
+    opts: &FitOptions,
+    (stream, draw): (u64, impl Fn(&mut SplitMix64) -> Vec<usize> + Sync),
+) -> Vec<([f64; 8], Option<[f64; 3]>)> {
     (0..opts.bootstrap)
         .into_par_iter()
         .filter_map(|i| {
-            let mut rng = SplitMix64::stream(opts.seed, i as u64);
-            let idx: Vec<usize> = (0..data.len()).map(|_| rng.index(data.len())).collect();
+            let mut rng = SplitMix64::stream(opts.seed ^ stream, i as u64);
+            let idx: Vec<usize> = draw(&mut rng);
             let sample = data.select(&idx);
             let m = minimize(
                 |t, g| objective(&sample, opts.huber_delta, t, g),
@@ -618,6 +645,63 @@ fn bootstrap(
             (m.f.is_finite() && finite).then_some((nat, rule))
         })
         .collect()
+}
+
+/// R*_D's and ρ's 95% intervals with whole clusters of runs resampled, for each clustering:
+/// runs of one budget share its misfit and runs of one data subset share their clips, so a
+/// bootstrap of single runs is too narrow.
+fn block_intervals(
+    data: &DataRuns,
+    from: &[f64; 8],
+    opts: &FitOptions,
+    clusterings: [(&str, Vec<Vec<usize>>); 2],
+    exchange_fitted: bool,
+) -> Vec<BlockInterval> {
+    clusterings
+        .into_iter()
+        .enumerate()
+        .filter(|(_, (_, c))| c.len() > 1)
+        .map(|(k, (name, clusters))| {
+            let draw = |rng: &mut SplitMix64| {
+                (0..clusters.len())
+                    .flat_map(|_| clusters[rng.index(clusters.len())].iter().copied())
+                    .collect()
+            };
+            let refits = resample(data, None, from, opts, (0xb10c + k as u64, draw));
+            let interval = |j: usize| {
+                let v: Vec<f64> = refits.iter().map(|r| r.0[j]).collect();
+                [percentile(&v, 0.025), percentile(&v, 0.975)]
+            };
+            let [lo, hi] = interval(5);
+            BlockInterval {
+                clusters: name.to_string(),
+                count: clusters.len(),
+                refits: refits.len(),
+                r_star: [lo.unwrap_or(f64::NAN), hi.unwrap_or(f64::NAN)],
+                exchange: exchange_fitted.then(|| interval(6).map(|x| x.unwrap_or(f64::NAN))),
+            }
+        })
+        .collect()
+}
+
+/// The runs grouped into data subsets: equal synthetic share (to 0.01) and unique tokens U
+/// within 1% of their neighbour's (U = D/epochs carries the epochs column's rounding).
+fn data_subsets(u: &[f64], share: Option<&[f64]>) -> Vec<Vec<usize>> {
+    let key = |i: usize| share.map_or(0, |s| (100.0 * s[i]).round() as i64);
+    let mut order: Vec<usize> = (0..u.len()).collect();
+    order.sort_by(|&a, &b| key(a).cmp(&key(b)).then(u[a].total_cmp(&u[b])));
+    let mut out: Vec<Vec<usize>> = Vec::new();
+    for (j, &i) in order.iter().enumerate() {
+        let same = j > 0 && {
+            let p = order[j - 1];
+            key(p) == key(i) && (u[i] / u[p]).ln() < 0.01
+        };
+        match (same, out.last_mut()) {
+            (true, Some(last)) => last.push(i),
+            _ => out.push(vec![i]),
+        }
+    }
+    out
 }
 
 /// θ → (E, A, B, α, β, R*_D, ρ, R*_N); R*_N = ∞ where it is not fitted.

@@ -575,6 +575,22 @@ fn extras(f: &Fits, s: &mut String) {
                 estimate_text(rho)
             );
         }
+        for b in &r.block_intervals {
+            let _ = writeln!(
+                s,
+                "  block bootstrap, {} {} resampled whole ({} refits): R*_D [{}, {}]{}",
+                b.count,
+                b.clusters,
+                b.refits,
+                sig(b.r_star[0]),
+                sig(b.r_star[1]),
+                b.exchange.map_or(String::new(), |[lo, hi]| format!(
+                    ", ρ [{}, {}]",
+                    sig(lo),
+                    sig(hi)
+                ))
+            );
+        }
         if let Some(rule) = &r.stopping {
             let _ = writeln!(s, "  {}", stopping_text(rule));
         }
