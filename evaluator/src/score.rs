@@ -15,7 +15,8 @@ use crate::metrics::{self, Interval};
 use crate::model::{EvaluatorConfig, MotionPredictions, TrainedEvaluator};
 use crate::train::{class_of, corpus_clips, LabelledClip};
 use ingest::corpus::schema::FEATURE_DIM;
-use lm::caption_set::{split_assignment, GeneratedEntry};
+use ingest::corpus::split::SplitAssignment;
+use ingest::export::hml3d::GeneratedEntry;
 use motionscale_core::rng::SplitMix64;
 use nn::ModelError;
 use serde::{Deserialize, Serialize};
@@ -116,10 +117,17 @@ fn from_clip(clip: LabelledClip) -> EvalMotion {
     }
 }
 
+/// The split lists of `options` (the clips' own splits without them).
+fn splits(options: &EvalOptions) -> Result<SplitAssignment, ModelError> {
+    let dir = options.splits.as_deref();
+    SplitAssignment::from_dir(dir)
+        .map_err(|e| ModelError::invalid(dir.unwrap_or(Path::new(".")), e))
+}
+
 /// The ground-truth clips of `split` in the corpus at `dir` (those with a caption).
 pub fn corpus_split(dir: &Path, options: &EvalOptions) -> Result<MotionSet, ModelError> {
     let source = options.source.as_deref();
-    let splits = split_assignment(options.splits.as_deref())?;
+    let splits = splits(options)?;
     let clips = corpus_clips(dir, |m| {
         splits.split_of(&m.motion_id, &m.split) == Some(options.split.as_str())
             && source.is_none_or(|s| m.source == s)
@@ -148,7 +156,7 @@ pub fn hml3d_folder(
             what: "HumanML3D features folder (or pass a corpus folder)",
         });
     }
-    let splits = split_assignment(options.splits.as_deref())?;
+    let splits = splits(options)?;
     let split_file = dir.join(format!("{}.txt", options.split));
     let listed = ingest::corpus::split::read_ids(&split_file)
         .map_err(|e| ModelError::invalid(&split_file, e))?;

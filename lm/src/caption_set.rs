@@ -20,12 +20,12 @@ use crate::run_config::RunConfig;
 use crate::MotionLm;
 use ingest::corpus::reader::Corpus;
 use ingest::corpus::split::SplitAssignment;
-use ingest::export::hml3d::caption_line;
+use ingest::export::hml3d::{caption_line, GeneratedEntry};
 use ingest::npy::write_f32;
 use motionscale_core::rng::SplitMix64;
 use motionscale_core::write_atomic;
 use nn::ModelError;
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use std::path::{Path, PathBuf};
 use text::{CaptionEmbeddings, TextEncoder};
 use tokenizer::model::MotionTokenizer;
@@ -35,19 +35,6 @@ use tokenizer::model::MotionTokenizer;
 pub fn split_assignment(dir: Option<&Path>) -> Result<SplitAssignment, ModelError> {
     SplitAssignment::from_dir(dir)
         .map_err(|e| ModelError::invalid(dir.unwrap_or(Path::new(".")), e))
-}
-
-/// A line of `generated.jsonl`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct GeneratedEntry {
-    /// Motion id (its file stem).
-    pub id: String,
-    /// Corpus clip whose caption it was generated from.
-    pub source_motion_id: String,
-    /// That caption.
-    pub caption: String,
-    /// Sample index for that caption.
-    pub sample: usize,
 }
 
 /// Which captions to animate and how.

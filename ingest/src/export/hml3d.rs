@@ -13,6 +13,20 @@ use std::collections::BTreeMap;
 use std::io;
 use std::path::{Path, PathBuf};
 
+/// A line of `generated.jsonl`, written beside a generated set in this layout: how each
+/// motion was made (the evaluator reads it to pair a motion with its caption).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct GeneratedEntry {
+    /// Motion id (its file stem).
+    pub id: String,
+    /// Corpus clip whose caption it was generated from.
+    pub source_motion_id: String,
+    /// That caption.
+    pub caption: String,
+    /// Sample index for that caption.
+    pub sample: usize,
+}
+
 /// Width of a HumanML3D feature row.
 pub const FEATURE_DIM: usize = 263;
 
