@@ -6,8 +6,9 @@ use fits::data_value::{data_bound, predict_data, DataBound, DataPrediction, Hour
 use fits::family::predict::predict_at;
 use fits::family::run::LawReport;
 use fits::family::Point;
+use fits::fit_file::FitFile;
 use fits::fitted::RepeatedData;
-use fits::fitted::{ColumnChoice, ColumnSpec, FitFile, FitOptions};
+use fits::fitted::{ColumnChoice, ColumnSpec, FitOptions};
 use fits::parametric::StartGrid;
 use fits::report::{estimate_text, sig};
 use fits::{Fits, Laws, PredictOptions, Prediction, Table};
@@ -304,7 +305,7 @@ pub struct PredictArgs {
     #[arg(long, value_name = "real=H,synth=H", value_parser = parse_hours, requires = "fits")]
     pub hours: Option<Hours>,
     /// With --hours: the seed SD of the loss, below which more compute is not worth buying
-    /// [default: the fit's pooled seed SD of its parametric loss, where runs were repeated].
+    /// [default: the fit's seed SD of its parametric loss at its largest budget with repeats].
     #[arg(long, value_name = "NATS", requires = "hours")]
     pub noise: Option<f64>,
     /// With --hours: the hours given are distinct capture and the fit's hours count mirrored

@@ -10,7 +10,7 @@ use fits::data_value::{predict_data, Hours};
 use fits::family::design;
 use fits::family::run::{read_points, LawReport};
 use fits::family::Point;
-use fits::fitted::FitFile;
+use fits::fit_file::FitFile;
 use fits::hour_design::{self, DataCandidate};
 use fits::loss_shape::Form;
 use fits::planner::{self, budget_groups, Candidate, Goal, Observation, Settings, Target};

@@ -3,77 +3,31 @@
 //! the data-constrained fit and the held-out budget's check. The computations live in
 //! [`crate::analysis`], [`crate::holdout`], [`crate::repeated`] and [`crate::replicates`].
 
-use crate::family::run::LawReport;
 use crate::isoflop::{BudgetMinimum, IsoMinimum};
 use crate::laws::{Estimate, LogLaw, PowerLaw};
 use crate::lbfgs::{LbfgsOptions, Termination};
 use crate::parametric::StartGrid;
-use crate::FitError;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
-use std::path::Path;
-
-/// What `motionscale fit` wrote: the IsoFLOP fit (`fits.json`) or the law families' fit
-/// (`laws.json` of `fit --law`). Every command that takes `--fits` reads it here.
-#[derive(Debug, Clone)]
-pub enum FitFile {
-    /// `fits.json`.
-    IsoFlop(Box<Fits>),
-    /// `laws.json`.
-    Families(Box<LawReport>),
-}
-
-impl FitFile {
-    /// Reads either file, told apart by its keys.
-    pub fn read(path: &Path) -> Result<Self, FitError> {
-        let text = std::fs::read_to_string(path).map_err(|source| FitError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let format = |message: String| FitError::Format {
-            path: path.to_path_buf(),
-            message,
-        };
-        let value: serde_json::Value =
-            serde_json::from_str(&text).map_err(|e| format(format!("not JSON: {e}")))?;
-        if value.get("power_laws").is_some() {
-            let fits = serde_json::from_value(value)
-                .map_err(|e| format(format!("not a fits.json of `motionscale fit`: {e}")))?;
-            return Ok(Self::IsoFlop(Box::new(fits)));
-        }
-        if value.get("adopted").is_some() {
-            let laws = serde_json::from_value(value)
-                .map_err(|e| format(format!("not a laws.json of `motionscale fit --law`: {e}")))?;
-            return Ok(Self::Families(Box::new(laws)));
-        }
-        Err(format(
-            "neither a fits.json (`motionscale fit`) nor a laws.json (`fit --law`)".into(),
-        ))
-    }
-}
 
 impl Fits {
-    /// The seed SD of the parametric loss pooled over the repeated runs (√ of the mean
-    /// variance), where runs were repeated.
+    /// The seed SD of the parametric loss at the largest budget with repeated runs (√ of the
+    /// mean variance over its sizes): the noise nearest the budgets a verdict is about.
     pub fn param_seed_sd(&self) -> Option<f64> {
+        let top = self
+            .seed_noise
+            .iter()
+            .filter(|s| s.param_sd.is_some())
+            .map(|s| s.budget)
+            .max_by(f64::total_cmp)?;
         let v: Vec<f64> = self
             .seed_noise
             .iter()
+            .filter(|s| s.budget == top)
             .filter_map(|s| s.param_sd)
             .map(|s| s * s)
             .collect();
-        (!v.is_empty()).then(|| (v.iter().sum::<f64>() / v.len() as f64).sqrt())
-    }
-
-    /// Reads a `fits.json`; a `laws.json` is refused, saying what is needed instead.
-    pub fn read(path: &Path) -> Result<Self, FitError> {
-        match FitFile::read(path)? {
-            FitFile::IsoFlop(fits) => Ok(*fits),
-            FitFile::Families(_) => Err(FitError::Format {
-                path: path.to_path_buf(),
-                message: "a laws.json of `fit --law`; this needs the IsoFLOP fit (fits.json of `motionscale fit` without --law)".into(),
-            }),
-        }
+        Some((v.iter().sum::<f64>() / v.len() as f64).sqrt())
     }
 }
 

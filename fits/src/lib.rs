@@ -7,6 +7,7 @@ pub mod data_value;
 mod error;
 pub mod family;
 mod fastmath;
+pub mod fit_file;
 pub mod fitted;
 pub mod holdout;
 pub mod hour_design;
