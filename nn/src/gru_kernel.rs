@@ -17,7 +17,7 @@
 
 use crate::cpu_f32::{contiguous_f32, F32Values};
 use crate::fast_exp::{self, exp};
-use crate::lm_kernels::{column_sums, SharedMut};
+use crate::kernels::{column_sums, SharedMut};
 use crate::matmul::{gemm_with, transpose};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;

@@ -9,7 +9,8 @@
 //! The blocks and the parts the rows are split into depend only on the shapes, never on the
 //! number of threads, so the result is the same on any machine.
 
-use crate::lm_kernels::{cross_entropy_row, matmul, target_log_prob, IGNORE};
+use crate::kernels::matmul;
+use crate::lm_kernels::{cross_entropy_row, target_log_prob, IGNORE};
 use crate::matmul::gemm_with;
 use rayon::prelude::*;
 

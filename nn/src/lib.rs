@@ -31,6 +31,7 @@ pub mod gradcheck;
 pub mod gru;
 pub mod gru_kernel;
 pub mod head_loss;
+pub mod kernels;
 pub mod kmeans;
 pub mod lm_kernels;
 pub mod matmul;

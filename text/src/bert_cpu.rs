@@ -13,7 +13,7 @@ use candle_nn::VarBuilder;
 use candle_transformers::models::bert::{Config, HiddenAct, PositionEmbeddingType};
 use nn::cpu_f32::tensor_f32;
 use nn::fast_exp;
-use nn::lm_kernels::{dot, gemm, ROW_BLOCK};
+use nn::kernels::{dot, gemm, ROW_BLOCK};
 use nn::ModelError;
 use rayon::prelude::*;
 use std::path::Path;

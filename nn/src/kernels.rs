@@ -1,0 +1,94 @@
+//! Generic CPU kernels that every hand-written executor shares (the prefix LM's, the text
+//! encoder's, the GRU's): the product of all rows through `gemm`, one small product, a dot
+//! product, column sums, the fixed row block of the row-wise kernels and the rayon pool they
+//! start in. Every reduction runs in a fixed order, so results never depend on scheduling.
+
+use crate::matmul::{gemm_with, Operand};
+
+/// Run `f` on a thread of the rayon pool. A step of many small parallel kernels (a decoded
+/// token, an LM training step) started there forks each kernel cheaply; started outside the
+/// pool, each kernel is a cross-thread hand-off and a sleep.
+pub fn in_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    rayon::scope(|_| f())
+}
+
+/// Rows per parallel work item of the row-wise kernels (fixed, so reductions are too).
+pub const ROW_BLOCK: usize = 32;
+
+/// Sum of `a[i]·b[i]` with eight partial sums (vectorises; fixed order). Inlined across
+/// crates, so callers compiled for wider vectors (AVX2) get them here too.
+#[inline]
+pub fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for i in 0..8 {
+            acc[i] += x[i] * y[i];
+        }
+    }
+    let tail: f32 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
+    acc.iter().sum::<f32>() + tail
+}
+
+/// Raw pointer that worker threads write disjoint parts through.
+#[derive(Clone, Copy)]
+pub(crate) struct SharedMut(pub(crate) *mut f32);
+// SAFETY: every user writes a disjoint set of indices, documented at each use.
+unsafe impl Send for SharedMut {}
+unsafe impl Sync for SharedMut {}
+
+impl SharedMut {
+    /// The pointer `offset` elements in (a method, so closures capture the whole wrapper).
+    pub(crate) fn at(self, offset: usize) -> *mut f32 {
+        self.0.wrapping_add(offset)
+    }
+
+    /// The `len` values from `offset` on, as a slice.
+    ///
+    /// # Safety
+    /// They lie inside the buffer, and nothing else reads or writes them while it lives.
+    pub(crate) unsafe fn slice<'a>(self, offset: usize, len: usize) -> &'a mut [f32] {
+        // SAFETY: the caller's contract.
+        unsafe { std::slice::from_raw_parts_mut(self.at(offset), len) }
+    }
+}
+
+/// One large product over all rows, spread over the rayon threads (`dst (+)= lhs · rhs`).
+pub fn gemm(
+    dst: &mut [f32],
+    lhs: Operand,
+    rhs: Operand,
+    mnk: (usize, usize, usize),
+    accumulate: bool,
+) {
+    gemm_with(dst, lhs, rhs, mnk, (accumulate, 1.0, true));
+}
+
+/// A new `m×n` matrix `lhs · rhs`.
+pub fn matmul_new(lhs: Operand, rhs: Operand, (m, n, k): (usize, usize, usize)) -> Vec<f32> {
+    let mut dst = vec![0f32; m * n];
+    gemm(&mut dst, lhs, rhs, (m, n, k), false);
+    dst
+}
+
+/// One small single-threaded product (`dst = scale · lhs · rhs`) of the kernels that run
+/// many of them in parallel (attention per sequence and head, the fused head per part).
+pub(crate) fn matmul(
+    dst: &mut [f32],
+    lhs: Operand,
+    rhs: Operand,
+    mnk: (usize, usize, usize),
+    scale: f32,
+) {
+    gemm_with(dst, lhs, rhs, mnk, (false, scale, false));
+}
+
+/// Column sums of a `rows × cols` matrix (in row order, so deterministic).
+pub fn column_sums(x: &[f32], cols: usize) -> Vec<f32> {
+    let mut out = vec![0f32; cols];
+    for row in x.chunks(cols) {
+        out.iter_mut().zip(row).for_each(|(o, v)| *o += v);
+    }
+    out
+}
