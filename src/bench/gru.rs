@@ -1,6 +1,6 @@
 //! `motionscale bench evaluator` and `bench ctvae`: training steps/s of the two GRU models
 //! (the text–motion evaluator; BI-CTVAE at `cl2gen`'s shapes) and, with `--reference`, the
-//! same step of their PyTorch references run in this session, with the ratio.
+//! same step of their PyTorch references run by the same command, with the ratio.
 //!
 //! The evaluator's workload is `shared/bench/pytorch_evaluator.py`'s: B clips of 40–196
 //! frames (multiples of 4) and captions of 8–32 tokens of 384-d embeddings, N(0, 1) values,

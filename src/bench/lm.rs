@@ -1,8 +1,8 @@
 //! `motionscale bench train`: the prefix-LM training step (forward, backward, clipped AdamW)
 //! and generation with and without the key/value cache, on the layout of
 //! `../shared/bench/pytorch_prefix_lm.py` (batch 32, 16 text positions of 384-d embeddings,
-//! 64 motion positions, 1024 codes + 3 specials); `--reference` runs that script in the same
-//! session and prints the ratios.
+//! 64 motion positions, 1024 codes + 3 specials); `--reference` runs that script within the same
+//! command and prints the ratios.
 
 use super::lm_step::{
     bench_batch, bench_train_step, parse_size, shape_flags, BenchTrainArgs, TrainStep, CODES,

@@ -1,6 +1,6 @@
 //! `motionscale bench tokenizer`: training steps/s of the T2M-GPT-shape tokenizer (width 512,
 //! 64-frame windows of 263 features) for FSQ and VQ, and with `--reference` the same step of
-//! `shared/bench/pytorch_vqvae.py` run in this session, alternating, with the ratio.
+//! `shared/bench/pytorch_vqvae.py` run by the same command, alternating, with the ratio.
 //!
 //! FLOPs follow the reference's rule: (conv + linear multiply-accumulates of one forward) × 2
 //! × 3; the VQ distance matmul (no gradient) is not counted, as there.
