@@ -9,7 +9,7 @@
 //! backward casts the output gradient once and gives `dx = (dy · W)` and `dW = dyᵀ · x` in
 //! f32, as the graph executor's autograd does through the same casts.
 
-use super::graph::{
+use super::grid::{
     cast_linear as linear, grid_inputs, target_rows, AttentionInputs, GraphWeights, Grid,
 };
 use super::{LmBatch, PrefixLm};

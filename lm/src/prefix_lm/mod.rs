@@ -38,6 +38,7 @@
 mod cpu;
 mod fused;
 mod graph;
+mod grid;
 
 pub use fused::{record_stage_times, stage_times};
 #[cfg(test)]
