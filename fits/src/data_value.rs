@@ -10,6 +10,7 @@ use crate::laws::Estimate;
 use crate::parametric::{percentile_of_sorted, with_draws};
 use crate::planner::infinite_if_null;
 use crate::repeated::loss_at;
+use crate::search::{bisect, grid_golden_min};
 use crate::stopping::{stop_epochs, tokens_used};
 use serde::{Deserialize, Deserializer, Serialize};
 use std::f64::consts::LN_10;
@@ -78,22 +79,8 @@ impl Law {
     fn optimum(&self, c: f64, h: Hours) -> Optimum {
         let (lo, hi) = (1.0, (c / 6.0).sqrt().log10() + 3.0);
         let f = |x: f64| self.at(c, 10f64.powf(x), h).loss;
-        let steps = 200;
-        let at = |i: usize| lo + (hi - lo) * i as f64 / steps as f64;
-        let best = (0..=steps)
-            .min_by(|&i, &j| f(at(i)).total_cmp(&f(at(j))))
-            .unwrap_or(0);
-        let (mut a, mut b) = (at(best.saturating_sub(1)), at((best + 1).min(steps)));
-        let g = (5f64.sqrt() - 1.0) / 2.0;
-        for _ in 0..80 {
-            let (x1, x2) = (b - g * (b - a), a + g * (b - a));
-            if f(x1) < f(x2) {
-                b = x2;
-            } else {
-                a = x1;
-            }
-        }
-        self.at(c, 10f64.powf(0.5 * (a + b)), h)
+        let best = grid_golden_min(f, (lo, hi), 200, 80).unwrap_or(lo);
+        self.at(c, 10f64.powf(best), h)
     }
 
     /// C_sat, the budget past which all further compute lowers the loss by less than `noise`,
@@ -101,34 +88,21 @@ impl Law {
     fn saturation(&self, c: f64, h: Hours, noise: f64) -> (f64, f64) {
         let floor = self.optimum(c * 1e10, h).loss;
         let excess = |ln_c: f64| self.optimum(ln_c.exp(), h).loss - floor - noise;
-        let (mut lo, mut hi) = (c.ln() - 8.0 * LN_10, c.ln() + 10.0 * LN_10);
+        let (lo, hi) = (c.ln() - 8.0 * LN_10, c.ln() + 10.0 * LN_10);
         if excess(lo) <= 0.0 {
             return (lo.exp(), floor);
         }
-        for _ in 0..50 {
-            let mid = 0.5 * (lo + hi);
-            match excess(mid) > 0.0 {
-                true => lo = mid,
-                false => hi = mid,
-            }
-        }
-        ((0.5 * (lo + hi)).exp(), floor)
+        (bisect(|x| excess(x) > 0.0, (lo, hi), 50).exp(), floor)
     }
 
     /// The budget C' at which today's hours reach `loss` (∞ when no budget does).
     fn compute_for(&self, loss: f64, c: f64, h: Hours) -> f64 {
-        let (mut lo, mut hi) = (c.ln() - 3.0 * LN_10, c.ln() + 12.0 * LN_10);
-        if self.optimum(hi.exp(), h).loss > loss {
+        let (lo, hi) = (c.ln() - 3.0 * LN_10, c.ln() + 12.0 * LN_10);
+        let above = |ln_c: f64| self.optimum(ln_c.exp(), h).loss > loss;
+        if above(hi) {
             return f64::INFINITY;
         }
-        for _ in 0..60 {
-            let mid = 0.5 * (lo + hi);
-            match self.optimum(mid.exp(), h).loss > loss {
-                true => lo = mid,
-                false => hi = mid,
-            }
-        }
-        (0.5 * (lo + hi)).exp()
+        bisect(above, (lo, hi), 60).exp()
     }
 }
 

@@ -24,6 +24,7 @@ pub mod replay;
 pub mod replicates;
 pub mod report;
 pub mod runs;
+pub mod search;
 pub mod stopping;
 pub mod synth;
 pub mod table;

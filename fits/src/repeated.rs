@@ -532,19 +532,7 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
             .into_iter()
             .map(|rows| (isoflop::group_budget(&runs.c, &rows), rows))
             .collect();
-    let block = block_intervals(
-        &data,
-        &best.x,
-        opts,
-        [
-            ("budgets", groups.iter().map(|g| g.1.clone()).collect()),
-            (
-                "data subsets",
-                data_subsets(&u, runs.synth_share.as_deref()),
-            ),
-        ],
-        data.mixes_sources(),
-    );
+    let block = block_intervals(&data, &best.x, opts, runs, &groups);
     let identified = [note.is_none(), !matches!(note_n, Some(Some(_)))];
     let information = data.information(&best.x, identified, &groups);
     let est = |k: usize| {
@@ -647,16 +635,21 @@ fn resample(
         .collect()
 }
 
-/// R*_D's and ρ's 95% intervals with whole clusters of runs resampled, for each clustering:
-/// runs of one budget share its misfit and runs of one data subset share their clips, so a
-/// bootstrap of single runs is too narrow.
+/// R*_D's and ρ's 95% intervals with whole budgets (`budgets`: each one's C and rows), and
+/// whole data subsets, resampled: runs of one budget share its misfit and runs of one data
+/// subset share their clips, so a bootstrap of single runs is too narrow.
 fn block_intervals(
     data: &DataRuns,
     from: &[f64; 8],
     opts: &FitOptions,
-    clusterings: [(&str, Vec<Vec<usize>>); 2],
-    exchange_fitted: bool,
+    runs: &Runs,
+    budgets: &[(f64, Vec<usize>)],
 ) -> Vec<BlockInterval> {
+    let exchange_fitted = data.mixes_sources();
+    let clusterings = [
+        ("budgets", budgets.iter().map(|g| g.1.clone()).collect()),
+        ("data subsets", runs.data_subsets().unwrap_or_default()),
+    ];
     clusterings
         .into_iter()
         .enumerate()
@@ -682,26 +675,6 @@ fn block_intervals(
             }
         })
         .collect()
-}
-
-/// The runs grouped into data subsets: equal synthetic share (to 0.01) and unique tokens U
-/// within 1% of their neighbour's (U = D/epochs carries the epochs column's rounding).
-fn data_subsets(u: &[f64], share: Option<&[f64]>) -> Vec<Vec<usize>> {
-    let key = |i: usize| share.map_or(0, |s| (100.0 * s[i]).round() as i64);
-    let mut order: Vec<usize> = (0..u.len()).collect();
-    order.sort_by(|&a, &b| key(a).cmp(&key(b)).then(u[a].total_cmp(&u[b])));
-    let mut out: Vec<Vec<usize>> = Vec::new();
-    for (j, &i) in order.iter().enumerate() {
-        let same = j > 0 && {
-            let p = order[j - 1];
-            key(p) == key(i) && (u[i] / u[p]).ln() < 0.01
-        };
-        match (same, out.last_mut()) {
-            (true, Some(last)) => last.push(i),
-            _ => out.push(vec![i]),
-        }
-    }
-    out
 }
 
 /// θ → (E, A, B, α, β, R*_D, ρ, R*_N); R*_N = ∞ where it is not fitted.

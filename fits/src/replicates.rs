@@ -7,25 +7,23 @@ use crate::isoflop::{self, BudgetMinimum};
 use crate::runs::Runs;
 use std::collections::BTreeMap;
 
-/// `runs` with the rows that share a budget group, N, V and unique tokens (the data subset)
+/// `runs` with the rows that share a budget group, N, V and data subset ([`Runs::data_subsets`])
 /// but not the seed averaged into one (the loss columns; the rest from the first such row),
 /// and the spread of each such set.
 pub fn average(runs: &Runs, groups: &[Vec<usize>]) -> (Runs, Vec<SeedNoise>) {
     let Some(seed) = &runs.seed else {
         return (runs.clone(), Vec::new());
     };
-    // U = D/epochs to 0.1%: one data subset's runs agree to rounding, different subsets not.
-    let unique = runs.unique_tokens();
-    let mut sets: BTreeMap<(usize, u64, u64, i64), Vec<usize>> = BTreeMap::new();
+    let mut subset = vec![0; runs.n.len()];
+    for (k, rows) in runs.data_subsets().unwrap_or_default().iter().enumerate() {
+        rows.iter().for_each(|&i| subset[i] = k);
+    }
+    let mut sets: BTreeMap<(usize, u64, u64, usize), Vec<usize>> = BTreeMap::new();
     for (g, rows) in groups.iter().enumerate() {
         for &i in rows {
             let v = runs.v.as_ref().map_or(0, |v| v[i].to_bits());
-            let u = unique
-                .as_ref()
-                .map_or(0, |u| (1e3 * u[i].ln()).round() as i64);
-            sets.entry((g, runs.n[i].to_bits(), v, u))
-                .or_default()
-                .push(i);
+            let key = (g, runs.n[i].to_bits(), v, subset[i]);
+            sets.entry(key).or_default().push(i);
         }
     }
     if sets.values().all(|rows| rows.len() == 1) {

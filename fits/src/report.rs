@@ -1,6 +1,6 @@
 //! Writing a fit: `fits.json`, the plots (SVG + PNG) and a short text summary.
 
-use crate::fitted::{DataFrontierPoint, Fits, StoppingRule};
+use crate::fitted::{DataFrontierPoint, Fits, RepeatedData, StoppingRule};
 use crate::laws::{Estimate, PowerLaw};
 use crate::FitError;
 use plot::ticks::format_tick;
@@ -504,6 +504,26 @@ pub fn summary(f: &Fits) -> String {
     s
 }
 
+/// The block-bootstrap intervals of R*_D and ρ, a line per clustering.
+fn block_lines(r: &RepeatedData, s: &mut String) {
+    for b in &r.block_intervals {
+        let _ = writeln!(
+            s,
+            "  block bootstrap, {} {} resampled whole ({} refits): R*_D [{}, {}]{}",
+            b.count,
+            b.clusters,
+            b.refits,
+            sig(b.r_star[0]),
+            sig(b.r_star[1]),
+            b.exchange.map_or(String::new(), |[lo, hi]| format!(
+                ", ρ [{}, {}]",
+                sig(lo),
+                sig(hi)
+            ))
+        );
+    }
+}
+
 /// The summary lines of the total-parameter convention, the data-constrained fit and the
 /// held-out budget.
 fn extras(f: &Fits, s: &mut String) {
@@ -575,22 +595,7 @@ fn extras(f: &Fits, s: &mut String) {
                 estimate_text(rho)
             );
         }
-        for b in &r.block_intervals {
-            let _ = writeln!(
-                s,
-                "  block bootstrap, {} {} resampled whole ({} refits): R*_D [{}, {}]{}",
-                b.count,
-                b.clusters,
-                b.refits,
-                sig(b.r_star[0]),
-                sig(b.r_star[1]),
-                b.exchange.map_or(String::new(), |[lo, hi]| format!(
-                    ", ρ [{}, {}]",
-                    sig(lo),
-                    sig(hi)
-                ))
-            );
-        }
+        block_lines(r, s);
         if let Some(rule) = &r.stopping {
             let _ = writeln!(s, "  {}", stopping_text(rule));
         }

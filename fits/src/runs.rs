@@ -363,6 +363,29 @@ impl Runs {
         let (d, e) = (self.d.as_ref()?, self.epochs.as_ref()?);
         Some(d.iter().zip(e).map(|(d, e)| d / e).collect())
     }
+
+    /// The runs grouped into data subsets: equal synthetic share (to 0.01) and unique tokens
+    /// U within 1% of their neighbour's (U = D/epochs carries the epochs column's rounding);
+    /// `None` without D and epochs.
+    pub fn data_subsets(&self) -> Option<Vec<Vec<usize>>> {
+        let u = self.unique_tokens()?;
+        let share = self.synth_share.as_deref();
+        let key = |i: usize| share.map_or(0, |s| (100.0 * s[i]).round() as i64);
+        let mut order: Vec<usize> = (0..u.len()).collect();
+        order.sort_by(|&a, &b| key(a).cmp(&key(b)).then(u[a].total_cmp(&u[b])));
+        let mut out: Vec<Vec<usize>> = Vec::new();
+        for (j, &i) in order.iter().enumerate() {
+            let same = j > 0 && {
+                let p = order[j - 1];
+                key(p) == key(i) && (u[i] / u[p]).ln() < 0.01
+            };
+            match (same, out.last_mut()) {
+                (true, Some(last)) => last.push(i),
+                _ => out.push(vec![i]),
+            }
+        }
+        Some(out)
+    }
 }
 
 #[cfg(test)]

@@ -8,6 +8,7 @@
 use super::{Allocation, Axis, Law, Point};
 use crate::lbfgs::{minimize, LbfgsOptions, Minimum, Termination};
 use crate::parametric::{huber, percentile};
+use crate::search::grid_golden_min;
 use crate::FitError;
 use motionscale_core::rng::SplitMix64;
 use rayon::prelude::*;
@@ -342,8 +343,8 @@ fn distinct<const P: usize>(ends: &[Minimum<P>], k: usize) -> Vec<[f64; P]> {
 }
 
 /// Bootstrap weights of resample `i`: rows (or whole clusters) drawn with replacement.
-/// The allocation at `c` of the lowest `loss` over N (a grid of 400 in log N, then golden
-/// section between the grid point's neighbours), D = C/(6·(N + N_v)), U and N_v from `at`.
+/// The allocation at `c` of the lowest `loss` over N (400 points in log N, then golden
+/// section: [`grid_golden_min`]), D = C/(6·(N + N_v)), U and N_v from `at`.
 fn lowest_over_n(loss: impl Fn(&Point) -> f64, c: f64, at: &Point) -> Option<Allocation> {
     let nv = at.nv.unwrap_or(0.0);
     let point = |ln_n: f64| {
@@ -359,22 +360,7 @@ fn lowest_over_n(loss: impl Fn(&Point) -> f64, c: f64, at: &Point) -> Option<All
     if hi.is_nan() || hi <= lo {
         return None;
     }
-    let step = (hi - lo) / 399.0;
-    let best = (0..400)
-        .map(|i| lo + step * i as f64)
-        .filter(|&x| f(x).is_finite())
-        .min_by(|&a, &b| f(a).total_cmp(&f(b)))?;
-    let (mut a, mut b) = (best - step, best + step);
-    let g = (5f64.sqrt() - 1.0) / 2.0;
-    for _ in 0..60 {
-        let (x1, x2) = (b - g * (b - a), a + g * (b - a));
-        if f(x1) < f(x2) {
-            b = x2;
-        } else {
-            a = x1;
-        }
-    }
-    let x = point((a + b) / 2.0);
+    let x = point(grid_golden_min(f, (lo, hi), 399, 60)?);
     Some(Allocation {
         compute: c,
         n: x.n,
