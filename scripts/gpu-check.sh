@@ -2,7 +2,7 @@
 # The GPU acceptance check of the prefix LM's graph executor (docs/results/gpu.md records its
 # table), for a binary built with `scripts/build-cuda.sh` and carried to a machine with one
 # H100/H200. At most about 5 minutes:
-#  1. `model executors`: the graph and fused executors on the GPU (f32) against the cpu
+#  1. `model executors`: the graph and GPU executors on the GPU (f32) against the cpu
 #     executor on the CPU, same seeded weights and batch: loss, every gradient, logits,
 #     KV-cached decoding;
 #     and each fused op's kernels (nn/kernels/fused_ops.cu, AdamW's included) against its
@@ -11,7 +11,7 @@
 #     d256/4L in f32 and in bf16 on it: the train and test losses side by side (within 1%);
 #  3. `bench train --device cuda --reference`: ScaMo-44M and ScaMo-343M shapes beside
 #     PyTorch eager bf16 and torch.compile on the same GPU (both ratios, MFU, PyTorch memory),
-#     with the default (fused) executor, then the graph executor's figures beside them;
+#     with the default (gpu) executor, then the graph executor's figures beside them;
 #     `bench tokenizer --device cuda --reference` beside scripts/pytorch_vqvae_gpu.py;
 #  4. sharing: 1 and 8 concurrent d256/4L batch-32 training processes on the GPU, aggregate
 #     motion tokens/s;
@@ -105,12 +105,12 @@ for f in sorted(glob.glob(f"{out}/executors-*.json")):
     a = json.load(open(f))
     fused = a.get("fused_ops", [])
     worst = max(fused, key=lambda o: o[1]) if fused else ["none", 0.0]
-    step = a.get("fused_step", [0.0, 0.0, "none"])
-    check(f"executors {os.path.basename(f)[10:-5]} (graph and fused on {a['device']} vs cpu)",
+    step = a.get("gpu_step", [0.0, 0.0, "none"])
+    check(f"executors {os.path.basename(f)[10:-5]} (graph and gpu executors on {a['device']} vs cpu)",
           max(a["loss_relative"], a["gradient_relative"], a["logits_relative"], worst[1], step[0], step[1]) <= 1e-5,
           f"graph: loss {a['loss_relative']:.1e}, gradients {a['gradient_relative']:.1e} ({a['worst_weight']}), "
           f"logits {a['logits_relative']:.1e}, KV-cached max abs {a['cached_logits_max_abs']:.1e}; "
-          f"fused: loss {step[0]:.1e}, gradients {step[1]:.1e} ({step[2]}); "
+          f"gpu executor: loss {step[0]:.1e}, gradients {step[1]:.1e} ({step[2]}); "
           f"fused ops on the GPU vs CPU: worst {worst[1]:.1e} ({worst[0]}) over {len(fused)} outputs")
 ev = {p: [json.loads(l) for l in open(f"{out}/evals-{p}.jsonl")] for p in ("f32", "bf16")
       if os.path.exists(f"{out}/evals-{p}.jsonl")}

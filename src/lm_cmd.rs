@@ -228,7 +228,7 @@ pub struct ExecutorsArgs {
     /// Largest relative difference of the loss, any gradient and the logits (f32).
     #[arg(long, default_value_t = 1e-5)]
     pub tolerance: f32,
-    /// Where the graph and fused executors run.
+    /// Where the graph and GPU executors run.
     #[command(flatten)]
     pub device: crate::device_args::DeviceArgs,
     /// Print the figures as JSON.
@@ -250,9 +250,9 @@ pub fn executors(args: ExecutorsArgs) -> Result<ExitCode> {
             a.device, args.width, args.layers, args.batch, a.loss, a.loss_relative,
             a.gradient_relative, a.worst_weight, a.logits_relative, a.cached_logits_max_abs
         );
-        let (loss, grads, weight) = &a.fused_step;
+        let (loss, grads, weight) = &a.gpu_step;
         println!(
-            "fused on {} vs cpu on the CPU: loss (relative Δ {loss:.1e}), gradients {grads:.1e} (worst {weight})",
+            "gpu executor on {} vs cpu on the CPU: loss (relative Δ {loss:.1e}), gradients {grads:.1e} (worst {weight})",
             a.device
         );
         for (output, d) in &a.fused_ops {
@@ -263,7 +263,7 @@ pub fn executors(args: ExecutorsArgs) -> Result<ExitCode> {
         }
     }
     let fused = a.fused_ops.iter().map(|(_, d)| *d);
-    let step = [a.fused_step.0, a.fused_step.1];
+    let step = [a.gpu_step.0, a.gpu_step.1];
     let ok = [a.loss_relative, a.gradient_relative, a.logits_relative]
         .into_iter()
         .chain(step)
@@ -459,10 +459,10 @@ pub struct TrainArgs {
 #[derive(clap::Args, Debug, Clone)]
 pub struct ComputeArgs {
     /// Arithmetic of the matrix products: f32 (the default), or bf16 from f32 master
-    /// weights (f32 optimiser state, norms, softmax and loss); bf16 runs the fused (training) or graph executor.
+    /// weights (f32 optimiser state, norms, softmax and loss); bf16 runs the gpu (training) or graph executor.
     #[arg(long, value_name = "f32|bf16")]
     pub precision: Option<nn::device::Precision>,
-    /// Force an executor (default: cpu for f32 on the CPU, fused otherwise): for comparing
+    /// Force an executor (default: cpu for f32 on the CPU, gpu otherwise): for comparing
     /// the two.
     #[arg(long, value_enum)]
     pub executor: Option<lm::prefix_lm::Executor>,

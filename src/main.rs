@@ -148,7 +148,7 @@ enum ModelCommand {
     Presets(lm_cmd::PresetsArgs),
     /// A trained model's logits on a few clips, with their inputs (for cross-framework checks).
     Logits(lm_cmd::LogitsArgs),
-    /// The executors side by side: the graph and fused executors on --device against the cpu
+    /// The executors side by side: the graph and GPU executors on --device against the cpu
     /// executor on the CPU (loss, every gradient, logits, KV-cached decoding), and each fused
     /// op and the AdamW update on --device against the CPU; exit 1 beyond the tolerances.
     Executors(lm_cmd::ExecutorsArgs),

@@ -449,7 +449,7 @@ impl TrainedEvaluator {
                 out.action.extend(classes(&o.action)?);
                 Ok(())
             };
-            run().map_err(ModelError::inference)?;
+            run().map_err(ModelError::Candle)?;
         }
         Ok(out)
     }
@@ -473,7 +473,7 @@ impl TrainedEvaluator {
                 let padded = Padded::new(&rows, c.text_dim, device)?;
                 self.net.encode_text(&padded)?.to_vec2()
             };
-            out.extend(run().map_err(ModelError::inference)?);
+            out.extend(run().map_err(ModelError::Candle)?);
         }
         Ok(out)
     }

@@ -319,13 +319,16 @@ pub fn caption_embeddings(
         return Ok(table);
     }
     let encoder = encoder.ok_or_else(|| {
-        ModelError::Argument(format!(
-            "{} captions (e.g. {:?}) are not embedded in the corpus; pass the text encoder \
+        ModelError::argument(
+            "text encoder",
+            format!(
+                "{} captions (e.g. {:?}) are not embedded in the corpus; pass the text encoder \
              ({}) with --encoder",
-            missing.len(),
-            missing[0],
-            stored.encoder()
-        ))
+                missing.len(),
+                missing[0],
+                stored.encoder()
+            ),
+        )
     })?;
     for chunk in missing.chunks(64) {
         for (caption, t) in chunk.iter().zip(encoder.encode(chunk)?) {
@@ -347,13 +350,16 @@ fn text_groups<'a>(
         groups.entry(m.group.as_str()).or_default().push(i);
     }
     if groups.len() < need {
-        return Err(ModelError::Argument(format!(
-            "{}: {} texts in split {:?}, fewer than {need} (R-precision pools of {})",
-            set.path.display(),
-            groups.len(),
-            options.split,
-            options.pool
-        )));
+        return Err(ModelError::argument(
+            "split",
+            format!(
+                "{}: {} texts in split {:?}, fewer than {need} (R-precision pools of {})",
+                set.path.display(),
+                groups.len(),
+                options.split,
+                options.pool
+            ),
+        ));
     }
     Ok(groups)
 }

@@ -90,14 +90,14 @@ pub fn corpus_clips(
     corpus_dir: &Path,
     keep: impl Fn(&ClipMeta) -> bool,
 ) -> Result<Vec<LabelledClip>, ModelError> {
-    let corpus = Corpus::open(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
+    let corpus = Corpus::open(corpus_dir).map_err(|e| ModelError::corpus(corpus_dir, e))?;
     let meta = corpus
         .clip_metadata()
-        .map_err(|e| ModelError::Corpus(e.to_string()))?;
+        .map_err(|e| ModelError::corpus(corpus_dir, e))?;
     let mut captions = clip_captions(corpus_dir)?;
     let features = corpus
         .features_where(|i| keep(&meta[i]))
-        .map_err(|e| ModelError::Corpus(e.to_string()))?;
+        .map_err(|e| ModelError::corpus(corpus_dir, e))?;
     Ok(features
         .into_iter()
         .map(|(i, features)| {
@@ -114,8 +114,8 @@ pub fn corpus_clips(
         .collect())
 }
 
-/// Per-token embeddings of every caption of `clips`, by caption (`Missing` names the first
-/// caption the corpus has no embedding for).
+/// Per-token embeddings of every caption of `clips`, by caption (an `Encoder` error names the
+/// first caption the corpus has no embedding for).
 pub fn caption_table(
     embeddings: &CaptionEmbeddings,
     captions: impl IntoIterator<Item = String>,
@@ -128,10 +128,10 @@ pub fn caption_table(
             continue;
         }
         let tokens = stored.remove(&caption).ok_or_else(|| {
-            ModelError::Argument(format!(
-                "caption {caption:?} has no embedding by {}; run `motionscale embed-text` on the corpus",
-                embeddings.encoder()
-            ))
+            ModelError::encoder(
+                embeddings.encoder(),
+                format!("caption {caption:?} has no embedding; run `motionscale embed-text` on the corpus"),
+            )
         })?;
         table.insert(caption, tokens.embeddings);
     }
@@ -233,12 +233,15 @@ pub fn train_evaluator(
     train.retain(|c| !c.captions.is_empty());
     let val = corpus_clips(&config.corpus, |m| m.split == "val")?;
     if train.len() < config.batch {
-        return Err(ModelError::Argument(format!(
-            "{}: {} train clips, fewer than one batch of {}",
-            config.corpus.display(),
-            train.len(),
-            config.batch
-        )));
+        return Err(ModelError::argument(
+            "batch size",
+            format!(
+                "{}: {} train clips, fewer than one batch of {}",
+                config.corpus.display(),
+                train.len(),
+                config.batch
+            ),
+        ));
     }
     let all_captions = train.iter().chain(&val).flat_map(|c| c.captions.clone());
     let captions = caption_table(&embeddings, all_captions)?;
@@ -252,7 +255,7 @@ pub fn train_evaluator(
     );
 
     let (net, varmap) =
-        init_evaluator(net_config, config.seed, device).map_err(ModelError::inference)?;
+        init_evaluator(net_config, config.seed, device).map_err(ModelError::Candle)?;
     let vars = varmap.data().lock().expect("varmap lock").clone();
     let adamw = AdamWConfig {
         weight_decay: 0.0,
@@ -303,10 +306,10 @@ pub fn train_evaluator(
     let (mut loss_sum, mut loss_steps) = (0f64, 0u64);
     while state.step < end {
         let loss = train_step(&evaluator, &train, &captions, config, state.step)
-            .map_err(ModelError::inference)?;
+            .map_err(ModelError::Candle)?;
         let (value, grads) = (
-            loss.to_scalar::<f32>().map_err(ModelError::inference)?,
-            loss.backward().map_err(ModelError::inference)?,
+            loss.to_scalar::<f32>().map_err(ModelError::Candle)?,
+            loss.backward().map_err(ModelError::Candle)?,
         );
         opt.step(&grads, schedule.at(state.step), Some(1.0))
             .map_err(|e| ModelError::invalid(out, e))?;

@@ -292,7 +292,7 @@ impl Scorer<'_> {
         for k in 0..self.actions.len() as u32 {
             for poses in trainer
                 .generate(k, self.samples_per_class, self.frames, rng)
-                .map_err(ModelError::inference)?
+                .map_err(ModelError::Candle)?
             {
                 motions.push((k, denormalise(&poses, self.evaluator)));
             }
@@ -515,7 +515,7 @@ pub fn run_cl2gen(
         config.seed,
         device,
     )
-    .map_err(ModelError::inference)?;
+    .map_err(ModelError::Candle)?;
     let mut evals = Vec::new();
     for t in 0..tasks.len() {
         let dir = config.out.join(format!("task-{}", t + 1));
@@ -625,7 +625,7 @@ fn learn_task(
         let refs: Vec<&Sample> = batch.iter().collect();
         let loss = trainer
             .step(&refs, config.lr, aux, &mut rng)
-            .map_err(ModelError::inference)?;
+            .map_err(ModelError::Candle)?;
         if step + tail >= config.steps_per_task {
             for (name, v) in [
                 ("pose", loss.pose),
@@ -659,7 +659,7 @@ fn replay_samples(
             ReplaySource::Gen => {
                 for poses in trainer
                     .generate(k, per_class, frames, rng)
-                    .map_err(ModelError::inference)?
+                    .map_err(ModelError::Candle)?
                 {
                     replay.push(Sample { class: k, poses });
                 }

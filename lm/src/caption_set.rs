@@ -98,11 +98,10 @@ fn pick_jobs(
         })
         .collect();
     if clips.is_empty() {
-        return Err(ModelError::Argument(format!(
-            "{}: no captioned clips in split {:?}",
-            corpus_dir.display(),
-            options.split
-        )));
+        return Err(ModelError::corpus(
+            corpus_dir,
+            format!("no captioned clips in split {:?}", options.split),
+        ));
     }
     let mut multi: Vec<usize> = (0..clips.len()).collect();
     rng.shuffle(&mut multi);
@@ -159,7 +158,7 @@ pub fn generate_caption_set(
 ) -> Result<CaptionSetReport, ModelError> {
     let started = std::time::Instant::now();
     let corpus_dir = &options.corpus;
-    let corpus = Corpus::open(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
+    let corpus = Corpus::open(corpus_dir).map_err(|e| ModelError::corpus(corpus_dir, e))?;
     let (clips, mm_texts, jobs) = pick_jobs(&corpus, options)?;
     let stored = CaptionEmbeddings::open(corpus_dir, &run.text_encoder).ok();
     for sub in ["new_joint_vecs", "new_joints", "texts"] {
@@ -183,10 +182,12 @@ pub fn generate_caption_set(
                 (Some(t), _) => t,
                 (None, Some(e)) => e.encode(&[caption.as_str()])?.remove(0),
                 (None, None) => {
-                    return Err(ModelError::Argument(format!(
-                        "caption {caption:?} is not embedded in {} and no text encoder was given",
-                        corpus_dir.display()
-                    )))
+                    return Err(ModelError::corpus(
+                        corpus_dir,
+                        format!(
+                            "caption {caption:?} is not embedded and no text encoder was given"
+                        ),
+                    ))
                 }
             };
             let rows = text.len().min(run.train.hyper.max_text_tokens);
@@ -200,7 +201,7 @@ pub fn generate_caption_set(
         let sequences = lm
             .for_caption(views[0])
             .and_then(|model| generate(&model, &views, &chunk_sampling))
-            .map_err(ModelError::inference)?;
+            .map_err(ModelError::Candle)?;
         for (e, tokens) in chunk.iter().zip(sequences) {
             if tokens.is_empty() {
                 let reject = serde_json::json!({"id": e.id, "caption": e.caption,
@@ -211,7 +212,7 @@ pub fn generate_caption_set(
             tokens_total += tokens.len();
             let features = tokenizer
                 .detokenize(&tokens)
-                .map_err(ModelError::inference)?;
+                .map_err(|e| ModelError::MotionTokenizer(e.into()))?;
             write_generated(out, &e.id, &e.caption, &features)?;
             written.push(e.clone());
         }

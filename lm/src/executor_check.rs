@@ -1,5 +1,5 @@
 //! The prefix LM's executors side by side on one seeded model and batch: the cpu executor on
-//! the CPU against the graph and the fused executors on any device (a GPU, or the CPU).
+//! the CPU against the graph and the GPU executors on any device (a GPU, or the CPU).
 //! `motionscale model executors` prints it; `scripts/gpu-check.sh` runs it on a GPU.
 
 use crate::prefix_lm::{init_model, Compute, Executor, LmBatch, PrefixLm, PrefixLmConfig};
@@ -22,9 +22,9 @@ pub struct Agreement {
     pub gradient_relative: f32,
     /// The weight where that is largest.
     pub worst_weight: String,
-    /// The fused executor's training step on the device: |Δloss| / loss, the largest
+    /// The GPU executor's training step on the device: |Δloss| / loss, the largest
     /// relative gradient difference and its weight, as above.
-    pub fused_step: (f32, f32, String),
+    pub gpu_step: (f32, f32, String),
     /// max |Δlogit| / max |logit| over every motion slot.
     pub logits_relative: f32,
     /// The largest |Δlogit| of KV-cached decoding, step by step, against the cpu executor's.
@@ -113,7 +113,7 @@ pub fn compare(
     };
     let (cpu, cpu_vars) = init_model(config, seed, &Device::Cpu)?;
     let (graph, graph_vars) = init_model(config, seed, device)?;
-    let fused = graph.clone().with_compute(forced(Executor::Fused));
+    let gpu = graph.clone().with_compute(forced(Executor::Gpu));
     let (cpu, graph) = (
         cpu.with_compute(forced(Executor::Cpu)),
         graph.with_compute(forced(Executor::Graph)),
@@ -141,7 +141,7 @@ pub fn compare(
         Ok(((loss - l_cpu).abs() / l_cpu.abs(), worst, worst_weight))
     };
     let (loss_relative, worst, worst_weight) = step_agreement(&graph)?;
-    let fused_step = step_agreement(&fused)?;
+    let gpu_step = step_agreement(&gpu)?;
     let logits = relative(&graph.forward(&data)?, &cpu.forward(&data)?)?;
     let (cached_graph, cached_cpu) = (cached_logits(&graph, seed)?, cached_logits(&cpu, seed)?);
     let cached = cached_graph
@@ -155,7 +155,7 @@ pub fn compare(
         loss_relative,
         gradient_relative: worst,
         worst_weight,
-        fused_step,
+        gpu_step,
         logits_relative: logits,
         cached_logits_max_abs: cached,
         fused_ops: nn::device_check::self_check(device)?,

@@ -115,18 +115,19 @@ impl LmData {
                 continue;
             };
             let clip_captions = captions.get(&clip.motion_id).ok_or_else(|| {
-                ModelError::Corpus(format!(
-                    "{}: clip {} of the token set is not in the corpus",
-                    corpus_dir.display(),
-                    clip.motion_id
-                ))
+                ModelError::corpus(
+                    corpus_dir,
+                    format!(
+                        "clip {} of the token set is not in the corpus",
+                        clip.motion_id
+                    ),
+                )
             })?;
             let origin = *origins.get(&clip.motion_id).ok_or_else(|| {
-                ModelError::Corpus(format!(
-                    "{}: clip {} has captions but no metadata row",
-                    corpus_dir.display(),
-                    clip.motion_id
-                ))
+                ModelError::corpus(
+                    corpus_dir,
+                    format!("clip {} has captions but no metadata row", clip.motion_id),
+                )
             })?;
             let mut ids = Vec::with_capacity(clip_captions.len());
             for caption in clip_captions {
@@ -135,10 +136,10 @@ impl LmData {
                     continue;
                 }
                 let emb = stored.remove(caption).ok_or_else(|| {
-                    ModelError::Corpus(format!(
-                        "{}: caption {caption:?} has no {encoder} embedding; rerun embed-text",
-                        corpus_dir.display()
-                    ))
+                    ModelError::corpus(
+                        corpus_dir,
+                        format!("caption {caption:?} has no {encoder} embedding; rerun embed-text"),
+                    )
                 })?;
                 let rows = emb.len().min(limits.text_tokens);
                 text.push(emb.embeddings[..rows * emb.dim].to_vec());

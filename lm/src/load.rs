@@ -63,10 +63,10 @@ pub fn load_lm(
 /// The emotion label of every labelled clip of a corpus, by motion id.
 pub(crate) fn clip_emotions(corpus_dir: &Path) -> Result<HashMap<String, String>, ModelError> {
     let corpus = ingest::corpus::reader::Corpus::open(corpus_dir)
-        .map_err(|e| ModelError::Corpus(e.to_string()))?;
+        .map_err(|e| ModelError::corpus(corpus_dir, e))?;
     Ok(corpus
         .clip_metadata()
-        .map_err(|e| ModelError::Corpus(e.to_string()))?
+        .map_err(|e| ModelError::corpus(corpus_dir, e))?
         .into_iter()
         .filter_map(|m| Some((m.motion_id, m.labels.emotion?)))
         .collect())

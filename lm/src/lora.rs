@@ -467,7 +467,7 @@ mod tests {
             (loss, lora.grads(&merged, &g).unwrap())
         };
         let (l_cpu, g_cpu) = run(Executor::Cpu);
-        for other in [Executor::Graph, Executor::Fused] {
+        for other in [Executor::Graph, Executor::Gpu] {
             let (l_graph, g_graph) = run(other);
             assert!(
                 (l_cpu - l_graph).abs() <= 1e-5 * l_cpu.abs(),

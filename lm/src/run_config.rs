@@ -95,7 +95,7 @@ impl ModelShape {
             Self::Lora { base, .. } | Self::EsMoe { base, .. } => {
                 let run: RunConfig = read_json(&base.join("config.json"))?;
                 if (run.model.codebook_size, run.model.text_dim) != (codebook_size, text_dim) {
-                    return Err(ModelError::Argument(format!(
+                    return Err(ModelError::argument("base model", format!(
                         "{}: the base model has {} codes and {}-d text, the data {codebook_size} and {text_dim}",
                         base.display(),
                         run.model.codebook_size,
@@ -105,7 +105,9 @@ impl ModelShape {
                 run.model
             }
             Self::Preset(name) => PrefixLmConfig::preset(name, codebook_size, text_dim)
-                .ok_or_else(|| ModelError::Argument(format!("no model preset {name:?}")))?,
+                .ok_or_else(|| {
+                    ModelError::argument("model preset", format!("no preset {name:?}"))
+                })?,
             Self::Custom {
                 d_model,
                 n_layers,

@@ -107,9 +107,10 @@ pub fn evaluate(
 ) -> Result<SplitLoss, ModelError> {
     let items = data.eval_items(split);
     if items.is_empty() {
-        return Err(ModelError::Argument(format!(
-            "the token set has no {split} clips to evaluate"
-        )));
+        return Err(ModelError::argument(
+            "split",
+            format!("the token set has no {split} clips to evaluate"),
+        ));
     }
     let codebook = data.codebook_size() as u32;
     let unigram = data.unigram.smoothed_probabilities("train");
@@ -121,7 +122,7 @@ pub fn evaluate(
         let lp = lm
             .for_caption(data.text_of(&chunk[0]))
             .and_then(|model| model.target_log_probs(&b))
-            .map_err(ModelError::inference)?;
+            .map_err(ModelError::Candle)?;
         let mut start = 0;
         for (item, &n) in chunk.iter().zip(&b.layout.motion_lens) {
             let slots = start..start + n;

@@ -144,7 +144,7 @@ fn build_trainee(
             distillation,
         } => {
             let adapter = LoraAdapter::new(&run.model, *lora, expert, config.hyper.seed, device)
-                .map_err(ModelError::inference)?;
+                .map_err(ModelError::Candle)?;
             if let Some(file) = init {
                 adapter.load(file)?;
             }
@@ -197,7 +197,7 @@ fn build_trainee(
         }
         ModelShape::Preset(_) | ModelShape::Custom { .. } => {
             let (model, varmap) =
-                init_model(&run.model, config.hyper.seed, device).map_err(ModelError::inference)?;
+                init_model(&run.model, config.hyper.seed, device).map_err(ModelError::Candle)?;
             let vars = varmap.data().lock().expect("varmap lock").clone();
             (Trainee::Model(model.with_compute(compute)), vars)
         }
@@ -223,7 +223,7 @@ impl Run {
         };
         let encoder = config.text_encoder.as_deref();
         let splits = ingest::corpus::split::SplitAssignment::from_dir(config.splits.as_deref())
-            .map_err(|e| ModelError::Argument(e.to_string()))?;
+            .map_err(|e| ModelError::argument("splits", e))?;
         let data = LmData::load(&config.tokens, &corpus, encoder, limits, &splits)?;
         let model_config = config.model.resolve(data.codebook_size(), data.text_dim)?;
         let total = data
@@ -232,7 +232,9 @@ impl Run {
                 config.hyper.batch_size,
                 config.hyper.seed,
             )
-            .ok_or_else(|| ModelError::Argument("no train clips with motion tokens".into()))?;
+            .ok_or_else(|| {
+                ModelError::argument("token set", "no train clips with motion tokens")
+            })?;
         let seq = SequenceShape {
             prefix: config.hyper.max_text_tokens,
             motion: config.hyper.max_motion_tokens + 1,
@@ -305,11 +307,9 @@ impl Run {
                     .map(|(l, g)| (l.total(t.moe.config.emotion_weight), g))
             }
         }
-        .map_err(ModelError::inference)?;
+        .map_err(ModelError::Candle)?;
         let lr = self.config.schedule.at(self.state.step);
-        self.opt
-            .step(&grads, lr, Some(c.hyper.grad_clip))
-            .map_err(ModelError::inference)?;
+        self.opt.step(&grads, lr, Some(c.hyper.grad_clip))?;
         let tokens: u64 = items.iter().map(|(e, _)| e.targets()).sum();
         let layout = &batch.layout;
         let flops: f64 = (layout.prefix_lens.iter().zip(&layout.motion_lens))
@@ -341,10 +341,7 @@ impl Run {
         let (lm, expert_weights): (&dyn MotionLm, _) = match &self.trainee {
             Trainee::Model(model) => (model, None),
             Trainee::Lora(l) => {
-                merged = l
-                    .model(&self.config.model)
-                    .map_err(ModelError::inference)?
-                    .0;
+                merged = l.model(&self.config.model).map_err(ModelError::Candle)?.0;
                 (&merged, None)
             }
             Trainee::Moe(t) => (&t.moe, Some(self.expert_weights(&t.moe)?)),
@@ -387,7 +384,7 @@ impl Run {
         for item in &items {
             let w = moe
                 .weights(self.data.text_of(item))
-                .map_err(ModelError::inference)?;
+                .map_err(ModelError::Candle)?;
             sum.iter_mut().zip(w).for_each(|(s, w)| *s += f64::from(w));
         }
         Ok(sum.iter().map(|s| s / items.len().max(1) as f64).collect())
@@ -403,11 +400,7 @@ impl Run {
                 let adapter = self.config.train.out.join(ADAPTER_FILE);
                 save_safetensors(&weights, &adapter)
                     .map_err(|e| ModelError::invalid(&adapter, e))?;
-                Some(
-                    l.model(&self.config.model)
-                        .map_err(ModelError::inference)?
-                        .1,
-                )
+                Some(l.model(&self.config.model).map_err(ModelError::Candle)?.1)
             }
             Trainee::Moe(t) => {
                 t.moe.save(&self.config.train.out)?;

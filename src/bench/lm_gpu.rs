@@ -141,7 +141,7 @@ pub fn train(args: &BenchTrainArgs, device: &Device) -> Result<ExitCode> {
             1e3 * phases.opt,
             ours.peak_gpu_memory_allocated_gib.unwrap_or(f64::NAN),
         );
-        if let Some(stages) = &ours.fused_stage_ms {
+        if let Some(stages) = &ours.gpu_stage_ms {
             let parts: Vec<String> = stages
                 .iter()
                 .map(|(k, ms)| format!("{k} {ms:.1}"))

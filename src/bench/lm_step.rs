@@ -2,13 +2,12 @@
 //! and one timed training step of the prefix LM ([`bench_train_step`]), and the PyTorch
 //! references' shape flags. [`super::lm`] times it on the CPU, [`super::lm_gpu`] on a GPU.
 
+use super::stage_timer::stage_ms;
 use super::time;
 use anyhow::{Context, Result};
 use candle_core::Device;
 use lm::accounting::{self, SequenceShape};
-use lm::prefix_lm::{
-    init_model, record_stage_times, stage_times, Compute, Executor, LmBatch, PrefixLmConfig,
-};
+use lm::prefix_lm::{init_model, Compute, Executor, LmBatch, PrefixLmConfig};
 use nn::optim::{AdamW, AdamWConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -103,8 +102,9 @@ pub struct TrainStep<R> {
     pub step_time: super::Timing,
     /// Median seconds of each phase.
     pub phase_median_s: Phases,
-    /// On a GPU with the fused executor: ms per step of each of its stages (each synchronised).
-    pub fused_stage_ms: Option<BTreeMap<String, f64>>,
+    /// On a GPU with the GPU executor: ms per step of each of its stages (each synchronised).
+    #[serde(alias = "fused_stage_ms")]
+    pub gpu_stage_ms: Option<BTreeMap<String, f64>>,
     /// Motion tokens per second at the median step.
     pub motion_tokens_per_s: f64,
     /// On a GPU: the peak memory allocated, GiB.
@@ -232,18 +232,10 @@ pub(super) fn bench_train_step<R>(
         }
         false => None,
     };
-    // The fused executor's stages, each ended by a synchronisation (so apart from the timing
+    // The GPU executor's stages, each ended by a synchronisation (so apart from the timing
     // above): where a GPU step spends its time.
-    let stages = match device.is_cuda() && model.executor()? == Executor::Fused {
-        true => {
-            record_stage_times(true);
-            for _ in 0..args.reps.max(3) {
-                model.loss_and_grads(&lm_batch)?;
-            }
-            let stages: BTreeMap<String, f64> = stage_times().into_iter().collect();
-            record_stage_times(false);
-            Some(stages)
-        }
+    let stages = match device.is_cuda() && model.executor()? == Executor::Gpu {
+        true => Some(stage_ms(&model, &lm_batch, args.reps.max(3))?),
         false => None,
     };
     let step_s = st.median_s;
@@ -274,7 +266,7 @@ pub(super) fn bench_train_step<R>(
             opt: optim,
             fwd: forward,
         },
-        fused_stage_ms: stages,
+        gpu_stage_ms: stages,
         motion_tokens_per_s: tokens / step_s,
         peak_gpu_memory_allocated_gib: peak_gib,
         flops_per_step_exact: flops,

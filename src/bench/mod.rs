@@ -9,6 +9,7 @@ mod lm;
 mod lm_gpu;
 mod lm_step;
 mod machine;
+mod stage_timer;
 mod tokenizer;
 
 use anyhow::{bail, Context, Result};

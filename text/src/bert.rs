@@ -117,10 +117,10 @@ fn encode_padded(
 ) -> Result<Vec<TokenEmbeddings>, ModelError> {
     let ids = transformer::stack(encodings, Encoding::get_ids, &model.device)?;
     let mask = transformer::stack(encodings, Encoding::get_attention_mask, &model.device)?;
-    let type_ids = Tensor::zeros_like(&ids).map_err(ModelError::inference)?;
+    let type_ids = Tensor::zeros_like(&ids).map_err(ModelError::Candle)?;
     let hidden = model
         .forward(&ids, &type_ids, Some(&mask))
-        .map_err(ModelError::inference)?;
+        .map_err(ModelError::Candle)?;
     transformer::real_tokens(&hidden, encodings)
 }
 

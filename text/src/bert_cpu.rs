@@ -407,16 +407,20 @@ impl BertCpu {
         let mut tokens = Vec::with_capacity(sequences.iter().map(|s| s.len()).sum());
         for seq in sequences {
             if seq.len() > positions {
-                return Err(ModelError::inference(format!(
-                    "{} tokens, more than the model's {positions} positions",
-                    seq.len()
-                )));
+                return Err(ModelError::encoder(
+                    "BERT (cpu)",
+                    format!(
+                        "{} tokens, more than the model's {positions} positions",
+                        seq.len()
+                    ),
+                ));
             }
             for (pos, &id) in seq.iter().enumerate() {
                 if id as usize >= vocab {
-                    return Err(ModelError::inference(format!(
-                        "token id {id} outside the vocabulary of {vocab}"
-                    )));
+                    return Err(ModelError::encoder(
+                        "BERT (cpu)",
+                        format!("token id {id} outside the vocabulary of {vocab}"),
+                    ));
                 }
                 tokens.push((id as usize, pos));
             }

@@ -133,7 +133,7 @@ pub fn corpus_captions(corpus_dir: &Path) -> Result<Vec<String>, ModelError> {
 /// decoded).
 pub fn clip_captions(corpus_dir: &Path) -> Result<HashMap<String, Vec<String>>, ModelError> {
     let manifest = ingest::corpus::integrity::read_checked(corpus_dir)
-        .map_err(|e| ModelError::Corpus(e.to_string()))?;
+        .map_err(|e| ModelError::corpus(corpus_dir, e))?;
     let mut out = HashMap::new();
     for shard in &manifest.shards {
         let path = corpus_dir.join(&shard.file);
@@ -203,9 +203,12 @@ pub fn embed_corpus_sharded(
     progress: &dyn Fn(u64, u64),
 ) -> Result<EmbedReport, ModelError> {
     if batch == 0 || shard_captions == 0 {
-        return Err(ModelError::Argument(format!(
-            "batch size ({batch}) and captions per shard ({shard_captions}) must be positive"
-        )));
+        return Err(ModelError::argument(
+            "batch",
+            format!(
+                "batch size ({batch}) and captions per shard ({shard_captions}) must be positive"
+            ),
+        ));
     }
     let captions = corpus_captions(corpus_dir)?;
     let (id, dim) = (encoder.id().to_string(), encoder.dim());
@@ -292,7 +295,7 @@ pub fn embed_corpus_sharded(
         write_json(&index_path, &fresh)?;
     }
     remove_stale_shards(&out_dir, &finished)?;
-    let mut manifest = Manifest::read(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
+    let mut manifest = Manifest::read(corpus_dir).map_err(|e| ModelError::corpus(corpus_dir, e))?;
     manifest.text_embeddings.retain(|e| e.encoder != id);
     manifest.text_embeddings.push(TextEmbeddingEntry {
         encoder: id,
@@ -302,7 +305,7 @@ pub fn embed_corpus_sharded(
     });
     manifest
         .write(corpus_dir)
-        .map_err(|e| ModelError::Corpus(e.to_string()))?;
+        .map_err(|e| ModelError::corpus(corpus_dir, e))?;
     Ok(report)
 }
 
@@ -346,24 +349,28 @@ pub fn embed_texts(
         let batch_texts: Vec<&str> = chunk.iter().map(|&i| texts[i].as_str()).collect();
         let embedded = encoder.encode(&batch_texts)?;
         if embedded.len() != chunk.len() {
-            return Err(ModelError::inference(format!(
-                "encoder {} returned {} results for {} texts",
+            return Err(ModelError::encoder(
                 encoder.id(),
-                embedded.len(),
-                chunk.len()
-            )));
+                format!(
+                    "returned {} results for {} texts",
+                    embedded.len(),
+                    chunk.len()
+                ),
+            ));
         }
         for (&i, e) in chunk.iter().zip(embedded) {
             if e.dim != encoder.dim() || e.embeddings.len() != e.tokens.len() * e.dim {
-                return Err(ModelError::inference(format!(
-                    "encoder {} returned {} values for {} tokens of width {} (declared {}) for {:?}",
+                return Err(ModelError::encoder(
                     encoder.id(),
-                    e.embeddings.len(),
-                    e.tokens.len(),
-                    e.dim,
-                    encoder.dim(),
-                    texts[i]
-                )));
+                    format!(
+                        "returned {} values for {} tokens of width {} (declared {}) for {:?}",
+                        e.embeddings.len(),
+                        e.tokens.len(),
+                        e.dim,
+                        encoder.dim(),
+                        texts[i]
+                    ),
+                ));
             }
             out[i] = Some(e);
         }
@@ -395,7 +402,8 @@ fn encode_shard(
 ) -> Result<Vec<u8>, ModelError> {
     let schema = shard_schema(encoder, dim);
     let mut out = Vec::new();
-    let failed = |e: &dyn std::fmt::Display| ModelError::inference(format!("encoding shard: {e}"));
+    let failed =
+        |e: &dyn std::fmt::Display| ModelError::encoder(encoder, format!("encoding shard: {e}"));
     let mut writer = ArrowWriter::try_new(&mut out, schema.clone(), Some(properties()))
         .map_err(|e| failed(&e))?;
     for (texts, embs) in captions
@@ -450,16 +458,16 @@ impl CaptionEmbeddings {
     /// Open the embeddings that `encoder_id` made for the corpus in `corpus_dir` (as listed
     /// in its manifest); only the caption column is decoded here.
     pub fn open(corpus_dir: &Path, encoder_id: &str) -> Result<Self, ModelError> {
-        let manifest = Manifest::read(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
+        let manifest = Manifest::read(corpus_dir).map_err(|e| ModelError::corpus(corpus_dir, e))?;
         let entry = manifest
             .text_embeddings
             .iter()
             .find(|e| e.encoder == encoder_id)
             .ok_or_else(|| {
-                ModelError::Corpus(format!(
-                    "{}: no text embeddings by encoder {encoder_id} in manifest.json",
-                    corpus_dir.display()
-                ))
+                ModelError::corpus(
+                    corpus_dir,
+                    format!("no text embeddings by encoder {encoder_id} in manifest.json"),
+                )
             })?;
         let dir = corpus_dir.join(&entry.dir);
         let index_path = dir.join(INDEX_FILE);

@@ -48,8 +48,9 @@ impl FallbackEncoder {
         seed: u64,
     ) -> Result<Self, ModelError> {
         if dim == 0 {
-            return Err(ModelError::Argument(
-                "fallback encoder width must be positive".into(),
+            return Err(ModelError::argument(
+                "fallback encoder width",
+                "must be positive",
             ));
         }
         let distinct: BTreeSet<String> = captions.into_iter().flat_map(words).collect();
@@ -61,7 +62,7 @@ impl FallbackEncoder {
         let table = (0..vocab.len() * dim)
             .map(|_| (rng.normal() * std) as f32)
             .collect();
-        Self::from_parts(vocab, table, dim).map_err(ModelError::Argument)
+        Self::from_parts(vocab, table, dim).map_err(|e| ModelError::argument("fallback encoder", e))
     }
 
     /// [`Self::build`] over the distinct captions of the corpus in `corpus_dir`.
@@ -168,12 +169,12 @@ fn serialize(
     table: &[f32],
     dim: usize,
 ) -> Result<(Vec<u8>, Vec<u8>), ModelError> {
-    let vocab_bytes = serde_json::to_vec(vocab).map_err(ModelError::inference)?;
+    let failed = |e: &dyn std::fmt::Display| ModelError::encoder("fallback", e);
+    let vocab_bytes = serde_json::to_vec(vocab).map_err(|e| failed(&e))?;
     let data: Vec<u8> = table.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let view = TensorView::new(Dtype::F32, vec![vocab.len(), dim], &data)
-        .map_err(ModelError::inference)?;
-    let weights =
-        safetensors::serialize([(EMBEDDINGS_KEY, view)], None).map_err(ModelError::inference)?;
+    let view =
+        TensorView::new(Dtype::F32, vec![vocab.len(), dim], &data).map_err(|e| failed(&e))?;
+    let weights = safetensors::serialize([(EMBEDDINGS_KEY, view)], None).map_err(|e| failed(&e))?;
     Ok((vocab_bytes, weights))
 }
 

@@ -77,17 +77,20 @@ pub fn encoder_for(
         None => Box::new(BertEncoder::load(&default_encoder_dir(), device)?),
     };
     if encoder.id() != encoder_id {
-        return Err(ModelError::Argument(format!(
-            "text encoder {} differs from the model's {encoder_id} (pass --encoder DIR)",
-            encoder.id()
-        )));
+        return Err(ModelError::argument(
+            "text encoder",
+            format!(
+                "{} differs from the model's {encoder_id} (pass --encoder DIR)",
+                encoder.id()
+            ),
+        ));
     }
     Ok(encoder)
 }
 
 /// The text encoder whose embeddings to use: `wanted`, or the corpus's only one.
 pub fn resolve_encoder(corpus_dir: &Path, wanted: Option<&str>) -> Result<String, ModelError> {
-    let manifest = Manifest::read(corpus_dir).map_err(|e| ModelError::Corpus(e.to_string()))?;
+    let manifest = Manifest::read(corpus_dir).map_err(|e| ModelError::corpus(corpus_dir, e))?;
     let ids: Vec<&str> = manifest
         .text_embeddings
         .iter()
@@ -95,19 +98,21 @@ pub fn resolve_encoder(corpus_dir: &Path, wanted: Option<&str>) -> Result<String
         .collect();
     match (wanted, ids.as_slice()) {
         (Some(id), _) if ids.contains(&id) => Ok(id.to_string()),
-        (Some(id), _) => Err(ModelError::Corpus(format!(
-            "{}: no text embeddings by {id} (the manifest lists {ids:?})",
-            corpus_dir.display()
-        ))),
+        (Some(id), _) => Err(ModelError::corpus(
+            corpus_dir,
+            format!("no text embeddings by {id} (the manifest lists {ids:?})"),
+        )),
         (None, [only]) => Ok(only.to_string()),
-        (None, []) => Err(ModelError::Corpus(format!(
-            "{}: no caption embeddings; run `motionscale embed-text --corpus {}` first",
-            corpus_dir.display(),
-            corpus_dir.display()
-        ))),
-        (None, many) => Err(ModelError::Corpus(format!(
-            "{}: several text encoders {many:?}; choose one with --text-emb",
-            corpus_dir.display()
-        ))),
+        (None, []) => Err(ModelError::corpus(
+            corpus_dir,
+            format!(
+                "no caption embeddings; run `motionscale embed-text --corpus {}` first",
+                corpus_dir.display()
+            ),
+        )),
+        (None, many) => Err(ModelError::corpus(
+            corpus_dir,
+            format!("several text encoders {many:?}; choose one with --text-emb"),
+        )),
     }
 }

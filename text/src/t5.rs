@@ -68,12 +68,12 @@ impl TextEncoder for T5Encoder {
         let mut model = self
             .model
             .lock()
-            .map_err(|_| ModelError::inference("T5 model lock poisoned"))?;
+            .map_err(|_| ModelError::encoder("T5", "model lock poisoned"))?;
         let mut out: Vec<Option<TokenEmbeddings>> = vec![None; texts.len()];
         for members in groups.values() {
             let refs: Vec<&Encoding> = members.iter().map(|&i| &encodings[i]).collect();
             let ids = transformer::stack(&refs, Encoding::get_ids, &self.device)?;
-            let hidden = model.forward(&ids).map_err(ModelError::inference)?;
+            let hidden = model.forward(&ids).map_err(ModelError::Candle)?;
             for (&i, emb) in members
                 .iter()
                 .zip(transformer::real_tokens(&hidden, &refs)?)

@@ -68,7 +68,7 @@ pub fn read_weights(
 pub fn tokenize(tokenizer: &Tokenizer, texts: &[&str]) -> Result<Vec<Encoding>, ModelError> {
     tokenizer
         .encode_batch(texts.to_vec(), true)
-        .map_err(ModelError::inference)
+        .map_err(|e| ModelError::encoder("tokenizer", e))
 }
 
 /// A (batch × length) u32 tensor of one field of equally long encodings.
@@ -82,7 +82,7 @@ pub fn stack(
         .iter()
         .flat_map(|e| field(e).iter().copied())
         .collect();
-    Tensor::from_vec(flat, (encodings.len(), len), device).map_err(ModelError::inference)
+    Tensor::from_vec(flat, (encodings.len(), len), device).map_err(ModelError::Candle)
 }
 
 /// Cut a (batch × length × dim) hidden-state tensor into each text's real (unmasked) tokens.
@@ -91,7 +91,7 @@ pub fn real_tokens(
     encodings: &[&Encoding],
 ) -> Result<Vec<TokenEmbeddings>, ModelError> {
     // `to_vec3` copies from any device.
-    let hidden = hidden.to_vec3::<f32>().map_err(ModelError::inference)?;
+    let hidden = hidden.to_vec3::<f32>().map_err(ModelError::Candle)?;
     let dim = hidden
         .first()
         .and_then(|rows| rows.first())

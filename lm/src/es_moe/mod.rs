@@ -402,11 +402,10 @@ impl EsMoe {
     ) -> std::result::Result<Self, ModelError> {
         let device = base
             .get("head.weight")
-            .ok_or_else(|| ModelError::Argument("ES-MoE base: no head.weight".into()))?
+            .ok_or_else(|| ModelError::argument("ES-MoE base", "no head.weight"))?
             .device()
             .clone();
-        let gate = Gate::new(&config, model.text_dim, emotions.len(), seed, &device)
-            .map_err(|e| ModelError::Argument(format!("ES-MoE gate: {e}")))?;
+        let gate = Gate::new(&config, model.text_dim, emotions.len(), seed, &device)?;
         Ok(Self {
             config,
             manifest: MoeManifest {
@@ -427,7 +426,7 @@ impl EsMoe {
         for name in names {
             let expert =
                 LoraAdapter::new(&self.model, self.config.lora, name, 0, &self.gate.device)
-                    .map_err(ModelError::inference)?;
+                    .map_err(ModelError::Candle)?;
             expert.load(&adapters)?;
             self.experts.push(expert);
         }

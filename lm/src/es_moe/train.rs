@@ -84,7 +84,7 @@ impl EsMoeTrainer {
                 let moe = EsMoe::build(model, config, base, classes, seed)?;
                 if config.cged {
                     moe.fit_dictionary(train_texts, seed)
-                        .map_err(ModelError::inference)?;
+                        .map_err(ModelError::Candle)?;
                 }
                 moe
             }
@@ -99,15 +99,18 @@ impl EsMoeTrainer {
             }
             None => {
                 if config.mixture && moe.experts.len() >= config.max_experts {
-                    return Err(ModelError::Argument(format!(
-                        "ES-MoE has keys for {} experts; raise max_experts",
-                        config.max_experts
-                    )));
+                    return Err(ModelError::argument(
+                        "max_experts",
+                        format!(
+                            "ES-MoE has keys for {} experts; raise max_experts",
+                            config.max_experts
+                        ),
+                    ));
                 }
                 let index = moe.experts.len() as u64;
                 let adapter =
                     LoraAdapter::new(model, config.lora, expert, seed ^ (index << 32), device)
-                        .map_err(ModelError::inference)?;
+                        .map_err(ModelError::Candle)?;
                 moe.experts.push(adapter);
                 moe.manifest.experts.push(expert.to_string());
             }
@@ -569,7 +572,7 @@ mod tests {
             (loss.total(lambda), grads)
         };
         let (l_cpu, g_cpu) = run(Executor::Cpu);
-        for other in [Executor::Graph, Executor::Fused] {
+        for other in [Executor::Graph, Executor::Gpu] {
             let (l_graph, g_graph) = run(other);
             assert!(
                 (l_cpu - l_graph).abs() <= 1e-5 * l_cpu.abs(),

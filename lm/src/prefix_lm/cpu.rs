@@ -2,7 +2,7 @@
 //! weights' f32 CPU storage, a forward pass that records what the backward needs, and the
 //! backward written out (no autograd graph).
 
-use super::{Block, ExtraLoss, LmBatch, PrefixLm, PrefixLmConfig};
+use super::{BlockWeights, ExtraLoss, LmBatch, PrefixLm, PrefixLmConfig, Weights};
 use candle_core::backprop::GradStore;
 use candle_core::{CpuStorage, Layout, Result, Storage, Tensor};
 use nn::head_loss;
@@ -10,17 +10,7 @@ use nn::lm_kernels::{self, LayerCache};
 use nn::matmul::{transpose, Operand};
 use nn::seq_layout::SeqLayout;
 
-/// The values of one block's weights.
-struct BlockWeights<'a> {
-    n1: &'a [f32],
-    wqkv: &'a [f32],
-    wo: &'a [f32],
-    n2: &'a [f32],
-    w13: &'a [f32],
-    w2: &'a [f32],
-}
-
-impl BlockWeights<'_> {
+impl BlockWeights<&[f32]> {
     /// The four matrices as the forward products read them: each `W` (`out × in`) transposed.
     fn forward_mats(&self) -> [Operand<'_>; 4] {
         [self.wqkv, self.wo, self.w13, self.w2].map(|m| (m, true))
@@ -38,87 +28,79 @@ struct BlockTrace {
     sig: Vec<f32>,
 }
 
-/// Gradients of one block's weights, in [`Block`] field order.
-type BlockGrads = [Vec<f32>; 6];
-
-impl Block {
-    /// The block on rows `h` (`rows × d`) with its matrices read as `mats` (Wqkvᵀ, Woᵀ,
-    /// W13ᵀ, W2ᵀ: [`BlockWeights::forward_mats`] or a decoding cache's copies); `attend` maps
-    /// the packed QKV rows to the attention output and its softmax probabilities.
-    fn forward(
-        c: &PrefixLmConfig,
-        w: &BlockWeights,
-        [wqkv, wo, w13, w2]: [Operand; 4],
-        h: Vec<f32>,
-        attend: impl FnOnce(&[f32]) -> (Vec<f32>, Vec<f32>),
-    ) -> (Vec<f32>, BlockTrace) {
-        let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
-        let rows = h.len() / d;
-        let xn = lm_kernels::rms_norm(&h, w.n1, eps);
-        let qkv = lm_kernels::matmul_new((&xn, false), wqkv, (rows, 3 * d, d));
-        let (a, probs) = attend(&qkv);
-        let mut h1 = h.clone();
-        lm_kernels::gemm(&mut h1, (&a, false), wo, (rows, d, d), true);
-        let xn = lm_kernels::rms_norm(&h1, w.n2, eps);
-        let ab = lm_kernels::matmul_new((&xn, false), w13, (rows, 2 * f, d));
-        let sig = lm_kernels::gate_sigmoid(&ab, f);
-        let mut h2 = h1.clone();
-        let act = lm_kernels::swiglu(&ab, &sig, f);
-        lm_kernels::gemm(&mut h2, (&act, false), w2, (rows, d, f), true);
-        let trace = BlockTrace {
-            h,
-            qkv,
-            probs,
-            a,
-            h1,
-            ab,
-            sig,
-        };
-        (h2, trace)
-    }
-
-    /// Backward through the block: `gh` holds the gradient of its output on entry and of its
-    /// input on return; returns the weights' gradients.
-    fn backward(
-        c: &PrefixLmConfig,
-        w: &BlockWeights,
-        t: &BlockTrace,
-        attn: &lm_kernels::Attention,
-        gh: &mut [f32],
-    ) -> BlockGrads {
-        let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
-        let rows = gh.len() / d;
-        // h2 = h1 + swiglu(ab)·W2ᵀ.
-        let act = lm_kernels::swiglu(&t.ab, &t.sig, f);
-        let g_w2 = lm_kernels::matmul_new((gh, true), (&act, false), (d, f, rows));
-        let g_act = lm_kernels::matmul_new((gh, false), (w.w2, false), (rows, f, d));
-        let g_ab = lm_kernels::swiglu_backward(&t.ab, &t.sig, &g_act, f);
-        // ab = RMSNorm(h1)·W13ᵀ.
-        let xn = lm_kernels::rms_norm(&t.h1, w.n2, eps);
-        let g_w13 = lm_kernels::matmul_new((&g_ab, true), (&xn, false), (2 * f, d, rows));
-        let g_xn = lm_kernels::matmul_new((&g_ab, false), (w.w13, false), (rows, d, 2 * f));
-        let g_n2 = lm_kernels::rms_norm_backward(&t.h1, w.n2, &g_xn, eps, gh);
-        // h1 = h + a·Woᵀ.
-        let g_wo = lm_kernels::matmul_new((gh, true), (&t.a, false), (d, d, rows));
-        let g_a = lm_kernels::matmul_new((gh, false), (w.wo, false), (rows, d, d));
-        let g_qkv = attn.backward(&t.qkv, &t.probs, &g_a);
-        // qkv = RMSNorm(h)·Wqkvᵀ.
-        let xn = lm_kernels::rms_norm(&t.h, w.n1, eps);
-        let g_wqkv = lm_kernels::matmul_new((&g_qkv, true), (&xn, false), (3 * d, d, rows));
-        let g_xn = lm_kernels::matmul_new((&g_qkv, false), (w.wqkv, false), (rows, d, 3 * d));
-        let g_n1 = lm_kernels::rms_norm_backward(&t.h, w.n1, &g_xn, eps, gh);
-        [g_n1, g_wqkv, g_wo, g_n2, g_w13, g_w2]
-    }
+/// The block on rows `h` (`rows × d`) with its matrices read as `mats` (Wqkvᵀ, Woᵀ,
+/// W13ᵀ, W2ᵀ: [`BlockWeights::forward_mats`] or a decoding cache's copies); `attend` maps
+/// the packed QKV rows to the attention output and its softmax probabilities.
+fn block_forward(
+    c: &PrefixLmConfig,
+    w: &BlockWeights<&[f32]>,
+    [wqkv, wo, w13, w2]: [Operand; 4],
+    h: Vec<f32>,
+    attend: impl FnOnce(&[f32]) -> (Vec<f32>, Vec<f32>),
+) -> (Vec<f32>, BlockTrace) {
+    let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
+    let rows = h.len() / d;
+    let xn = lm_kernels::rms_norm(&h, w.n1, eps);
+    let qkv = lm_kernels::matmul_new((&xn, false), wqkv, (rows, 3 * d, d));
+    let (a, probs) = attend(&qkv);
+    let mut h1 = h.clone();
+    lm_kernels::gemm(&mut h1, (&a, false), wo, (rows, d, d), true);
+    let xn = lm_kernels::rms_norm(&h1, w.n2, eps);
+    let ab = lm_kernels::matmul_new((&xn, false), w13, (rows, 2 * f, d));
+    let sig = lm_kernels::gate_sigmoid(&ab, f);
+    let mut h2 = h1.clone();
+    let act = lm_kernels::swiglu(&ab, &sig, f);
+    lm_kernels::gemm(&mut h2, (&act, false), w2, (rows, d, f), true);
+    let trace = BlockTrace {
+        h,
+        qkv,
+        probs,
+        a,
+        h1,
+        ab,
+        sig,
+    };
+    (h2, trace)
 }
 
-/// The values of every weight of a [`PrefixLm`].
-struct Weights<'a> {
-    tok_emb: &'a [f32],
-    proj_w: &'a [f32],
-    proj_b: &'a [f32],
-    blocks: Vec<BlockWeights<'a>>,
-    norm: &'a [f32],
-    head: &'a [f32],
+/// Backward through the block: `gh` holds the gradient of its output on entry and of its
+/// input on return; returns the weights' gradients.
+fn block_backward(
+    c: &PrefixLmConfig,
+    w: &BlockWeights<&[f32]>,
+    t: &BlockTrace,
+    attn: &lm_kernels::Attention,
+    gh: &mut [f32],
+) -> BlockWeights<Vec<f32>> {
+    let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
+    let rows = gh.len() / d;
+    // h2 = h1 + swiglu(ab)·W2ᵀ.
+    let act = lm_kernels::swiglu(&t.ab, &t.sig, f);
+    let g_w2 = lm_kernels::matmul_new((gh, true), (&act, false), (d, f, rows));
+    let g_act = lm_kernels::matmul_new((gh, false), (w.w2, false), (rows, f, d));
+    let g_ab = lm_kernels::swiglu_backward(&t.ab, &t.sig, &g_act, f);
+    // ab = RMSNorm(h1)·W13ᵀ.
+    let xn = lm_kernels::rms_norm(&t.h1, w.n2, eps);
+    let g_w13 = lm_kernels::matmul_new((&g_ab, true), (&xn, false), (2 * f, d, rows));
+    let g_xn = lm_kernels::matmul_new((&g_ab, false), (w.w13, false), (rows, d, 2 * f));
+    let g_n2 = lm_kernels::rms_norm_backward(&t.h1, w.n2, &g_xn, eps, gh);
+    // h1 = h + a·Woᵀ.
+    let g_wo = lm_kernels::matmul_new((gh, true), (&t.a, false), (d, d, rows));
+    let g_a = lm_kernels::matmul_new((gh, false), (w.wo, false), (rows, d, d));
+    let g_qkv = attn.backward(&t.qkv, &t.probs, &g_a);
+    // qkv = RMSNorm(h)·Wqkvᵀ.
+    let xn = lm_kernels::rms_norm(&t.h, w.n1, eps);
+    let g_wqkv = lm_kernels::matmul_new((&g_qkv, true), (&xn, false), (3 * d, d, rows));
+    let g_xn = lm_kernels::matmul_new((&g_qkv, false), (w.wqkv, false), (rows, d, 3 * d));
+    let g_n1 = lm_kernels::rms_norm_backward(&t.h, w.n1, &g_xn, eps, gh);
+    BlockWeights {
+        n1: g_n1,
+        wqkv: g_wqkv,
+        wo: g_wo,
+        n2: g_n2,
+        w13: g_w13,
+        w2: g_w2,
+    }
 }
 
 /// The f32 values of a contiguous CPU tensor's storage.
@@ -136,74 +118,62 @@ struct Trace {
     h: Vec<f32>,
 }
 
+/// The CPU values of every weight, by name.
+type Values<'a> = Weights<&'a [f32]>;
+
 /// The loss of the normalised motion rows `xn` and its gradients with respect to `xn` and
 /// the head weight.
-type HeadLoss<'a> = dyn Fn(&Weights<'_>, &[f32]) -> (f32, Vec<f32>, Vec<f32>) + Sync + 'a;
+type HeadLoss<'a> = dyn Fn(&Values<'_>, &[f32]) -> (f32, Vec<f32>, Vec<f32>) + Sync + 'a;
 
-impl PrefixLm {
-    /// Run `f` with read access to the values of every weight.
-    fn with_weights<R>(&self, f: impl FnOnce(&Weights) -> Result<R>) -> Result<R> {
-        let guards: Vec<_> = self
-            .tensors()
-            .into_iter()
-            .map(|t| t.storage_and_layout())
-            .collect();
-        let v = guards
-            .iter()
-            .map(|(s, l)| cpu_values(s, l))
-            .collect::<Result<Vec<_>>>()?;
-        let blocks = v[3..v.len() - 2]
-            .chunks(6)
-            .map(|b| BlockWeights {
-                n1: b[0],
-                wqkv: b[1],
-                wo: b[2],
-                n2: b[3],
-                w13: b[4],
-                w2: b[5],
-            })
-            .collect();
-        f(&Weights {
-            tok_emb: v[0],
-            proj_w: v[1],
-            proj_b: v[2],
-            blocks,
-            norm: v[v.len() - 2],
-            head: v[v.len() - 1],
-        })
+/// One call: the model (shape, rotary table) and the values of its weights.
+struct Pass<'a> {
+    model: &'a PrefixLm,
+    w: Values<'a>,
+}
+
+/// Run `f` on a pass over `model`'s weights, read-locked while it runs.
+fn with_pass<R>(model: &PrefixLm, f: impl FnOnce(&Pass) -> Result<R>) -> Result<R> {
+    let guards = model.weights.map(Tensor::storage_and_layout);
+    let w = guards.try_map(|_, (storage, layout)| cpu_values(storage, layout))?;
+    f(&Pass { model, w })
+}
+
+impl Pass<'_> {
+    fn config(&self) -> &PrefixLmConfig {
+        &self.model.config
     }
 
-    fn project_text(&self, w: &Weights, text: &[f32]) -> Vec<f32> {
-        let (d, e) = (self.config.d_model, self.config.text_dim);
+    fn project_text(&self, text: &[f32]) -> Vec<f32> {
+        let (d, e) = (self.config().d_model, self.config().text_dim);
         let rows = text.len() / e;
-        let mut out = lm_kernels::matmul_new((text, false), (w.proj_w, true), (rows, d, e));
+        let mut out = lm_kernels::matmul_new((text, false), (self.w.proj_w, true), (rows, d, e));
         out.chunks_mut(d)
-            .for_each(|r| r.iter_mut().zip(w.proj_b).for_each(|(x, b)| *x += b));
+            .for_each(|r| r.iter_mut().zip(self.w.proj_b).for_each(|(x, b)| *x += b));
         out
     }
 
     /// Rows of the input embedding for `tokens`.
-    fn embed(&self, w: &Weights, tokens: &[u32]) -> Vec<f32> {
-        let d = self.config.d_model;
+    fn embed(&self, tokens: &[u32]) -> Vec<f32> {
+        let d = self.config().d_model;
         tokens
             .iter()
-            .flat_map(|&t| &w.tok_emb[t as usize * d..][..d])
+            .flat_map(|&t| &self.w.tok_emb[t as usize * d..][..d])
             .copied()
             .collect()
     }
 
     /// Forward pass through the blocks: the last block's output and, when `keep`, the
     /// blocks' traces.
-    fn run(&self, w: &Weights, batch: &LmBatch, keep: bool) -> Result<Trace> {
-        let (c, layout) = (&self.config, &batch.layout);
-        self.check(layout)?;
+    fn run(&self, batch: &LmBatch, keep: bool) -> Result<Trace> {
+        let layout = &batch.layout;
+        self.model.check(layout)?;
         let attn = self.attention(layout);
-        let mut h = self.embed(w, &batch.inputs);
-        h.extend(self.project_text(w, &batch.text));
+        let mut h = self.embed(&batch.inputs);
+        h.extend(self.project_text(&batch.text));
         let mut blocks = Vec::new();
-        for bw in &w.blocks {
+        for bw in &self.w.blocks {
             let mats = bw.forward_mats();
-            let (next, trace) = Block::forward(c, bw, mats, h, |qkv| attn.forward(qkv));
+            let (next, trace) = block_forward(self.config(), bw, mats, h, |qkv| attn.forward(qkv));
             if keep {
                 blocks.push(trace);
             }
@@ -213,221 +183,224 @@ impl PrefixLm {
     }
 
     /// `RMSNorm(h; norm)` of the motion slots' rows of the last block's output.
-    fn final_norm(&self, w: &Weights, batch: &LmBatch, trace: &Trace) -> Vec<f32> {
-        let rows = batch.inputs.len() * self.config.d_model;
-        lm_kernels::rms_norm(&trace.h[..rows], w.norm, self.config.norm_eps as f32)
+    fn final_norm(&self, batch: &LmBatch, trace: &Trace) -> Vec<f32> {
+        let c = self.config();
+        let rows = batch.inputs.len() * c.d_model;
+        lm_kernels::rms_norm(&trace.h[..rows], self.w.norm, c.norm_eps as f32)
     }
 
     fn attention<'a>(&'a self, layout: &'a SeqLayout) -> lm_kernels::Attention<'a> {
         lm_kernels::Attention {
             layout,
-            rope: &self.rope,
-            heads: self.config.n_heads,
-            d: self.config.d_model,
+            rope: &self.model.rope,
+            heads: self.config().n_heads,
+            d: self.config().d_model,
         }
     }
 
     /// `RMSNorm(h; norm) · headᵀ`, with `headᵀ` read as `head_t`.
-    fn head(&self, w: &Weights, h: &[f32], head_t: Operand) -> Vec<f32> {
-        let (d, v) = (self.config.d_model, self.config.vocab_size());
-        let xn = lm_kernels::rms_norm(h, w.norm, self.config.norm_eps as f32);
+    fn head(&self, h: &[f32], head_t: Operand) -> Vec<f32> {
+        let c = self.config();
+        let (d, v) = (c.d_model, c.vocab_size());
+        let xn = lm_kernels::rms_norm(h, self.w.norm, c.norm_eps as f32);
         lm_kernels::matmul_new((&xn, false), head_t, (h.len() / d, v, d))
     }
 
-    /// [`PrefixLm::forward`].
-    pub(super) fn cpu_forward(&self, batch: &LmBatch) -> Result<Tensor> {
-        let logits = self.with_weights(|w| {
-            let trace = self.run(w, batch, false)?;
-            let h = &trace.h[..batch.inputs.len() * self.config.d_model];
-            Ok(self.head(w, h, (w.head, true)))
-        })?;
-        let rows = batch.inputs.len();
-        Tensor::from_vec(logits, (rows, self.config.vocab_size()), self.device())
-    }
-
-    /// [`PrefixLm::target_log_probs`].
-    pub(super) fn cpu_target_log_probs(&self, batch: &LmBatch) -> Result<Vec<f32>> {
-        self.with_weights(|w| {
-            let trace = self.run(w, batch, false)?;
-            let xn = self.final_norm(w, batch, &trace);
-            let d = self.config.d_model;
-            Ok(head_loss::linear_target_log_probs(
-                &xn,
-                w.head,
-                d,
-                &batch.targets,
-            ))
-        })
-    }
-
-    /// [`PrefixLm::loss_and_grads`]: the head and the loss run fused, on the slots with a
-    /// target only.
-    pub(super) fn cpu_loss_and_grads(&self, batch: &LmBatch) -> Result<(f32, GradStore)> {
-        let d = self.config.d_model;
-        self.loss_and_grads_by(batch, &|w, xn| {
-            head_loss::linear_cross_entropy(xn, w.head, d, &batch.targets)
-        })
-    }
-
-    /// [`PrefixLm::loss_and_grads_with`].
-    pub(super) fn cpu_loss_and_grads_with(
-        &self,
-        batch: &LmBatch,
-        extra: &ExtraLoss<'_>,
-    ) -> Result<(f32, GradStore)> {
-        let (d, v) = (self.config.d_model, self.config.vocab_size());
-        self.loss_and_grads_by(batch, &|w, xn| {
-            let rows = xn.len() / d;
-            let logits = lm_kernels::matmul_new((xn, false), (w.head, true), (rows, v, d));
-            let (mut loss, mut g_logits) = lm_kernels::cross_entropy(&logits, v, &batch.targets);
-            if let Some((term, g_term)) = extra(&logits) {
-                loss += term;
-                g_logits.iter_mut().zip(g_term).for_each(|(g, e)| *g += e);
-            }
-            let g_xn = lm_kernels::matmul_new((&g_logits, false), (w.head, false), (rows, d, v));
-            let g_head = lm_kernels::matmul_new((&g_logits, true), (xn, false), (v, d, rows));
-            (loss, g_xn, g_head)
-        })
-    }
-
-    /// The loss and every weight's gradient, given `head_loss(weights, xn)`: the loss of the
-    /// normalised motion rows `xn` and its gradients with respect to `xn` and the head.
-    fn loss_and_grads_by(
-        &self,
-        batch: &LmBatch,
-        head_loss: &HeadLoss<'_>,
-    ) -> Result<(f32, GradStore)> {
-        let (loss, grads) = lm_kernels::in_pool(|| {
-            self.with_weights(|w| {
-                let trace = self.run(w, batch, true)?;
-                let xn = self.final_norm(w, batch, &trace);
-                let (loss, g_xn, g_head) = head_loss(w, &xn);
-                Ok((loss, self.backward(w, batch, &trace, &g_xn, g_head)))
-            })
-        })?;
-        let mut store = GradStore::default();
-        for (t, g) in self.tensors().into_iter().zip(grads) {
-            store.insert(t, Tensor::from_vec(g, t.shape(), t.device())?);
-        }
-        Ok((loss, store))
-    }
-
     /// Backward pass from the gradients of the normalised motion rows and of the head: the
-    /// gradient of every weight, in [`Self::tensors`] order.
+    /// gradient of every weight.
     fn backward(
         &self,
-        w: &Weights,
         batch: &LmBatch,
         trace: &Trace,
         g_xn: &[f32],
         g_head: Vec<f32>,
-    ) -> Vec<Vec<f32>> {
-        let c = &self.config;
+    ) -> Weights<Vec<f32>> {
+        let c = self.config();
         let (d, v, e, eps) = (c.d_model, c.vocab_size(), c.text_dim, c.norm_eps as f32);
         let motion = batch.inputs.len();
         let attn = self.attention(&batch.layout);
         let hm = &trace.h[..motion * d];
         let mut gh = vec![0f32; trace.h.len()];
-        let g_norm = lm_kernels::rms_norm_backward(hm, w.norm, g_xn, eps, &mut gh[..motion * d]);
-        let mut g_blocks: Vec<BlockGrads> = w
+        let norm = lm_kernels::rms_norm_backward(hm, self.w.norm, g_xn, eps, &mut gh[..motion * d]);
+        let mut blocks: Vec<_> = self
+            .w
             .blocks
             .iter()
             .zip(&trace.blocks)
             .rev()
-            .map(|(bw, bt)| Block::backward(c, bw, bt, &attn, &mut gh))
+            .map(|(bw, bt)| block_backward(c, bw, bt, &attn, &mut gh))
             .collect();
-        g_blocks.reverse();
+        blocks.reverse();
         // Inputs: embedding rows of the motion inputs, projection of the text rows.
-        let mut g_emb = vec![0f32; v * d];
+        let mut tok_emb = vec![0f32; v * d];
         for (&t, g) in batch.inputs.iter().zip(gh.chunks(d)) {
-            let row = &mut g_emb[t as usize * d..][..d];
+            let row = &mut tok_emb[t as usize * d..][..d];
             row.iter_mut().zip(g).for_each(|(a, b)| *a += b);
         }
         let gt = &gh[motion * d..];
-        let g_proj_w =
-            lm_kernels::matmul_new((gt, true), (&batch.text, false), (d, e, gt.len() / d));
-        let mut grads = vec![g_emb, g_proj_w, lm_kernels::column_sums(gt, d)];
-        grads.extend(g_blocks.into_iter().flatten());
-        grads.extend([g_norm, g_head]);
-        grads
+        Weights {
+            tok_emb,
+            proj_w: lm_kernels::matmul_new((gt, true), (&batch.text, false), (d, e, gt.len() / d)),
+            proj_b: lm_kernels::column_sums(gt, d),
+            blocks,
+            norm,
+            head: g_head,
+        }
     }
+}
 
-    /// [`PrefixLm::new_cache`].
-    pub(super) fn cpu_new_cache(&self, layout: &SeqLayout) -> Result<CpuCache> {
-        let (c, d) = (&self.config, self.config.d_model);
-        let (heads, hd, f) = (c.n_heads, c.head_dim(), c.ffn_hidden);
-        // One row per step reads the weights fastest as they are (gemm's matrix-vector path).
-        let transposed = (layout.batch > 1)
-            .then(|| {
-                self.with_weights(|w| {
-                    let t = |b: &BlockWeights| {
-                        [
-                            transpose(b.wqkv, 3 * d, d),
-                            transpose(b.wo, d, d),
-                            transpose(b.w13, 2 * f, d),
-                            transpose(b.w2, d, f),
-                        ]
-                    };
-                    Ok(TransposedWeights {
-                        blocks: w.blocks.iter().map(t).collect(),
-                        head: transpose(w.head, c.vocab_size(), d),
-                    })
+/// [`PrefixLm::forward`].
+pub(super) fn forward(model: &PrefixLm, batch: &LmBatch) -> Result<Tensor> {
+    let logits = with_pass(model, |p| {
+        let trace = p.run(batch, false)?;
+        let h = &trace.h[..batch.inputs.len() * model.config.d_model];
+        Ok(p.head(h, (p.w.head, true)))
+    })?;
+    let rows = batch.inputs.len();
+    Tensor::from_vec(logits, (rows, model.config.vocab_size()), model.device())
+}
+
+/// [`PrefixLm::target_log_probs`].
+pub(super) fn target_log_probs(model: &PrefixLm, batch: &LmBatch) -> Result<Vec<f32>> {
+    with_pass(model, |p| {
+        let trace = p.run(batch, false)?;
+        let xn = p.final_norm(batch, &trace);
+        let d = model.config.d_model;
+        Ok(head_loss::linear_target_log_probs(
+            &xn,
+            p.w.head,
+            d,
+            &batch.targets,
+        ))
+    })
+}
+
+/// [`PrefixLm::loss_and_grads`]: the head and the loss run fused, on the slots with a target
+/// only.
+pub(super) fn loss_and_grads(model: &PrefixLm, batch: &LmBatch) -> Result<(f32, GradStore)> {
+    let d = model.config.d_model;
+    loss_and_grads_by(model, batch, &|w, xn| {
+        head_loss::linear_cross_entropy(xn, w.head, d, &batch.targets)
+    })
+}
+
+/// [`PrefixLm::loss_and_grads_with`].
+pub(super) fn loss_and_grads_with(
+    model: &PrefixLm,
+    batch: &LmBatch,
+    extra: &ExtraLoss<'_>,
+) -> Result<(f32, GradStore)> {
+    let (d, v) = (model.config.d_model, model.config.vocab_size());
+    loss_and_grads_by(model, batch, &|w, xn| {
+        let rows = xn.len() / d;
+        let logits = lm_kernels::matmul_new((xn, false), (w.head, true), (rows, v, d));
+        let (mut loss, mut g_logits) = lm_kernels::cross_entropy(&logits, v, &batch.targets);
+        if let Some((term, g_term)) = extra(&logits) {
+            loss += term;
+            g_logits.iter_mut().zip(g_term).for_each(|(g, e)| *g += e);
+        }
+        let g_xn = lm_kernels::matmul_new((&g_logits, false), (w.head, false), (rows, d, v));
+        let g_head = lm_kernels::matmul_new((&g_logits, true), (xn, false), (v, d, rows));
+        (loss, g_xn, g_head)
+    })
+}
+
+/// The loss and every weight's gradient, given `head_loss(weights, xn)`: the loss of the
+/// normalised motion rows `xn` and its gradients with respect to `xn` and the head.
+fn loss_and_grads_by(
+    model: &PrefixLm,
+    batch: &LmBatch,
+    head_loss: &HeadLoss<'_>,
+) -> Result<(f32, GradStore)> {
+    let (loss, grads) = lm_kernels::in_pool(|| {
+        with_pass(model, |p| {
+            let trace = p.run(batch, true)?;
+            let xn = p.final_norm(batch, &trace);
+            let (loss, g_xn, g_head) = head_loss(&p.w, &xn);
+            Ok((loss, p.backward(batch, &trace, &g_xn, g_head)))
+        })
+    })?;
+    let mut store = GradStore::default();
+    for (t, g) in model.weights.refs().into_iter().zip(grads.into_vec()) {
+        store.insert(t, Tensor::from_vec(g, t.shape(), t.device())?);
+    }
+    Ok((loss, store))
+}
+
+/// [`PrefixLm::new_cache`].
+pub(super) fn new_cache(model: &PrefixLm, layout: &SeqLayout) -> Result<CpuCache> {
+    let c = &model.config;
+    let (d, heads, hd, f) = (c.d_model, c.n_heads, c.head_dim(), c.ffn_hidden);
+    // One row per step reads the weights fastest as they are (gemm's matrix-vector path).
+    let transposed = (layout.batch > 1)
+        .then(|| {
+            with_pass(model, |p| {
+                let t = |b: &BlockWeights<&[f32]>| {
+                    [
+                        transpose(b.wqkv, 3 * d, d),
+                        transpose(b.wo, d, d),
+                        transpose(b.w13, 2 * f, d),
+                        transpose(b.w2, d, f),
+                    ]
+                };
+                Ok(TransposedWeights {
+                    blocks: p.w.blocks.iter().map(t).collect(),
+                    head: transpose(p.w.head, c.vocab_size(), d),
                 })
             })
-            .transpose()?;
-        Ok(CpuCache {
-            layers: (0..c.n_layers)
-                .map(|_| LayerCache::new(layout, heads, hd))
-                .collect(),
-            transposed,
         })
-    }
+        .transpose()?;
+    Ok(CpuCache {
+        layers: (0..c.n_layers)
+            .map(|_| LayerCache::new(layout, heads, hd))
+            .collect(),
+        transposed,
+    })
+}
 
-    /// [`PrefixLm::forward_cached`] (arguments checked there).
-    pub(super) fn cpu_forward_cached(
-        &self,
-        cache: &mut CpuCache,
-        layout: &SeqLayout,
-        text: &[f32],
-        tokens: &[u32],
-        (from, to): (usize, usize),
-    ) -> Result<Tensor> {
-        let (c, p, n_new) = (&self.config, layout.prefix_slots, to - from);
-        let d = c.d_model;
-        let logits = self.with_weights(|w| {
-            let projected = if from < p {
-                self.project_text(w, text)
-            } else {
-                Vec::new()
-            };
-            let motion = self.embed(w, tokens);
-            let per_seq = to - from.max(p);
-            let mut h = Vec::with_capacity(layout.batch * n_new * d);
-            for b in 0..layout.batch {
-                for s in from..to.min(p) {
-                    h.extend_from_slice(&projected[(b * p + s) * d..][..d]);
-                }
-                h.extend_from_slice(&motion[b * per_seq * d..][..per_seq * d]);
+/// [`PrefixLm::forward_cached`] (arguments checked there).
+pub(super) fn forward_cached(
+    model: &PrefixLm,
+    cache: &mut CpuCache,
+    layout: &SeqLayout,
+    text: &[f32],
+    tokens: &[u32],
+    (from, to): (usize, usize),
+) -> Result<Tensor> {
+    let (c, p, n_new) = (&model.config, layout.prefix_slots, to - from);
+    let d = c.d_model;
+    let logits = with_pass(model, |pass| {
+        let projected = match from < p {
+            true => pass.project_text(text),
+            false => Vec::new(),
+        };
+        let motion = pass.embed(tokens);
+        let per_seq = to - from.max(p);
+        let mut h = Vec::with_capacity(layout.batch * n_new * d);
+        for b in 0..layout.batch {
+            for s in from..to.min(p) {
+                h.extend_from_slice(&projected[(b * p + s) * d..][..d]);
             }
-            let attn = self.attention(layout);
-            let t = cache.transposed.as_ref();
-            for (i, (bw, layer)) in w.blocks.iter().zip(&mut cache.layers).enumerate() {
-                let attend = |qkv: &[f32]| (attn.cached(qkv, layer, (from, to)), Vec::new());
-                let mats = t.map_or(bw.forward_mats(), |t| {
-                    t.blocks[i].each_ref().map(|m| (m.as_slice(), false))
-                });
-                h = Block::forward(c, bw, mats, h, attend).0;
-            }
-            let last: Vec<f32> = h
-                .chunks(n_new * d)
-                .flat_map(|rows| &rows[(n_new - 1) * d..])
-                .copied()
-                .collect();
-            let head_t = t.map_or((w.head, true), |t| (t.head.as_slice(), false));
-            Ok(self.head(w, &last, head_t))
-        })?;
-        Tensor::from_vec(logits, (layout.batch, c.vocab_size()), self.device())
-    }
+            h.extend_from_slice(&motion[b * per_seq * d..][..per_seq * d]);
+        }
+        let attn = pass.attention(layout);
+        let t = cache.transposed.as_ref();
+        for (i, (bw, layer)) in pass.w.blocks.iter().zip(&mut cache.layers).enumerate() {
+            let attend = |qkv: &[f32]| (attn.cached(qkv, layer, (from, to)), Vec::new());
+            let mats = t.map_or(bw.forward_mats(), |t| {
+                t.blocks[i].each_ref().map(|m| (m.as_slice(), false))
+            });
+            h = block_forward(c, bw, mats, h, attend).0;
+        }
+        let last: Vec<f32> = h
+            .chunks(n_new * d)
+            .flat_map(|rows| &rows[(n_new - 1) * d..])
+            .copied()
+            .collect();
+        let head_t = t.map_or((pass.w.head, true), |t| (t.head.as_slice(), false));
+        Ok(pass.head(&last, head_t))
+    })?;
+    Tensor::from_vec(logits, (layout.batch, c.vocab_size()), model.device())
 }
 
 /// What cached decoding keeps between steps on the CPU: each layer's keys and values and,

@@ -16,8 +16,8 @@
 //! products take bf16 operands (weights cast from their f32 masters on every call, so the
 //! gradients reach the masters in f32), as PyTorch's autocast does.
 
-use super::grid::{grid_inputs, linear, target_rows, AttentionInputs, GraphWeights, Grid};
-use super::{ExtraLoss, LmBatch, PrefixLm};
+use super::grid::{cast, grid_inputs, linear, target_rows, AttentionInputs, Grid};
+use super::{BlockWeights, ExtraLoss, LmBatch, PrefixLm, Weights};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var, D};
 use nn::fused_ops::{masked_softmax, qkv_heads, rms_norm, swiglu_rows, weighted_cross_entropy};
@@ -26,7 +26,7 @@ use nn::seq_layout::SeqLayout;
 /// One forward call: the model, its weights as cast, and the product dtype.
 struct Pass<'a> {
     model: &'a PrefixLm,
-    w: GraphWeights,
+    w: Weights<Tensor>,
     dtype: DType,
 }
 
@@ -63,7 +63,14 @@ impl Pass<'_> {
         h: Tensor,
         attention: impl FnOnce(&Tensor) -> Result<Tensor>,
     ) -> Result<Tensor> {
-        let [n1, wqkv, wo, n2, w13, w2] = &self.w.blocks[i];
+        let BlockWeights {
+            n1,
+            wqkv,
+            wo,
+            n2,
+            w13,
+            w2,
+        } = &self.w.blocks[i];
         let qkv = linear(&rms_norm(&h, n1, self.eps())?, wqkv)?;
         let h = (&h + linear(&attention(&qkv)?, wo)?)?;
         let ab = linear(&rms_norm(&h, n2, self.eps())?, w13)?;
@@ -117,15 +124,15 @@ impl Pass<'_> {
 
 /// A pass over `model`'s own weights.
 fn pass(model: &PrefixLm) -> Result<Pass<'_>> {
-    let tensors: Vec<Tensor> = model.tensors().into_iter().cloned().collect();
-    pass_over(model, &tensors)
+    pass_over(model, &model.weights)
 }
 
-fn pass_over<'a>(model: &'a PrefixLm, tensors: &[Tensor]) -> Result<Pass<'a>> {
+/// A pass of `model` over `weights` (its own, or leaves standing for them).
+fn pass_over<'a>(model: &'a PrefixLm, weights: &Weights<Tensor>) -> Result<Pass<'a>> {
     let dtype = model.compute.precision.compute_dtype();
     Ok(Pass {
         model,
-        w: GraphWeights::cast(tensors, dtype)?,
+        w: cast(weights, dtype)?,
         dtype,
     })
 }
@@ -168,14 +175,10 @@ pub(super) fn loss_and_grads(
     model.check(&batch.layout)?;
     // Every weight a leaf of the graph: candle keeps the gradients of variables only, and a
     // merged LoRA weight is an intermediate tensor.
-    let own = model.tensors();
-    let leaves: Vec<Tensor> = own
-        .iter()
-        .map(|t| match t.is_variable() {
-            true => Ok((*t).clone()),
-            false => Ok(Var::from_tensor(t)?.into_inner()),
-        })
-        .collect::<Result<_>>()?;
+    let leaves = model.weights.try_map(|_, t| match t.is_variable() {
+        true => Ok(t.clone()),
+        false => Ok(Var::from_tensor(t)?.into_inner()),
+    })?;
     let p = pass_over(model, &leaves)?;
     let device = model.device();
     let (rows, targets) = target_rows(batch);
@@ -205,13 +208,8 @@ pub(super) fn loss_and_grads(
         }
     };
     let grads = objective.backward()?;
-    let mut store = GradStore::default();
-    for (t, leaf) in own.into_iter().zip(&leaves) {
-        if let Some(g) = grads.get(leaf) {
-            store.insert(t, g.clone());
-        }
-    }
-    Ok((loss, store))
+    let grads = leaves.map(|leaf| grads.get(leaf).cloned());
+    Ok((loss, model.weights.grad_store(grads)?))
 }
 
 /// Mean cross-entropy of the f32 `logits` rows of weight 1 against their `targets` (`n` of
@@ -242,7 +240,7 @@ fn cross_entropy(logits: &Tensor, targets: &[u32], device: &Device) -> Result<Te
 /// weights as the first step cast them (every later step multiplies by the same).
 pub(super) struct GraphCache {
     layers: Vec<Option<(Tensor, Tensor)>>,
-    weights: Option<GraphWeights>,
+    weights: Option<Weights<Tensor>>,
 }
 
 impl GraphCache {

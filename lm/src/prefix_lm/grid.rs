@@ -1,53 +1,20 @@
 //! The dense (sequence, slot) grid that both candle executors of the prefix LM run on (the
-//! graph executor, `graph.rs`, and the one with hand-written GPU backwards, `fused.rs`): the
+//! graph executor, `graph.rs`, and the GPU executor with hand-written backwards, `gpu.rs`): the
 //! weights as one call casts them, where a batch's real slots sit in the grid, the inputs
 //! gathered onto it, the attention's inputs and the rows that carry a target.
 
-use super::{LmBatch, PrefixLm};
+use super::{LmBatch, PrefixLm, Role, Weights};
 use candle_core::{DType, Device, Result, Tensor};
 use nn::fused_ops::PrefixMask;
 use nn::lm_kernels::IGNORE;
 use nn::seq_layout::SeqLayout;
 
-/// The weights as one call uses them: matrices in the compute dtype, the rest f32.
-pub(super) struct GraphWeights {
-    pub(super) tok_emb: Tensor,
-    pub(super) proj_w: Tensor,
-    pub(super) proj_b: Tensor,
-    /// Per block: n1, Wqkv, Wo, n2, W13, W2.
-    pub(super) blocks: Vec<[Tensor; 6]>,
-    pub(super) norm: Tensor,
-    pub(super) head: Tensor,
-}
-
-impl GraphWeights {
-    /// `tensors` (in [`PrefixLm::tensors`] order) cast for `dtype` products.
-    pub(super) fn cast(tensors: &[Tensor], dtype: DType) -> Result<Self> {
-        let f32 = |t: &Tensor| t.to_dtype(DType::F32);
-        let mat = |t: &Tensor| t.to_dtype(dtype);
-        let n = tensors.len();
-        let blocks = tensors[3..n - 2]
-            .chunks(6)
-            .map(|b| {
-                Ok([
-                    f32(&b[0])?,
-                    mat(&b[1])?,
-                    mat(&b[2])?,
-                    f32(&b[3])?,
-                    mat(&b[4])?,
-                    mat(&b[5])?,
-                ])
-            })
-            .collect::<Result<_>>()?;
-        Ok(Self {
-            tok_emb: f32(&tensors[0])?,
-            proj_w: mat(&tensors[1])?,
-            proj_b: f32(&tensors[2])?,
-            blocks,
-            norm: f32(&tensors[n - 2])?,
-            head: mat(&tensors[n - 1])?,
-        })
-    }
+/// The weights as one call uses them: matrices in the product dtype `dtype`, the rest f32.
+pub(super) fn cast(w: &Weights<Tensor>, dtype: DType) -> Result<Weights<Tensor>> {
+    w.try_map(|role, t| match role {
+        Role::Matrix => t.to_dtype(dtype),
+        Role::Embedding | Role::Vector => t.to_dtype(DType::F32),
+    })
 }
 
 /// `x · Wᵀ` of f32 rows with `W` in its compute dtype; f32 out.
@@ -72,7 +39,7 @@ pub(super) struct InputTape {
 /// The block inputs of the grid: one-hot motion tokens times the embedding, plus the
 /// projected captions (`text_dim` wide) on real text slots; zero on padding slots.
 pub(super) fn grid_inputs(
-    w: &GraphWeights,
+    w: &Weights<Tensor>,
     text_dim: usize,
     batch: &LmBatch,
     grid: &Grid,

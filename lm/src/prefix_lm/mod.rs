@@ -28,19 +28,22 @@
 //! - [`Executor::Graph`] (`graph.rs`): the same model in candle's differentiable ops and the
 //!   fused ops of [`nn::fused_ops`], on any device and in f32 or bf16 ([`Precision`]);
 //!   candle's autograd gives the gradients.
-//! - [`Executor::Fused`] (`fused.rs`): the graph executor's model with a forward trace and the
-//!   backward written out (no autograd graph) for training; its inference is `Graph`'s.
+//! - [`Executor::Gpu`] (`gpu.rs`): the graph executor's model with a forward trace and the
+//!   backward written out (no autograd graph), for training on a GPU; its inference is
+//!   `Graph`'s.
 //!
-//! The executor follows the weights: f32 on the CPU runs `Cpu`, anything else `Fused`;
+//! Each executor is a module of free functions of the same shape (`forward(model, batch)`,
+//! `loss_and_grads(model, batch, …)`, …) reading the weights by name ([`Weights`]).
+//! The executor follows the weights: f32 on the CPU runs `Cpu`, anything else `Gpu`;
 //! [`Compute::executor`] forces one (tests and comparisons). Tests check that they agree
 //! on the loss, every gradient, the logits and KV-cached decoding.
 
 mod cpu;
-mod fused;
+mod gpu;
 mod graph;
 mod grid;
 
-pub use fused::{record_stage_times, stage_times};
+pub use gpu::StageClock;
 #[cfg(test)]
 mod tests;
 
@@ -149,7 +152,7 @@ impl PrefixLmConfig {
 
     /// Check that the shape is buildable.
     pub fn validate(&self) -> std::result::Result<(), ModelError> {
-        let bad = |m: String| Err(ModelError::Argument(m));
+        let bad = |m: String| Err(ModelError::argument("model shape", m));
         if self.d_model == 0 || self.n_layers == 0 || self.n_heads == 0 || self.ffn_hidden == 0 {
             return bad(format!("empty model shape {self:?}"));
         }
@@ -288,34 +291,143 @@ fn matrix(vb: &VarBuilder, rows: usize, cols: usize, name: &str) -> Result<Tenso
     vb.get_with_hints((rows, cols), name, Init::Const(0.0))
 }
 
-/// One pre-norm block: `h += Wo·attn(Wqkv·RMSNorm(h; n1)); h += W2·swiglu(W13·RMSNorm(h; n2))`.
+/// The model's weights by name (the keys of the table above), whatever holds each one: the
+/// model's tensors, one call's cast copies, the CPU executor's values, their gradients.
 #[derive(Debug, Clone)]
-struct Block {
-    n1: Tensor,
-    wqkv: Tensor,
-    wo: Tensor,
-    n2: Tensor,
-    w13: Tensor,
-    w2: Tensor,
+pub(crate) struct Weights<T> {
+    pub(crate) tok_emb: T,
+    pub(crate) proj_w: T,
+    pub(crate) proj_b: T,
+    pub(crate) blocks: Vec<BlockWeights<T>>,
+    pub(crate) norm: T,
+    pub(crate) head: T,
 }
 
-impl Block {
-    fn new(c: &PrefixLmConfig, vb: VarBuilder) -> Result<Self> {
-        let (d, f) = (c.d_model, c.ffn_hidden);
-        Ok(Self {
-            n1: vb.pp("n1").get_with_hints(d, "weight", Init::Const(1.0))?,
-            wqkv: matrix(&vb.pp("attn.wqkv"), 3 * d, d, "weight")?,
-            wo: matrix(&vb.pp("attn.wo"), d, d, "weight")?,
-            n2: vb.pp("n2").get_with_hints(d, "weight", Init::Const(1.0))?,
-            w13: matrix(&vb.pp("ffn.w13"), 2 * f, d, "weight")?,
-            w2: matrix(&vb.pp("ffn.w2"), d, f, "weight")?,
+/// One pre-norm block's weights: `h += Wo·attn(Wqkv·RMSNorm(h; n1)); h += W2·swiglu(W13·RMSNorm(h; n2))`.
+#[derive(Debug, Clone)]
+pub(crate) struct BlockWeights<T> {
+    pub(crate) n1: T,
+    pub(crate) wqkv: T,
+    pub(crate) wo: T,
+    pub(crate) n2: T,
+    pub(crate) w13: T,
+    pub(crate) w2: T,
+}
+
+/// What a weight is to the executors: a matrix of a product (cast to the product dtype), the
+/// embedding table (rows gathered or one-hot multiplied in f32), or a vector (norm scales, bias).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Role {
+    Matrix,
+    Embedding,
+    Vector,
+}
+
+impl<T> BlockWeights<T> {
+    fn try_map_any<'a, U, E>(
+        &'a self,
+        f: &mut impl FnMut(Role, &'a T) -> std::result::Result<U, E>,
+    ) -> std::result::Result<BlockWeights<U>, E> {
+        Ok(BlockWeights {
+            n1: f(Role::Vector, &self.n1)?,
+            wqkv: f(Role::Matrix, &self.wqkv)?,
+            wo: f(Role::Matrix, &self.wo)?,
+            n2: f(Role::Vector, &self.n2)?,
+            w13: f(Role::Matrix, &self.w13)?,
+            w2: f(Role::Matrix, &self.w2)?,
         })
     }
 
-    fn tensors(&self) -> [&Tensor; 6] {
-        [
-            &self.n1, &self.wqkv, &self.wo, &self.n2, &self.w13, &self.w2,
-        ]
+    fn into_array(self) -> [T; 6] {
+        [self.n1, self.wqkv, self.wo, self.n2, self.w13, self.w2]
+    }
+}
+
+impl<T> Weights<T> {
+    fn try_map_any<'a, U, E>(
+        &'a self,
+        mut f: impl FnMut(Role, &'a T) -> std::result::Result<U, E>,
+    ) -> std::result::Result<Weights<U>, E> {
+        Ok(Weights {
+            tok_emb: f(Role::Embedding, &self.tok_emb)?,
+            proj_w: f(Role::Matrix, &self.proj_w)?,
+            proj_b: f(Role::Vector, &self.proj_b)?,
+            blocks: self
+                .blocks
+                .iter()
+                .map(|b| b.try_map_any(&mut f))
+                .collect::<std::result::Result<_, E>>()?,
+            norm: f(Role::Vector, &self.norm)?,
+            head: f(Role::Matrix, &self.head)?,
+        })
+    }
+
+    /// The same names, each weight mapped by `f` (given its role).
+    pub(crate) fn try_map<'a, U>(
+        &'a self,
+        f: impl FnMut(Role, &'a T) -> Result<U>,
+    ) -> Result<Weights<U>> {
+        self.try_map_any(f)
+    }
+
+    /// The same names, each weight mapped by `f`.
+    pub(crate) fn map<'a, U>(&'a self, mut f: impl FnMut(&'a T) -> U) -> Weights<U> {
+        let mapped: std::result::Result<_, std::convert::Infallible> =
+            self.try_map_any(|_, t| Ok(f(t)));
+        mapped.unwrap_or_else(|never| match never {})
+    }
+
+    /// Every weight, by reference, in [`Self::into_vec`]'s order.
+    pub(crate) fn refs(&self) -> Vec<&T> {
+        self.map(|t| t).into_vec()
+    }
+
+    /// Every weight in a fixed order (embedding, projection, blocks, norm, head).
+    pub(crate) fn into_vec(self) -> Vec<T> {
+        let mut all = vec![self.tok_emb, self.proj_w, self.proj_b];
+        all.extend(self.blocks.into_iter().flat_map(BlockWeights::into_array));
+        all.extend([self.norm, self.head]);
+        all
+    }
+}
+
+impl Weights<Tensor> {
+    fn new(config: &PrefixLmConfig, vb: &VarBuilder) -> Result<Self> {
+        let (d, f, v) = (config.d_model, config.ffn_hidden, config.vocab_size());
+        let vector =
+            |vb: VarBuilder, name: &str, init: f64| vb.get_with_hints(d, name, Init::Const(init));
+        let block = |vb: VarBuilder| -> Result<BlockWeights<Tensor>> {
+            Ok(BlockWeights {
+                n1: vector(vb.pp("n1"), "weight", 1.0)?,
+                wqkv: matrix(&vb.pp("attn.wqkv"), 3 * d, d, "weight")?,
+                wo: matrix(&vb.pp("attn.wo"), d, d, "weight")?,
+                n2: vector(vb.pp("n2"), "weight", 1.0)?,
+                w13: matrix(&vb.pp("ffn.w13"), 2 * f, d, "weight")?,
+                w2: matrix(&vb.pp("ffn.w2"), d, f, "weight")?,
+            })
+        };
+        Ok(Self {
+            tok_emb: matrix(&vb.pp("tok_emb"), v, d, "weight")?,
+            proj_w: matrix(&vb.pp("prefix_proj"), d, config.text_dim, "weight")?,
+            proj_b: vector(vb.pp("prefix_proj"), "bias", 0.0)?,
+            blocks: (0..config.n_layers)
+                .map(|i| block(vb.pp(format!("blocks.{i}"))))
+                .collect::<Result<_>>()?,
+            norm: vector(vb.pp("norm"), "weight", 1.0)?,
+            head: matrix(&vb.pp("head"), v, d, "weight")?,
+        })
+    }
+
+    /// A `GradStore` keyed by these tensors from their gradients (absent ones left out),
+    /// each reshaped to its weight's shape.
+    pub(crate) fn grad_store(&self, grads: Weights<Option<Tensor>>) -> Result<GradStore> {
+        let mut store = GradStore::default();
+        for (t, g) in self.refs().into_iter().zip(grads.into_vec()) {
+            if let Some(g) = g {
+                store.insert(t, g.reshape(t.shape())?);
+            }
+        }
+        Ok(store)
     }
 }
 
@@ -327,9 +439,12 @@ pub enum Executor {
     Cpu,
     /// candle's differentiable ops with autograd, on any device and dtype.
     Graph,
-    /// The graph executor's model and fused ops with the backward written out (no autograd
-    /// graph): training off the CPU; inference runs the graph executor.
-    Fused,
+    /// The GPU executor: the graph executor's model and fused ops with the backward written out
+    /// (no autograd graph), for training off the CPU (it runs wherever candle's tensors do);
+    /// inference runs the graph executor. Named `fused` before 2026-11-29.
+    #[serde(alias = "fused")]
+    #[value(alias = "fused")]
+    Gpu,
 }
 
 /// How a model computes: the executor (by default the one its weights call for) and the
@@ -352,12 +467,7 @@ pub type ExtraLoss<'a> = dyn Fn(&[f32]) -> Option<(f32, Vec<f32>)> + Sync + 'a;
 #[derive(Debug, Clone)]
 pub struct PrefixLm {
     config: PrefixLmConfig,
-    tok_emb: Tensor,
-    proj_w: Tensor,
-    proj_b: Tensor,
-    blocks: Vec<Block>,
-    norm: Tensor,
-    head: Tensor,
+    weights: Weights<Tensor>,
     rope: Rope,
     compute: Compute,
 }
@@ -369,21 +479,8 @@ impl PrefixLm {
         config
             .validate()
             .map_err(|e| candle_core::Error::Msg(e.to_string()))?;
-        let (d, v) = (config.d_model, config.vocab_size());
-        let blocks = (0..config.n_layers)
-            .map(|i| Block::new(config, vb.pp(format!("blocks.{i}"))))
-            .collect::<Result<_>>()?;
         Ok(Self {
-            tok_emb: matrix(&vb.pp("tok_emb"), v, d, "weight")?,
-            proj_w: matrix(&vb.pp("prefix_proj"), d, config.text_dim, "weight")?,
-            proj_b: vb
-                .pp("prefix_proj")
-                .get_with_hints(d, "bias", Init::Const(0.0))?,
-            blocks,
-            norm: vb
-                .pp("norm")
-                .get_with_hints(d, "weight", Init::Const(1.0))?,
-            head: matrix(&vb.pp("head"), v, d, "weight")?,
+            weights: Weights::new(config, &vb)?,
             rope: Rope::new(config.head_dim(), config.rope_base, config.max_positions),
             config: config.clone(),
             compute: Compute::default(),
@@ -403,36 +500,28 @@ impl PrefixLm {
 
     /// The device of the weights.
     pub fn device(&self) -> &Device {
-        self.head.device()
+        self.weights.head.device()
     }
 
     /// The executor that runs the model: the forced one, else `Cpu` for f32 CPU weights in
-    /// f32 and `Fused` for anything else (whose inference is `Graph`'s). Forcing `Cpu` on
+    /// f32 and `Gpu` for anything else (whose inference is `Graph`'s). Forcing `Cpu` on
     /// other weights is an error.
     pub fn executor(&self) -> Result<Executor> {
-        let cpu_ok = self.head.device().is_cpu()
-            && self.head.dtype() == DType::F32
+        let cpu_ok = self.weights.head.device().is_cpu()
+            && self.weights.head.dtype() == DType::F32
             && self.compute.precision == Precision::F32;
         match self.compute.executor {
             Some(Executor::Cpu) if !cpu_ok => candle_core::bail!(
                 "the cpu executor runs f32 weights on the CPU in f32 (weights {:?} on {}, \
                  precision {}): use the graph executor",
-                self.head.dtype(),
-                nn::device::device_name(self.head.device()),
+                self.weights.head.dtype(),
+                nn::device::device_name(self.weights.head.device()),
                 self.compute.precision
             ),
             Some(e) => Ok(e),
             None if cpu_ok => Ok(Executor::Cpu),
-            None => Ok(Executor::Fused),
+            None => Ok(Executor::Gpu),
         }
-    }
-
-    /// Every weight, in a fixed order (embedding, projection, blocks, norm, head).
-    fn tensors(&self) -> Vec<&Tensor> {
-        let mut t = vec![&self.tok_emb, &self.proj_w, &self.proj_b];
-        t.extend(self.blocks.iter().flat_map(Block::tensors));
-        t.extend([&self.norm, &self.head]);
-        t
     }
 
     fn check(&self, layout: &SeqLayout) -> Result<()> {
@@ -450,8 +539,8 @@ impl PrefixLm {
     /// weights' device.
     pub fn forward(&self, batch: &LmBatch) -> Result<Tensor> {
         match self.executor()? {
-            Executor::Cpu => self.cpu_forward(batch),
-            Executor::Graph | Executor::Fused => graph::forward(self, batch),
+            Executor::Cpu => cpu::forward(self, batch),
+            Executor::Graph | Executor::Gpu => graph::forward(self, batch),
         }
     }
 
@@ -459,8 +548,8 @@ impl PrefixLm {
     /// head runs only on the slots with a target.
     pub fn target_log_probs(&self, batch: &LmBatch) -> Result<Vec<f32>> {
         match self.executor()? {
-            Executor::Cpu => self.cpu_target_log_probs(batch),
-            Executor::Graph | Executor::Fused => graph::target_log_probs(self, batch),
+            Executor::Cpu => cpu::target_log_probs(self, batch),
+            Executor::Graph | Executor::Gpu => graph::target_log_probs(self, batch),
         }
     }
 
@@ -469,9 +558,27 @@ impl PrefixLm {
     /// weights' device).
     pub fn loss_and_grads(&self, batch: &LmBatch) -> Result<(f32, GradStore)> {
         match self.executor()? {
-            Executor::Cpu => self.cpu_loss_and_grads(batch),
+            Executor::Cpu => cpu::loss_and_grads(self, batch),
             Executor::Graph => graph::loss_and_grads(self, batch, None),
-            Executor::Fused => fused::loss_and_grads(self, batch),
+            Executor::Gpu => gpu::loss_and_grads(self, batch, None),
+        }
+    }
+
+    /// [`Self::loss_and_grads`], with `clock` told as each stage of the step ends: the GPU
+    /// executor's stages (where a GPU step spends its time); the other executors' whole step
+    /// is one stage, `step`.
+    pub fn loss_and_grads_timed(
+        &self,
+        batch: &LmBatch,
+        clock: &dyn StageClock,
+    ) -> Result<(f32, GradStore)> {
+        match self.executor()? {
+            Executor::Gpu => gpu::loss_and_grads(self, batch, Some(clock)),
+            Executor::Cpu | Executor::Graph => {
+                let out = self.loss_and_grads(batch)?;
+                clock.stage_done("step")?;
+                Ok(out)
+            }
         }
     }
 
@@ -483,17 +590,17 @@ impl PrefixLm {
         extra: &ExtraLoss<'_>,
     ) -> Result<(f32, GradStore)> {
         match self.executor()? {
-            Executor::Cpu => self.cpu_loss_and_grads_with(batch, extra),
+            Executor::Cpu => cpu::loss_and_grads_with(self, batch, extra),
             // The extra term's gradient enters at the logits: the graph executor's autograd.
-            Executor::Graph | Executor::Fused => graph::loss_and_grads(self, batch, Some(extra)),
+            Executor::Graph | Executor::Gpu => graph::loss_and_grads(self, batch, Some(extra)),
         }
     }
 
     /// An empty decoding cache for sequences laid out by `layout`.
     pub fn new_cache(&self, layout: &SeqLayout) -> Result<DecodeCache> {
         Ok(DecodeCache(match self.executor()? {
-            Executor::Cpu => CacheKind::Cpu(self.cpu_new_cache(layout)?),
-            Executor::Graph | Executor::Fused => {
+            Executor::Cpu => CacheKind::Cpu(cpu::new_cache(self, layout)?),
+            Executor::Graph | Executor::Gpu => {
                 CacheKind::Graph(graph::GraphCache::new(self.config.n_layers))
             }
         }))
@@ -520,7 +627,7 @@ impl PrefixLm {
             )
         }
         match &mut cache.0 {
-            CacheKind::Cpu(c) => self.cpu_forward_cached(c, layout, text, tokens, (from, to)),
+            CacheKind::Cpu(c) => cpu::forward_cached(self, c, layout, text, tokens, (from, to)),
             CacheKind::Graph(c) => graph::forward_cached(self, c, layout, text, tokens, (from, to)),
         }
     }

@@ -215,7 +215,7 @@ fn executors_agree_on_the_loss_and_every_gradient() {
     let (model, varmap) = init_model(&config, 11, &Device::Cpu).unwrap();
     let vars = varmap.data().lock().unwrap().clone();
     let batch = two_clips(&config);
-    for other in [Executor::Graph, Executor::Fused] {
+    for other in [Executor::Graph, Executor::Gpu] {
         let (loss, grads) = loss_and_grad_agreement(&model, &vars, &batch, (other, None));
         eprintln!("{other:?} vs cpu: loss {loss:.2e}, gradients {grads:.2e} (relative)");
         assert!(loss <= 1e-5, "{other:?}: losses differ by {loss:.2e}");
@@ -270,7 +270,7 @@ fn executors_agree_after_40_training_steps() {
         cpu[39] < cpu[0] - 0.5,
         "training did not reduce the loss: {cpu:?}"
     );
-    for other in [Executor::Graph, Executor::Fused] {
+    for other in [Executor::Graph, Executor::Gpu] {
         let losses = training_losses(other, Precision::F32, 40);
         let worst = cpu
             .iter()
@@ -288,7 +288,7 @@ fn executors_agree_after_40_training_steps() {
 #[test]
 fn bf16_training_follows_f32_within_bf16_rounding() {
     let f32 = training_losses(Executor::Graph, Precision::F32, 40);
-    for executor in [Executor::Graph, Executor::Fused] {
+    for executor in [Executor::Graph, Executor::Gpu] {
         let bf16 = training_losses(executor, Precision::Bf16, 40);
         let worst = f32
             .iter()
@@ -325,28 +325,50 @@ fn the_cpu_executor_refuses_what_it_cannot_run() {
         executor: None,
         precision: Precision::Bf16,
     });
-    assert_eq!(graph.executor().unwrap(), Executor::Fused);
+    assert_eq!(graph.executor().unwrap(), Executor::Gpu);
+}
+
+/// A clock that lists the stages it is told of.
+struct StageNames(std::cell::RefCell<Vec<&'static str>>);
+
+impl StageClock for StageNames {
+    fn stage_done(&self, stage: &'static str) -> Result<()> {
+        self.0.borrow_mut().push(stage);
+        Ok(())
+    }
 }
 
 #[test]
-fn the_fused_executor_times_its_stages_when_asked() {
+fn the_gpu_executor_tells_a_clock_its_stages() {
     let config = tiny();
     let (model, _) = init_model(&config, 5, &Device::Cpu).unwrap();
-    let fused = on(&model, Executor::Fused);
+    let gpu = on(&model, Executor::Gpu);
     let batch = two_clips(&config);
-    fused.loss_and_grads(&batch).unwrap();
-    assert!(stage_times().is_empty(), "timed while off");
-    record_stage_times(true);
-    for _ in 0..2 {
-        fused.loss_and_grads(&batch).unwrap();
-    }
-    let stages = stage_times();
-    record_stage_times(false);
-    let names: Vec<&str> = stages.iter().map(|(n, _)| n.as_str()).collect();
-    assert_eq!(stages.len(), 11, "{names:?}");
-    assert!(
-        names.contains(&"backward: output product, attention"),
-        "{names:?}"
+    let (plain, _) = gpu.loss_and_grads(&batch).unwrap();
+    let clock = StageNames(Default::default());
+    let (timed, _) = gpu.loss_and_grads_timed(&batch, &clock).unwrap();
+    assert_eq!(plain, timed);
+    let first = clock.0.borrow().clone();
+    gpu.loss_and_grads_timed(&batch, &clock).unwrap();
+    assert_eq!(
+        clock.0.borrow()[first.len()..],
+        first[..],
+        "a step's stages differ"
     );
-    assert!(stages.iter().all(|(_, ms)| *ms >= 0.0 && ms.is_finite()));
+    let names: std::collections::BTreeSet<_> = first.iter().collect();
+    assert_eq!(names.len(), 11, "{names:?}");
+    assert!(names.contains(&"backward: output product, attention"));
+    assert_eq!(first.last(), Some(&"loss"));
+    let cpu = StageNames(Default::default());
+    model.loss_and_grads_timed(&batch, &cpu).unwrap();
+    assert_eq!(cpu.0.into_inner(), ["step"]);
+}
+
+#[test]
+fn the_gpu_executor_keeps_its_old_name_as_an_alias() {
+    use clap::ValueEnum;
+    assert_eq!(Executor::from_str("fused", false), Ok(Executor::Gpu));
+    let old: Compute = serde_json::from_str(r#"{"executor": "fused"}"#).unwrap();
+    assert_eq!(old.executor, Some(Executor::Gpu));
+    assert_eq!(serde_json::to_string(&Executor::Gpu).unwrap(), "\"gpu\"");
 }

@@ -1,4 +1,4 @@
-//! The fused executor of the prefix LM's training step: the graph executor's model (same
+//! The GPU executor of the prefix LM's training step: the graph executor's model (same
 //! weights, casts and fused ops of `nn::fused_ops`) with the structure of the cpu executor:
 //! the forward records what the backward needs, and the backward is written out, so no
 //! autograd graph is built (candle's backward allocates a zero tensor and adds into it for
@@ -9,77 +9,21 @@
 //! backward casts the output gradient once and gives `dx = (dy · W)` and `dW = dyᵀ · x` in
 //! f32, as the graph executor's autograd does through the same casts.
 
-use super::grid::{
-    cast_linear as linear, grid_inputs, target_rows, AttentionInputs, GraphWeights, Grid,
-};
-use super::{LmBatch, PrefixLm};
+use super::grid::{cast, cast_linear as linear, grid_inputs, target_rows, AttentionInputs, Grid};
+use super::{BlockWeights, LmBatch, PrefixLm, Weights};
 use candle_core::backprop::GradStore;
-use candle_core::{DType, Device, Result, Tensor};
+use candle_core::{DType, Result, Tensor};
 use nn::fused_ops::{
     masked_softmax, masked_softmax_backward, qkv_heads, qkv_heads_backward, rms_norm,
     rms_norm_backward, swiglu_backward_rows, swiglu_rows, weighted_cross_entropy,
     weighted_cross_entropy_backward,
 };
-use std::cell::RefCell;
-use std::collections::BTreeMap;
-use std::time::Instant;
 
-thread_local! {
-    /// Seconds per stage and calls, while [`record_stage_times`] is on (this thread).
-    static STAGES: RefCell<Option<BTreeMap<&'static str, (f64, usize)>>> = const { RefCell::new(None) };
-}
-
-/// Start (`true`: from zero) or stop timing the fused executor's stages on this thread. Each
-/// stage then ends with a device synchronisation, so steps run slower while it is on.
-pub fn record_stage_times(on: bool) {
-    STAGES.with(|s| *s.borrow_mut() = on.then(BTreeMap::new));
-}
-
-/// The stages timed since [`record_stage_times`]: name and mean milliseconds per step.
-pub fn stage_times() -> Vec<(String, f64)> {
-    STAGES.with(|s| {
-        let s = s.borrow();
-        let steps = s
-            .as_ref()
-            .and_then(|m| m.get("loss"))
-            .map_or(1, |&(_, n)| n.max(1));
-        s.iter()
-            .flatten()
-            .map(|(name, (secs, _))| (name.to_string(), 1e3 * secs / steps as f64))
-            .collect()
-    })
-}
-
-/// The clock of the stages: each `lap` adds the time since the previous one to a stage
-/// (after waiting for the device), when timing is on.
-struct Laps {
-    device: Device,
-    last: RefCell<Instant>,
-}
-
-impl Laps {
-    fn new(device: &Device) -> Self {
-        Self {
-            device: device.clone(),
-            last: RefCell::new(Instant::now()),
-        }
-    }
-
-    fn lap(&self, stage: &'static str) -> Result<()> {
-        if STAGES.with(|s| s.borrow().is_none()) {
-            return Ok(());
-        }
-        self.device.synchronize()?;
-        let now = Instant::now();
-        let secs = (now - self.last.replace(now)).as_secs_f64();
-        STAGES.with(|s| {
-            if let Some(m) = s.borrow_mut().as_mut() {
-                let e = m.entry(stage).or_insert((0.0, 0));
-                (e.0, e.1) = (e.0 + secs, e.1 + 1);
-            }
-        });
-        Ok(())
-    }
+/// Told as each stage of a training step ends (by [`PrefixLm::loss_and_grads_timed`]): what a
+/// bench's stage timer implements, synchronising the device to time each stage apart.
+pub trait StageClock {
+    /// `stage` has been queued (and, for a timer, run: it may wait for the device).
+    fn stage_done(&self, stage: &'static str) -> Result<()>;
 }
 
 /// The backward of `linear` (the graph executor's `cast_linear`) from its cast input `xc`: `(dx, dW)`, both f32.
@@ -108,25 +52,36 @@ struct BlockTape {
 /// One training pass: the model, its weights as cast, the attention tables.
 struct Step<'a> {
     model: &'a PrefixLm,
-    w: GraphWeights,
+    w: Weights<Tensor>,
     at: AttentionInputs,
     batch: usize,
-    laps: Laps,
+    clock: Option<&'a dyn StageClock>,
 }
 
 impl Step<'_> {
+    fn lap(&self, stage: &'static str) -> Result<()> {
+        self.clock.map_or(Ok(()), |c| c.stage_done(stage))
+    }
+
     fn eps(&self) -> f32 {
         self.model.config.norm_eps as f32
     }
 
     fn block_forward(&self, i: usize, h: Tensor) -> Result<(Tensor, BlockTape)> {
-        let [n1, wqkv, wo, n2, w13, w2] = &self.w.blocks[i];
+        let BlockWeights {
+            n1,
+            wqkv,
+            wo,
+            n2,
+            w13,
+            w2,
+        } = &self.w.blocks[i];
         let (c, dtype) = (&self.model.config, wqkv.dtype());
         let (a1, qkv) = linear(&rms_norm(&h, n1, self.eps())?, wqkv)?;
         let grid = qkv_heads(&qkv, &self.at.cos, &self.at.sin, self.batch, c.n_heads)?;
         let [q, k, v] = [0, 1, 2].map(|p| grid.get(p).and_then(|t| t.to_dtype(dtype)));
         let (q, k, v) = (q?, k?, v?);
-        self.laps.lap("forward: norm, QKV product, rotary heads")?;
+        self.lap("forward: norm, QKV product, rotary heads")?;
         let scores = q.matmul(&k.t()?)?.to_dtype(DType::F32)?;
         let probs = masked_softmax(&scores, &self.at.prefix_lens, self.at.mask)?;
         let probs_c = probs.to_dtype(dtype)?;
@@ -135,14 +90,14 @@ impl Step<'_> {
             .matmul(&v)?
             .transpose(1, 2)?
             .reshape((b * n, c.d_model))?;
-        self.laps.lap("forward: scores, masked softmax, values")?;
+        self.lap("forward: scores, masked softmax, values")?;
         let (o_rows, att) = linear(&o, wo)?;
         let h1 = (&h + att)?;
-        self.laps.lap("forward: output product, residual")?;
+        self.lap("forward: output product, residual")?;
         let (a2, ab) = linear(&rms_norm(&h1, n2, self.eps())?, w13)?;
         let (act, out) = linear(&swiglu_rows(&ab)?, w2)?;
         let h2 = (&h1 + out)?;
-        self.laps.lap("forward: norm, SwiGLU FFN, residual")?;
+        self.lap("forward: norm, SwiGLU FFN, residual")?;
         let tape = BlockTape {
             h,
             a1,
@@ -159,16 +114,28 @@ impl Step<'_> {
     }
 
     /// The gradient of the block's input from that of its output `dh2`, and the gradients
-    /// of its weights in [`super::Block`] order.
-    fn block_backward(&self, i: usize, t: BlockTape, dh2: Tensor) -> Result<(Tensor, [Tensor; 6])> {
-        let [n1, wqkv, wo, n2, w13, w2] = &self.w.blocks[i];
+    /// of its weights.
+    fn block_backward(
+        &self,
+        i: usize,
+        t: BlockTape,
+        dh2: Tensor,
+    ) -> Result<(Tensor, BlockWeights<Option<Tensor>>)> {
+        let BlockWeights {
+            n1,
+            wqkv,
+            wo,
+            n2,
+            w13,
+            w2,
+        } = &self.w.blocks[i];
         let (c, eps) = (&self.model.config, self.eps());
         let (dact, dw2) = linear_backward(&t.act, w2, &dh2)?;
         let dab = swiglu_backward_rows(&t.ab, &dact)?;
         let (da2, dw13) = linear_backward(&t.a2, w13, &dab)?;
         let (dh1_norm, dn2) = rms_norm_backward(&t.h1, n2, &da2, eps)?;
         let dh1 = (dh2 + dh1_norm)?;
-        self.laps.lap("backward: SwiGLU FFN, norm")?;
+        self.lap("backward: SwiGLU FFN, norm")?;
         let (do_rows, dwo) = linear_backward(&t.o_rows, wo, &dh1)?;
         let [q, k, v] = &t.qkv;
         let (b, h, n, hd) = q.dims4()?;
@@ -184,37 +151,46 @@ impl Step<'_> {
         let dq = dscores.matmul(k)?;
         let dk = dscores.t()?.matmul(q)?;
         let dgrid = Tensor::stack(&[dq, dk, dv], 0)?.to_dtype(DType::F32)?;
-        self.laps.lap("backward: output product, attention")?;
+        self.lap("backward: output product, attention")?;
         let dqkv = qkv_heads_backward(&dgrid, &self.at.cos, &self.at.sin, self.batch, c.n_heads)?;
         let (da1, dwqkv) = linear_backward(&t.a1, wqkv, &dqkv)?;
         let (dh_norm, dn1) = rms_norm_backward(&t.h, n1, &da1, eps)?;
         let dh = (dh1 + dh_norm)?;
-        self.laps.lap("backward: rotary heads, QKV product, norm")?;
-        Ok((dh, [dn1, dwqkv, dwo, dn2, dw13, dw2]))
+        self.lap("backward: rotary heads, QKV product, norm")?;
+        let grads = BlockWeights {
+            n1: Some(dn1),
+            wqkv: Some(dwqkv),
+            wo: Some(dwo),
+            n2: Some(dn2),
+            w13: Some(dw13),
+            w2: Some(dw2),
+        };
+        Ok((dh, grads))
     }
 }
 
-/// [`super::PrefixLm::loss_and_grads`] without an extra loss, for a batch with targets.
-pub(super) fn loss_and_grads(model: &PrefixLm, batch: &LmBatch) -> Result<(f32, GradStore)> {
+/// [`PrefixLm::loss_and_grads`] without an extra loss, for a batch with targets; `clock`,
+/// when given, is told as each stage ends.
+pub(super) fn loss_and_grads(
+    model: &PrefixLm,
+    batch: &LmBatch,
+    clock: Option<&dyn StageClock>,
+) -> Result<(f32, GradStore)> {
     model.check(&batch.layout)?;
     let (rows, targets) = target_rows(batch);
-    let own = model.tensors();
-    let detached: Vec<Tensor> = own.iter().map(|t| t.detach()).collect();
     let dtype = model.compute.precision.compute_dtype();
     let device = model.device();
     let l = &batch.layout;
-    let laps = Laps::new(device);
     let step = Step {
         model,
-        w: GraphWeights::cast(&detached, dtype)?,
+        w: cast(&model.weights.map(Tensor::detach), dtype)?,
         at: AttentionInputs::new(model, l, (0, l.slots()), device)?,
         batch: l.batch,
-        laps,
+        clock,
     };
     let grid = Grid::new(batch, device)?;
     let (mut h, input_tape) = grid_inputs(&step.w, model.config.text_dim, batch, &grid, device)?;
-    step.laps
-        .lap("inputs: weights cast, grid, embedding, captions")?;
+    step.lap("inputs: weights cast, grid, embedding, captions")?;
     let mut tapes = Vec::with_capacity(step.w.blocks.len());
     for i in 0..step.w.blocks.len() {
         let (next, tape) = step.block_forward(i, h)?;
@@ -231,33 +207,33 @@ pub(super) fn loss_and_grads(model: &PrefixLm, batch: &LmBatch) -> Result<(f32, 
     let dlogits = weighted_cross_entropy_backward(&logits, &dense, &weight.affine(1.0 / n, 0.0)?)?;
     let (dnormed, dhead) = linear_backward(&normed_c, &step.w.head, &dlogits)?;
     let (mut dh, dnorm) = rms_norm_backward(&h, &step.w.norm, &dnormed, step.eps())?;
-    step.laps.lap("head and loss, both ways")?;
-    let mut block_grads = Vec::with_capacity(tapes.len());
+    step.lap("head and loss, both ways")?;
+    let mut blocks = Vec::with_capacity(tapes.len());
     for (i, tape) in tapes.into_iter().enumerate().rev() {
         let (prev, grads) = step.block_backward(i, tape, dh)?;
-        block_grads.push(grads);
+        blocks.push(grads);
         dh = prev;
     }
-    block_grads.reverse();
-    let mut grads: Vec<Option<Tensor>> = vec![Some(input_tape.one_hot.t()?.matmul(&dh)?)];
-    match &input_tape.text {
+    blocks.reverse();
+    let (proj_w, proj_b) = match &input_tape.text {
         Some((text_c, mask)) => {
             let dprojected = dh.broadcast_mul(mask)?;
             let (_, dproj_w) = linear_backward(text_c, &step.w.proj_w, &dprojected)?;
-            grads.extend([Some(dproj_w), Some(dprojected.sum(0)?)]);
+            (Some(dproj_w), Some(dprojected.sum(0)?))
         }
-        None => grads.extend([None, None]),
-    }
-    grads.extend(block_grads.into_iter().flatten().map(Some));
-    grads.extend([Some(dnorm), Some(dhead)]);
-    step.laps.lap("backward: inputs")?;
-    let mut store = GradStore::default();
-    for (t, g) in own.into_iter().zip(grads) {
-        if let Some(g) = g {
-            store.insert(t, g.reshape(t.shape())?);
-        }
-    }
+        None => (None, None),
+    };
+    let grads = Weights {
+        tok_emb: Some(input_tape.one_hot.t()?.matmul(&dh)?),
+        proj_w,
+        proj_b,
+        blocks,
+        norm: Some(dnorm),
+        head: Some(dhead),
+    };
+    step.lap("backward: inputs")?;
+    let store = model.weights.grad_store(grads)?;
     let loss = loss.to_scalar::<f32>()?;
-    step.laps.lap("loss")?;
+    step.lap("loss")?;
     Ok((loss, store))
 }
