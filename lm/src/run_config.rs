@@ -147,6 +147,11 @@ pub struct Hyperparams {
     /// Global gradient-norm clip.
     #[arg(long, default_value_t = HYPERPARAMS.grad_clip)]
     pub grad_clip: f64,
+    /// Residual dropout: the probability of dropping each value of every block's attention
+    /// and FFN outputs while training (0: none; not with ES-MoE experts).
+    #[arg(long, default_value_t = HYPERPARAMS.dropout)]
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub dropout: f64,
     /// Seed of the initial weights and of the batch order.
     #[arg(long, default_value_t = HYPERPARAMS.seed)]
     pub seed: u64,
@@ -158,8 +163,12 @@ pub struct Hyperparams {
     pub max_motion_tokens: usize,
 }
 
-/// The defaults: batch 32, lr 1e-3 → 1e-4 with 5% warm-up, weight decay 0.1, clip 1.0, seed 0,
-/// 64 text and 64 motion tokens.
+fn is_zero(value: &f64) -> bool {
+    *value == 0.0
+}
+
+/// The defaults: batch 32, lr 1e-3 → 1e-4 with 5% warm-up, weight decay 0.1, clip 1.0, no
+/// dropout, seed 0, 64 text and 64 motion tokens.
 pub const HYPERPARAMS: Hyperparams = Hyperparams {
     batch_size: 32,
     lr: 1e-3,
@@ -167,6 +176,7 @@ pub const HYPERPARAMS: Hyperparams = Hyperparams {
     warmup_fraction: 0.05,
     weight_decay: 0.1,
     grad_clip: 1.0,
+    dropout: 0.0,
     seed: 0,
     max_text_tokens: 64,
     max_motion_tokens: 64,

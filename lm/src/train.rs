@@ -32,6 +32,7 @@ use candle_core::{Device, Tensor};
 use motionscale_core::files::{append_json_line, read_json, write_json};
 use motionscale_core::rng::SplitMix64;
 use nn::checkpoint::save_safetensors;
+use nn::dropout::Dropout;
 use nn::optim::{AdamW, AdamWConfig, LrSchedule};
 use nn::ModelError;
 use std::collections::HashMap;
@@ -47,6 +48,8 @@ pub use crate::run_config::{
 
 /// Stream of the generator that masks older ES-MoE experts (per step).
 const MASK_STREAM: u64 = 0x6d61_736b;
+/// Stream of the dropout seeds (one per step).
+const DROPOUT_STREAM: u64 = 0x6472_6f70;
 
 /// Train (or resume) the run `config` describes on `device`, calling `on_event` as it goes.
 pub fn train(
@@ -168,6 +171,12 @@ fn build_trainee(
             };
             (Trainee::Lora(Box::new(lora)), vars)
         }
+        ModelShape::EsMoe { .. } if config.hyper.dropout > 0.0 => {
+            return Err(ModelError::argument(
+                "dropout",
+                "ES-MoE experts train without dropout (their masks are the method's own)",
+            ))
+        }
         ModelShape::EsMoe {
             base,
             previous,
@@ -208,6 +217,13 @@ impl Run {
     /// Load the data, resolve the run, build the model and optimiser, and restore the
     /// checkpoint in the output folder if there is one.
     fn start(config: &TrainConfig, device: &Device) -> Result<Self, ModelError> {
+        if !(0.0..1.0).contains(&config.hyper.dropout) {
+            let p = config.hyper.dropout;
+            return Err(ModelError::argument(
+                "dropout",
+                format!("{p} is not in [0, 1)"),
+            ));
+        }
         let corpus = match &config.corpus {
             Some(c) => c.clone(),
             None => {
@@ -285,7 +301,14 @@ impl Run {
         let items = self
             .data
             .train_items(self.state.step, c.hyper.batch_size, c.hyper.seed);
-        let batch = self.data.batch(&self.config.model, &items);
+        let mut batch = self.data.batch(&self.config.model, &items);
+        if c.hyper.dropout > 0.0 {
+            let mut rng = SplitMix64::stream(c.hyper.seed ^ DROPOUT_STREAM, self.state.step);
+            batch.dropout = Some(Dropout {
+                p: c.hyper.dropout as f32,
+                seed: rng.next_u64(),
+            });
+        }
         let (loss, grads) = match &self.trainee {
             Trainee::Model(model) => model.loss_and_grads(&batch),
             Trainee::Lora(l) => l.loss_and_grads(&self.config.model, &batch),

@@ -270,3 +270,42 @@ fn a_model_predicting_the_unigram_has_zero_normalized_loss() {
     assert!((loss.cross_entropy - loss.unigram_cross_entropy).abs() < 1e-5);
     assert!(loss.code_targets > 0 && loss.unigram_entropy > 2.0);
 }
+
+#[test]
+fn dropout_is_recorded_seeded_by_step_and_resumes_to_the_same_weights() {
+    let root = tempfile::tempdir().unwrap();
+    let (_, tokens) = fixture(root.path());
+    let mut whole = tiny_run(&tokens, &root.path().join("whole"), 8 * 9 * 12);
+    whole.hyper.dropout = 0.2;
+    whole.checkpoint_every = Some(4);
+    let dropped = run(&whole);
+    let config: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root.path().join("whole/config.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(config["train"]["dropout"], 0.2);
+    let mut parts = whole.clone();
+    parts.out = root.path().join("parts");
+    parts.stop_after = Some(5);
+    run(&parts);
+    parts.stop_after = None;
+    run(&parts);
+    let weights =
+        |dir: &str| std::fs::read(root.path().join(dir).join("model.safetensors")).unwrap();
+    assert!(
+        weights("whole") == weights("parts"),
+        "dropout differs after resuming"
+    );
+    let mut plain = whole.clone();
+    plain.hyper.dropout = 0.0;
+    plain.out = root.path().join("plain");
+    let kept = run(&plain);
+    assert_ne!(dropped.eval.train_loss, kept.eval.train_loss);
+    let mut bad = plain.clone();
+    bad.hyper.dropout = 1.0;
+    bad.out = root.path().join("bad");
+    let err = train(&bad, &Device::Cpu, &mut |_| {})
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("dropout") && err.contains("[0, 1)"), "{err}");
+}

@@ -24,6 +24,7 @@ pub mod conv_op;
 pub mod cpu_f32;
 pub mod device;
 pub mod device_check;
+pub mod dropout;
 pub mod error;
 pub mod fast_exp;
 pub mod fused_ops;

@@ -5,6 +5,7 @@
 use super::{BlockWeights, ExtraLoss, LmBatch, PrefixLm, PrefixLmConfig, Weights};
 use candle_core::backprop::GradStore;
 use candle_core::{CpuStorage, Layout, Result, Storage, Tensor};
+use nn::dropout::Branch;
 use nn::head_loss;
 use nn::lm_kernels::{self, LayerCache};
 use nn::matmul::{transpose, Operand};
@@ -26,16 +27,19 @@ struct BlockTrace {
     h1: Vec<f32>,
     ab: Vec<f32>,
     sig: Vec<f32>,
+    /// The dropout scales of the attention and FFN outputs, when training drops values.
+    dropped: Option<[Vec<f32>; 2]>,
 }
 
 /// The block on rows `h` (`rows × d`) with its matrices read as `mats` (Wqkvᵀ, Woᵀ,
 /// W13ᵀ, W2ᵀ: [`BlockWeights::forward_mats`] or a decoding cache's copies); `attend` maps
-/// the packed QKV rows to the attention output and its softmax probabilities.
+/// the packed QKV rows to the attention output and its softmax probabilities; `dropped`, when
+/// training drops values, scales the attention and FFN outputs before the residual adds them.
 fn block_forward(
     c: &PrefixLmConfig,
     w: &BlockWeights<&[f32]>,
     [wqkv, wo, w13, w2]: [Operand; 4],
-    h: Vec<f32>,
+    (h, dropped): (Vec<f32>, Option<[Vec<f32>; 2]>),
     attend: impl FnOnce(&[f32]) -> (Vec<f32>, Vec<f32>),
 ) -> (Vec<f32>, BlockTrace) {
     let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
@@ -43,14 +47,15 @@ fn block_forward(
     let xn = lm_kernels::rms_norm(&h, w.n1, eps);
     let qkv = lm_kernels::matmul_new((&xn, false), wqkv, (rows, 3 * d, d));
     let (a, probs) = attend(&qkv);
-    let mut h1 = h.clone();
-    lm_kernels::gemm(&mut h1, (&a, false), wo, (rows, d, d), true);
+    let scales = dropped
+        .as_ref()
+        .map(|[att, ffn]| (att.as_slice(), ffn.as_slice()));
+    let h1 = add_branch(&h, (&a, wo), (rows, d, d), scales.map(|s| s.0));
     let xn = lm_kernels::rms_norm(&h1, w.n2, eps);
     let ab = lm_kernels::matmul_new((&xn, false), w13, (rows, 2 * f, d));
     let sig = lm_kernels::gate_sigmoid(&ab, f);
-    let mut h2 = h1.clone();
     let act = lm_kernels::swiglu(&ab, &sig, f);
-    lm_kernels::gemm(&mut h2, (&act, false), w2, (rows, d, f), true);
+    let h2 = add_branch(&h1, (&act, w2), (rows, d, f), scales.map(|s| s.1));
     let trace = BlockTrace {
         h,
         qkv,
@@ -59,8 +64,45 @@ fn block_forward(
         h1,
         ab,
         sig,
+        dropped,
     };
     (h2, trace)
+}
+
+/// `h + x·W` (`x` rows × k, `W` read as `w`), the product scaled value by value by `scales`
+/// when training drops values.
+fn add_branch(
+    h: &[f32],
+    (x, w): (&[f32], Operand),
+    (rows, d, k): (usize, usize, usize),
+    scales: Option<&[f32]>,
+) -> Vec<f32> {
+    match scales {
+        None => {
+            let mut out = h.to_vec();
+            lm_kernels::gemm(&mut out, (x, false), w, (rows, d, k), true);
+            out
+        }
+        Some(scales) => {
+            let branch = lm_kernels::matmul_new((x, false), w, (rows, d, k));
+            (h.iter().zip(branch).zip(scales))
+                .map(|((h, b), s)| h + b * s)
+                .collect()
+        }
+    }
+}
+
+/// `g` scaled value by value by `scales`, or `g` itself without dropout.
+fn through_dropout<'a>(g: &'a [f32], scales: Option<&Vec<f32>>) -> std::borrow::Cow<'a, [f32]> {
+    match scales {
+        None => g.into(),
+        Some(s) => g
+            .iter()
+            .zip(s)
+            .map(|(g, s)| g * s)
+            .collect::<Vec<_>>()
+            .into(),
+    }
 }
 
 /// Backward through the block: `gh` holds the gradient of its output on entry and of its
@@ -74,19 +116,25 @@ fn block_backward(
 ) -> BlockWeights<Vec<f32>> {
     let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
     let rows = gh.len() / d;
-    // h2 = h1 + swiglu(ab)·W2ᵀ.
+    let [g_att_scales, g_ffn_scales] = match &t.dropped {
+        Some([att, ffn]) => [Some(att), Some(ffn)],
+        None => [None, None],
+    };
+    // h2 = h1 + swiglu(ab)·W2ᵀ (⊙ dropout scales).
     let act = lm_kernels::swiglu(&t.ab, &t.sig, f);
-    let g_w2 = lm_kernels::matmul_new((gh, true), (&act, false), (d, f, rows));
-    let g_act = lm_kernels::matmul_new((gh, false), (w.w2, false), (rows, f, d));
+    let g_out = through_dropout(gh, g_ffn_scales);
+    let g_w2 = lm_kernels::matmul_new((&g_out, true), (&act, false), (d, f, rows));
+    let g_act = lm_kernels::matmul_new((&g_out, false), (w.w2, false), (rows, f, d));
     let g_ab = lm_kernels::swiglu_backward(&t.ab, &t.sig, &g_act, f);
     // ab = RMSNorm(h1)·W13ᵀ.
     let xn = lm_kernels::rms_norm(&t.h1, w.n2, eps);
     let g_w13 = lm_kernels::matmul_new((&g_ab, true), (&xn, false), (2 * f, d, rows));
     let g_xn = lm_kernels::matmul_new((&g_ab, false), (w.w13, false), (rows, d, 2 * f));
     let g_n2 = lm_kernels::rms_norm_backward(&t.h1, w.n2, &g_xn, eps, gh);
-    // h1 = h + a·Woᵀ.
-    let g_wo = lm_kernels::matmul_new((gh, true), (&t.a, false), (d, d, rows));
-    let g_a = lm_kernels::matmul_new((gh, false), (w.wo, false), (rows, d, d));
+    // h1 = h + a·Woᵀ (⊙ dropout scales).
+    let g_out = through_dropout(gh, g_att_scales);
+    let g_wo = lm_kernels::matmul_new((&g_out, true), (&t.a, false), (d, d, rows));
+    let g_a = lm_kernels::matmul_new((&g_out, false), (w.wo, false), (rows, d, d));
     let g_qkv = attn.backward(&t.qkv, &t.probs, &g_a);
     // qkv = RMSNorm(h)·Wqkvᵀ.
     let xn = lm_kernels::rms_norm(&t.h, w.n1, eps);
@@ -162,8 +210,8 @@ impl Pass<'_> {
             .collect()
     }
 
-    /// Forward pass through the blocks: the last block's output and, when `keep`, the
-    /// blocks' traces.
+    /// Forward pass through the blocks: the last block's output and, when `keep` (training),
+    /// the blocks' traces; training applies the batch's dropout.
     fn run(&self, batch: &LmBatch, keep: bool) -> Result<Trace> {
         let layout = &batch.layout;
         self.model.check(layout)?;
@@ -171,9 +219,16 @@ impl Pass<'_> {
         let mut h = self.embed(&batch.inputs);
         h.extend(self.project_text(&batch.text));
         let mut blocks = Vec::new();
-        for bw in &self.w.blocks {
+        let dropout = batch.dropout.filter(|_| keep);
+        let d = self.config().d_model;
+        for (i, bw) in self.w.blocks.iter().enumerate() {
             let mats = bw.forward_mats();
-            let (next, trace) = block_forward(self.config(), bw, mats, h, |qkv| attn.forward(qkv));
+            let dropped = dropout.map(|p| {
+                [Branch::Attention, Branch::Ffn].map(|branch| p.packed(layout, i, branch, d))
+            });
+            let (next, trace) = block_forward(self.config(), bw, mats, (h, dropped), |qkv| {
+                attn.forward(qkv)
+            });
             if keep {
                 blocks.push(trace);
             }
@@ -390,7 +445,7 @@ pub(super) fn forward_cached(
             let mats = t.map_or(bw.forward_mats(), |t| {
                 t.blocks[i].each_ref().map(|m| (m.as_slice(), false))
             });
-            h = block_forward(c, bw, mats, h, attend).0;
+            h = block_forward(c, bw, mats, (h, None), attend).0;
         }
         let last: Vec<f32> = h
             .chunks(n_new * d)

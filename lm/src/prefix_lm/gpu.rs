@@ -9,7 +9,9 @@
 //! backward casts the output gradient once and gives `dx = (dy · W)` and `dW = dyᵀ · x` in
 //! f32, as the graph executor's autograd does through the same casts.
 
-use super::grid::{cast, cast_linear as linear, grid_inputs, target_rows, AttentionInputs, Grid};
+use super::grid::{
+    cast, cast_linear as linear, dropout_scales, grid_inputs, target_rows, AttentionInputs, Grid,
+};
 use super::{BlockWeights, LmBatch, PrefixLm, Weights};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Result, Tensor};
@@ -56,11 +58,23 @@ struct Step<'a> {
     at: AttentionInputs,
     batch: usize,
     clock: Option<&'a dyn StageClock>,
+    /// Per block, the dropout scales of the attention and FFN outputs (training with
+    /// dropout), on the grid.
+    dropped: Option<Vec<[Tensor; 2]>>,
 }
 
 impl Step<'_> {
     fn lap(&self, stage: &'static str) -> Result<()> {
         self.clock.map_or(Ok(()), |c| c.stage_done(stage))
+    }
+
+    /// `x` (block `i`'s output of `branch`, 0 attention, 1 FFN, or its gradient) times its
+    /// dropout scales, or `x` without dropout.
+    fn scaled(&self, x: Tensor, i: usize, branch: usize) -> Result<Tensor> {
+        match &self.dropped {
+            Some(scales) => x * &scales[i][branch],
+            None => Ok(x),
+        }
     }
 
     fn eps(&self) -> f32 {
@@ -92,11 +106,11 @@ impl Step<'_> {
             .reshape((b * n, c.d_model))?;
         self.lap("forward: scores, masked softmax, values")?;
         let (o_rows, att) = linear(&o, wo)?;
-        let h1 = (&h + att)?;
+        let h1 = (&h + self.scaled(att, i, 0)?)?;
         self.lap("forward: output product, residual")?;
         let (a2, ab) = linear(&rms_norm(&h1, n2, self.eps())?, w13)?;
         let (act, out) = linear(&swiglu_rows(&ab)?, w2)?;
-        let h2 = (&h1 + out)?;
+        let h2 = (&h1 + self.scaled(out, i, 1)?)?;
         self.lap("forward: norm, SwiGLU FFN, residual")?;
         let tape = BlockTape {
             h,
@@ -130,13 +144,13 @@ impl Step<'_> {
             w2,
         } = &self.w.blocks[i];
         let (c, eps) = (&self.model.config, self.eps());
-        let (dact, dw2) = linear_backward(&t.act, w2, &dh2)?;
+        let (dact, dw2) = linear_backward(&t.act, w2, &self.scaled(dh2.clone(), i, 1)?)?;
         let dab = swiglu_backward_rows(&t.ab, &dact)?;
         let (da2, dw13) = linear_backward(&t.a2, w13, &dab)?;
         let (dh1_norm, dn2) = rms_norm_backward(&t.h1, n2, &da2, eps)?;
         let dh1 = (dh2 + dh1_norm)?;
         self.lap("backward: SwiGLU FFN, norm")?;
-        let (do_rows, dwo) = linear_backward(&t.o_rows, wo, &dh1)?;
+        let (do_rows, dwo) = linear_backward(&t.o_rows, wo, &self.scaled(dh1.clone(), i, 0)?)?;
         let [q, k, v] = &t.qkv;
         let (b, h, n, hd) = q.dims4()?;
         let d_o = do_rows
@@ -187,6 +201,14 @@ pub(super) fn loss_and_grads(
         at: AttentionInputs::new(model, l, (0, l.slots()), device)?,
         batch: l.batch,
         clock,
+        dropped: match batch.dropout {
+            Some(dropout) => Some(
+                (0..model.config.n_layers)
+                    .map(|i| dropout_scales(&dropout, l, i, model.config.d_model, device))
+                    .collect::<Result<_>>()?,
+            ),
+            None => None,
+        },
     };
     let grid = Grid::new(batch, device)?;
     let (mut h, input_tape) = grid_inputs(&step.w, model.config.text_dim, batch, &grid, device)?;

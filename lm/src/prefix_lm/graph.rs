@@ -16,7 +16,7 @@
 //! products take bf16 operands (weights cast from their f32 masters on every call, so the
 //! gradients reach the masters in f32), as PyTorch's autocast does.
 
-use super::grid::{cast, grid_inputs, linear, target_rows, AttentionInputs, Grid};
+use super::grid::{cast, dropout_scales, grid_inputs, linear, target_rows, AttentionInputs, Grid};
 use super::{BlockWeights, ExtraLoss, LmBatch, PrefixLm, Weights};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var, D};
@@ -56,10 +56,11 @@ impl Pass<'_> {
             .reshape((b * n, self.model.config.d_model))
     }
 
-    /// The block's FFN and attention around `attention` (QKV rows → attention output rows).
+    /// The block's FFN and attention around `attention` (QKV rows → attention output rows);
+    /// `dropped` (training with dropout) scales the attention and FFN outputs.
     fn block(
         &self,
-        i: usize,
+        (i, dropped): (usize, Option<&[Tensor; 2]>),
         h: Tensor,
         attention: impl FnOnce(&Tensor) -> Result<Tensor>,
     ) -> Result<Tensor> {
@@ -71,10 +72,14 @@ impl Pass<'_> {
             w13,
             w2,
         } = &self.w.blocks[i];
+        let scaled = |x: Tensor, branch: usize| match dropped {
+            Some(scales) => x * &scales[branch],
+            None => Ok(x),
+        };
         let qkv = linear(&rms_norm(&h, n1, self.eps())?, wqkv)?;
-        let h = (&h + linear(&attention(&qkv)?, wo)?)?;
+        let h = (&h + scaled(linear(&attention(&qkv)?, wo)?, 0)?)?;
         let ab = linear(&rms_norm(&h, n2, self.eps())?, w13)?;
-        &h + linear(&swiglu_rows(&ab)?, w2)?
+        &h + scaled(linear(&swiglu_rows(&ab)?, w2)?, 1)?
     }
 
     /// `text · Wᵀ + b` of text rows (`rows × E`).
@@ -96,13 +101,23 @@ impl Pass<'_> {
     }
 
     /// The last block's output of every slot of `batch`'s grid, and the grid.
-    fn hidden(&self, batch: &LmBatch) -> Result<(Tensor, Grid)> {
+    fn hidden(&self, batch: &LmBatch, train: bool) -> Result<(Tensor, Grid)> {
         let (l, device) = (&batch.layout, self.w.head.device());
         let grid = Grid::new(batch, device)?;
         let mut h = self.inputs(batch, &grid, device)?;
         let at = AttentionInputs::new(self.model, l, (0, l.slots()), device)?;
         for i in 0..self.w.blocks.len() {
-            h = self.block(i, h, |qkv| {
+            let dropped = match batch.dropout.filter(|_| train) {
+                Some(dropout) => Some(dropout_scales(
+                    &dropout,
+                    l,
+                    i,
+                    self.model.config.d_model,
+                    device,
+                )?),
+                None => None,
+            };
+            h = self.block((i, dropped.as_ref()), h, |qkv| {
                 let [q, k, v] = self.heads(qkv, &at, l.batch)?;
                 self.attend(&q, &k, &v, &at)
             })?;
@@ -117,7 +132,7 @@ impl Pass<'_> {
 
     /// Logits of every real motion row, in the layout's row order.
     fn motion_logits(&self, batch: &LmBatch) -> Result<Tensor> {
-        let (h, grid) = self.hidden(batch)?;
+        let (h, grid) = self.hidden(batch, false)?;
         self.head(&h.index_select(&grid.all_motion_rows()?, 0)?)
     }
 }
@@ -153,7 +168,7 @@ pub(super) fn target_log_probs(model: &PrefixLm, batch: &LmBatch) -> Result<Vec<
         return Ok(out);
     }
     let device = model.device();
-    let (h, grid) = p.hidden(batch)?;
+    let (h, grid) = p.hidden(batch, false)?;
     let picked = h.index_select(&grid.motion_rows(&rows)?, 0)?;
     let log_probs = candle_nn::ops::log_softmax(&p.head(&picked)?, D::Minus1)?
         .gather(&Tensor::new(targets, device)?.unsqueeze(1)?, 1)?
@@ -182,7 +197,7 @@ pub(super) fn loss_and_grads(
     let p = pass_over(model, &leaves)?;
     let device = model.device();
     let (rows, targets) = target_rows(batch);
-    let (hidden, grid) = p.hidden(batch)?;
+    let (hidden, grid) = p.hidden(batch, true)?;
     let (loss, objective) = match extra {
         None => {
             // Over the whole grid, so that the backward has no row scatter.
@@ -298,7 +313,7 @@ pub(super) fn forward_cached(
     let mut h = rows.index_select(&Tensor::new(pick, device)?, 0)?;
     let at = AttentionInputs::new(model, layout, (from, to), device)?;
     for (i, layer) in cache.layers.iter_mut().enumerate() {
-        h = pass.block(i, h, |qkv| {
+        h = pass.block((i, None), h, |qkv| {
             let [q, k, v] = pass.heads(qkv, &at, layout.batch)?;
             let (k, v) = match layer.take() {
                 Some((ck, cv)) => (Tensor::cat(&[&ck, &k], 2)?, Tensor::cat(&[&cv, &v], 2)?),

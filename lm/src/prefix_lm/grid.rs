@@ -5,6 +5,7 @@
 
 use super::{LmBatch, PrefixLm, Role, Weights};
 use candle_core::{DType, Device, Result, Tensor};
+use nn::dropout::{Branch, Dropout};
 use nn::fused_ops::PrefixMask;
 use nn::lm_kernels::IGNORE;
 use nn::seq_layout::SeqLayout;
@@ -15,6 +16,20 @@ pub(super) fn cast(w: &Weights<Tensor>, dtype: DType) -> Result<Weights<Tensor>>
         Role::Matrix => t.to_dtype(dtype),
         Role::Embedding | Role::Vector => t.to_dtype(DType::F32),
     })
+}
+
+/// The dropout scales of block `layer`'s attention and FFN outputs on the dense grid of
+/// `layout` (`batch · slots × d`, f32 on `device`).
+pub(super) fn dropout_scales(
+    dropout: &Dropout,
+    layout: &SeqLayout,
+    layer: usize,
+    d: usize,
+    device: &Device,
+) -> Result<[Tensor; 2]> {
+    let rows = layout.batch * layout.slots();
+    let grid = |branch| Tensor::from_vec(dropout.grid(layout, layer, branch, d), (rows, d), device);
+    Ok([grid(Branch::Attention)?, grid(Branch::Ffn)?])
 }
 
 /// `x · Wᵀ` of f32 rows with `W` in its compute dtype; f32 out.

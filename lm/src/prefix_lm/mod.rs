@@ -34,6 +34,9 @@
 //!
 //! Each executor is a module of free functions of the same shape (`forward(model, batch)`,
 //! `loss_and_grads(model, batch, …)`, …) reading the weights by name ([`Weights`]).
+//! Training may drop values of each block's attention and FFN outputs ([`LmBatch::dropout`],
+//! [`nn::dropout`]); every executor drops the same ones.
+//!
 //! The executor follows the weights: f32 on the CPU runs `Cpu`, anything else `Gpu`;
 //! [`Compute::executor`] forces one (tests and comparisons). Tests check that they agree
 //! on the loss, every gradient, the logits and KV-cached decoding.
@@ -52,6 +55,7 @@ use candle_core::{DType, Device, Result, Tensor, Var};
 use candle_nn::{Init, VarBuilder, VarMap};
 use motionscale_core::rng::SplitMix64;
 use nn::device::Precision;
+use nn::dropout::Dropout;
 use nn::lm_kernels::{self, Rope};
 use nn::seq_layout::SeqLayout;
 use nn::ModelError;
@@ -251,6 +255,9 @@ pub struct LmBatch {
     /// Next-token targets `[m0, …(, EOS)]`, one per input; [`lm_kernels::IGNORE`] on the
     /// slot after the last token of a clip that does not end there.
     pub targets: Vec<u32>,
+    /// Residual dropout of a training step (the loss-and-gradient calls apply it; inference
+    /// never does); `None` by default.
+    pub dropout: Option<Dropout>,
 }
 
 impl LmBatch {
@@ -283,6 +290,7 @@ impl LmBatch {
             text,
             inputs,
             targets,
+            dropout: None,
         }
     }
 }

@@ -233,6 +233,34 @@ fn executors_agree_on_the_loss_and_every_gradient() {
     assert!(loss <= 1e-5, "losses differ by {loss:.2e}");
 }
 
+#[test]
+fn executors_drop_the_same_values_and_agree_under_dropout() {
+    let config = tiny();
+    let (model, varmap) = init_model(&config, 11, &Device::Cpu).unwrap();
+    let vars = varmap.data().lock().unwrap().clone();
+    let plain = two_clips(&config);
+    let mut batch = plain.clone();
+    batch.dropout = Some(Dropout { p: 0.25, seed: 17 });
+    for other in [Executor::Graph, Executor::Gpu] {
+        let (loss, grads) = loss_and_grad_agreement(&model, &vars, &batch, (other, None));
+        eprintln!("dropout, {other:?} vs cpu: loss {loss:.2e}, gradients {grads:.2e} (relative)");
+        assert!(loss <= 1e-5, "{other:?}: losses differ by {loss:.2e}");
+    }
+    let cpu = on(&model, Executor::Cpu);
+    let (dropped, _) = cpu.loss_and_grads(&batch).unwrap();
+    let (kept, _) = cpu.loss_and_grads(&plain).unwrap();
+    assert!(
+        (dropped - kept).abs() > 1e-4,
+        "dropout changed nothing: {dropped} vs {kept}"
+    );
+    // Inference never drops.
+    for e in [Executor::Cpu, Executor::Graph] {
+        let m = on(&model, e);
+        let diff = relative_diff(&m.forward(&batch).unwrap(), &m.forward(&plain).unwrap());
+        assert_eq!(diff, 0.0, "{e:?}: forward dropped values");
+    }
+}
+
 /// The losses of `steps` AdamW steps of a fresh model on `executor`, over a fixed cycle of
 /// batches.
 fn training_losses(executor: Executor, precision: Precision, steps: usize) -> Vec<f32> {
