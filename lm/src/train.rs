@@ -171,12 +171,6 @@ fn build_trainee(
             };
             (Trainee::Lora(Box::new(lora)), vars)
         }
-        ModelShape::EsMoe { .. } if config.hyper.dropout > 0.0 => {
-            return Err(ModelError::argument(
-                "dropout",
-                "ES-MoE experts train without dropout (their masks are the method's own)",
-            ))
-        }
         ModelShape::EsMoe {
             base,
             previous,
@@ -213,17 +207,27 @@ fn build_trainee(
     })
 }
 
+/// The dropout probability is in [0, 1), and zero for ES-MoE experts.
+fn check_dropout(config: &TrainConfig) -> Result<(), ModelError> {
+    let p = config.hyper.dropout;
+    if !(0.0..1.0).contains(&p) {
+        return Err(ModelError::argument(
+            "dropout",
+            format!("{p} is not in [0, 1)"),
+        ));
+    }
+    if p > 0.0 && matches!(config.model, ModelShape::EsMoe { .. }) {
+        let why = "ES-MoE experts train without dropout (their masks are the method's own)";
+        return Err(ModelError::argument("dropout", why));
+    }
+    Ok(())
+}
+
 impl Run {
     /// Load the data, resolve the run, build the model and optimiser, and restore the
     /// checkpoint in the output folder if there is one.
     fn start(config: &TrainConfig, device: &Device) -> Result<Self, ModelError> {
-        if !(0.0..1.0).contains(&config.hyper.dropout) {
-            let p = config.hyper.dropout;
-            return Err(ModelError::argument(
-                "dropout",
-                format!("{p} is not in [0, 1)"),
-            ));
-        }
+        check_dropout(config)?;
         let corpus = match &config.corpus {
             Some(c) => c.clone(),
             None => {
