@@ -82,16 +82,9 @@ impl Step<'_> {
     }
 
     fn block_forward(&self, i: usize, h: Tensor) -> Result<(Tensor, BlockTape)> {
-        let BlockWeights {
-            n1,
-            wqkv,
-            wo,
-            n2,
-            w13,
-            w2,
-        } = &self.w.blocks[i];
-        let (c, dtype) = (&self.model.config, wqkv.dtype());
-        let (a1, qkv) = linear(&rms_norm(&h, n1, self.eps())?, wqkv)?;
+        let bw = &self.w.blocks[i];
+        let (c, dtype) = (&self.model.config, bw.wqkv.dtype());
+        let (a1, qkv) = linear(&rms_norm(&h, &bw.n1, self.eps())?, &bw.wqkv)?;
         let grid = qkv_heads(&qkv, &self.at.cos, &self.at.sin, self.batch, c.n_heads)?;
         let [q, k, v] = [0, 1, 2].map(|p| grid.get(p).and_then(|t| t.to_dtype(dtype)));
         let (q, k, v) = (q?, k?, v?);
@@ -105,11 +98,11 @@ impl Step<'_> {
             .transpose(1, 2)?
             .reshape((b * n, c.d_model))?;
         self.lap("forward: scores, masked softmax, values")?;
-        let (o_rows, att) = linear(&o, wo)?;
+        let (o_rows, att) = linear(&o, &bw.wo)?;
         let h1 = (&h + self.scaled(att, i, 0)?)?;
         self.lap("forward: output product, residual")?;
-        let (a2, ab) = linear(&rms_norm(&h1, n2, self.eps())?, w13)?;
-        let (act, out) = linear(&swiglu_rows(&ab)?, w2)?;
+        let (a2, ab) = linear(&rms_norm(&h1, &bw.n2, self.eps())?, &bw.w13)?;
+        let (act, out) = linear(&swiglu_rows(&ab)?, &bw.w2)?;
         let h2 = (&h1 + self.scaled(out, i, 1)?)?;
         self.lap("forward: norm, SwiGLU FFN, residual")?;
         let tape = BlockTape {
@@ -135,22 +128,15 @@ impl Step<'_> {
         t: BlockTape,
         dh2: Tensor,
     ) -> Result<(Tensor, BlockWeights<Option<Tensor>>)> {
-        let BlockWeights {
-            n1,
-            wqkv,
-            wo,
-            n2,
-            w13,
-            w2,
-        } = &self.w.blocks[i];
+        let bw = &self.w.blocks[i];
         let (c, eps) = (&self.model.config, self.eps());
-        let (dact, dw2) = linear_backward(&t.act, w2, &self.scaled(dh2.clone(), i, 1)?)?;
+        let (dact, dw2) = linear_backward(&t.act, &bw.w2, &self.scaled(dh2.clone(), i, 1)?)?;
         let dab = swiglu_backward_rows(&t.ab, &dact)?;
-        let (da2, dw13) = linear_backward(&t.a2, w13, &dab)?;
-        let (dh1_norm, dn2) = rms_norm_backward(&t.h1, n2, &da2, eps)?;
+        let (da2, dw13) = linear_backward(&t.a2, &bw.w13, &dab)?;
+        let (dh1_norm, dn2) = rms_norm_backward(&t.h1, &bw.n2, &da2, eps)?;
         let dh1 = (dh2 + dh1_norm)?;
         self.lap("backward: SwiGLU FFN, norm")?;
-        let (do_rows, dwo) = linear_backward(&t.o_rows, wo, &self.scaled(dh1.clone(), i, 0)?)?;
+        let (do_rows, dwo) = linear_backward(&t.o_rows, &bw.wo, &self.scaled(dh1.clone(), i, 0)?)?;
         let [q, k, v] = &t.qkv;
         let (b, h, n, hd) = q.dims4()?;
         let d_o = do_rows
@@ -167,8 +153,8 @@ impl Step<'_> {
         let dgrid = Tensor::stack(&[dq, dk, dv], 0)?.to_dtype(DType::F32)?;
         self.lap("backward: output product, attention")?;
         let dqkv = qkv_heads_backward(&dgrid, &self.at.cos, &self.at.sin, self.batch, c.n_heads)?;
-        let (da1, dwqkv) = linear_backward(&t.a1, wqkv, &dqkv)?;
-        let (dh_norm, dn1) = rms_norm_backward(&t.h, n1, &da1, eps)?;
+        let (da1, dwqkv) = linear_backward(&t.a1, &bw.wqkv, &dqkv)?;
+        let (dh_norm, dn1) = rms_norm_backward(&t.h, &bw.n1, &da1, eps)?;
         let dh = (dh1 + dh_norm)?;
         self.lap("backward: rotary heads, QKV product, norm")?;
         let grads = BlockWeights {

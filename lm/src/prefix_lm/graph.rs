@@ -17,7 +17,7 @@
 //! gradients reach the masters in f32), as PyTorch's autocast does.
 
 use super::grid::{cast, dropout_scales, grid_inputs, linear, target_rows, AttentionInputs, Grid};
-use super::{BlockWeights, ExtraLoss, LmBatch, PrefixLm, Weights};
+use super::{ExtraLoss, LmBatch, PrefixLm, Weights};
 use candle_core::backprop::GradStore;
 use candle_core::{DType, Device, Result, Tensor, Var, D};
 use nn::fused_ops::{masked_softmax, qkv_heads, rms_norm, swiglu_rows, weighted_cross_entropy};
@@ -64,22 +64,15 @@ impl Pass<'_> {
         h: Tensor,
         attention: impl FnOnce(&Tensor) -> Result<Tensor>,
     ) -> Result<Tensor> {
-        let BlockWeights {
-            n1,
-            wqkv,
-            wo,
-            n2,
-            w13,
-            w2,
-        } = &self.w.blocks[i];
+        let bw = &self.w.blocks[i];
         let scaled = |x: Tensor, branch: usize| match dropped {
             Some(scales) => x * &scales[branch],
             None => Ok(x),
         };
-        let qkv = linear(&rms_norm(&h, n1, self.eps())?, wqkv)?;
-        let h = (&h + scaled(linear(&attention(&qkv)?, wo)?, 0)?)?;
-        let ab = linear(&rms_norm(&h, n2, self.eps())?, w13)?;
-        &h + scaled(linear(&swiglu_rows(&ab)?, w2)?, 1)?
+        let qkv = linear(&rms_norm(&h, &bw.n1, self.eps())?, &bw.wqkv)?;
+        let h = (&h + scaled(linear(&attention(&qkv)?, &bw.wo)?, 0)?)?;
+        let ab = linear(&rms_norm(&h, &bw.n2, self.eps())?, &bw.w13)?;
+        &h + scaled(linear(&swiglu_rows(&ab)?, &bw.w2)?, 1)?
     }
 
     /// `text · Wᵀ + b` of text rows (`rows × E`).
