@@ -7,6 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::Parser;
 use experiments::data_ladder::{self, DataSource};
 use experiments::plan::{self, PlanRequest, TrainSettings, VocabSource};
+use experiments::recipe::Recipe;
 use experiments::IsoFlopPlan;
 use lm::train::Hyperparams;
 use std::path::PathBuf;
@@ -46,6 +47,12 @@ pub struct PlanArgs {
     /// Optimisation settings of every point.
     #[command(flatten)]
     pub hyper: Hyperparams,
+    /// A recipe per model size (TOML: name, lr_at_reference, reference_params, lr_exponent,
+    /// warmup, weight_decay, dropout, source): each point's peak rate is the recipe's at its
+    /// N_nv, and the recipe's warm-up, weight decay and dropout replace --warmup,
+    /// --weight-decay and --dropout; every results row names it.
+    #[arg(long, value_name = "RECIPE_TOML")]
+    pub recipe: Option<PathBuf>,
     /// Checkpoint and evaluate the test split every N steps (and at the end).
     #[arg(long, default_value_t = TrainSettings::default().checkpoint_every)]
     pub checkpoint_every: u64,
@@ -141,12 +148,19 @@ fn vocab_dirs(pairs: &[String], flag: &str) -> Result<Vec<(usize, PathBuf)>> {
 }
 
 impl PlanArgs {
-    fn settings(&self) -> TrainSettings {
-        TrainSettings {
-            hyper: self.hyper.clone(),
+    /// The shared training settings; with a recipe, its settings at its reference size.
+    fn settings(&self) -> Result<TrainSettings> {
+        let recipe = self.recipe.as_deref().map(Recipe::read).transpose()?;
+        let hyper = match &recipe {
+            Some(r) => r.apply(&self.hyper, r.reference_params as u64),
+            None => self.hyper.clone(),
+        };
+        Ok(TrainSettings {
+            hyper,
             checkpoint_every: self.checkpoint_every,
             precision: self.precision,
-        }
+            recipe,
+        })
     }
 
     pub(crate) fn request(&self) -> Result<PlanRequest> {
@@ -184,7 +198,7 @@ impl PlanArgs {
             budgets: self.budgets.clone(),
             models: self.models.clone(),
             vocabularies,
-            train: self.settings(),
+            train: self.settings()?,
             // With --next, --fits is the planner's fit, not the grid's centre.
             centring: match (&self.fits, self.next) {
                 (None, _) | (_, Some(_)) => None,

@@ -624,3 +624,83 @@ fn a_captured_only_run_selects_on_captured_validation_clips_and_collect_reselect
     let again = motionscale_ok(&collect);
     assert!(again.contains("0 runs re-selected"), "{again}");
 }
+
+#[test]
+fn a_recipe_sets_each_points_rate_by_its_size_and_every_row_names_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let corpus = tmp.path().join("corpus");
+    tiny_lm_corpus(&corpus);
+    let recipe = tmp.path().join("recipe.toml");
+    std::fs::write(
+        &recipe,
+        "name = \"test-recipe\"\nlr_at_reference = 2e-3\nreference_params = 1e5\n\
+         lr_exponent = -0.5\nwarmup = 0.1\nweight_decay = 0.3\ndropout = 0.1\n",
+    )
+    .unwrap();
+    let plan_path = tmp.path().join("plan.toml");
+    let settings = [
+        "--batch",
+        "8",
+        "--checkpoint-every",
+        "10",
+        "--recipe",
+        arg(&recipe),
+    ];
+    sweep_plan(
+        &corpus,
+        "2e10",
+        "cpu-50K,cpu-100K",
+        "256",
+        &settings,
+        &plan_path,
+    );
+    let plan = IsoFlopPlan::read(&plan_path).unwrap();
+    assert_eq!(plan.train.recipe.as_ref().unwrap().name, "test-recipe");
+    let runs = tmp.path().join("runs");
+    sweep_run_ok(&plan_path, &runs);
+    let rows = table_rows(&runs);
+    assert_eq!(rows.len(), 2);
+    for row in &rows {
+        let rule = 2e-3 * (row.n_nv as f64 / 1e5).powf(-0.5);
+        assert!(
+            (row.lr - rule).abs() <= 1e-12 * rule,
+            "{} lr {} vs {rule}",
+            row.run_id,
+            row.lr
+        );
+        assert_eq!((row.weight_decay, row.dropout), (0.3, 0.1));
+        assert_eq!(row.recipe, "test-recipe");
+        let config: serde_json::Value =
+            read_json(&runs.join(&row.run_id).join("train/config.json"));
+        assert_eq!(config["train"]["lr"].as_f64(), Some(row.lr), "{config}");
+    }
+    assert!(rows[0].lr != rows[1].lr, "two sizes, one rate");
+    // A row from before the settings' columns gets them from its plan when collected.
+    let result = runs.join(&rows[0].run_id).join("result.json");
+    let mut old: serde_json::Value = read_json(&result);
+    for key in ["lr", "weight_decay", "dropout", "recipe"] {
+        old.as_object_mut().unwrap().remove(key).unwrap();
+    }
+    std::fs::write(&result, old.to_string()).unwrap();
+    motionscale_ok(&["sweep", "collect", "--out", arg(&runs)]);
+    assert_eq!(table_rows(&runs), rows);
+    // A bad recipe is refused, naming its file.
+    std::fs::write(&recipe, "name = \"x\"\n").unwrap();
+    let out = motionscale(&[
+        "sweep",
+        "plan",
+        "--corpus",
+        arg(&corpus),
+        "--budgets",
+        "2e10",
+        "--models",
+        "cpu-50K",
+        "--vocabs",
+        "256",
+        "--recipe",
+        arg(&recipe),
+        "--out",
+        arg(&tmp.path().join("bad.toml")),
+    ]);
+    fails_with(&out, "recipe.toml");
+}

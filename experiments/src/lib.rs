@@ -28,6 +28,7 @@ pub mod local;
 pub mod next;
 pub mod plan;
 pub mod prepare;
+pub mod recipe;
 pub mod results;
 pub mod run;
 pub mod seeds;

@@ -50,6 +50,7 @@
 
 use crate::centring::{self, Centre};
 use crate::data_ladder::{self, DataSource, DataSubset};
+use crate::recipe::Recipe;
 use crate::SweepError;
 use ingest::corpus::manifest::Manifest;
 use ingest::corpus::reader::ClipMeta;
@@ -110,6 +111,10 @@ pub struct TrainSettings {
     /// Arithmetic of every point (written only when not f32, so earlier plans read alike).
     #[serde(default, skip_serializing_if = "is_f32")]
     pub precision: Precision,
+    /// A recipe per size (`--recipe`): each point's peak rate from its N_nv and the recipe's
+    /// shared settings in place of the ones above.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recipe: Option<Recipe>,
 }
 
 fn is_f32(p: &Precision) -> bool {
@@ -123,6 +128,7 @@ impl Default for TrainSettings {
             hyper: HYPERPARAMS,
             checkpoint_every: 100,
             precision: Precision::F32,
+            recipe: None,
         }
     }
 }
@@ -922,6 +928,24 @@ impl IsoFlopPlan {
             .map_or(DataSource::All, |s| s.source)
     }
 
+    /// The name of the plan's recipe (empty without one).
+    pub fn recipe_name(&self) -> String {
+        let recipe = self.train.recipe.as_ref();
+        recipe.map(|r| r.name.clone()).unwrap_or_default()
+    }
+
+    /// The optimisation settings `point` trains with: the plan's, or its recipe's for the
+    /// point's size, with the point's seed.
+    pub fn hyper(&self, point: &PlanPoint) -> Hyperparams {
+        let s = &self.train;
+        let mut hyper = match &s.recipe {
+            Some(recipe) => recipe.apply(&s.hyper, point.n_nv),
+            None => s.hyper.clone(),
+        };
+        hyper.seed = point.seed(self);
+        hyper
+    }
+
     /// The training configuration of `point` writing into `out`, reading `tokens` and, for a
     /// point on a data subset, the split lists in `splits`.
     pub fn train_config(
@@ -937,8 +961,7 @@ impl IsoFlopPlan {
         c.splits = splits.map(Path::to_path_buf);
         c.select_on = self.data_source(point).origin();
         c.text_encoder = Some(self.text_encoder.clone());
-        c.hyper = s.hyper.clone();
-        c.hyper.seed = point.seed(self);
+        c.hyper = self.hyper(point);
         c.eval_every = Some(s.checkpoint_every);
         c.checkpoint_every = Some(s.checkpoint_every);
         c.compute.precision = s.precision;

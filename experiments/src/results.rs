@@ -11,7 +11,7 @@
 //! flops_6n, epochs, flags`, then the validation-selected evaluation's `best_step,
 //! best_test_loss, best_norm_test_loss` (0 / NaN without validation clips).
 
-use crate::plan::IsoFlopPlan;
+use crate::plan::{IsoFlopPlan, PlanPoint};
 use crate::SweepError;
 use arrow_array::{ArrayRef, Float64Array, RecordBatch, StringArray, UInt64Array};
 use arrow_schema::{DataType, Field, Schema};
@@ -134,6 +134,18 @@ pub struct RunRow {
     /// Synthetic clips' test L_u at the validation-selected step.
     #[serde(default = "nan", deserialize_with = "nan_if_null")]
     pub best_synth_norm_test_loss: f64,
+    /// Peak learning rate it trained with (NaN: not recorded).
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub lr: f64,
+    /// AdamW weight decay it trained with (NaN: not recorded).
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub weight_decay: f64,
+    /// Residual dropout it trained with (NaN: not recorded).
+    #[serde(default = "nan", deserialize_with = "nan_if_null")]
+    pub dropout: f64,
+    /// The plan's recipe by name (empty: none, or not recorded).
+    #[serde(default)]
+    pub recipe: String,
 }
 
 fn all() -> String {
@@ -176,7 +188,7 @@ pub enum Cell<'a> {
 pub type Column = (&'static str, DataType, fn(&RunRow) -> Cell<'_>);
 
 /// Every column of the table, in order.
-pub const COLUMNS: [Column; 44] = [
+pub const COLUMNS: [Column; 48] = [
     ("run_id", DataType::Utf8, |r| Cell::Str(&r.run_id)),
     ("budget", DataType::Float64, |r| Cell::F64(r.budget)),
     ("n_nv", DataType::UInt64, |r| Cell::U64(r.n_nv)),
@@ -255,6 +267,12 @@ pub const COLUMNS: [Column; 44] = [
     ("best_synth_norm_test_loss", DataType::Float64, |r| {
         Cell::F64(r.best_synth_norm_test_loss)
     }),
+    ("lr", DataType::Float64, |r| Cell::F64(r.lr)),
+    ("weight_decay", DataType::Float64, |r| {
+        Cell::F64(r.weight_decay)
+    }),
+    ("dropout", DataType::Float64, |r| Cell::F64(r.dropout)),
+    ("recipe", DataType::Utf8, |r| Cell::Str(&r.recipe)),
 ];
 
 impl PartialEq for RunRow {
@@ -388,10 +406,20 @@ pub fn finished_rows(runs: &Path, plan: &IsoFlopPlan) -> Result<Vec<RunRow>, Swe
                     ),
                 ));
             }
-            rows.push(row);
+            rows.push(with_settings(row, plan, point));
         }
     }
     Ok(rows)
+}
+
+/// `row` with the settings its plan gave it where the row predates their columns.
+fn with_settings(mut row: RunRow, plan: &IsoFlopPlan, point: &PlanPoint) -> RunRow {
+    if row.lr.is_nan() {
+        let hyper = plan.hyper(point);
+        (row.lr, row.weight_decay, row.dropout) = (hyper.lr, hyper.weight_decay, hyper.dropout);
+        row.recipe = plan.recipe_name();
+    }
+    row
 }
 
 /// Rebuild `RUNS/results.csv` and `RUNS/results.parquet` from every `result.json` of `plan`
@@ -459,6 +487,10 @@ mod tests {
             best_real_norm_test_loss: 0.0,
             best_synth_test_loss: 5.75,
             best_synth_norm_test_loss: -0.75,
+            lr: 1e-3,
+            weight_decay: 0.1,
+            dropout: f64::NAN,
+            recipe: "r, \"q\"".into(),
         }
     }
 

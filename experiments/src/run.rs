@@ -230,6 +230,7 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
         origin_losses(Some(&e.test), Origin::Real),
         origin_losses(Some(&e.test), Origin::Synth),
     );
+    let hyper = plan.hyper(point);
     let mut row = RunRow {
         run_id: point.run_id.clone(),
         budget: point.budget,
@@ -280,6 +281,10 @@ fn row(plan: &IsoFlopPlan, point: &PlanPoint, report: &TrainReport, wall_s: f64)
         best_real_norm_test_loss: f64::NAN,
         best_synth_test_loss: f64::NAN,
         best_synth_norm_test_loss: f64::NAN,
+        lr: hyper.lr,
+        weight_decay: hyper.weight_decay,
+        dropout: hyper.dropout,
+        recipe: plan.recipe_name(),
     };
     set_best(&mut row, e.best.as_ref());
     row
