@@ -138,8 +138,8 @@ pub struct FitArgs {
     #[arg(long)]
     pub workers: Option<usize>,
     /// Fit these law families instead of the IsoFLOP analysis, each by the one fitter (Huber,
-    /// L-BFGS from its start grid, bootstrap): chinchilla, data-constrained, vocab, farseer, or
-    /// `all` (those the table's columns allow). Each is scored on held-out runs (--select),
+    /// L-BFGS from its start grid, bootstrap): chinchilla, data-constrained, unique-floor,
+    /// vocab, vocab-effective, farseer, or `all` (those the table's columns allow). Each is scored on held-out runs (--select),
     /// the lowest error adopted; writes OUT/laws.json. The loss may be negative (then
     /// residuals are taken in loss space instead of log space).
     #[arg(long, value_name = "NAME[,NAME…]", value_delimiter = ',')]
@@ -148,7 +148,8 @@ pub struct FitArgs {
     #[arg(long, value_name = "COL", requires = "law")]
     pub u_col: Option<String>,
     /// With --law: how families are ranked: `top` holds out the --top-share most expensive
-    /// runs (6·(N + N_v)·D), `budget` each budget group in turn.
+    /// runs (6·(N + N_v)·D), `budget` each budget group in turn, `ladder` each data subset
+    /// (the `data` column; empty: the whole train split) in turn.
     #[arg(long, value_enum, default_value = "top", requires = "law")]
     pub select: LawSelection,
     /// With --law --select top: the share of runs held out.
@@ -182,6 +183,8 @@ pub enum LawSelection {
     Top,
     /// Leave each budget group out in turn.
     Budget,
+    /// Leave each data subset (ladder) out in turn.
+    Ladder,
 }
 
 impl FitArgs {

@@ -47,6 +47,9 @@ fn fit_laws_in_pool(args: &FitArgs, opts: &FitOptions, t0: Instant) -> Result<Ex
         LawSelection::Budget => Holdout::Groups {
             groups: budget_groups(&table, &cols, opts)?,
         },
+        LawSelection::Ladder => Holdout::Subsets {
+            groups: ladder_groups(&table)?,
+        },
     };
     let settings = Settings {
         delta: args.huber_delta,
@@ -108,6 +111,30 @@ fn budget_groups(table: &Table, cols: &LawColumns, opts: &FitOptions) -> Result<
         rows.into_iter().for_each(|i| of_row[i] = g);
     }
     Ok(of_row)
+}
+
+/// The data subset (ladder) of every run: one group per distinct value of the `data` column
+/// (a sweep's subset name; empty for the whole train split).
+fn ladder_groups(table: &Table) -> Result<Vec<usize>> {
+    let Some(labels) = table.labels("data") else {
+        anyhow::bail!(
+            "{}: --select ladder needs a `data` column (a sweep's data subset of each run)",
+            table.path().display()
+        );
+    };
+    let mut names: Vec<&String> = labels.iter().collect();
+    names.sort();
+    names.dedup();
+    if names.len() < 2 {
+        anyhow::bail!(
+            "{}: --select ladder needs runs on two data subsets or more",
+            table.path().display()
+        );
+    }
+    Ok(labels
+        .iter()
+        .map(|l| names.binary_search(&l).expect("listed"))
+        .collect())
 }
 
 /// `fit --law NAME --test FILE --replay CAPS`: the design replays of one family.

@@ -510,7 +510,7 @@ fn fit_law_names_an_unknown_family_and_a_missing_axis() {
     args.extend_from_slice(&[arg(&out), "--law", "chinchila"]);
     fails_with(
         &motionscale(&args),
-        "--law \"chinchila\": the laws are chinchilla, data-constrained, vocab, vocab-effective, farseer (or all)",
+        "--law \"chinchila\": the laws are chinchilla, data-constrained, unique-floor, vocab, vocab-effective, farseer (or all)",
     );
     let mut args = base.to_vec();
     args.extend_from_slice(&[arg(&out), "--law", "data-constrained"]);
@@ -557,4 +557,65 @@ fn predict_reads_a_laws_json(laws: &std::path::Path) {
         ]),
         "a laws.json of `fit --law`; this needs the IsoFLOP fit",
     );
+}
+
+/// `fit --law … --select ladder`: each data subset held out in turn; on runs drawn from the
+/// unique-data floor law (three pools, small seeded noise) that law is adopted over the
+/// data-constrained one, and a table without a `data` column is refused.
+#[test]
+fn fit_law_select_ladder_holds_each_data_subset_out() {
+    let tmp = tempfile::tempdir().unwrap();
+    let csv = tmp.path().join("runs.csv");
+    let mut text = String::from("Model Size,Training Tokens,loss,unique_tokens,data\n");
+    let mut rng = motionscale_core::rng::SplitMix64(5);
+    for (name, u) in [("u1", 1e7f64), ("u2", 3e7), ("u3", 1e8)] {
+        for i in 0..5 {
+            for j in 0..6 {
+                let n = 10f64.powf(6.5 + 0.5 * i as f64);
+                let d = 10f64.powf(7.0 + 0.5 * j as f64);
+                let law =
+                    1.8 + 300.0 * n.powf(-0.33) + 2000.0 * d.powf(-0.35) + 40.0 * u.powf(-0.2);
+                let loss = law * (1.0 + 0.002 * rng.range(-1.0, 1.0));
+                text.push_str(&format!("{n},{d},{loss},{u},{name}\n"));
+            }
+        }
+    }
+    std::fs::write(&csv, text).unwrap();
+    let out = tmp.path().join("laws");
+    let args = [
+        "fit",
+        "--results",
+        arg(&csv),
+        "--n-col",
+        "Model Size",
+        "--d-col",
+        "Training Tokens",
+        "--loss-col",
+        "loss",
+        "--bootstrap",
+        "0",
+        "--law",
+        "data-constrained,unique-floor",
+        "--select",
+        "ladder",
+        "--out",
+        arg(&out),
+    ];
+    let stdout = motionscale_ok(&args);
+    assert!(
+        stdout.contains("each of 3 data subsets held out in turn"),
+        "{stdout}"
+    );
+    let report: serde_json::Value = read_json(&out.join("laws.json"));
+    assert_eq!(report["adopted"], "unique-floor", "{stdout}");
+    let plain = tmp.path().join("plain.csv");
+    let without: String = std::fs::read_to_string(&csv)
+        .unwrap()
+        .lines()
+        .map(|l| l.rsplit_once(',').unwrap().0.to_string() + "\n")
+        .collect();
+    std::fs::write(&plain, without).unwrap();
+    let mut args = args.to_vec();
+    args[2] = arg(&plain);
+    fails_with(&motionscale(&args), "--select ladder needs a `data` column");
 }

@@ -16,6 +16,7 @@ mod farseer;
 pub mod predict;
 pub mod run;
 pub mod select;
+mod unique_floor;
 mod vocab;
 pub mod vocab_choice;
 mod vocab_effective;
@@ -24,6 +25,7 @@ pub mod vpnls;
 pub use chinchilla::Chinchilla;
 pub use data_constrained::DataConstrained;
 pub use farseer::Farseer;
+pub use unique_floor::UniqueFloor;
 pub use vocab::Vocabulary;
 pub use vocab_effective::VocabEffective;
 
@@ -133,6 +135,7 @@ pub fn registry() -> Vec<Box<dyn engine::Family>> {
     vec![
         Box::new(engine::Declared::<_, 5>(Chinchilla)),
         Box::new(engine::Declared::<_, 6>(DataConstrained)),
+        Box::new(engine::Declared::<_, 7>(UniqueFloor)),
         Box::new(engine::Declared::<_, 7>(Vocabulary)),
         Box::new(engine::Declared::<_, 7>(VocabEffective)),
         Box::new(engine::Declared::<_, 9>(Farseer)),
@@ -209,6 +212,11 @@ mod tests {
             (
                 by_name("data-constrained"),
                 vec![1.9, 300.0, 2000.0, 0.33, 0.35, 15.4],
+                repeated.clone(),
+            ),
+            (
+                by_name("unique-floor"),
+                vec![1.8, 300.0, 2000.0, 40.0, 0.33, 0.35, 0.2],
                 repeated,
             ),
             (

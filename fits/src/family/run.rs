@@ -130,7 +130,7 @@ pub fn fit_laws(
     let (rows, loss) = read_points(table, cols)?;
     let n_opt_lobo = match &holdout {
         Holdout::Groups { groups } => Some(lobo(&rows, &loss, groups)),
-        Holdout::TopCost { .. } => None,
+        Holdout::TopCost { .. } | Holdout::Subsets { .. } => None,
     };
     let ranking = rank(families, &rows, &loss, holdout, s);
     let adopted = ranking
@@ -281,6 +281,10 @@ impl LawReport {
             }
             Holdout::Groups { groups } => format!(
                 "each of {} budget groups held out in turn",
+                groups.iter().max().map_or(0, |m| m + 1)
+            ),
+            Holdout::Subsets { groups } => format!(
+                "each of {} data subsets held out in turn",
                 groups.iter().max().map_or(0, |m| m + 1)
             ),
         };

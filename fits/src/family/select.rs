@@ -1,7 +1,7 @@
 //! Choosing a family by its error where it will be used: each applicable family is fitted
 //! without some runs and scored on them — the most expensive runs (leave-top-out: the
 //! extrapolation a scaling law is for), or each budget group in turn (leave-one-budget-out)
-//! — and the lowest error is adopted. Scores on a held-out table use ScaleBench's R²
+//! — or each data subset in turn (leave-one-ladder-out) — and the lowest error is adopted. Scores on a held-out table use ScaleBench's R²
 //! (arXiv 2604.22753, `benchmark/metrics.py`: 1 − SS_res/SS_tot on the loss, clipped to
 //! [−1, 1]; the unclipped value is kept beside it).
 
@@ -21,6 +21,11 @@ pub enum Holdout {
     /// Each group (budget) in turn; `groups[i]` is run i's group.
     Groups {
         /// Group index of every run.
+        groups: Vec<usize>,
+    },
+    /// Each data subset (a ladder of nested fractions) in turn; `groups[i]` is run i's.
+    Subsets {
+        /// Subset index of every run.
         groups: Vec<usize>,
     },
 }
@@ -122,7 +127,7 @@ fn folds(rows: &[Point], holdout: &Holdout) -> Vec<(Vec<usize>, Vec<usize>)> {
             let (train, top) = order.split_at(rows.len() - held);
             vec![(train.to_vec(), top.to_vec())]
         }
-        Holdout::Groups { groups } => {
+        Holdout::Groups { groups } | Holdout::Subsets { groups } => {
             let k = groups.iter().max().map_or(0, |m| m + 1);
             (0..k)
                 .map(|g| (0..rows.len()).partition(|&i| groups[i] != g))
