@@ -1,11 +1,14 @@
 //! `motionscale continual`: continual (lifelong) expert training over scenario datasets, and
 //! `motionscale continual compare` for the paper's Table-2-shaped comparison.
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
+use candle_core::Device;
+use experiments::backbone::{backbone, BackboneChoice, BackboneRequest};
 use experiments::continual::{compare_table, run_continual, ContinualConfig, Method};
+use experiments::plan::TrainSettings;
 use lm::es_moe::EsMoeConfig;
 use lm::lora::LoraConfig;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 /// Arguments of `motionscale continual`.
@@ -21,9 +24,28 @@ pub struct ContinualArgs {
     /// Method: es-moe, seq-lora, replay, o-lora, lwf-lora or mtl.
     #[arg(long, required = true)]
     pub method: Option<String>,
-    /// Trained backbone run (`motionscale train --out`), frozen.
-    #[arg(long, required = true)]
+    /// Trained backbone run (`motionscale train --out`), frozen; or size it by a law with
+    /// --fits and --budget.
+    #[arg(long, required_unless_present = "fits", conflicts_with = "fits")]
     pub base: Option<PathBuf>,
+    /// Size the backbone by a law: `fit`'s fits.json or laws.json. Its N_opt at --budget picks
+    /// the nearest model of --models, trained for C on --tokens in OUT/backbone (or reused from
+    /// --sweep when its plan has that point), frozen; the choice is recorded in the summary.
+    #[arg(long, value_name = "FITS_JSON", requires = "budget")]
+    pub fits: Option<PathBuf>,
+    /// With --fits: the backbone's compute budget C in FLOPs.
+    #[arg(long, requires = "fits")]
+    pub budget: Option<f64>,
+    /// With --fits: the models to choose from (presets, `cpu`, `scamo` or WIDTHxLAYERS).
+    #[arg(long, value_delimiter = ',', default_value = "cpu", requires = "fits")]
+    pub models: Vec<String>,
+    /// With --fits: a sweep folder whose run of the chosen point is the backbone (trained
+    /// there first if it is not yet).
+    #[arg(long, requires = "fits")]
+    pub sweep: Option<PathBuf>,
+    /// With --fits: the corpus with the caption embeddings (default: the token set's).
+    #[arg(long, requires = "fits")]
+    pub corpus: Option<PathBuf>,
     /// Token set of the whole corpus (`motionscale tokenize`).
     #[arg(long, required = true)]
     pub tokens: Option<PathBuf>,
@@ -113,6 +135,55 @@ pub enum CompareCommand {
     },
 }
 
+/// The backbone that the law in --fits picks at --budget, trained in OUT/backbone or reused
+/// from --sweep.
+fn law_backbone(
+    args: &ContinualArgs,
+    tokens: &Path,
+    out: &Path,
+    device: &Device,
+) -> Result<BackboneChoice> {
+    let (Some(fits), Some(budget)) = (&args.fits, args.budget) else {
+        bail!("give the backbone: --base RUN, or --fits FITS_JSON with --budget C");
+    };
+    let corpus = match &args.corpus {
+        Some(corpus) => corpus.clone(),
+        None => {
+            let set = tokenizer::TokenSet::open(tokens)
+                .with_context(|| format!("token set {}", tokens.display()))?;
+            set.manifest.corpus
+        }
+    };
+    let request = BackboneRequest {
+        fits: fits.clone(),
+        budget,
+        models: args.models.clone(),
+        corpus,
+        tokens: tokens.to_path_buf(),
+        sweep: args.sweep.clone(),
+        train: TrainSettings::default(),
+    };
+    let choice = backbone(&request, &out.join("backbone"), device, &|l| {
+        eprintln!("{l}")
+    })?;
+    eprintln!(
+        "backbone at C = {:.3e}: N_opt {:.3e} by {}; {} (N_nv {}, D {}) {} {}",
+        choice.budget,
+        choice.n_opt,
+        choice.law,
+        choice.model,
+        choice.n_nv,
+        choice.tokens,
+        if choice.reused {
+            "reused from"
+        } else {
+            "trained in"
+        },
+        choice.run.display()
+    );
+    Ok(choice)
+}
+
 /// `motionscale continual`.
 pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
     if let Some(CompareCommand::Compare {
@@ -149,10 +220,19 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
     });
     crate::memory::keep_freed_memory();
     let device = args.device.open()?;
+    let out = required(args.out.clone(), "out")?;
+    let tokens = required(args.tokens.clone(), "tokens")?;
+    let (base, backbone) = match (&args.base, &args.fits) {
+        (Some(base), _) => (base.clone(), None),
+        (None, _) => {
+            let choice = law_backbone(&args, &tokens, &out, &device)?;
+            (choice.run.clone(), Some(choice))
+        }
+    };
     let config = ContinualConfig {
         scenarios: required(args.scenarios, "scenarios")?,
-        tokens: required(args.tokens, "tokens")?,
-        base: required(args.base, "base")?,
+        tokens,
+        base,
         evaluator: required(args.evaluator, "evaluator")?,
         method,
         orders: args.orders.max(1),
@@ -181,7 +261,8 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         mm_texts: args.mm_texts,
         eval_split: args.eval_split,
         keep_motions: args.keep_motions,
-        out: required(args.out, "out")?,
+        out,
+        backbone,
     };
     let started = std::time::Instant::now();
     let report = run_continual(&config, &device, |line| eprintln!("{line}"))?;

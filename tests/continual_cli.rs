@@ -230,6 +230,7 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
     );
 
     refuses_a_backbone_that_trained_on_held_out_clips(setup);
+    a_law_sizes_the_backbone(setup);
 
     let mut args = continual_args(setup, "seq-lora", "1", &setup.join("no"));
     args.extend(["--ablation", "no-cged"].map(String::from));
@@ -237,6 +238,92 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
     assert_eq!(code(&out), 1);
     assert!(
         text(&out).contains("--ablation applies to --method es-moe"),
+        "{}",
+        text(&out)
+    );
+}
+
+/// `continual --fits laws.json --budget C`: a Chinchilla law whose N_opt at C = 6·10¹⁰ is
+/// 10⁵ (α = β = 0.3, A = B) picks the ladder model nearest it, trains it for C, records the
+/// choice in the summary; a second run reuses it from that folder given as --sweep; a law
+/// that reads the vocabulary is refused, naming the file.
+fn a_law_sizes_the_backbone(setup: &Path) {
+    let csv = setup.join("law.csv");
+    let mut table = String::from("N,D,loss\n");
+    for i in 0..6 {
+        for j in 0..6 {
+            let (n, d) = (
+                10f64.powf(4.0 + 0.4 * i as f64),
+                10f64.powf(5.0 + 0.4 * j as f64),
+            );
+            let loss = 1.5 + 50.0 * n.powf(-0.3) + 50.0 * d.powf(-0.3);
+            table.push_str(&format!("{n},{d},{loss}\n"));
+        }
+    }
+    std::fs::write(&csv, table).unwrap();
+    let fit = setup.join("law-fit");
+    motionscale_ok(&[
+        "fit",
+        "--results",
+        arg(&csv),
+        "--n-col",
+        "N",
+        "--d-col",
+        "D",
+        "--loss-col",
+        "loss",
+        "--law",
+        "chinchilla",
+        "--bootstrap",
+        "10",
+        "--out",
+        arg(&fit),
+    ]);
+    let laws = fit.join("laws.json");
+    let by_law = |out: &Path, extra: &[&str]| {
+        let mut args = continual_args(setup, "seq-lora", "1", out);
+        let at = args.iter().position(|a| a == "--base").unwrap();
+        args.drain(at..at + 2);
+        args.extend(["--fits", arg(&laws), "--budget", "6e10"].map(String::from));
+        args.extend(["--models", "cpu-50K,cpu-100K,cpu-400K"].map(String::from));
+        args.extend(extra.iter().map(|s| s.to_string()));
+        motionscale(&args.iter().map(String::as_str).collect::<Vec<_>>())
+    };
+    let first = setup.join("law-seq");
+    let out = by_law(&first, &[]);
+    assert_eq!(code(&out), 0, "{}", text(&out));
+    let summary: Value = read_json(&first.join("summary.json"));
+    let choice = &summary["config"]["backbone"];
+    let n_opt = choice["n_opt"].as_f64().unwrap();
+    assert!((n_opt / 1e5).ln().abs() < 0.1, "N_opt {n_opt}: {choice}");
+    assert!(
+        choice["law"].as_str().unwrap().contains("chinchilla"),
+        "{choice}"
+    );
+    assert_eq!(choice["reused"], false);
+    let run = std::path::PathBuf::from(choice["run"].as_str().unwrap());
+    assert!(run.join("model.safetensors").is_file(), "{choice}");
+    assert_eq!(summary["config"]["base"], choice["run"]);
+    let n_nv = choice["n_nv"].as_f64().unwrap();
+    assert!(
+        (n_nv / n_opt).ln().abs() < (4f64).ln(),
+        "{choice}: a ladder model near N_opt"
+    );
+    // Given the first run's backbone folder as a sweep, the second run reuses its backbone.
+    let sweep = first.join("backbone");
+    let out = by_law(&setup.join("law-seq-2"), &["--sweep", arg(&sweep)]);
+    assert_eq!(code(&out), 0, "{}", text(&out));
+    let again: Value = read_json(&setup.join("law-seq-2/summary.json"));
+    assert_eq!(again["config"]["backbone"]["reused"], true);
+    assert_eq!(again["config"]["backbone"]["run"], choice["run"]);
+    // A laws.json whose adopted law reads the vocabulary does not size a backbone.
+    let mut report: Value = read_json(&laws);
+    report["adopted"] = "vocab".into();
+    std::fs::write(&laws, report.to_string()).unwrap();
+    let out = by_law(&setup.join("law-vocab"), &[]);
+    assert_eq!(code(&out), 1);
+    assert!(
+        text(&out).contains("laws.json") && text(&out).contains("reads the vocabulary"),
         "{}",
         text(&out)
     );

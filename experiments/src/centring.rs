@@ -17,6 +17,17 @@ pub struct Centre {
     pub source: String,
 }
 
+/// [`centre`] of an IsoFLOP fit at `budget`, from its parabolas, its N_opt ∝ C^b law and
+/// its parametric law.
+pub fn of_fit(fits: &fits::Fits, budget: f64) -> Result<Centre, String> {
+    let parametric = fits
+        .parametric
+        .as_ref()
+        .map(|p| fits::predict::parametric_at(p, budget).n_opt.value);
+    let law = fits.power_laws.get("n_opt_vs_c");
+    centre(&fits.budgets, law, parametric, budget)
+}
+
 /// Predicted N_opt at `budget` from an earlier fit: the vertex of its parabola at the same
 /// budget (within 0.05 dex) when it is convex, even outside the sizes it sampled (the best guess
 /// after a pilot whose minimum sat at an edge); else its N_opt ∝ C^b law; else

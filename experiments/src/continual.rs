@@ -28,6 +28,7 @@
 //!
 //! Every file is written atomically and reused when present, so a killed run resumes.
 
+use crate::backbone::BackboneChoice;
 use crate::error::SweepError;
 use crate::seeds;
 use evaluator::model::TrainedEvaluator;
@@ -148,6 +149,10 @@ pub struct ContinualConfig {
     pub keep_motions: bool,
     /// Output folder.
     pub out: PathBuf,
+    /// The backbone sized by a law (`--fits --budget`): the fit, C and the model chosen
+    /// (`base` is its run); absent for a backbone given by hand.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub backbone: Option<BackboneChoice>,
 }
 
 impl ContinualConfig {

@@ -16,6 +16,7 @@
 //! RUNS/slurm/                    sbatch scripts, job ids, logs (Slurm backend)
 //! ```
 
+pub mod backbone;
 pub mod centring;
 pub mod cl2gen;
 pub mod codebook_sweep;

@@ -740,14 +740,7 @@ fn centred_models(
     centring: &Centring,
     budget: f64,
 ) -> Result<(Vec<(String, f64)>, Centre), SweepError> {
-    let fits = &centring.fits;
-    let parametric = fits
-        .parametric
-        .as_ref()
-        .map(|p| fits::predict::parametric_at(p, budget).n_opt.value);
-    let law = fits.power_laws.get("n_opt_vs_c");
-    let centre =
-        centring::centre(&fits.budgets, law, parametric, budget).map_err(SweepError::Argument)?;
+    let centre = centring::of_fit(&centring.fits, budget).map_err(SweepError::Argument)?;
     let sizes: Vec<f64> = sized.iter().map(|(_, n)| *n).collect();
     let range = centring::window(&sizes, centre.n_opt, centring.sizes);
     Ok((sized[range].to_vec(), centre))
