@@ -8,7 +8,7 @@ use fits::family::run::LawReport;
 use fits::family::Point;
 use fits::fit_file::FitFile;
 use fits::fitted::RepeatedData;
-use fits::fitted::{ColumnChoice, ColumnSpec, FitOptions};
+use fits::fitted::{ColumnChoice, ColumnSpec, ExchangeForm, FitOptions};
 use fits::parametric::StartGrid;
 use fits::report::{estimate_text, sig};
 use fits::{Fits, Laws, PredictOptions, Prediction, Table};
@@ -110,6 +110,19 @@ pub struct FitArgs {
     /// end of their schedule; `predict --hours` then counts min(D, e*·U) tokens of a run.
     #[arg(long, requires = "repeated_data")]
     pub early_stopping: bool,
+    /// With --repeated-data: how a synthetic token counts against captured ones.
+    /// `token-worth`: each is worth ρ (U and D scale by 1 − s + ρ·s); `effective-pool`:
+    /// repetitions count against the pool U_real + ρ·U_synth. Both (comma-separated): each is
+    /// fitted and scored on the data subsets left out in turn, the lower error adopted.
+    #[arg(
+        long,
+        value_enum,
+        value_delimiter = ',',
+        default_value = "token-worth",
+        value_name = "FORM[,FORM]",
+        requires = "repeated_data"
+    )]
+    pub exchange_form: Vec<ExchangeFormArg>,
     /// Grouping tolerance in log10 C, used without a group column.
     #[arg(long, default_value_t = 0.05, value_name = "DEX")]
     pub group_tol: f64,
@@ -176,6 +189,24 @@ pub struct FitArgs {
     pub replay_seeds: u64,
 }
 
+/// `fit --exchange-form`'s values.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq)]
+pub enum ExchangeFormArg {
+    /// Each synthetic token is worth ρ captured ones.
+    TokenWorth,
+    /// Repetitions count against U_real + ρ·U_synth.
+    EffectivePool,
+}
+
+impl From<ExchangeFormArg> for ExchangeForm {
+    fn from(a: ExchangeFormArg) -> Self {
+        match a {
+            ExchangeFormArg::TokenWorth => ExchangeForm::TokenWorth,
+            ExchangeFormArg::EffectivePool => ExchangeForm::EffectivePool,
+        }
+    }
+}
+
 /// How `fit --law` ranks the families.
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
 pub enum LawSelection {
@@ -235,9 +266,21 @@ impl FitArgs {
             repeated_data: self.repeated_data,
             effective_params: self.effective_params,
             early_stopping: self.early_stopping,
+            exchange_forms: dedup_forms(&self.exchange_form),
             ..FitOptions::default()
         })
     }
+}
+
+/// The forms asked for, each once, in the order given.
+fn dedup_forms(given: &[ExchangeFormArg]) -> Vec<ExchangeForm> {
+    let mut out: Vec<ExchangeForm> = Vec::new();
+    for &f in given {
+        if !out.contains(&f.into()) {
+            out.push(f.into());
+        }
+    }
+    out
 }
 
 /// `motionscale fit`: fits, fits.json, plots and a summary on stdout.
@@ -420,10 +463,14 @@ fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCo
         ("epochs", Some(&p.epochs)),
         ("stops at", p.stop_epochs.as_ref()),
         ("loss", Some(&p.loss)),
+        ("a run", p.loss_prediction.as_ref()),
     ] {
         if let Some(e) = e {
             println!("  {name:<8} {}", estimate_text(e));
         }
+    }
+    if p.loss_prediction.is_some() {
+        println!("  (loss: the law's 95% interval; a run: the 95% prediction interval of one run's loss, the runs' scatter about the law added)");
     }
     println!("  N_v {} ; 6·(N + N_v)·D / C = {:.4}", sig(p.n_v), p.spends);
     for v in &p.hour_values {

@@ -300,7 +300,10 @@ fn predict_hours_needs_a_data_constrained_law() {
 /// after e* = 100·N^−0.35·U^0.05 epochs, with the sweep's columns (`best_step` of 100,000
 /// steps, `hours` at 10⁶ unique tokens an hour), written to `path`.
 fn stopping_ladder(path: &std::path::Path) {
-    let truth = [1.2, 60.0, 400.0, 0.35, 0.3, 6.0, 1.0, f64::INFINITY];
+    let truth = fits::repeated::NaturalLaw {
+        theta: [1.2, 60.0, 400.0, 0.35, 0.3, 6.0, 1.0, f64::INFINITY],
+        form: fits::fitted::ExchangeForm::TokenWorth,
+    };
     let rule = [100f64.ln(), -0.35, 0.05];
     let mut csv = String::from(
         "budget,n_nv,tokens,test_loss,norm_test_loss,epochs,synth_share,best_step,steps,hours\n",
@@ -312,7 +315,7 @@ fn stopping_ladder(path: &std::path::Path) {
                 let d = c / (6.0 * n);
                 let stop = fits::stopping::stop_epochs(&rule, n, unique) * unique;
                 let step = (1e5 * (stop / d).min(1.0)).round().max(1.0);
-                let l = fits::repeated::loss_at(&truth, n, d * step / 1e5, unique, 0.0);
+                let l = truth.loss(n, d * step / 1e5, unique, 0.0);
                 csv.push_str(&format!(
                     "{c},{n},{d},{l},{l},{},0,{step},100000,{}\n",
                     d / unique,
@@ -344,10 +347,16 @@ fn predict_hours_from_an_early_stopping_fit_says_what_compute_cannot_buy() {
         arg(&out),
     ]);
     assert!(fitted.contains("early stopping: ln e* = 4.6"), "{fitted}");
+    assert!(
+        fitted.contains("in sample: the 95% prediction interval (refits + a run's scatter"),
+        "{fitted}"
+    );
     let fits = out.join("fits.json");
     let args = ["predict", "--fits", arg(&fits), "--budget", "1e18"];
     let text = motionscale_ok(&[&args[..], &["--hours", "real=5"]].concat());
     for needle in [
+        "  a run    ",
+        "a run: the 95% prediction interval of one run's loss",
         "stops at",
         "buys nothing on these hours",
         "+1 h real : loss -",
@@ -371,6 +380,46 @@ fn predict_hours_from_an_early_stopping_fit_says_what_compute_cannot_buy() {
     assert_eq!((real.source.as_str(), real.unbuyable), ("real", 1.0));
     assert!(real.compute_equivalent.value.is_infinite(), "{real:?}");
     data_bound_verdict(&fits);
+}
+
+/// `fit --exchange-form` takes both forms, scores each on held-out runs and prints them, the
+/// adopted first; a form it does not know is refused by name.
+#[test]
+fn fit_scores_both_exchange_forms_on_the_data_subsets() {
+    let tmp = tempfile::tempdir().unwrap();
+    let csv = tmp.path().join("ladder.csv");
+    stopping_ladder(&csv);
+    let out = tmp.path().join("fits");
+    let fit = |form: &'static str| {
+        let args = [
+            "fit",
+            "--results",
+            arg(&csv),
+            "--repeated-data",
+            "--exchange-form",
+        ];
+        let rest = [
+            "--starts-grid",
+            "coarse",
+            "--bootstrap",
+            "0",
+            "--out",
+            arg(&out),
+        ];
+        [&args[..], &[form], &rest[..]].concat()
+    };
+    // One source: ρ is not fitted; two data subsets are too few, so each form is scored on
+    // the 3 budgets left out in turn.
+    let printed = motionscale_ok(&fit("effective-pool,token-worth"));
+    for needle in [
+        "form effective-pool (adopted): rho -, RMS log error",
+        "form token-worth: rho -, RMS log error",
+        "over 3 budgets left out",
+    ] {
+        assert!(printed.contains(needle), "{needle:?} in {printed}");
+    }
+    let refused = motionscale(&fit("pool"));
+    fails_with(&refused, "invalid value 'pool' for '--exchange-form");
 }
 
 /// On the same fit, at 10¹⁸ FLOPs and 2.5 h distinct captured hours mirrored (5 h in the

@@ -1,6 +1,7 @@
 //! The whole fit of a results table: columns → budget groups → IsoFLOP minima → power laws,
 //! log law and the parametric L(N, D) with bootstrap → [`Fits`] (written as `fits.json`).
 
+use crate::data_value;
 use crate::fitted::{
     Agreement, Bootstrap, FitOptions, Fits, Input, LawEstimates, Parametric, Settings,
 };
@@ -56,7 +57,10 @@ pub fn fit_table(t: &Table, opts: &FitOptions) -> Result<Fits, FitError> {
     }
     if opts.repeated_data {
         match repeated::fit(&runs, &fits, opts) {
-            Ok(r) => fits.repeated_data = Some(r),
+            Ok(mut r) => {
+                r.in_sample = data_value::in_sample_coverage(&r);
+                fits.repeated_data = Some(r)
+            }
             Err(why) => fits.skipped.push(why.to_string()),
         }
     }
@@ -424,7 +428,9 @@ pub fn fit_parametric(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::fitted::ExchangeForm;
     use crate::parametric::StartGrid;
+    use crate::repeated::NaturalLaw;
     use crate::synth::{Law, CHINCHILLA};
     use crate::{data_value, stopping};
     use std::fmt::Write as _;
@@ -690,7 +696,7 @@ mod tests {
         let path = two_source_ladders(
             dir.path(),
             |_, _, _| 100_000,
-            |n, d, unique, share| repeated::loss_at(&truth, n, d, unique, share),
+            |n, d, unique, share| token_worth(truth).loss(n, d, unique, share),
         );
         let opts = FitOptions {
             repeated_data: true,
@@ -733,7 +739,7 @@ mod tests {
         };
         let dir = tempfile::tempdir().unwrap();
         let path = two_source_ladders(dir.path(), select, |n, d, unique, share| {
-            repeated::loss_at(&truth, n, d, unique, share)
+            token_worth(truth).loss(n, d, unique, share)
         });
         let opts = FitOptions {
             repeated_data: true,
@@ -819,6 +825,145 @@ mod tests {
         let path = dir.join("results.csv");
         std::fs::write(&path, csv).unwrap();
         path
+    }
+
+    /// The token-worth law of natural parameters `theta`.
+    fn token_worth(theta: [f64; 8]) -> NaturalLaw {
+        NaturalLaw {
+            theta,
+            form: ExchangeForm::TokenWorth,
+        }
+    }
+
+    /// On runs whose repetitions count against the effective pool (ρ = 0.35), the token-worth
+    /// form misreads ρ; with both forms fitted, the effective pool has the lower error on the
+    /// data subsets left out, is adopted, and recovers ρ.
+    #[test]
+    fn both_exchange_forms_fitted_adopt_the_form_the_runs_follow() {
+        let law = repetition_law();
+        let truth = NaturalLaw {
+            theta: [
+                law.e,
+                law.a,
+                law.b,
+                law.alpha,
+                law.beta,
+                6.0,
+                0.35,
+                f64::INFINITY,
+            ],
+            form: ExchangeForm::EffectivePool,
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let path = two_source_ladders(
+            dir.path(),
+            |_, _, _| 100_000,
+            |n, d, unique, share| truth.loss(n, d, unique, share),
+        );
+        let fit = |forms: Vec<ExchangeForm>| {
+            let opts = FitOptions {
+                repeated_data: true,
+                exchange_forms: forms,
+                ..quick()
+            };
+            let fits = fit_table(&Table::read(&path).unwrap(), &opts).unwrap();
+            fits.repeated_data.expect("fitted")
+        };
+        let one = fit(vec![ExchangeForm::TokenWorth]);
+        let misread = one.exchange.as_ref().unwrap().value;
+        assert!(
+            (misread / 0.35 - 1.0).abs() > 0.2,
+            "token worth: ρ {misread}"
+        );
+        assert!(one.exchange_forms.is_empty(), "one form: nothing scored");
+        let both = fit(vec![ExchangeForm::TokenWorth, ExchangeForm::EffectivePool]);
+        assert_eq!(both.exchange_form, ExchangeForm::EffectivePool);
+        let rho = both.exchange.as_ref().unwrap().value;
+        assert!((rho / 0.35 - 1.0).abs() < 0.05, "effective pool: ρ {rho}");
+        let errors: Vec<(ExchangeForm, f64, usize)> = both
+            .exchange_forms
+            .iter()
+            .map(|s| {
+                let h = s.held_out.as_ref().expect("4 data subsets: scored");
+                assert_eq!(h.clusters, "data subsets");
+                (s.form, h.rms, h.folds)
+            })
+            .collect();
+        assert_eq!(errors[0].0, ExchangeForm::EffectivePool);
+        assert!(
+            errors[0].1 < 1e-3 && errors[1].1 > 2.0 * errors[0].1,
+            "{errors:?}"
+        );
+        assert_eq!(errors[0].2, 4);
+    }
+
+    /// Runs scattered about the law (log SD 0.03): its 95% prediction intervals hold the best
+    /// loss of nearly every cell, the scatter they add is the runs', and a prediction's
+    /// interval for one run is wider than the law's own.
+    #[test]
+    fn prediction_intervals_hold_the_runs_the_law_was_fitted_on() {
+        let law = repetition_law();
+        let truth = token_worth([
+            law.e,
+            law.a,
+            law.b,
+            law.alpha,
+            law.beta,
+            6.0,
+            0.3,
+            f64::INFINITY,
+        ]);
+        let rng = std::cell::RefCell::new(motionscale_core::rng::SplitMix64::stream(7, 0));
+        let dir = tempfile::tempdir().unwrap();
+        let path = two_source_ladders(
+            dir.path(),
+            |_, _, _| 100_000,
+            |n, d, unique, share| {
+                truth.loss(n, d, unique, share) * (0.03 * rng.borrow_mut().normal()).exp()
+            },
+        );
+        let mut text = std::fs::read_to_string(&path).unwrap().replace(
+            "synth_share,best_step,steps\n",
+            "synth_share,best_step,steps,hours\n",
+        );
+        // Hours: 10⁶ unique tokens an hour.
+        text = text
+            .lines()
+            .map(
+                |l| match l.split(',').nth(5).and_then(|e| e.parse::<f64>().ok()) {
+                    Some(epochs) => {
+                        let d: f64 = l.split(',').nth(2).unwrap().parse().unwrap();
+                        format!("{l},{}\n", d / epochs / 1e6)
+                    }
+                    None => format!("{l}\n"),
+                },
+            )
+            .collect();
+        std::fs::write(&path, text).unwrap();
+        let opts = FitOptions {
+            repeated_data: true,
+            bootstrap: 40,
+            ..quick()
+        };
+        let fits = fit_table(&Table::read(&path).unwrap(), &opts).unwrap();
+        let r = fits.repeated_data.expect("fitted");
+        let c = r.in_sample.as_ref().expect("information and hours: scored");
+        assert_eq!(c.cells, 12, "4 data sets × 3 budgets");
+        assert!(c.covered >= 11, "{c:?}");
+        assert!((0.015..0.045).contains(&c.scatter), "{c:?}");
+        let h = data_value::Hours {
+            real: 20.0,
+            synth: 10.0,
+        };
+        let p = data_value::predict_data(&r, 1e15, h).unwrap();
+        let run = p.loss_prediction.as_ref().expect("a run's interval");
+        let (lo, hi) = (run.ci_low.unwrap(), run.ci_high.unwrap());
+        assert!(
+            lo < p.loss.ci_low.unwrap() && hi > p.loss.ci_high.unwrap(),
+            "{run:?} vs {:?}",
+            p.loss
+        );
+        assert!((hi / lo).ln() > 3.0 * 0.03, "{run:?}");
     }
 
     /// The law the data-constrained tests draw their runs from.

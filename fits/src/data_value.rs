@@ -6,13 +6,15 @@
 //! its 95% interval is the percentile interval over them.
 
 use crate::fitted::RepeatedData;
+use crate::fitted::{CellMiss, ExchangeForm, InSampleCoverage};
 use crate::laws::Estimate;
 use crate::parametric::{percentile_of_sorted, with_draws};
 use crate::planner::infinite_if_null;
-use crate::repeated::loss_at;
+use crate::repeated::NaturalLaw;
 use crate::search::{bisect, grid_golden_min};
 use crate::stopping::{stop_epochs, tokens_used};
 use serde::{Deserialize, Deserializer, Serialize};
+use statrs::distribution::{ContinuousCDF, Normal};
 use std::f64::consts::LN_10;
 
 /// Hours of each source in the corpus.
@@ -29,6 +31,7 @@ pub struct Hours {
 #[derive(Debug, Clone, Copy)]
 struct Law {
     theta: [f64; 8],
+    form: ExchangeForm,
     tokens_per_hour: f64,
     nv_line: Option<[f64; 2]>,
     stopping: Option<[f64; 3]>,
@@ -55,7 +58,11 @@ impl Law {
     fn loss(&self, n: f64, d: f64, h: Hours) -> f64 {
         let u = self.unique_tokens(h);
         let d = self.stopping.map_or(d, |c| tokens_used(&c, n, d, u));
-        loss_at(&self.theta, n, d, u, h.synth / (h.real + h.synth))
+        let law = NaturalLaw {
+            theta: self.theta,
+            form: self.form,
+        };
+        law.loss(n, d, u, h.synth / (h.real + h.synth))
     }
 
     /// U: the corpus's unique tokens.
@@ -232,8 +239,12 @@ pub struct DataPrediction {
     /// (compute spent past them buys nothing).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stop_epochs: Option<Estimate>,
-    /// The loss there (the fit's parametric loss column).
+    /// The loss there (the fit's parametric loss column): 95% interval of the law's refits.
     pub loss: Estimate,
+    /// The 95% prediction interval of one run's loss there: the refits spread by the runs'
+    /// scatter about the law (absent without the fit's Laplace information).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss_prediction: Option<Estimate>,
     /// 6·(N_opt + N_v)·D / C.
     pub spends: f64,
     /// +1 h and +10 h of each source.
@@ -266,6 +277,7 @@ fn law(rd: &RepeatedData, theta: [f64; 8]) -> Result<Law, String> {
         .ok_or("the data-constrained fit has no tokens per hour (refit a table with the sweep's `hours` column)")?;
     Ok(Law {
         theta,
+        form: rd.exchange_form,
         tokens_per_hour,
         nv_line: rd.nv_line,
         stopping: rd.stopping.as_ref().map(|s| s.coef),
@@ -434,8 +446,84 @@ pub fn predict_data(
         epochs: estimate(&optima.iter().map(|o| o.d / u).collect::<Vec<_>>()),
         stop_epochs,
         loss: of(|o| o.loss),
+        loss_prediction: scatter(rd).map(|sd| predictive(&loss_values(&optima), sd)),
         spends: 6.0 * (p.n + p.n_v) * p.d / budget,
         hour_values,
+    })
+}
+
+/// Each law's loss at its optimum.
+fn loss_values(optima: &[Optimum]) -> Vec<f64> {
+    optima.iter().map(|o| o.loss).collect()
+}
+
+/// The log-space SD of one run about the law: √(σ² + τ²), the within-budget scatter and the
+/// budgets' shared misfit of the fit's residuals.
+fn scatter(rd: &RepeatedData) -> Option<f64> {
+    rd.information
+        .as_ref()
+        .map(|i| (i.sigma2 + i.tau2).sqrt())
+        .filter(|s| s.is_finite())
+}
+
+/// A 95% prediction interval for one run: each refit's value (`values[1..]`; the point law's
+/// where there are none) spread in log space by `sd` at 101 normal quantiles, and the point
+/// law's value.
+fn predictive(values: &[f64], sd: f64) -> Estimate {
+    let normal = Normal::standard();
+    let z: Vec<f64> = (0..101)
+        .map(|j| normal.inverse_cdf((j as f64 + 0.5) / 101.0))
+        .collect();
+    let refits = if values.len() > 1 {
+        &values[1..]
+    } else {
+        values
+    };
+    let spread: Vec<f64> = refits
+        .iter()
+        .flat_map(|v| z.iter().map(move |z| v * (sd * z).exp()))
+        .collect();
+    with_draws(values[0], &spread)
+}
+
+/// The law's 95% prediction interval against the best loss of every (budget, data subset)
+/// cell of its frontier: how often the runs it was fitted on fall inside. `None` without
+/// the Laplace information (the scatter) or tokens per hour.
+pub fn in_sample_coverage(rd: &RepeatedData) -> Option<InSampleCoverage> {
+    let sd = scatter(rd)?;
+    let laws = laws(rd).ok()?;
+    let misses: Vec<CellMiss> = rd
+        .frontier
+        .iter()
+        .filter_map(|cell| {
+            let u = cell.unique_tokens / laws[0].tokens_per_hour;
+            let hours = Hours {
+                real: u * (1.0 - cell.synth_share),
+                synth: u * cell.synth_share,
+            };
+            let losses: Vec<f64> = laws
+                .iter()
+                .map(|l| l.optimum(cell.budget, hours).loss)
+                .collect();
+            let predicted = predictive(&losses, sd);
+            let inside = matches!(
+                (predicted.ci_low, predicted.ci_high),
+                (Some(lo), Some(hi)) if (lo..=hi).contains(&cell.loss)
+            );
+            (!inside).then_some(CellMiss {
+                budget: cell.budget,
+                unique_tokens: cell.unique_tokens,
+                synth_share: cell.synth_share,
+                loss: cell.loss,
+                predicted,
+            })
+        })
+        .collect();
+    Some(InSampleCoverage {
+        cells: rd.frontier.len(),
+        covered: rd.frontier.len() - misses.len(),
+        scatter: sd,
+        misses,
     })
 }
 
@@ -489,6 +577,9 @@ mod tests {
             past_base_size: 0,
             note_n: None,
             exchange: Some(Estimate::exact(theta[6])),
+            exchange_form: ExchangeForm::TokenWorth,
+            exchange_forms: Vec::new(),
+            in_sample: None,
             n_runs: 0,
             repeated_runs: 0,
             max_epochs: 0.0,

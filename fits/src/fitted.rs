@@ -146,6 +146,9 @@ pub struct FitOptions {
     /// In it, early stopping: the law fitted on the tokens of each run's validation-selected
     /// checkpoint and a stopping rule beside it (needs `best_step` and `steps` columns).
     pub early_stopping: bool,
+    /// In it, the exchange forms to fit: more than one are scored on the data subsets left
+    /// out in turn and the lowest error adopted.
+    pub exchange_forms: Vec<ExchangeForm>,
 }
 
 impl Default for FitOptions {
@@ -165,6 +168,7 @@ impl Default for FitOptions {
             repeated_data: false,
             effective_params: false,
             early_stopping: false,
+            exchange_forms: vec![ExchangeForm::TokenWorth],
         }
     }
 }
@@ -469,6 +473,81 @@ pub struct DataFrontierPoint {
     pub n: f64,
 }
 
+/// How synthetic tokens count against captured ones in the data-constrained law.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ExchangeForm {
+    /// Each token is worth k = 1 − s + ρ·s captured ones: U and D both scale by k and the
+    /// repetitions R = D/U − 1 are unchanged.
+    #[default]
+    TokenWorth,
+    /// Repetitions count against the effective pool U·k = U_real + ρ·U_synth; the tokens seen
+    /// count in full, so R = D/(U·k) − 1.
+    EffectivePool,
+}
+
+impl ExchangeForm {
+    /// The name `fit --exchange-form` takes.
+    pub fn name(self) -> &'static str {
+        match self {
+            ExchangeForm::TokenWorth => "token-worth",
+            ExchangeForm::EffectivePool => "effective-pool",
+        }
+    }
+}
+
+/// How often the law's 95% prediction interval holds the best loss of a (budget, data subset)
+/// cell of the runs it was fitted on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InSampleCoverage {
+    /// Cells: the budgets × unique-data sets of the fit's frontier.
+    pub cells: usize,
+    /// Cells whose best loss lies inside the interval.
+    pub covered: usize,
+    /// The log-space SD of one run about the law that the intervals add to the refits'
+    /// spread: √(σ² + τ²), within-budget scatter and the budgets' shared misfit.
+    pub scatter: f64,
+    /// The cells outside their interval.
+    pub misses: Vec<CellMiss>,
+}
+
+/// A cell whose best loss fell outside the law's 95% prediction interval.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CellMiss {
+    /// The budget.
+    pub budget: f64,
+    /// Unique tokens of the cell's data.
+    pub unique_tokens: f64,
+    /// Its synthetic share.
+    pub synth_share: f64,
+    /// The best loss the runs reached.
+    pub loss: f64,
+    /// The law's prediction and its 95% prediction interval.
+    pub predicted: Estimate,
+}
+
+/// One exchange form fitted and scored on held-out runs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FormScore {
+    /// The form.
+    pub form: ExchangeForm,
+    /// ρ at its full-data optimum, where ρ is fitted.
+    pub exchange: Option<f64>,
+    /// Its error on held-out runs (absent where there are too few folds).
+    pub held_out: Option<FormError>,
+}
+
+/// A fit's RMS log error on clusters of runs left out in turn.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FormError {
+    /// What was left out: `data subsets` or `budgets`.
+    pub clusters: String,
+    /// How many folds.
+    pub folds: usize,
+    /// RMS log residual on the left-out runs.
+    pub rms: f64,
+}
+
 /// R*_D's and ρ's 95% intervals with whole clusters of runs resampled.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct BlockInterval {
@@ -511,6 +590,17 @@ pub struct RepeatedData {
     /// transferred, as a ratio). Fitted only when the runs' synthetic shares differ.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub exchange: Option<Estimate>,
+    /// How synthetic tokens count (fits written before the forms are token-worth).
+    #[serde(default)]
+    pub exchange_form: ExchangeForm,
+    /// With more than one form asked for: each form's held-out error, the adopted (lowest)
+    /// first.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub exchange_forms: Vec<FormScore>,
+    /// The law's 95% prediction intervals against the best loss of each (budget, data subset)
+    /// cell it was fitted on (absent without the Laplace information or tokens per hour).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub in_sample: Option<InSampleCoverage>,
     /// Runs fitted.
     pub n_runs: usize,
     /// Runs that saw some token more than once (epochs > 1).

@@ -18,10 +18,11 @@
 //! does not describe.
 
 use crate::data_value::{fitted_law, hour_loss_change, optimal_size, Hours};
+use crate::fitted::ExchangeForm;
 use crate::fitted::RepeatedData;
 use crate::ols::Z95;
 use crate::planner::{Proposal, GROUP_TOL_DEX, SIZE_WINDOW_DEX};
-use crate::repeated::{coordinates, log_loss_gradient, natural};
+use crate::repeated::{coordinates, natural, NaturalLaw};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
@@ -72,6 +73,7 @@ struct Group {
 /// The linearised fit: the target's gradient and the information, by budget group.
 struct Design {
     law: [f64; 8],
+    form: ExchangeForm,
     free: Vec<usize>,
     groups: Vec<Group>,
     sigma2: f64,
@@ -112,6 +114,7 @@ impl Design {
             .collect();
         Ok(Self {
             law,
+            form: rd.exchange_form,
             free: info.free.clone(),
             groups,
             sigma2: info.sigma2.max(f64::MIN_POSITIVE),
@@ -138,7 +141,11 @@ impl Design {
 
     /// `groups` with a candidate's run added to its budget's group (or a new one).
     fn with_run(&self, groups: &[Group], c: &DataCandidate) -> Vec<Group> {
-        let g = log_loss_gradient(&self.law, c.n, c.d, c.u, c.synth);
+        let law = NaturalLaw {
+            theta: self.law,
+            form: self.form,
+        };
+        let g = law.log_loss_gradient(c.n, c.d, c.u, c.synth);
         let row = DVector::from_iterator(self.free.len(), self.free.iter().map(|&k| g[k]));
         let mut out = groups.to_vec();
         let x = c.budget.log10();
@@ -261,7 +268,7 @@ mod tests {
     use crate::data_value::predict_data;
     use crate::fitted::FitOptions;
     use crate::parametric::StartGrid;
-    use crate::repeated::loss_at;
+    use crate::repeated::NaturalLaw;
     use crate::{fit_table, Table};
     use motionscale_core::rng::SplitMix64;
     use std::fmt::Write;
@@ -292,7 +299,11 @@ mod tests {
         for (i, &(c, n, u, share)) in runs.iter().enumerate() {
             let d = c / (6.0 * n);
             let noise = NOISE * SplitMix64::stream(7, i as u64).normal();
-            let l = loss_at(&TRUTH, n, d, u, share) * noise.exp();
+            let truth = NaturalLaw {
+                theta: TRUTH,
+                form: ExchangeForm::TokenWorth,
+            };
+            let l = truth.loss(n, d, u, share) * noise.exp();
             let h = u / TOKENS_PER_HOUR;
             let _ = writeln!(csv, "{c},{n},{d},{l},{l},{},{share},{h}", d / u);
         }

@@ -14,11 +14,16 @@
 //! With a second source, the exchange rate ρ (effective captured tokens per synthetic token)
 //! is fitted too: a run whose unique data is a share s synthetic counts U·k and D·k with
 //! k = 1 − s + ρ·s (each epoch passes over both sources; R is unchanged), so that
-//! ln D' gains ln k. It is identified only when the runs' synthetic shares differ.
+//! ln D' gains ln k. It is identified only when the runs' synthetic shares differ. That is
+//! one form of the exchange (`ExchangeForm::TokenWorth`); in the other
+//! (`ExchangeForm::EffectivePool`) repetitions count against the effective pool
+//! U·k = U_real + ρ·U_synth while each token seen counts in full, so a run with synthetic data
+//! repeats sooner. `fit` fits the forms asked for and adopts the one with the lower error on
+//! the data subsets left out in turn.
 
 use crate::fitted::{
-    BlockInterval, BudgetInformation, DataFrontierPoint, FitOptions, Fits, HeldOutError,
-    Information, LawEstimates, RepeatedData,
+    BlockInterval, BudgetInformation, DataFrontierPoint, ExchangeForm, FitOptions, Fits, FormError,
+    FormScore, HeldOutError, Information, LawEstimates, RepeatedData,
 };
 use crate::isoflop;
 use crate::laws::Estimate;
@@ -30,7 +35,6 @@ use crate::stopping::{tokens_used, StopRuns};
 use crate::FitError;
 use motionscale_core::rng::SplitMix64;
 use rayon::prelude::*;
-
 /// Runs for the data-constrained fit.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DataRuns {
@@ -46,6 +50,8 @@ pub struct DataRuns {
     pub synth: Vec<f64>,
     /// Whether parameters past U_N count as N' (R*_N is fitted), else in full.
     pub effective_params: bool,
+    /// How synthetic tokens count.
+    pub form: ExchangeForm,
 }
 
 impl DataRuns {
@@ -58,7 +64,13 @@ impl DataRuns {
             ln_l: loss.iter().map(|v| v.ln()).collect(),
             synth: vec![0.0; n.len()],
             effective_params: false,
+            form: ExchangeForm::TokenWorth,
         }
+    }
+
+    /// The same runs under the exchange form `form`.
+    pub fn with_exchange_form(self, form: ExchangeForm) -> Self {
+        Self { form, ..self }
     }
 
     /// The same runs with the effective parameters N' (R*_N fitted) or without.
@@ -112,6 +124,7 @@ impl DataRuns {
             ln_l: pick(&self.ln_l),
             synth: pick(&self.synth),
             effective_params: self.effective_params,
+            form: self.form,
         }
     }
 
@@ -129,7 +142,14 @@ impl DataRuns {
         if !self.effective_params {
             t[7] = f64::INFINITY;
         }
-        Point::new(self.ln_n[i], self.d[i], self.u[i], (ln_k, dln_k), &t)
+        Point::new(
+            self.ln_n[i],
+            self.d[i],
+            self.u[i],
+            (ln_k, dln_k),
+            &t,
+            self.form,
+        )
     }
 
     /// Runs whose N exceeds U_N under θ (those that identify R*_N).
@@ -213,14 +233,14 @@ impl DataRuns {
 /// the fit moves in: its effective data and parameters, and how they move with θ.
 #[derive(Debug, Clone, Copy)]
 struct Point {
-    /// ln D' (the exchange rate applied) and d(ln D')/d(ln R*_D).
+    /// ln D' (the exchange rate applied), d(ln D')/d(ln R*_D) and d(ln D')/d(ln ρ).
     ln_dp: f64,
     dp_r: f64,
-    /// d(ln k)/d(ln ρ).
-    dk_rho: f64,
-    /// ln U_N and its partials in (ln A, ln B, α, β, ln U).
+    dp_rho: f64,
+    /// ln U_N, its partials in (ln A, ln B, α, β, ln U_D) and d(ln U_D)/d(ln ρ).
     ln_un: f64,
     un: [f64; 5],
+    un_rho: f64,
     /// ln N', d(ln N')/d(ln R*_N) and d(ln N')/d(ln U_N).
     ln_np: f64,
     np_r: f64,
@@ -228,17 +248,40 @@ struct Point {
 }
 
 impl Point {
-    fn new(ln_n: f64, d: f64, u: f64, (ln_k, dk_rho): (f64, f64), t: &[f64; 8]) -> Self {
-        let (ln_dp, dp_r) = effective_data(d, u, t[5]);
-        // U_N is allotted to the unique tokens the run saw (Muennighoff et al.'s U_D).
-        let (ln_un, un) = base_size(t, d.min(u).ln() + ln_k);
+    fn new(
+        ln_n: f64,
+        d: f64,
+        u: f64,
+        (ln_k, dk_rho): (f64, f64),
+        t: &[f64; 8],
+        form: ExchangeForm,
+    ) -> Self {
+        // U_D: the unique tokens the run saw (Muennighoff et al.), to which U_N is allotted.
+        let (ln_dp, dp_r, dp_rho, ln_seen, seen_rho) = match form {
+            ExchangeForm::TokenWorth => {
+                let (ln_dp, dp_r) = effective_data(d, u, t[5]);
+                (ln_dp + ln_k, dp_r, dk_rho, d.min(u).ln() + ln_k, dk_rho)
+            }
+            ExchangeForm::EffectivePool => {
+                let ln_pool = u.ln() + ln_k;
+                let (ln_dp, dp_r, dp_pool) = effective_size(d.ln(), ln_pool, t[5]);
+                let pool_seen = ln_pool < d.ln();
+                let (ln_seen, seen_rho) = match pool_seen {
+                    true => (ln_pool, dk_rho),
+                    false => (d.ln(), 0.0),
+                };
+                (ln_dp, dp_r, dp_pool * dk_rho, ln_seen, seen_rho)
+            }
+        };
+        let (ln_un, un) = base_size(t, ln_seen);
         let (ln_np, np_r, np_un) = effective_size(ln_n, ln_un, t[7]);
         Self {
-            ln_dp: ln_dp + ln_k,
+            ln_dp,
             dp_r,
-            dk_rho,
+            dp_rho,
             ln_un,
             un,
+            un_rho: seen_rho,
             ln_np,
             np_r,
             np_un,
@@ -257,7 +300,7 @@ impl Point {
         // The parameter term moves with U_N, which moves with ln A, ln B, α, β and ln U.
         let via_un = -alpha * self.np_un * w[0];
         let rho = match fit_rho {
-            true => (-w[1] * beta + via_un * self.un[4]) * self.dk_rho,
+            true => -w[1] * beta * self.dp_rho + via_un * self.un[4] * self.un_rho,
             false => 0.0,
         };
         let grad = [
@@ -355,28 +398,39 @@ pub fn coordinates(nat: &[f64; 8]) -> [f64; 8] {
     ]
 }
 
-/// One run under natural parameters, and θ.
-fn point_at(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> (Point, [f64; 8]) {
-    let t = coordinates(nat);
-    let k = 1.0 - synth + nat[6] * synth;
-    (
-        Point::new(n.ln(), d, u, (k.ln(), nat[6] * synth / k), &t),
-        t,
-    )
+/// A law in natural parameters (E, A, B, α, β, R*_D, ρ, R*_N) with its exchange form.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NaturalLaw {
+    /// (E, A, B, α, β, R*_D, ρ, R*_N).
+    pub theta: [f64; 8],
+    /// How synthetic tokens count.
+    pub form: ExchangeForm,
 }
 
-/// The law's loss at natural parameters (E, A, B, α, β, R*_D, ρ, R*_N) for N parameters
-/// trained on D tokens of U unique ones, a share `synth` of them synthetic.
-pub fn loss_at(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> f64 {
-    let (p, t) = point_at(nat, n, d, u, synth);
-    lse3(p.terms(&t)).0.exp()
-}
+impl NaturalLaw {
+    /// One run of N parameters trained on D tokens of U unique ones, a share `synth` of them
+    /// synthetic, and θ.
+    fn point(&self, n: f64, d: f64, u: f64, synth: f64) -> (Point, [f64; 8]) {
+        let nat = &self.theta;
+        let t = coordinates(nat);
+        let k = 1.0 - synth + nat[6] * synth;
+        let exchange = (k.ln(), nat[6] * synth / k);
+        (Point::new(n.ln(), d, u, exchange, &t, self.form), t)
+    }
 
-/// The gradient of ln L̂ in θ = (ln A, ln B, ln E, α, β, ln R*_D, ln ρ, ln R*_N) for the run
-/// `loss_at` describes: one row of the Jacobian a new run would add to the fit.
-pub fn log_loss_gradient(nat: &[f64; 8], n: f64, d: f64, u: f64, synth: f64) -> [f64; 8] {
-    let (p, t) = point_at(nat, n, d, u, synth);
-    p.log_loss(&t, true).1
+    /// The law's loss for N parameters trained on D tokens of U unique ones, a share `synth`
+    /// of them synthetic.
+    pub fn loss(&self, n: f64, d: f64, u: f64, synth: f64) -> f64 {
+        let (p, t) = self.point(n, d, u, synth);
+        lse3(p.terms(&t)).0.exp()
+    }
+
+    /// The gradient of ln L̂ in θ = (ln A, ln B, ln E, α, β, ln R*_D, ln ρ, ln R*_N) for the
+    /// run `loss` describes: one row of the Jacobian a new run would add to the fit.
+    pub fn log_loss_gradient(&self, n: f64, d: f64, u: f64, synth: f64) -> [f64; 8] {
+        let (p, t) = self.point(n, d, u, synth);
+        p.log_loss(&t, true).1
+    }
 }
 
 /// Σ Huber_δ of the log residuals at θ = (ln A, ln B, ln E, α, β, ln R*_D, ln ρ, ln R*_N);
@@ -514,6 +568,9 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
     if let Some(shares) = &runs.synth_share {
         data = data.with_synthetic_shares(shares);
     }
+    let stop_tokens = stop.as_ref().map(|s| (s, d_run.as_slice()));
+    let forms = score_forms(runs, &data, stop_tokens, opts, &plain.theta);
+    let data = data.with_exchange_form(forms[0].form);
     let best = best_of(&data, opts, &starts(&plain.theta, data.effective_params))
         .ok_or_else(|| cannot("the objective is not finite at any start".into()))?;
     let refits = bootstrap(&data, stop.as_ref(), &best.x, opts);
@@ -556,19 +613,16 @@ pub fn fit(runs: &Runs, fits: &Fits, opts: &FitOptions) -> Result<RepeatedData, 
         },
         note_n: note_n.flatten(),
         exchange: data.mixes_sources().then(|| est(6)),
+        exchange_form: data.form,
+        exchange_forms: if forms.len() > 1 { forms } else { Vec::new() },
+        in_sample: None,
         n_runs: data.len(),
         repeated_runs,
         max_epochs,
         objective: best.f,
         termination: best.termination,
         bootstrap: [opts.bootstrap, draws.len()],
-        held_out: held_out(
-            runs,
-            &data,
-            stop.as_ref().map(|s| (s, d_run.as_slice())),
-            opts,
-            (&plain.theta, &best.x),
-        ),
+        held_out: held_out(runs, &data, stop_tokens, opts, (&plain.theta, &best.x)),
         information: Some(information),
         note,
         frontier: frontier(runs, &u, &groups),
@@ -717,29 +771,13 @@ fn held_out(
     let mut repeated_starts = starts(plain, data.effective_params);
     repeated_starts.push(*repeated);
     let (mut sq_plain, mut sq_rep, mut count) = (0.0, 0.0, 0usize);
-    for (g, left_out) in groups.iter().enumerate() {
-        let kept: Vec<usize> = groups
-            .iter()
-            .enumerate()
-            .filter(|&(k, _)| k != g)
-            .flat_map(|(_, rows)| rows.iter().copied())
-            .collect();
-        let train = data.select(&kept);
-        let mut test = data.select(left_out);
-        if let Some((rule_runs, d_run)) = stop {
-            let coef = rule_runs.fit(&kept)?.1;
-            test.d = left_out
-                .iter()
-                .map(|&i| tokens_used(&coef, runs.n[i], d_run[i], data.u[i]))
-                .collect();
-        }
+    for (train, test) in folds(runs, data, stop, &groups)? {
         let p =
             parametric::multi_start(&train.plain(), opts.huber_delta, &plain_starts, &opts.lbfgs)
                 .ok()?;
         let r = best_of(&train, opts, &repeated_starts)?;
-        let squares = |r: Vec<f64>| r.iter().map(|v| v * v).sum::<f64>();
-        sq_plain += squares(test.plain().residuals(&p.best().x));
-        sq_rep += squares(test.residuals(&r.x));
+        sq_plain += squares(&test.plain().residuals(&p.best().x));
+        sq_rep += squares(&test.residuals(&r.x));
         count += test.len();
     }
     let (plain_rms, repeated_rms) = (
@@ -757,6 +795,103 @@ fn held_out(
         }
         .into(),
     })
+}
+
+/// Σ r².
+fn squares(r: &[f64]) -> f64 {
+    r.iter().map(|v| v * v).sum()
+}
+
+/// Each group of `groups` left out in turn: the runs of the others, and the left-out runs.
+/// With early stopping (`stop`: the rule's runs and each run's whole tokens) a left-out run
+/// is predicted at the tokens the rule refitted on the others says it used (`None` where
+/// they leave it too few runs that stopped early).
+fn folds(
+    runs: &Runs,
+    data: &DataRuns,
+    stop: Option<(&StopRuns, &[f64])>,
+    groups: &[Vec<usize>],
+) -> Option<Vec<(DataRuns, DataRuns)>> {
+    let mut out = Vec::with_capacity(groups.len());
+    for (g, left_out) in groups.iter().enumerate() {
+        let kept: Vec<usize> = groups
+            .iter()
+            .enumerate()
+            .filter(|&(k, _)| k != g)
+            .flat_map(|(_, rows)| rows.iter().copied())
+            .collect();
+        let mut test = data.select(left_out);
+        if let Some((rule_runs, d_run)) = stop {
+            let coef = rule_runs.fit(&kept)?.1;
+            test.d = left_out
+                .iter()
+                .map(|&i| tokens_used(&coef, runs.n[i], d_run[i], data.u[i]))
+                .collect();
+        }
+        out.push((data.select(&kept), test));
+    }
+    Some(out)
+}
+
+/// Each exchange form of `opts.exchange_forms` fitted, and scored by its RMS log error on
+/// the data subsets left out in turn (on the budgets where the runs have fewer than 3
+/// subsets); the form with the lowest error first. One form asked for: that form, unscored.
+fn score_forms(
+    runs: &Runs,
+    data: &DataRuns,
+    stop: Option<(&StopRuns, &[f64])>,
+    opts: &FitOptions,
+    plain: &[f64; 5],
+) -> Vec<FormScore> {
+    let unscored = |form| FormScore {
+        form,
+        exchange: None,
+        held_out: None,
+    };
+    if opts.exchange_forms.len() < 2 {
+        let form = opts.exchange_forms.first().copied().unwrap_or_default();
+        return vec![unscored(form)];
+    }
+    let (clusters, groups) = match runs.data_subsets().filter(|s| s.len() >= 3) {
+        Some(subsets) => ("data subsets", subsets),
+        None => (
+            "budgets",
+            isoflop::group_rows(&runs.c, runs.group.as_deref(), opts.group_tol_dex),
+        ),
+    };
+    let mut scores: Vec<FormScore> = opts
+        .exchange_forms
+        .iter()
+        .map(|&form| {
+            let data = data.clone().with_exchange_form(form);
+            let all = starts(plain, data.effective_params);
+            let Some(best) = best_of(&data, opts, &all) else {
+                return unscored(form);
+            };
+            let rms = (groups.len() >= 3).then(|| {
+                let mut from = all.clone();
+                from.push(best.x);
+                let (mut sq, mut count) = (0.0, 0usize);
+                for (train, test) in folds(runs, &data, stop, &groups)? {
+                    sq += squares(&test.residuals(&best_of(&train, opts, &from)?.x));
+                    count += test.len();
+                }
+                Some((sq / count as f64).sqrt())
+            });
+            FormScore {
+                form,
+                exchange: data.mixes_sources().then(|| best.x[6].exp()),
+                held_out: rms.flatten().map(|rms| FormError {
+                    clusters: clusters.into(),
+                    folds: groups.len(),
+                    rms,
+                }),
+            }
+        })
+        .collect();
+    let error = |s: &FormScore| s.held_out.as_ref().map_or(f64::INFINITY, |h| h.rms);
+    scores.sort_by(|a, b| error(a).total_cmp(&error(b)));
+    scores
 }
 
 #[cfg(test)]
@@ -777,40 +912,67 @@ mod tests {
 
     #[test]
     fn gradient_matches_finite_differences() {
-        let runs = DataRuns::new(
-            &[1e5, 3e5, 2e6, 5e5],
-            &[1e7, 4e7, 9e6, 3e8],
-            &[2e7, 1e7, 1e7, 1e7],
-            &[2.1, 1.9, 2.0, 1.8],
-        );
-        let runs = runs
-            .with_synthetic_shares(&[0.0, 0.5, 0.4, 1.0])
-            .with_effective_params(true);
-        // U_N of these runs is 1.6e5–5.1e5: every size but the first exceeds it.
-        let theta = [6.0, 6.4, 0.4, 0.33, 0.27, 1.5, -0.7, 1.2];
-        assert_eq!(runs.past_base_size(&theta), 3);
-        // Huber with a huge δ is r²/2: the objective and the residuals agree.
-        let half_sq: f64 = runs.residuals(&theta).iter().map(|r| 0.5 * r * r).sum();
-        let mut g = [0.0; 8];
-        assert!((objective(&runs, f64::MAX, &theta, &mut g) - half_sq).abs() < 1e-12);
-        for delta in [1e-3, 10.0] {
+        for form in [ExchangeForm::TokenWorth, ExchangeForm::EffectivePool] {
+            let runs = DataRuns::new(
+                &[1e5, 3e5, 2e6, 5e5],
+                &[1e7, 4e7, 9e6, 3e8],
+                &[2e7, 1e7, 1e7, 1e7],
+                &[2.1, 1.9, 2.0, 1.8],
+            );
+            let runs = runs
+                .with_synthetic_shares(&[0.0, 0.5, 0.4, 1.0])
+                .with_effective_params(true)
+                .with_exchange_form(form);
+            // U_N of these runs is 1.6e5–5.1e5: every size but the first exceeds it. In the
+            // effective pool, every run but the first repeats its pool U·k.
+            let theta = [6.0, 6.4, 0.4, 0.33, 0.27, 1.5, -0.7, 1.2];
+            assert_eq!(runs.past_base_size(&theta), 3, "{form:?}");
+            // Huber with a huge δ is r²/2: the objective and the residuals agree.
+            let half_sq: f64 = runs.residuals(&theta).iter().map(|r| 0.5 * r * r).sum();
             let mut g = [0.0; 8];
-            objective(&runs, delta, &theta, &mut g);
-            for k in 0..8 {
-                let h = 1e-6;
-                let (mut tp, mut tm) = (theta, theta);
-                tp[k] += h;
-                tm[k] -= h;
-                let mut s = [0.0; 8];
-                let fd = (objective(&runs, delta, &tp, &mut s)
-                    - objective(&runs, delta, &tm, &mut s))
-                    / (2.0 * h);
-                assert!(
-                    (fd - g[k]).abs() < 1e-6 * (1.0 + g[k].abs()),
-                    "δ={delta} k={k}: {fd} vs {}",
-                    g[k]
-                );
+            assert!((objective(&runs, f64::MAX, &theta, &mut g) - half_sq).abs() < 1e-12);
+            for delta in [1e-3, 10.0] {
+                let mut g = [0.0; 8];
+                objective(&runs, delta, &theta, &mut g);
+                for k in 0..8 {
+                    let h = 1e-6;
+                    let (mut tp, mut tm) = (theta, theta);
+                    tp[k] += h;
+                    tm[k] -= h;
+                    let mut s = [0.0; 8];
+                    let fd = (objective(&runs, delta, &tp, &mut s)
+                        - objective(&runs, delta, &tm, &mut s))
+                        / (2.0 * h);
+                    assert!(
+                        (fd - g[k]).abs() < 1e-6 * (1.0 + g[k].abs()),
+                        "{form:?} δ={delta} k={k}: {fd} vs {}",
+                        g[k]
+                    );
+                }
             }
         }
+    }
+
+    /// The two forms agree on captured-only runs and on runs that see less than their pool;
+    /// with synthetic data past its pool, the effective pool repeats sooner.
+    #[test]
+    fn the_forms_differ_only_where_a_mixed_pool_repeats() {
+        let theta = [1.2, 60.0, 400.0, 0.35, 0.3, 6.0, 0.35, f64::INFINITY];
+        let law = |form| NaturalLaw { theta, form };
+        let (tw, pool) = (
+            law(ExchangeForm::TokenWorth),
+            law(ExchangeForm::EffectivePool),
+        );
+        let same = |n: f64, d: f64, u: f64, s: f64| {
+            (tw.loss(n, d, u, s) / pool.loss(n, d, u, s) - 1.0).abs()
+        };
+        assert!(same(1e5, 4e8, 1e7, 0.0) < 1e-12, "captured only");
+        // Fresh tokens: the token-worth form discounts synthetic ones (D·k), the pool does not.
+        assert!(tw.loss(1e5, 1e6, 1e7, 0.5) > pool.loss(1e5, 1e6, 1e7, 0.5));
+        // Many epochs of a half-synthetic pool: both saturate, at U·k·(1 + R*) effective tokens.
+        let d_inf: f64 = 1e7 * (0.5 + 0.5 * 0.35) * 7.0;
+        let at = 1.2 + 60.0 / 1e5f64.powf(0.35) + 400.0 / d_inf.powf(0.3);
+        assert!((pool.loss(1e5, 1e12, 1e7, 0.5) / at - 1.0).abs() < 1e-6);
+        assert!((tw.loss(1e5, 1e12, 1e7, 0.5) / at - 1.0).abs() < 1e-6);
     }
 }

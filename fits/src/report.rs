@@ -1,6 +1,6 @@
 //! Writing a fit: `fits.json`, the plots (SVG + PNG) and a short text summary.
 
-use crate::fitted::{DataFrontierPoint, Fits, RepeatedData, StoppingRule};
+use crate::fitted::{DataFrontierPoint, Fits, InSampleCoverage, RepeatedData, StoppingRule};
 use crate::laws::{Estimate, PowerLaw};
 use crate::FitError;
 use plot::ticks::format_tick;
@@ -504,6 +504,45 @@ pub fn summary(f: &Fits) -> String {
     s
 }
 
+/// The in-sample coverage of the law's prediction intervals, and the cells they miss.
+fn coverage_lines(c: &InSampleCoverage, s: &mut String) {
+    let _ = writeln!(
+        s,
+        "  in sample: the 95% prediction interval (refits + a run's scatter, log SD {}) holds the best loss of {} of {} (budget, data subset) cells",
+        sig(c.scatter),
+        c.covered,
+        c.cells
+    );
+    for m in &c.misses {
+        let _ = writeln!(
+            s,
+            "    outside: C {} U {} synth {:.2}: best {} vs {}",
+            sig(m.budget),
+            sig(m.unique_tokens),
+            m.synth_share,
+            sig(m.loss),
+            estimate_text(&m.predicted)
+        );
+    }
+}
+
+/// The exchange forms fitted, each with its held-out error (the adopted one first).
+fn form_lines(r: &RepeatedData, s: &mut String) {
+    for (k, f) in r.exchange_forms.iter().enumerate() {
+        let rho = f.exchange.map_or("-".to_string(), sig);
+        let error = f.held_out.as_ref().map_or("not scored".to_string(), |h| {
+            format!(
+                "RMS log error {} over {} {} left out",
+                sig(h.rms),
+                h.folds,
+                h.clusters
+            )
+        });
+        let adopted = if k == 0 { " (adopted)" } else { "" };
+        let _ = writeln!(s, "  form {}{adopted}: rho {rho}, {error}", f.form.name());
+    }
+}
+
 /// The block-bootstrap intervals of R*_D and ρ, a line per clustering.
 fn block_lines(r: &RepeatedData, s: &mut String) {
     for b in &r.block_intervals {
@@ -591,11 +630,16 @@ fn extras(f: &Fits, s: &mut String) {
         if let Some(rho) = &r.exchange {
             let _ = writeln!(
                 s,
-                "  exchange rate: a synthetic token is worth {} captured tokens",
+                "  exchange rate ({}): a synthetic token is worth {} captured tokens",
+                r.exchange_form.name(),
                 estimate_text(rho)
             );
         }
+        form_lines(r, s);
         block_lines(r, s);
+        if let Some(c) = &r.in_sample {
+            coverage_lines(c, s);
+        }
         if let Some(rule) = &r.stopping {
             let _ = writeln!(s, "  {}", stopping_text(rule));
         }
