@@ -1,28 +1,21 @@
 """The learning-rate rule of the data-bound recipe (issue #55, Build 1), from a rate sweep.
 
-    python3 lr_rule.py SWEEP_DIR [SWEEP_DIR ...] > lr-rule.txt
+    python3 lr_rule.py lr-*/ > lr-rule.txt
 
-Each SWEEP_DIR is one `sweep run` folder trained at one peak rate (its plan's [train] lr).
-For every model size the selection loss is the validation cross-entropy at the
-validation-selected checkpoint (`train/eval.json`'s best.val_cross_entropy; the test split
-is never used to choose). Per size: a parabola in log10(lr) through the three rates around
-the lowest loss gives lr*; then log10(lr*) = a + b·log10(N_nv) by least squares over the
+Each folder is one rate of the sweep, holding `selection.csv`: per run, the validation
+cross-entropy at the validation-selected checkpoint (the test split is never used to choose)
+and the test cross-entropy there. Per size: a parabola in log10(lr) through the three rates
+around the lowest loss gives lr*; then log10(lr*) = a + b·log10(N_nv) by least squares over the
 sizes. Prints the table and the rule as the TOML lines of a recipe.
 """
-import json, math, sys, tomllib
+import csv, math, sys
 from pathlib import Path
 
 
 def rows(dirs):
     for d in map(Path, dirs):
-        plan = tomllib.loads((d / "plan.toml").read_text())
-        lr = plan["train"]["lr"]
-        for point in plan["points"]:
-            ev = d / point["run_id"] / "train" / "eval.json"
-            if not (d / point["run_id"] / "result.json").exists():
-                continue
-            e = json.loads(ev.read_text())
-            yield point["model"], point["n_nv"], lr, e["best"]["val_cross_entropy"], e["best"]["test"]["cross_entropy"]
+        for r in csv.DictReader(open(d / "selection.csv")):
+            yield r["model"], int(r["n_nv"]), float(r["lr"]), float(r["val_ce"]), float(r["test_ce"])
 
 
 def vertex(points):
