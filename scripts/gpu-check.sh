@@ -125,7 +125,7 @@ else:
 if os.path.exists(f"{out}/bench-train-graph.json"):
     for t in json.load(open(f"{out}/bench-train-graph.json"))["train"]:
         row(f"bench d{t['d_model']}/{t['n_layers']}L B{t['batch']} {t['precision']}, graph executor", "",
-            f"{t['motion_tokens_per_s']:.0f} tok/s (MFU {100*t['mfu']:.1f}%, fwd+bwd "
+            f"{t['motion_tokens_per_s']:.0f} tok/s (MFU {100*(t['mfu'] or float('nan')):.1f}%, fwd+bwd "
             f"{1e3*t['phase_median_s']['fwd_bwd']:.0f} ms, forward alone {1e3*t['phase_median_s'].get('fwd', float('nan')):.0f} ms, "
             f"AdamW {1e3*t['phase_median_s']['opt']:.0f} ms)")
 if os.path.exists(f"{out}/bench-train.json"):
@@ -135,7 +135,7 @@ if os.path.exists(f"{out}/bench-train.json"):
         mem = e.get("result", {}).get("peak_mem_allocated_gib", float("nan"))
         row(f"bench d{t['d_model']}/{t['n_layers']}L B{t['batch']} {t['precision']}",
             f"{e.get('ratio', float('nan')):.2f}× eager, {c.get('ratio', float('nan')):.2f}× compiled",
-            f"ours {t['motion_tokens_per_s']:.0f} tok/s (MFU {100*t['mfu']:.1f}%, fwd+bwd "
+            f"ours {t['motion_tokens_per_s']:.0f} tok/s (MFU {100*(t['mfu'] or float('nan')):.1f}%, fwd+bwd "
             f"{1e3*t['phase_median_s']['fwd_bwd']:.0f} ms, AdamW {1e3*t['phase_median_s']['opt']:.0f} ms); "
             f"PyTorch eager {e.get('result', {}).get('motion_tokens_per_s', float('nan')):.0f}, compiled "
             f"{c.get('result', {}).get('motion_tokens_per_s', float('nan')):.0f} tok/s; peak memory allocated: ours "

@@ -262,13 +262,16 @@ pub fn train(args: BenchTrainArgs) -> Result<ExitCode> {
         let (d, layers) = parse_size(size)?;
         let shape = (d, layers, args.batch);
         let mut ours = bench_train_step(&args, shape, &device, compute, peak)?;
+        ours.peak_gflops = super::machine::peak_around(peak, args.peak_gflops.is_some());
+        ours.mfu = super::machine::mfu(ours.achieved_gflops_exact, ours.peak_gflops);
         let phases = &ours.phase_median_s;
         println!(
-            "train d{d}/{layers}L B{}: {:.0} motion tok/s, {:.1} GFLOP/s exact, MFU {:.1}% ({:.0} ms/step: forward + backward {:.0}, AdamW {:.0}; foreign load {:.2})",
+            "train d{d}/{layers}L B{}: {:.0} motion tok/s, {:.1} GFLOP/s exact, MFU {} against {:.0} GFLOP/s ({:.0} ms/step: forward + backward {:.0}, AdamW {:.0}; foreign load {:.2})",
             args.batch,
             ours.motion_tokens_per_s,
             ours.achieved_gflops_exact,
-            100.0 * ours.mfu,
+            super::machine::mfu_text(ours.mfu),
+            ours.peak_gflops,
             1e3 * ours.step_time.median_s,
             1e3 * phases.fwd_bwd,
             1e3 * phases.opt,

@@ -130,11 +130,11 @@ pub fn train(args: &BenchTrainArgs, device: &Device) -> Result<ExitCode> {
         let ours_tps = ours.motion_tokens_per_s;
         let phases = &ours.phase_median_s;
         println!(
-            "train d{d}/{layers}L B{batch} on {} ({}, {} executor): {ours_tps:.0} motion tok/s, MFU {:.1}% ({:.1} ms/step: forward + backward {:.1} (forward alone {:.1}), AdamW {:.1}); peak memory allocated {:.2} GiB",
+            "train d{d}/{layers}L B{batch} on {} ({}, {} executor): {ours_tps:.0} motion tok/s, MFU {} ({:.1} ms/step: forward + backward {:.1} (forward alone {:.1}), AdamW {:.1}); peak memory allocated {:.2} GiB",
             ours.device,
             compute.precision,
             ours.executor,
-            100.0 * ours.mfu,
+            super::machine::mfu_text(ours.mfu),
             1e3 * ours.step_time.median_s,
             1e3 * phases.fwd_bwd,
             1e3 * phases.fwd.unwrap_or(f64::NAN),

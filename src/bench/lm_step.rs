@@ -116,8 +116,13 @@ pub struct TrainStep<R> {
     pub flops_per_step_6n: f64,
     /// GFLOP/s at the exact count.
     pub achieved_gflops_exact: f64,
-    /// Achieved over the peak given.
-    pub mfu: f64,
+    /// The fp32 (CPU) or bf16 (GPU) peak MFU is measured against, GFLOP/s: on the CPU the
+    /// larger of the FMA peak measured before and after the step's timing.
+    #[serde(default)]
+    pub peak_gflops: f64,
+    /// Achieved over that peak (absent where it would pass 100%: the peak was measured in a
+    /// disturbed moment).
+    pub mfu: Option<f64>,
     /// The step if this process's CPU time were spread over all threads without waiting.
     pub cpu_time_equivalent: CpuTimeEquivalent,
     /// With `--reference`: the PyTorch step beside ours (absent, or read back as none, without).
@@ -272,7 +277,8 @@ pub(super) fn bench_train_step<R>(
         flops_per_step_exact: flops,
         flops_per_step_6n: six_n,
         achieved_gflops_exact: gflops,
-        mfu: gflops / peak_gflops,
+        peak_gflops,
+        mfu: super::machine::mfu(gflops, peak_gflops),
         cpu_time_equivalent: CpuTimeEquivalent {
             step_s: cpu_bound_s,
             motion_tokens_per_s: tokens / cpu_bound_s,

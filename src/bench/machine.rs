@@ -77,23 +77,52 @@ fn fma_rate(iters: u64) -> (f64, usize) {
     (flops / seconds / 1e9, lanes)
 }
 
-/// This machine's fp32 FMA peak, measured once per process (about half a second): the best of
-/// three runs of 0.15 s on every pool thread (`../shared/bench/peak_fma.c`'s method).
+/// This machine's fp32 FMA peak now (about half a second): the best of three runs of 0.15 s on
+/// every pool thread (`../shared/bench/peak_fma.c`'s method).
+pub fn measure_fma_peak() -> FmaPeak {
+    let threads = rayon::current_num_threads();
+    let probe = 100_000;
+    let (rate, lanes) = fma_rate(probe);
+    let per_thread = rate * 1e9 / (threads * CHAINS * lanes * 2) as f64;
+    let iters = ((0.15 * per_thread) as u64).max(probe);
+    let gflops = (0..3).map(|_| fma_rate(iters).0).fold(0.0, f64::max);
+    FmaPeak {
+        gflops,
+        isa: vector_isa(lanes),
+        threads,
+    }
+}
+
+/// [`measure_fma_peak`] once per process: the peak a bench starts from.
 pub fn fma_peak() -> &'static FmaPeak {
     static PEAK: OnceLock<FmaPeak> = OnceLock::new();
-    PEAK.get_or_init(|| {
-        let threads = rayon::current_num_threads();
-        let probe = 100_000;
-        let (rate, lanes) = fma_rate(probe);
-        let per_thread = rate * 1e9 / (threads * CHAINS * lanes * 2) as f64;
-        let iters = ((0.15 * per_thread) as u64).max(probe);
-        let gflops = (0..3).map(|_| fma_rate(iters).0).fold(0.0, f64::max);
-        FmaPeak {
-            gflops,
-            isa: vector_isa(lanes),
-            threads,
-        }
-    })
+    PEAK.get_or_init(measure_fma_peak)
+}
+
+/// The peak around a timed piece of work: `before` (the peak the bench started from) and the
+/// peak measured again after it, the larger kept. A shared machine's clock and neighbours move
+/// within minutes, and a peak measured in a slow moment would put MFU above 100%. With
+/// `--peak-gflops` (`given`) the flag's value stands.
+pub fn peak_around(before: f64, given: bool) -> f64 {
+    match given {
+        true => before,
+        false => before.max(measure_fma_peak().gflops),
+    }
+}
+
+/// An MFU as a percentage, or why there is none.
+pub fn mfu_text(mfu: Option<f64>) -> String {
+    mfu.map_or(
+        "n/a (the rate passed the peak measured around it)".into(),
+        |m| format!("{:.1}%", 100.0 * m),
+    )
+}
+
+/// MFU of `gflops` against `peak`; `None` where it would pass 100% (the peak was measured in
+/// a disturbed moment, and no executor can pass it).
+pub fn mfu(gflops: f64, peak: f64) -> Option<f64> {
+    let share = gflops / peak;
+    (share.is_finite() && share <= 1.0).then_some(share)
 }
 
 /// The fp32 peak MFU is measured against: `flag` where given, else this machine's FMA peak
@@ -277,6 +306,23 @@ pub fn machine() -> Machine {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A rate above the peak measured around it has no MFU; a peak given by flag is kept, one
+    /// measured is raised to the larger of before and after.
+    #[test]
+    fn mfu_never_passes_the_peak_measured_around_the_work() {
+        assert_eq!(mfu(50.0, 100.0), Some(0.5));
+        assert_eq!(mfu(102.6, 100.0), None);
+        assert_eq!(mfu(1.0, 0.0), None);
+        assert!(mfu_text(None).starts_with("n/a"));
+        assert_eq!(mfu_text(Some(0.367)), "36.7%");
+        assert_eq!(peak_around(1e9, true), 1e9);
+        assert_eq!(peak_around(1e9, false), 1e9, "no CPU reaches 10^18 FLOP/s");
+        assert!(
+            peak_around(1e-9, false) > 1.0,
+            "measured again: a real rate"
+        );
+    }
 
     #[test]
     fn the_fma_chains_compute_the_scalar_recurrence_in_every_lane() {
