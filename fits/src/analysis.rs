@@ -691,7 +691,7 @@ mod tests {
         let law = repetition_law();
         // (E, A, B, α, β, R*_D, ρ, R*_N): U_N ≈ 7e-3·U_D^0.86, 1.2e4 for 2e7 unique tokens, so
         // the larger sizes are far past it.
-        let truth = [law.e, law.a, law.b, law.alpha, law.beta, 6.0, 0.3, 5.0];
+        let truth = repetition_theta(6.0, 0.3, 5.0);
         let dir = tempfile::tempdir().unwrap();
         let path = two_source_ladders(
             dir.path(),
@@ -719,17 +719,7 @@ mod tests {
 
     #[test]
     fn early_stopping_recovers_the_stopping_rule_and_predicts_the_plateau() {
-        let law = repetition_law();
-        let truth = [
-            law.e,
-            law.a,
-            law.b,
-            law.alpha,
-            law.beta,
-            6.0,
-            0.3,
-            f64::INFINITY,
-        ];
+        let truth = repetition_theta(6.0, 0.3, f64::INFINITY);
         // e* = 100·N^−0.35·U^0.05: 8.6 epochs at N = 10⁴, 1.7 at 10⁶ (U = 5·10⁶); runs stop
         // early at every budget, so that each budget left out keeps a rule to predict it by.
         let rule = [100f64.ln(), -0.35, 0.05];
@@ -840,18 +830,8 @@ mod tests {
     /// data subsets left out, is adopted, and recovers ρ.
     #[test]
     fn both_exchange_forms_fitted_adopt_the_form_the_runs_follow() {
-        let law = repetition_law();
         let truth = NaturalLaw {
-            theta: [
-                law.e,
-                law.a,
-                law.b,
-                law.alpha,
-                law.beta,
-                6.0,
-                0.35,
-                f64::INFINITY,
-            ],
+            theta: repetition_theta(6.0, 0.35, f64::INFINITY),
             form: ExchangeForm::EffectivePool,
         };
         let dir = tempfile::tempdir().unwrap();
@@ -902,17 +882,7 @@ mod tests {
     /// interval for one run is wider than the law's own.
     #[test]
     fn prediction_intervals_hold_the_runs_the_law_was_fitted_on() {
-        let law = repetition_law();
-        let truth = token_worth([
-            law.e,
-            law.a,
-            law.b,
-            law.alpha,
-            law.beta,
-            6.0,
-            0.3,
-            f64::INFINITY,
-        ]);
+        let truth = token_worth(repetition_theta(6.0, 0.3, f64::INFINITY));
         let rng = std::cell::RefCell::new(motionscale_core::rng::SplitMix64::stream(7, 0));
         let dir = tempfile::tempdir().unwrap();
         let path = two_source_ladders(
@@ -964,6 +934,12 @@ mod tests {
             p.loss
         );
         assert!((hi / lo).ln() > 3.0 * 0.03, "{run:?}");
+    }
+
+    /// The repetition law's natural parameters (E, A, B, α, β) with R*_D, ρ and R*_N.
+    fn repetition_theta(r_star_d: f64, rho: f64, r_star_n: f64) -> [f64; 8] {
+        let l = repetition_law();
+        [l.e, l.a, l.b, l.alpha, l.beta, r_star_d, rho, r_star_n]
     }
 
     /// The law the data-constrained tests draw their runs from.
