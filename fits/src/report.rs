@@ -606,56 +606,7 @@ fn extras(f: &Fits, s: &mut String) {
         );
     }
     if let Some(r) = &f.repeated_data {
-        let _ = writeln!(
-            s,
-            "data-constrained L({}, D'): R*_D = {}, alpha {}, beta {}, E {} ({} of {} runs repeat data, up to {:.1} epochs)",
-            if r.r_star_n.is_some() { "N'" } else { "N" },
-            estimate_text(&r.r_star),
-            estimate_text(&r.law.alpha),
-            estimate_text(&r.law.beta),
-            estimate_text(&r.law.e),
-            r.repeated_runs,
-            r.n_runs,
-            r.max_epochs
-        );
-        if let Some(rn) = &r.r_star_n {
-            let _ = writeln!(
-                s,
-                "  effective parameters N': R*_N = {} ({} of {} runs larger than U_N, the size the law allots their unique data)",
-                estimate_text(rn),
-                r.past_base_size,
-                r.n_runs
-            );
-        }
-        if let Some(rho) = &r.exchange {
-            let _ = writeln!(
-                s,
-                "  exchange rate ({}): a synthetic token is worth {} captured tokens",
-                r.exchange_form.name(),
-                estimate_text(rho)
-            );
-        }
-        form_lines(r, s);
-        block_lines(r, s);
-        if let Some(c) = &r.in_sample {
-            coverage_lines(c, s);
-        }
-        if let Some(rule) = &r.stopping {
-            let _ = writeln!(s, "  {}", stopping_text(rule));
-        }
-        for note in r.note.iter().chain(&r.note_n) {
-            let _ = writeln!(s, "  note: {note}");
-        }
-        if let Some(h) = &r.held_out {
-            let _ = writeln!(
-                s,
-                "  leave-one-budget-out RMS log error over {} budgets: plain {}, data-constrained {} ({} is better)",
-                h.folds,
-                sig(h.plain_rms),
-                sig(h.repeated_rms),
-                h.better
-            );
-        }
+        repeated_lines(r, s);
     }
     if let Some(h) = &f.holdout {
         let _ = writeln!(
@@ -684,6 +635,60 @@ fn extras(f: &Fits, s: &mut String) {
         for m in &h.missing {
             let _ = writeln!(s, "  not predicted: {m}");
         }
+    }
+}
+
+/// The summary lines of the data-constrained fit.
+fn repeated_lines(r: &RepeatedData, s: &mut String) {
+    let _ = writeln!(
+        s,
+        "data-constrained L({}, D'): R*_D = {}, alpha {}, beta {}, E {} ({} of {} runs repeat data, up to {:.1} epochs)",
+        if r.r_star_n.is_some() { "N'" } else { "N" },
+        estimate_text(&r.r_star),
+        estimate_text(&r.law.alpha),
+        estimate_text(&r.law.beta),
+        estimate_text(&r.law.e),
+        r.repeated_runs,
+        r.n_runs,
+        r.max_epochs
+    );
+    if let Some(rn) = &r.r_star_n {
+        let _ = writeln!(
+            s,
+            "  effective parameters N': R*_N = {} ({} of {} runs larger than U_N, the size the law allots their unique data)",
+            estimate_text(rn),
+            r.past_base_size,
+            r.n_runs
+        );
+    }
+    if let Some(rho) = &r.exchange {
+        let _ = writeln!(
+            s,
+            "  exchange rate ({}): a synthetic token is worth {} captured tokens",
+            r.exchange_form.name(),
+            estimate_text(rho)
+        );
+    }
+    form_lines(r, s);
+    block_lines(r, s);
+    if let Some(c) = &r.in_sample {
+        coverage_lines(c, s);
+    }
+    if let Some(rule) = &r.stopping {
+        let _ = writeln!(s, "  {}", stopping_text(rule));
+    }
+    for note in r.note.iter().chain(&r.note_n) {
+        let _ = writeln!(s, "  note: {note}");
+    }
+    if let Some(h) = &r.held_out {
+        let _ = writeln!(
+            s,
+            "  leave-one-budget-out RMS log error over {} budgets: plain {}, data-constrained {} ({} is better)",
+            h.folds,
+            sig(h.plain_rms),
+            sig(h.repeated_rms),
+            h.better
+        );
     }
 }
 
