@@ -151,8 +151,10 @@ pub struct FitArgs {
     #[arg(long)]
     pub workers: Option<usize>,
     /// Fit these law families instead of the IsoFLOP analysis, each by the one fitter (Huber,
-    /// L-BFGS from its start grid, bootstrap): chinchilla, data-constrained, unique-floor,
-    /// vocab, vocab-effective, farseer, or `all` (those the table's columns allow). Each is scored on held-out runs (--select),
+    /// L-BFGS from its start grid, bootstrap): chinchilla, data-constrained (and its
+    /// exchange-rate forms data-constrained-token-worth and data-constrained-effective-pool,
+    /// which read the --synth-share-col), unique-floor, vocab, vocab-effective, farseer, or
+    /// `all` (those the table's columns allow). Each is scored on held-out runs (--select),
     /// the lowest error adopted; writes OUT/laws.json. The loss may be negative (then
     /// residuals are taken in loss space instead of log space).
     #[arg(long, value_name = "NAME[,NAME…]", value_delimiter = ',')]
@@ -165,6 +167,11 @@ pub struct FitArgs {
     /// (the `data` column; empty: the whole train split) in turn.
     #[arg(long, value_enum, default_value = "top", requires = "law")]
     pub select: LawSelection,
+    /// With --law: resample whole blocks of runs in the bootstrap instead of runs one by one —
+    /// `budget` (each budget group) or `ladder` (each data subset) — as runs that share a
+    /// budget or nested clips are correlated.
+    #[arg(long, value_enum, value_name = "BLOCK", requires = "law")]
+    pub block_bootstrap: Option<BootstrapBlock>,
     /// With --law --select top: the share of runs held out.
     #[arg(long, default_value_t = 0.1, value_name = "SHARE", requires = "law")]
     pub top_share: f64,
@@ -215,6 +222,15 @@ pub enum LawSelection {
     /// Leave each budget group out in turn.
     Budget,
     /// Leave each data subset (ladder) out in turn.
+    Ladder,
+}
+
+/// `fit --block-bootstrap`'s blocks.
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum BootstrapBlock {
+    /// The runs of one budget group.
+    Budget,
+    /// The runs of one data subset (the `data` column).
     Ladder,
 }
 
@@ -364,6 +380,10 @@ pub struct PredictArgs {
     /// Vocabulary parameters N_v held at the budget (a laws.json whose law reads N_v).
     #[arg(long, value_name = "N_V")]
     pub vocab_params: Option<f64>,
+    /// Synthetic share s of the unique data held at the budget (a laws.json whose law reads
+    /// it: the data-constrained exchange-rate laws).
+    #[arg(long, value_name = "S")]
+    pub synth_share: Option<f64>,
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
@@ -584,6 +604,7 @@ fn predict_family(report: &LawReport, args: &PredictArgs) -> Result<ExitCode> {
     let at = Point {
         u: args.unique_tokens,
         nv: args.vocab_params,
+        s: args.synth_share,
         ..Point::default()
     };
     let p = predict_at(report, args.budget, at)?;

@@ -1,6 +1,6 @@
 //! `motionscale fit --law`: the law families of `fits::family` on any table.
 
-use crate::fit::{FitArgs, LawSelection};
+use crate::fit::{BootstrapBlock, FitArgs, LawSelection};
 use anyhow::{Context, Result};
 use fits::family::engine::Family;
 use fits::family::engine::Settings;
@@ -39,6 +39,7 @@ fn fit_laws_in_pool(args: &FitArgs, opts: &FitOptions, t0: Instant) -> Result<Ex
         epochs: Some(c.epochs.name.clone()),
         nv: Some(c.nv.name.clone()),
         vocab: Some(c.v.name.clone()),
+        synth_share: Some(c.synth_share.name.clone()),
     };
     let holdout = match args.select {
         LawSelection::Top => Holdout::TopCost {
@@ -50,6 +51,11 @@ fn fit_laws_in_pool(args: &FitArgs, opts: &FitOptions, t0: Instant) -> Result<Ex
         LawSelection::Ladder => Holdout::Subsets {
             groups: ladder_groups(&table)?,
         },
+    };
+    let clusters = match args.block_bootstrap {
+        None => None,
+        Some(BootstrapBlock::Budget) => Some(budget_groups(&table, &cols, opts)?),
+        Some(BootstrapBlock::Ladder) => Some(ladder_groups(&table)?),
     };
     let settings = Settings {
         delta: args.huber_delta,
@@ -71,6 +77,7 @@ fn fit_laws_in_pool(args: &FitArgs, opts: &FitOptions, t0: Instant) -> Result<Ex
         &cols,
         &chosen,
         holdout,
+        clusters.as_deref(),
         args.test.as_deref(),
         &settings,
     )?;

@@ -559,7 +559,7 @@ fn fit_law_names_an_unknown_family_and_a_missing_axis() {
     args.extend_from_slice(&[arg(&out), "--law", "chinchila"]);
     fails_with(
         &motionscale(&args),
-        "--law \"chinchila\": the laws are chinchilla, data-constrained, unique-floor, vocab, vocab-effective, farseer (or all)",
+        "--law \"chinchila\": the laws are chinchilla, data-constrained, data-constrained-token-worth, data-constrained-effective-pool, unique-floor, vocab, vocab-effective, farseer (or all)",
     );
     let mut args = base.to_vec();
     args.extend_from_slice(&[arg(&out), "--law", "data-constrained"]);
@@ -614,22 +614,7 @@ fn predict_reads_a_laws_json(laws: &std::path::Path) {
 #[test]
 fn fit_law_select_ladder_holds_each_data_subset_out() {
     let tmp = tempfile::tempdir().unwrap();
-    let csv = tmp.path().join("runs.csv");
-    let mut text = String::from("Model Size,Training Tokens,loss,unique_tokens,data\n");
-    let mut rng = motionscale_core::rng::SplitMix64(5);
-    for (name, u) in [("u1", 1e7f64), ("u2", 3e7), ("u3", 1e8)] {
-        for i in 0..5 {
-            for j in 0..6 {
-                let n = 10f64.powf(6.5 + 0.5 * i as f64);
-                let d = 10f64.powf(7.0 + 0.5 * j as f64);
-                let law =
-                    1.8 + 300.0 * n.powf(-0.33) + 2000.0 * d.powf(-0.35) + 40.0 * u.powf(-0.2);
-                let loss = law * (1.0 + 0.002 * rng.range(-1.0, 1.0));
-                text.push_str(&format!("{n},{d},{loss},{u},{name}\n"));
-            }
-        }
-    }
-    std::fs::write(&csv, text).unwrap();
+    let csv = unique_floor_ladders(tmp.path());
     let out = tmp.path().join("laws");
     let args = [
         "fit",
@@ -667,4 +652,75 @@ fn fit_law_select_ladder_holds_each_data_subset_out() {
     let mut args = args.to_vec();
     args[2] = arg(&plain);
     fails_with(&motionscale(&args), "--select ladder needs a `data` column");
+}
+
+/// `fit --law … --block-bootstrap ladder` resamples whole data subsets: the fit records 3
+/// blocks and its intervals are at least as wide as the run-by-run bootstrap's for the
+/// floor's exponent, which only the comparison between subsets informs.
+#[test]
+fn fit_law_block_bootstrap_resamples_whole_subsets() {
+    let tmp = tempfile::tempdir().unwrap();
+    let csv = unique_floor_ladders(tmp.path());
+    let gamma_width = |block: Option<&str>| {
+        let out = tmp.path().join(format!("laws-{}", block.unwrap_or("rows")));
+        let mut args = vec![
+            "fit",
+            "--results",
+            arg(&csv),
+            "--n-col",
+            "Model Size",
+            "--d-col",
+            "Training Tokens",
+            "--loss-col",
+            "loss",
+            "--bootstrap",
+            "40",
+            "--law",
+            "unique-floor",
+            "--out",
+            arg(&out),
+        ];
+        if let Some(b) = block {
+            args.extend_from_slice(&["--block-bootstrap", b]);
+        }
+        let stdout = motionscale_ok(&args);
+        let report: serde_json::Value = read_json(&out.join("laws.json"));
+        let fit = &report["fits"][0];
+        let gamma = fit["natural"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|p| p["name"] == "gamma")
+            .unwrap();
+        let width = gamma["ci_high"].as_f64().unwrap() - gamma["ci_low"].as_f64().unwrap();
+        (stdout, fit["bootstrap_clusters"].clone(), width)
+    };
+    let (rows_out, rows_blocks, rows_width) = gamma_width(None);
+    let (out, blocks, width) = gamma_width(Some("ladder"));
+    assert!(rows_blocks.is_null(), "{rows_out}");
+    assert_eq!(blocks, 3, "{out}");
+    assert!(out.contains("resampling 3 blocks"), "{out}");
+    assert!(width >= rows_width, "blocks {width} vs rows {rows_width}");
+}
+
+/// Runs drawn from the unique-data floor law on three pools (small seeded noise), each pool a
+/// data subset (`data` column); returns the table's path in `dir`.
+fn unique_floor_ladders(dir: &std::path::Path) -> std::path::PathBuf {
+    let csv = dir.join("runs.csv");
+    let mut text = String::from("Model Size,Training Tokens,loss,unique_tokens,data\n");
+    let mut rng = motionscale_core::rng::SplitMix64(5);
+    for (name, u) in [("u1", 1e7f64), ("u2", 3e7), ("u3", 1e8)] {
+        for i in 0..5 {
+            for j in 0..6 {
+                let n = 10f64.powf(6.5 + 0.5 * i as f64);
+                let d = 10f64.powf(7.0 + 0.5 * j as f64);
+                let law =
+                    1.8 + 300.0 * n.powf(-0.33) + 2000.0 * d.powf(-0.35) + 40.0 * u.powf(-0.2);
+                let loss = law * (1.0 + 0.002 * rng.range(-1.0, 1.0));
+                text.push_str(&format!("{n},{d},{loss},{u},{name}\n"));
+            }
+        }
+    }
+    std::fs::write(&csv, text).unwrap();
+    csv
 }

@@ -322,18 +322,21 @@ fn data_candidates(grid: &IsoFlopPlan, base: &IsoFlopPlan, c_star: f64) -> Vec<D
         .collect()
 }
 
-/// A plan point as a law family reads it: N = N_nv, D its tokens, N_v, and U (its data
-/// subset's unique tokens, else its vocabulary's train tokens).
+/// A plan point as a law family reads it: N = N_nv, D its tokens, N_v, U (its data
+/// subset's unique tokens, else its vocabulary's train tokens) and its data subset's
+/// synthetic share, where it has a subset.
 fn as_point(grid: &IsoFlopPlan, p: &PlanPoint, d: f64) -> Point {
     let u = p
         .unique_tokens
         .or_else(|| grid.vocabulary(p.codebook).map(|v| v.train_tokens))
         .map(|u| u as f64);
+    let subset = grid.data.iter().find(|s| Some(&s.name) == p.data.as_ref());
     Point {
         n: p.n_nv as f64,
         d,
         u,
         nv: Some(p.n_v as f64),
+        s: subset.map(|s| s.synth_hours / s.hours),
     }
 }
 
@@ -434,6 +437,7 @@ mod tests {
             epochs: None,
             nv: None,
             vocab: None,
+            synth_share: None,
         };
         let settings = LawSettings {
             bootstrap: 0,
@@ -443,7 +447,7 @@ mod tests {
         let families = fits::family::run::families(&["chinchilla".into()]).unwrap();
         let table = Table::read(&results).unwrap();
         let holdout = Holdout::TopCost { share: 0.1 };
-        let report = fit_laws(&table, &cols, &families, holdout, None, &settings).unwrap();
+        let report = fit_laws(&table, &cols, &families, holdout, None, None, &settings).unwrap();
         let laws = tmp.path().join("laws.json");
         std::fs::write(&laws, serde_json::to_string(&report).unwrap()).unwrap();
         let fit = read_fit(&laws, Goal::IsoFlop(Target::NOpt)).unwrap();

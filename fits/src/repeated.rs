@@ -708,25 +708,29 @@ fn block_intervals(
         .into_iter()
         .enumerate()
         .filter(|(_, (_, c))| c.len() > 1)
-        .map(|(k, (name, clusters))| {
+        .filter_map(|(k, (name, clusters))| {
             let draw = |rng: &mut SplitMix64| {
                 (0..clusters.len())
                     .flat_map(|_| clusters[rng.index(clusters.len())].iter().copied())
                     .collect()
             };
             let refits = resample(data, None, from, opts, (0xb10c + k as u64, draw));
+            // No refit (no bootstrap asked, or none converged): no interval, rather than NaN.
+            if refits.is_empty() {
+                return None;
+            }
             let interval = |j: usize| {
                 let v: Vec<f64> = refits.iter().map(|r| r.0[j]).collect();
                 [percentile(&v, 0.025), percentile(&v, 0.975)]
             };
             let [lo, hi] = interval(5);
-            BlockInterval {
+            Some(BlockInterval {
                 clusters: name.to_string(),
                 count: clusters.len(),
                 refits: refits.len(),
                 r_star: [lo.unwrap_or(f64::NAN), hi.unwrap_or(f64::NAN)],
                 exchange: exchange_fitted.then(|| interval(6).map(|x| x.unwrap_or(f64::NAN))),
-            }
+            })
         })
         .collect()
 }

@@ -410,10 +410,27 @@ impl<const P: usize, L: Law<P>> Family for Declared<L, P> {
 
     fn refusal(&self, rows: &[Point], loss: &[f64]) -> Option<String> {
         if let Some(a) = self.needs().iter().find(|a| {
-            rows.iter()
-                .any(|r| r.get(**a).is_none_or(|v| v.is_nan() || v <= 0.0))
+            **a != Axis::S
+                && rows
+                    .iter()
+                    .any(|r| r.get(**a).is_none_or(|v| v.is_nan() || v <= 0.0))
         }) {
             return Some(format!("needs a positive {} for every run", a.symbol()));
+        }
+        if self.needs().contains(&Axis::S) {
+            let shares: Vec<f64> = rows.iter().filter_map(|r| r.s).collect();
+            if shares.len() < rows.len() || shares.iter().any(|s| !(0.0..=1.0).contains(s)) {
+                return Some("needs a synthetic share in [0, 1] for every run".into());
+            }
+            let (lo, hi) = shares
+                .iter()
+                .fold((f64::MAX, f64::MIN), |(lo, hi), &s| (lo.min(s), hi.max(s)));
+            // One share makes ρ a constant factor of U (and D): not identified.
+            if hi - lo <= 0.05 {
+                return Some(format!(
+                    "the synthetic share spans {lo:.3}..{hi:.3} (≤ 0.05): rho is not identified"
+                ));
+            }
         }
         // A vocabulary term of one N_v is a constant: not identified beside E. (One U is
         // fine: D/U still varies.)

@@ -12,6 +12,7 @@ mod chinchilla;
 mod data_constrained;
 pub mod design;
 pub mod engine;
+mod exchange;
 mod farseer;
 pub mod predict;
 pub mod run;
@@ -24,11 +25,13 @@ pub mod vpnls;
 
 pub use chinchilla::Chinchilla;
 pub use data_constrained::DataConstrained;
+pub use exchange::Exchange;
 pub use farseer::Farseer;
 pub use unique_floor::UniqueFloor;
 pub use vocab::Vocabulary;
 pub use vocab_effective::VocabEffective;
 
+use crate::fitted::ExchangeForm;
 use serde::{Deserialize, Serialize};
 
 /// A quantity a law reads from each run.
@@ -43,6 +46,8 @@ pub enum Axis {
     U,
     /// Vocabulary parameters N_v (or the vocabulary size where no width is known).
     Nv,
+    /// The synthetic share s of the unique data (0 for captured motion alone).
+    S,
 }
 
 impl Axis {
@@ -53,6 +58,7 @@ impl Axis {
             Axis::D => "D",
             Axis::U => "U",
             Axis::Nv => "N_v",
+            Axis::S => "s",
         }
     }
 }
@@ -68,6 +74,9 @@ pub struct Point {
     pub u: Option<f64>,
     /// Vocabulary parameters.
     pub nv: Option<f64>,
+    /// Synthetic share of the unique data.
+    #[serde(default)]
+    pub s: Option<f64>,
 }
 
 impl Point {
@@ -78,6 +87,7 @@ impl Point {
             Axis::D => Some(self.d),
             Axis::U => self.u,
             Axis::Nv => self.nv,
+            Axis::S => self.s,
         }
     }
 
@@ -135,6 +145,10 @@ pub fn registry() -> Vec<Box<dyn engine::Family>> {
     vec![
         Box::new(engine::Declared::<_, 5>(Chinchilla)),
         Box::new(engine::Declared::<_, 6>(DataConstrained)),
+        Box::new(engine::Declared::<_, 7>(Exchange(ExchangeForm::TokenWorth))),
+        Box::new(engine::Declared::<_, 7>(Exchange(
+            ExchangeForm::EffectivePool,
+        ))),
         Box::new(engine::Declared::<_, 7>(UniqueFloor)),
         Box::new(engine::Declared::<_, 7>(Vocabulary)),
         Box::new(engine::Declared::<_, 7>(VocabEffective)),
@@ -197,6 +211,15 @@ mod tests {
                 })
             })
             .collect();
+        // Half the runs captured only, half a third synthetic: ρ is identified.
+        let mixed: Vec<Point> = repeated
+            .iter()
+            .enumerate()
+            .map(|(i, p)| Point {
+                s: Some(if i % 2 == 0 { 0.0 } else { 1.0 / 3.0 }),
+                ..*p
+            })
+            .collect();
         let vocab: Vec<Point> = grid(&logspace(7.5, 9.0, 5), &logspace(8.3, 11.3, 6))
             .into_iter()
             .flat_map(|p| [4096.0, 16384.0, 65536.0].map(|v| Point { nv: Some(v), ..p }))
@@ -213,6 +236,16 @@ mod tests {
                 by_name("data-constrained"),
                 vec![1.9, 300.0, 2000.0, 0.33, 0.35, 15.4],
                 repeated.clone(),
+            ),
+            (
+                by_name("data-constrained-token-worth"),
+                vec![1.9, 300.0, 2000.0, 0.33, 0.35, 15.4, 0.4],
+                mixed.clone(),
+            ),
+            (
+                by_name("data-constrained-effective-pool"),
+                vec![1.9, 300.0, 2000.0, 0.33, 0.35, 15.4, 0.4],
+                mixed,
             ),
             (
                 by_name("unique-floor"),
@@ -309,6 +342,7 @@ mod tests {
                 d: 4.0 * max(|p| Some(p.d)),
                 u: rows[0].u.map(|_| max(|p| p.u)),
                 nv: rows[0].nv.map(|_| 4.0 * max(|p| p.nv)),
+                s: rows[0].s.map(|_| max(|p| p.s)),
             };
             let (want, got) = (
                 family.predict(&theta, &far),

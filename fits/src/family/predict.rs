@@ -54,6 +54,9 @@ pub fn predict_at(report: &LawReport, c: f64, at: Point) -> Result<FamilyPredict
     if fam.needs().contains(&Axis::Nv) && at.nv.is_none() {
         return Err(cannot("vocabulary parameters N_v: give --vocab-params"));
     }
+    if fam.needs().contains(&Axis::S) && at.s.is_none() {
+        return Err(cannot("the synthetic share s: give --synth-share"));
+    }
     if !(c.is_finite() && c > 0.0) {
         return Err(FitError::BadOption {
             flag: "--budget".into(),

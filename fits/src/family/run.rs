@@ -31,6 +31,9 @@ pub struct LawColumns {
     /// The vocabulary size, for the choice of vocabulary at a left-out budget.
     #[serde(default)]
     pub vocab: Option<String>,
+    /// The synthetic share of the unique data, for the exchange-rate laws.
+    #[serde(default)]
+    pub synth_share: Option<String>,
 }
 
 /// A held-out table's scores.
@@ -90,12 +93,14 @@ pub fn read_points(table: &Table, cols: &LawColumns) -> Result<(Vec<Point>, Vec<
             .map(|e| d.iter().zip(e).map(|(d, e)| d / e).collect()),
     };
     let nv = optional(&cols.nv, "--nv-col")?;
+    let share = optional(&cols.synth_share, "--synth-share-col")?;
     let points = (0..n.len())
         .map(|i| Point {
             n: n[i],
             d: d[i],
             u: u.as_ref().map(|u| u[i]),
             nv: nv.as_ref().map(|v| v[i]),
+            s: share.as_ref().map(|s| s[i]),
         })
         .collect();
     Ok((points, loss))
@@ -118,12 +123,14 @@ pub fn families(names: &[String]) -> Result<Vec<Box<dyn Family>>, FitError> {
 }
 
 /// Fits `families` to `table`, ranks them by `holdout`, adopts the best and scores every fit
-/// on `test` (a table with the same columns) where given.
+/// on `test` (a table with the same columns) where given. `clusters[i]` is run i's block for
+/// the bootstrap (`None`: runs are resampled one by one).
 pub fn fit_laws(
     table: &Table,
     cols: &LawColumns,
     families: &[Box<dyn Family>],
     holdout: Holdout,
+    clusters: Option<&[usize]>,
     test: Option<&Path>,
     s: &Settings,
 ) -> Result<LawReport, FitError> {
@@ -159,7 +166,7 @@ pub fn fit_laws(
             f.fit(
                 &rows,
                 &loss,
-                None,
+                clusters,
                 &Settings {
                     bootstrap: if boot { s.bootstrap } else { 0 },
                     ..s.clone()
@@ -329,14 +336,17 @@ fn fit_lines(fit: &FamilyFit, s: &mut String) {
     use std::fmt::Write;
     let _ = writeln!(
         s,
-        "{}: {} ({} runs, {} of {} starts at the optimum, {} of {} bootstrap refits)",
+        "{}: {} ({} runs, {} of {} starts at the optimum, {} of {} bootstrap refits{})",
         fit.law,
         fit.equation,
         fit.rows,
         fit.at_optimum,
         fit.starts,
         fit.bootstrap_converged,
-        fit.bootstrap_resamples
+        fit.bootstrap_resamples,
+        fit.bootstrap_clusters
+            .map(|k| format!(" resampling {k} blocks"))
+            .unwrap_or_default()
     );
     for p in &fit.natural {
         let ci = match (p.ci_low, p.ci_high) {
