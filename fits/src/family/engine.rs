@@ -100,7 +100,8 @@ impl Settings {
 pub struct NamedEstimate {
     /// Parameter name.
     pub name: String,
-    /// Full-data value.
+    /// Full-data value (∞ where a term's scale diverged: written `null`, read back as ∞).
+    #[serde(deserialize_with = "crate::planner::infinite_if_null")]
     pub value: f64,
     /// 2.5th percentile of the bootstrap draws.
     pub ci_low: Option<f64>,
@@ -599,6 +600,21 @@ fn as_array<const P: usize>(theta: &[f64]) -> [f64; P] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A scale that diverged (B = e^b past f64's range) is written `null` and read back as ∞,
+    /// so the laws.json stays readable.
+    #[test]
+    fn an_infinite_natural_parameter_reads_back() {
+        let e = NamedEstimate {
+            name: "B".into(),
+            value: f64::INFINITY,
+            ci_low: None,
+            ci_high: None,
+        };
+        let text = serde_json::to_string(&e).unwrap();
+        let back: NamedEstimate = serde_json::from_str(&text).unwrap();
+        assert_eq!(back.value, f64::INFINITY, "{text}");
+    }
 
     #[test]
     fn cluster_resamples_keep_clusters_whole() {
