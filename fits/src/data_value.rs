@@ -9,11 +9,10 @@ use crate::fitted::RepeatedData;
 use crate::fitted::{CellMiss, ExchangeForm, InSampleCoverage};
 use crate::laws::Estimate;
 use crate::parametric::{percentile_of_sorted, with_draws};
-use crate::planner::infinite_if_null;
 use crate::repeated::NaturalLaw;
 use crate::search::{bisect, grid_golden_min};
 use crate::stopping::{stop_epochs, tokens_used};
-use serde::{Deserialize, Deserializer, Serialize};
+use serde::{Deserialize, Serialize};
 use statrs::distribution::{ContinuousCDF, Normal};
 use std::f64::consts::LN_10;
 
@@ -125,7 +124,6 @@ pub struct HourValue {
     /// C'/C: the compute that reaches the same loss at today's hours, as a multiple of C
     /// (∞ when no budget does: the data, not the compute, limits the loss; `null` in JSON). An
     /// interval end that falls among the refits at ∞ is unbounded (absent).
-    #[serde(deserialize_with = "infinite_value_if_null")]
     pub compute_equivalent: Estimate,
     /// The share of the bootstrap refits at which no budget reaches that loss.
     #[serde(default)]
@@ -194,25 +192,6 @@ pub fn data_bound(
         floor: estimate(&floor),
         doubling: estimate(&doubling),
         bound: budget >= sat[0],
-    })
-}
-
-/// An estimate whose value was ∞, written as `null` (JSON has no infinities), reads back as ∞.
-fn infinite_value_if_null<'de, D: Deserializer<'de>>(d: D) -> Result<Estimate, D::Error> {
-    #[derive(Deserialize)]
-    struct Written {
-        #[serde(deserialize_with = "infinite_if_null")]
-        value: f64,
-        se: Option<f64>,
-        ci_low: Option<f64>,
-        ci_high: Option<f64>,
-    }
-    let w = Written::deserialize(d)?;
-    Ok(Estimate {
-        value: w.value,
-        se: w.se,
-        ci_low: w.ci_low,
-        ci_high: w.ci_high,
     })
 }
 

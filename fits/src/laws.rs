@@ -7,7 +7,8 @@ use serde::{Deserialize, Serialize};
 /// A coefficient with its standard error and 95% interval (each `None` when not available).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Estimate {
-    /// Point estimate.
+    /// Point estimate (∞ where it diverged: JSON writes `null`, read back as ∞).
+    #[serde(deserialize_with = "crate::planner::infinite_if_null")]
     pub value: f64,
     /// Standard error (OLS) where one exists.
     #[serde(default, skip_serializing_if = "Option::is_none")]
