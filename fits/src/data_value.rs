@@ -405,6 +405,11 @@ pub fn predict_data(
         .collect();
     let stop_epochs = stops.map(|v| estimate(&v));
     let mut verdicts = verdicts(&n_opt, &hour_values, rd.draws.len());
+    if rd.exchange.is_none() && hours.synth > 0.0 {
+        verdicts.push(
+            "ρ was not fitted (every run had the same synthetic share): a synthetic hour counts as a captured one here, an assumption the runs do not test".into(),
+        );
+    }
     if let Some(e) = stop_epochs.as_ref().filter(|e| e.value * u < p.d) {
         verdicts.push(format!(
             "N_opt stops improving after {:.1} of the {:.1} epochs C buys: the last {:.0}% of the compute buys nothing on these hours",
@@ -602,6 +607,22 @@ mod tests {
         assert!(data_bound(&rd, 1e15, h, 0.0)
             .unwrap_err()
             .contains("--noise"));
+    }
+
+    /// With ρ not fitted (every run one synthetic share) the prediction says that a
+    /// synthetic hour was counted as a captured one, and only where synthetic hours are given.
+    #[test]
+    fn an_unfitted_exchange_rate_is_named_as_an_assumption() {
+        let mut theta = THETA;
+        theta[6] = 1.0;
+        let mut rd = fit(theta);
+        rd.exchange = None;
+        let flagged = |synth: f64| {
+            let p = predict_data(&rd, 1e15, Hours { real: 20.0, synth }).unwrap();
+            p.verdicts.iter().any(|v| v.contains("ρ was not fitted"))
+        };
+        assert!(flagged(10.0));
+        assert!(!flagged(0.0));
     }
 
     #[test]
