@@ -32,8 +32,8 @@ def declared_cells():
 def main():
     law = adopted()
     rows = {r["run_id"]: r for r in csv.DictReader(open(HERE / "results.csv"))}
-    preds = {(float(p["budget"]), p["data"]): p for p in csv.DictReader(open(STAGE2 / "predictions.csv"))
-             if p["law"] == law}
+    every = list(csv.DictReader(open(STAGE2 / "predictions.csv")))
+    preds = {(float(p["budget"]), p["data"]): p for p in every if p["law"] == law}
     out, measured = [], {}
     for (c, d), ids in sorted(declared_cells().items()):
         done = [rows[i] for i in ids if i in rows]
@@ -61,6 +61,13 @@ def main():
     print(" | ".join(out[0]))
     for r in out:
         print(" | ".join(str(v) for v in r.values()))
+    print("every law's error (predicted − measured) at the scored cells:")
+    for p in every:
+        key = (float(p["budget"]), p["data"])
+        if key in measured:
+            inside = float(p["pi_low"]) <= measured[key] <= float(p["pi_high"])
+            print(f"  {p['law']:<13} {key[0]:.3g} {key[1]:<8} {float(p['loss']) - measured[key]:+.4f}"
+                  f"  {'inside' if inside else 'outside'} [{p['pi_low']}, {p['pi_high']}]")
     for c in sorted({c for c, _ in measured}):
         if (c, "all-1") in measured and (c, "all-1_2") in measured:
             want = float(preds[(c, "all-1")]["loss"]) - float(preds[(c, "all-1_2")]["loss"])
