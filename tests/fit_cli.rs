@@ -540,20 +540,8 @@ fn fit_law_names_an_unknown_family_and_a_missing_axis() {
     let tmp = tempfile::tempdir().unwrap();
     let csv = tmp.path().join("runs.csv");
     synth::write_epoch_csv(&csv, &synth::chinchilla_standin(21)).unwrap();
-    let base = [
-        "fit",
-        "--results",
-        arg(&csv),
-        "--n-col",
-        "Model Size",
-        "--d-col",
-        "Training Tokens",
-        "--loss-col",
-        "loss",
-        "--bootstrap",
-        "0",
-        "--out",
-    ];
+    let mut base = epoch_table_fit(arg(&csv), "0");
+    base.push("--out");
     let out = tmp.path().join("laws");
     let mut args = base.to_vec();
     args.extend_from_slice(&[arg(&out), "--law", "chinchila"]);
@@ -616,25 +604,15 @@ fn fit_law_select_ladder_holds_each_data_subset_out() {
     let tmp = tempfile::tempdir().unwrap();
     let csv = unique_floor_ladders(tmp.path());
     let out = tmp.path().join("laws");
-    let args = [
-        "fit",
-        "--results",
-        arg(&csv),
-        "--n-col",
-        "Model Size",
-        "--d-col",
-        "Training Tokens",
-        "--loss-col",
-        "loss",
-        "--bootstrap",
-        "0",
+    let mut args = epoch_table_fit(arg(&csv), "0");
+    args.extend_from_slice(&[
         "--law",
         "data-constrained,unique-floor",
         "--select",
         "ladder",
         "--out",
         arg(&out),
-    ];
+    ]);
     let stdout = motionscale_ok(&args);
     assert!(
         stdout.contains("each of 3 data subsets held out in turn"),
@@ -649,7 +627,6 @@ fn fit_law_select_ladder_holds_each_data_subset_out() {
         .map(|l| l.rsplit_once(',').unwrap().0.to_string() + "\n")
         .collect();
     std::fs::write(&plain, without).unwrap();
-    let mut args = args.to_vec();
     args[2] = arg(&plain);
     fails_with(&motionscale(&args), "--select ladder needs a `data` column");
 }
@@ -663,23 +640,8 @@ fn fit_law_block_bootstrap_resamples_whole_subsets() {
     let csv = unique_floor_ladders(tmp.path());
     let gamma_width = |block: Option<&str>| {
         let out = tmp.path().join(format!("laws-{}", block.unwrap_or("rows")));
-        let mut args = vec![
-            "fit",
-            "--results",
-            arg(&csv),
-            "--n-col",
-            "Model Size",
-            "--d-col",
-            "Training Tokens",
-            "--loss-col",
-            "loss",
-            "--bootstrap",
-            "40",
-            "--law",
-            "unique-floor",
-            "--out",
-            arg(&out),
-        ];
+        let mut args = epoch_table_fit(arg(&csv), "40");
+        args.extend_from_slice(&["--law", "unique-floor", "--out", arg(&out)]);
         if let Some(b) = block {
             args.extend_from_slice(&["--block-bootstrap", b]);
         }
@@ -701,6 +663,23 @@ fn fit_law_block_bootstrap_resamples_whole_subsets() {
     assert_eq!(blocks, 3, "{out}");
     assert!(out.contains("resampling 3 blocks"), "{out}");
     assert!(width >= rows_width, "blocks {width} vs rows {rows_width}");
+}
+
+/// `fit` on a table with Epoch AI's column names and `bootstrap` resamples.
+fn epoch_table_fit<'a>(csv: &'a str, bootstrap: &'a str) -> Vec<&'a str> {
+    vec![
+        "fit",
+        "--results",
+        csv,
+        "--n-col",
+        "Model Size",
+        "--d-col",
+        "Training Tokens",
+        "--loss-col",
+        "loss",
+        "--bootstrap",
+        bootstrap,
+    ]
 }
 
 /// Runs drawn from the unique-data floor law on three pools (small seeded noise), each pool a
