@@ -18,12 +18,14 @@ Laws (each fitted by `motionscale fit`, predicted by `motionscale predict`):
 The exchange-rate forms (`data-constrained-token-worth`, `-effective-pool`) are tried too; with
 one synthetic share in every run they are refused (ρ is not identified), and the refusal is kept.
 """
-import csv, json, math, pathlib, subprocess, sys, tempfile
+import csv, json, math, os, pathlib, subprocess, sys, tempfile
 
 HERE = pathlib.Path(__file__).resolve().parent
-BIN = sys.argv[1]
-RESULTS = pathlib.Path(sys.argv[2]) if len(sys.argv) > 2 else HERE / "results.csv"
-OUT = HERE / "stage2"
+# The binary and a table given are resolved from the caller's folder; everything runs from
+# HERE with relative paths, so the files written name no machine's folders.
+BIN = str(pathlib.Path(sys.argv[1]).resolve()) if os.sep in sys.argv[1] else sys.argv[1]
+RESULTS = pathlib.Path(sys.argv[2]).resolve() if len(sys.argv) > 2 else pathlib.Path("results.csv")
+OUT = pathlib.Path("stage2")
 LOSS = "best_real_test_loss"
 FRACTIONS = {"all-1_4": 0.25, "all-1_2": 0.5, "all-1": 1.0}
 TARGETS = [1e14, 3e14]
@@ -86,6 +88,7 @@ def write(path, rows):
 
 
 def main():
+    os.chdir(HERE)
     rows = list(csv.DictReader(open(RESULTS)))
     shapes = dict(SHAPES)
     shapes.update({r["model"]: (float(r["n_nv"]), float(r["n_v"])) for r in rows})
