@@ -486,6 +486,22 @@ pub enum ExchangeForm {
     EffectivePool,
 }
 
+/// k = 1 − s + ρ·s, the captured tokens a token of a pool with synthetic share `s` is worth
+/// at exchange rate `rho`, and ∂ln k/∂ln ρ = ρ·s/k.
+pub fn exchange_factor(s: f64, rho: f64) -> (f64, f64) {
+    let k = 1.0 - s + rho * s;
+    (k, rho * s / k)
+}
+
+/// The synthetic shares' range (lo, hi), and whether it is wide enough (more than 0.05) for
+/// the exchange rate ρ to be identified: with one share, ρ is a constant factor of U.
+pub fn share_range(shares: &[f64]) -> ((f64, f64), bool) {
+    let (lo, hi) = shares
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(lo, hi), &s| (lo.min(s), hi.max(s)));
+    ((lo, hi), hi - lo > 0.05)
+}
+
 impl ExchangeForm {
     /// The name `fit --exchange-form` takes.
     pub fn name(self) -> &'static str {

@@ -22,8 +22,9 @@
 //! the data subsets left out in turn.
 
 use crate::fitted::{
-    BlockInterval, BudgetInformation, DataFrontierPoint, ExchangeForm, FitOptions, Fits, FormError,
-    FormScore, HeldOutError, Information, LawEstimates, RepeatedData,
+    exchange_factor, share_range, BlockInterval, BudgetInformation, DataFrontierPoint,
+    ExchangeForm, FitOptions, Fits, FormError, FormScore, HeldOutError, Information, LawEstimates,
+    RepeatedData,
 };
 use crate::isoflop;
 use crate::laws::Estimate;
@@ -91,18 +92,13 @@ impl DataRuns {
 
     /// Whether the shares differ enough (by 0.05) for ρ to be identified.
     fn mixes_sources(&self) -> bool {
-        let (lo, hi) = self
-            .synth
-            .iter()
-            .fold((f64::MAX, f64::MIN), |(lo, hi), &s| (lo.min(s), hi.max(s)));
-        hi - lo > 0.05
+        share_range(&self.synth).1
     }
 
     /// ln k and d(ln k)/d(ln ρ) of run `i` at ln ρ.
     fn exchange(&self, i: usize, ln_rho: f64) -> (f64, f64) {
-        let (s, rho) = (self.synth[i], ln_rho.exp());
-        let k = 1.0 - s + rho * s;
-        (k.ln(), rho * s / k)
+        let (k, dk) = exchange_factor(self.synth[i], ln_rho.exp());
+        (k.ln(), dk)
     }
 
     /// Number of runs.

@@ -8,6 +8,39 @@ use super::{Axis, Law, Point};
 /// The data-constrained family (effective data; parameters counted as they are).
 pub struct DataConstrained;
 
+impl DataConstrained {
+    /// The loss at `x` with ∂L/∂θ written into `g`, and ∂L/∂ln U: the slope in the size of
+    /// the unique pool (0 where the pool is not repeated), which the exchange-rate forms need.
+    pub(super) fn predict_with_pool_slope(
+        &self,
+        t: &[f64; 6],
+        x: &Point,
+        g: &mut [f64; 6],
+    ) -> (f64, f64) {
+        // U_D = min(U, D): a run shorter than its pool sees D unique tokens (D' = D).
+        let u = x.u.unwrap_or(x.d).min(x.d);
+        let r_star = t[5].exp();
+        let reps = (x.d / u - 1.0).max(0.0);
+        let decay = (-reps / r_star).exp();
+        let d_eff = u * (1.0 + r_star * (1.0 - decay));
+        // Chinchilla at the effective data; then ∂D'/∂r = R*·∂D'/∂R*
+        // = R*·U·((1 − e^(−R/R*)) − (R/R*)·e^(−R/R*)).
+        let mut g5 = [0.0; 5];
+        let core = [t[0], t[1], t[2], t[3], t[4]];
+        let loss = Chinchilla.predict(&core, &Point { d: d_eff, ..*x }, &mut g5);
+        let dd_dr = r_star * u * ((1.0 - decay) - reps / r_star * decay);
+        g[..5].copy_from_slice(&g5);
+        g[5] = -t[4] * g5[1] * dd_dr / d_eff;
+        // ∂D'/∂ln U_D = D' − D·e^(−R/R*) while the pool repeats (U < D).
+        let pool_slope = if x.u.is_some_and(|pool| pool < x.d) {
+            -t[4] * g5[1] * (d_eff - x.d * decay) / d_eff
+        } else {
+            0.0
+        };
+        (loss, pool_slope)
+    }
+}
+
 impl Law<6> for DataConstrained {
     fn name(&self) -> &'static str {
         "data-constrained"
@@ -35,21 +68,7 @@ impl Law<6> for DataConstrained {
     }
 
     fn predict(&self, t: &[f64; 6], x: &Point, g: &mut [f64; 6]) -> f64 {
-        // U_D = min(U, D): a run shorter than its pool sees D unique tokens (D' = D).
-        let u = x.u.unwrap_or(x.d).min(x.d);
-        let r_star = t[5].exp();
-        let reps = (x.d / u - 1.0).max(0.0);
-        let decay = (-reps / r_star).exp();
-        let d_eff = u * (1.0 + r_star * (1.0 - decay));
-        // Chinchilla at the effective data; then ∂D'/∂r = R*·∂D'/∂R*
-        // = R*·U·((1 − e^(−R/R*)) − (R/R*)·e^(−R/R*)).
-        let mut g5 = [0.0; 5];
-        let core = [t[0], t[1], t[2], t[3], t[4]];
-        let loss = Chinchilla.predict(&core, &Point { d: d_eff, ..*x }, &mut g5);
-        let dd_dr = r_star * u * ((1.0 - decay) - reps / r_star * decay);
-        g[..5].copy_from_slice(&g5);
-        g[5] = -t[4] * g5[1] * dd_dr / d_eff;
-        loss
+        self.predict_with_pool_slope(t, x, g).0
     }
 
     fn natural(&self, t: &[f64; 6]) -> Vec<(&'static str, f64)> {

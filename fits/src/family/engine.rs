@@ -423,11 +423,8 @@ impl<const P: usize, L: Law<P>> Family for Declared<L, P> {
             if shares.len() < rows.len() || shares.iter().any(|s| !(0.0..=1.0).contains(s)) {
                 return Some("needs a synthetic share in [0, 1] for every run".into());
             }
-            let (lo, hi) = shares
-                .iter()
-                .fold((f64::MAX, f64::MIN), |(lo, hi), &s| (lo.min(s), hi.max(s)));
-            // One share makes ρ a constant factor of U (and D): not identified.
-            if hi - lo <= 0.05 {
+            let ((lo, hi), identified) = crate::fitted::share_range(&shares);
+            if !identified {
                 return Some(format!(
                     "the synthetic share spans {lo:.3}..{hi:.3} (≤ 0.05): rho is not identified"
                 ));

@@ -11,7 +11,7 @@
 use super::chinchilla::epoch_starts;
 use super::data_constrained::DataConstrained;
 use super::{Axis, Law, Point};
-use crate::fitted::ExchangeForm;
+use crate::fitted::{exchange_factor, ExchangeForm};
 
 /// The data-constrained law on a mixed pool, in one of the two exchange forms.
 pub struct Exchange(pub ExchangeForm);
@@ -53,25 +53,31 @@ impl Law<7> for Exchange {
 
     fn predict(&self, t: &[f64; 7], x: &Point, g: &mut [f64; 7]) -> f64 {
         let core = [t[0], t[1], t[2], t[3], t[4], t[5]];
-        let (s, rho) = (x.s.unwrap_or(0.0), t[6].exp());
-        let k = 1.0 - s + rho * s;
+        let (k, dk) = exchange_factor(x.s.unwrap_or(0.0), t[6].exp());
         let (u, d) = (x.u.unwrap_or(x.d), x.d);
-        let at = match self.0 {
-            ExchangeForm::TokenWorth => Point {
-                u: Some(k * u),
-                d: k * d,
-                ..*x
-            },
-            ExchangeForm::EffectivePool => Point {
-                u: Some(k * u),
-                ..*x
-            },
-        };
         let mut g6 = [0.0; 6];
-        let loss = DataConstrained.predict(&core, &at, &mut g6);
+        let (loss, dl_dk) = match self.0 {
+            // U and D, hence D', scale by k: ∂L/∂ln k = ∂L/∂ln D' = −β·B·D'^−β = −β·g6[1].
+            ExchangeForm::TokenWorth => {
+                let at = Point {
+                    u: Some(k * u),
+                    d: k * d,
+                    ..*x
+                };
+                let loss = DataConstrained.predict(&core, &at, &mut g6);
+                (loss, -t[4] * g6[1])
+            }
+            // Only the pool U·k moves: ∂L/∂ln k = ∂L/∂ln U.
+            ExchangeForm::EffectivePool => {
+                let at = Point {
+                    u: Some(k * u),
+                    ..*x
+                };
+                DataConstrained.predict_with_pool_slope(&core, &at, &mut g6)
+            }
+        };
         g[..6].copy_from_slice(&g6);
-        // ∂L/∂ln D' = −β·B·D'^−β = −β·g6[1]; ∂ln k/∂ln ρ = ρ·s/k.
-        g[6] = -t[4] * g6[1] * dln_effective_dln_k(self.0, &at, t[5]) * rho * s / k;
+        g[6] = dl_dk * dk;
         loss
     }
 
@@ -84,24 +90,6 @@ impl Law<7> for Exchange {
     fn theta_from_natural(&self, p: &[f64; 7]) -> [f64; 7] {
         let t = DataConstrained.theta_from_natural(&[p[0], p[1], p[2], p[3], p[4], p[5]]);
         [t[0], t[1], t[2], t[3], t[4], t[5], p[6].ln()]
-    }
-}
-
-/// ∂ln D'/∂ln k at the exchanged point `at` (its U already the pool). Token worth scales U
-/// and D, hence D', by k: 1. Under the effective pool only U_D = min(U·k, D) moves, and
-/// D' = U_D·(1 + R*·(1 − e^(−R/R*))) with R = D/U_D − 1 gives ∂D'/∂ln U_D = D' − D·e^(−R/R*)
-/// while the pool is below D (0 past it).
-fn dln_effective_dln_k(form: ExchangeForm, at: &Point, r: f64) -> f64 {
-    let pool = at.u.unwrap_or(at.d);
-    match form {
-        ExchangeForm::TokenWorth => 1.0,
-        ExchangeForm::EffectivePool if pool >= at.d => 0.0,
-        ExchangeForm::EffectivePool => {
-            let r_star = r.exp();
-            let decay = (-(at.d / pool - 1.0) / r_star).exp();
-            let d_eff = pool * (1.0 + r_star * (1.0 - decay));
-            (d_eff - at.d * decay) / d_eff
-        }
     }
 }
 
