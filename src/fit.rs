@@ -361,19 +361,9 @@ pub struct PredictArgs {
     /// Fixed codebook size V (N_v = V·d instead of the N_v law).
     #[arg(long)]
     pub vocab: Option<f64>,
-    /// The corpus's hours per source, `real=H,synth=H`: the data question, answered by the
-    /// fit's data-constrained law (`fit --repeated-data`) — the optimum at this budget and
-    /// these hours, and what +1 h and +10 h of each source are worth.
-    #[arg(long, value_name = "real=H,synth=H", value_parser = parse_hours, requires = "fits")]
-    pub hours: Option<Hours>,
-    /// With --hours: the seed SD of the loss, below which more compute is not worth buying
-    /// [default: the fit's seed SD of its parametric loss at its largest budget with repeats].
-    #[arg(long, value_name = "NATS", requires = "hours")]
-    pub noise: Option<f64>,
-    /// With --hours: the hours given are distinct capture and the fit's hours count mirrored
-    /// copies, so each is doubled.
-    #[arg(long, requires = "hours")]
-    pub mirrored: bool,
+    /// The data question (--hours, --noise, --mirrored).
+    #[command(flatten)]
+    pub data: HoursArgs,
     /// Unique tokens U held at the budget (a laws.json whose law reads U).
     #[arg(long, value_name = "U")]
     pub unique_tokens: Option<f64>,
@@ -387,6 +377,87 @@ pub struct PredictArgs {
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
+}
+
+/// The corpus's hours, read by `predict` and `report` with a fit of the data-constrained law.
+#[derive(clap::Args, Debug, Clone)]
+pub struct HoursArgs {
+    /// The corpus's hours per source, `real=H,synth=H`: the data question, answered by the
+    /// fit's data-constrained law (`fit --repeated-data`) — the optimum at this budget and
+    /// these hours, what +1 h and +10 h of each source are worth, and whether the budget is
+    /// data-bound.
+    #[arg(long, value_name = "real=H,synth=H", value_parser = parse_hours)]
+    pub hours: Option<Hours>,
+    /// With --hours: the seed SD of the loss, below which more compute is not worth buying
+    /// [default: the fit's seed SD of its parametric loss at its largest budget with repeats].
+    #[arg(long, value_name = "NATS", requires = "hours")]
+    pub noise: Option<f64>,
+    /// With --hours: the hours given are distinct capture and the fit's hours count mirrored
+    /// copies, so each is doubled.
+    #[arg(long, requires = "hours")]
+    pub mirrored: bool,
+}
+
+/// What the data question gets: the data-constrained law's prediction at a budget and, given
+/// a seed SD, its data-bound verdict.
+pub(crate) struct DataAnswer {
+    /// The optimum, the loss and the value of more hours.
+    pub prediction: DataPrediction,
+    /// Whether compute past C_sat is worth buying (absent without a seed SD).
+    pub bound: Option<DataBound>,
+}
+
+impl HoursArgs {
+    /// The answer at `budget` from `fits` (read from `path`), or None without --hours; a fit
+    /// without the data-constrained law is an error naming the file.
+    pub(crate) fn answer(
+        &self,
+        fits: &Fits,
+        path: &Path,
+        budget: f64,
+    ) -> Result<Option<DataAnswer>> {
+        let Some(hours) = self.hours else {
+            return Ok(None);
+        };
+        let Some(rd) = &fits.repeated_data else {
+            bail!(
+                "{}: no data-constrained law (fit with --repeated-data on a table with an epochs column)",
+                path.display()
+            );
+        };
+        let scale = if self.mirrored { 2.0 } else { 1.0 };
+        let fit_hours = Hours {
+            real: scale * hours.real,
+            synth: scale * hours.synth,
+        };
+        let in_file = |e: String| anyhow::anyhow!("{}: {e}", path.display());
+        let prediction = predict_data(rd, budget, fit_hours).map_err(in_file)?;
+        let bound = self
+            .noise
+            .or_else(|| fits.param_seed_sd())
+            .map(|sd| data_bound(rd, budget, fit_hours, sd))
+            .transpose()
+            .map_err(in_file)?;
+        Ok(Some(DataAnswer { prediction, bound }))
+    }
+
+    /// Hours as given, with their mirrored count when --mirrored.
+    pub(crate) fn hours_text(&self, h: f64) -> String {
+        match self.mirrored {
+            true => format!("{h} h distinct = {} h with mirrors", 2.0 * h),
+            false => format!("{h} h"),
+        }
+    }
+
+    /// The verdict sentence at `budget` (or why there is none), for the page and the terminal.
+    pub(crate) fn verdict_text(&self, answer: &DataAnswer) -> String {
+        let p = &answer.prediction;
+        match &answer.bound {
+            Some(b) => bound_text(b, p.budget, p.stop_epochs.as_ref()),
+            None => "no seed SD (no repeated runs in the fit; give --noise): no data-bound verdict"
+                .into(),
+        }
+    }
 }
 
 /// `real=H,synth=H` (either may be left out: 0 hours).
@@ -440,40 +511,24 @@ fn worth_text(v: &fits::data_value::HourValue, data_bound: bool) -> String {
 }
 
 /// `predict --hours`: the data question.
-fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCode> {
+fn predict_hours(path: &Path, args: &PredictArgs) -> Result<ExitCode> {
     let fits = Fits::read(path)?;
-    let Some(rd) = &fits.repeated_data else {
-        bail!(
-            "{}: no data-constrained law (fit with --repeated-data on a table with an epochs column)",
-            path.display()
-        );
+    let (Some(hours), Some(answer)) =
+        (args.data.hours, args.data.answer(&fits, path, args.budget)?)
+    else {
+        bail!("--hours is required for the data question");
     };
-    let scale = if args.mirrored { 2.0 } else { 1.0 };
-    let fit_hours = Hours {
-        real: scale * hours.real,
-        synth: scale * hours.synth,
-    };
-    let in_file = |e: String| anyhow::anyhow!("{}: {e}", path.display());
-    let p = predict_data(rd, args.budget, fit_hours).map_err(in_file)?;
-    let noise = args.noise.or_else(|| fits.param_seed_sd());
-    let bound = noise
-        .map(|sd| data_bound(rd, args.budget, fit_hours, sd))
-        .transpose()
-        .map_err(in_file)?;
+    let (p, bound) = (&answer.prediction, &answer.bound);
     if args.json {
         let both = serde_json::json!({ "prediction": p, "data_bound": bound });
         println!("{}", serde_json::to_string_pretty(&both)?);
         return Ok(ExitCode::SUCCESS);
     }
-    let mirrors = |h: f64| match args.mirrored {
-        true => format!("{h} h distinct = {} h with mirrors", scale * h),
-        false => format!("{h} h"),
-    };
     println!(
         "C = {} with {} real + {} synthetic ({} unique tokens, vocabulary {}):",
         sig(p.budget),
-        mirrors(hours.real),
-        mirrors(hours.synth),
+        args.data.hours_text(hours.real),
+        args.data.hours_text(hours.synth),
         sig(p.unique_tokens),
         p.vocab.map_or("mixed".into(), |v| format!("{v:.0}"))
     );
@@ -505,13 +560,10 @@ fn predict_hours(path: &Path, args: &PredictArgs, hours: Hours) -> Result<ExitCo
     for v in &p.verdicts {
         println!("  {v}");
     }
-    baseline_lines(rd, &p);
-    match &bound {
-        Some(b) => println!("  {}", bound_text(b, p.budget, p.stop_epochs.as_ref())),
-        None => println!(
-            "  no seed SD (no repeated runs in the fit; give --noise): no data-bound verdict"
-        ),
+    if let Some(rd) = &fits.repeated_data {
+        baseline_lines(rd, p);
     }
+    println!("  {}", args.data.verdict_text(&answer));
     Ok(ExitCode::SUCCESS)
 }
 
@@ -572,8 +624,11 @@ fn bound_text(b: &DataBound, budget: f64, stop: Option<&fits::laws::Estimate>) -
 
 /// `motionscale predict`.
 pub fn predict(args: PredictArgs) -> Result<ExitCode> {
-    if let (Some(h), Some(path)) = (args.hours, &args.fits) {
-        return predict_hours(path, &args, h);
+    if args.data.hours.is_some() {
+        let Some(path) = &args.fits else {
+            bail!("--hours needs --fits: the data question is answered by a fit's data-constrained law");
+        };
+        return predict_hours(path, &args);
     }
     let laws = match (&args.fits, args.preset) {
         (Some(path), _) => match FitFile::read(path)? {

@@ -3,7 +3,7 @@
 //! ([`crate::report_page`] draws the page).
 
 use crate::commands::corpus_stats;
-use crate::report_page::{Study, Sweep};
+use crate::report_page::{DataVerdict, Study, Sweep};
 use anyhow::{bail, Context, Result};
 use fits::{Fits, Laws, PredictOptions, Prediction};
 use std::path::{Path, PathBuf};
@@ -33,6 +33,10 @@ pub struct ReportArgs {
     /// largest budget of the fit].
     #[arg(long, value_delimiter = ',', value_name = "C,…")]
     pub budgets: Vec<f64>,
+    /// With a fit of the data-constrained law (`fit --repeated-data`): the corpus's hours,
+    /// and the page leads with predict's data-bound verdict at each budget.
+    #[command(flatten)]
+    pub data: crate::fit::HoursArgs,
 }
 
 /// `motionscale report`.
@@ -44,12 +48,18 @@ pub fn report(args: ReportArgs) -> Result<ExitCode> {
         sweep: None,
         fits: None,
         predictions: Vec::new(),
+        data_verdicts: Vec::new(),
         replay: None,
     };
     for input in &args.inputs {
         add_input(&mut study, input)?;
     }
-    study.predictions = predictions(study.fits.as_ref(), &args.budgets);
+    let budgets = study
+        .fits
+        .as_ref()
+        .map_or_else(Vec::new, |(_, f)| budgets(f, &args.budgets));
+    study.predictions = predictions(study.fits.as_ref(), &budgets);
+    study.data_verdicts = data_verdicts(study.fits.as_ref(), &budgets, &args.data)?;
     let html = crate::report_page::page(&study)?;
     motionscale_core::write_atomic(&args.out, html.as_bytes())
         .with_context(|| format!("writing {}", args.out.display()))?;
@@ -208,7 +218,21 @@ fn tokenizer_evaluations(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(found)
 }
 
-/// Predictions at `budgets` (default: 10× and 100× the fit's largest budget).
+/// The budgets to predict at: those given, else 10× and 100× the fit's largest budget.
+fn budgets(fits: &Fits, given: &[f64]) -> Vec<f64> {
+    let largest = fits
+        .budgets
+        .iter()
+        .map(|b| b.min.budget)
+        .fold(0.0, f64::max);
+    if given.is_empty() && largest > 0.0 {
+        vec![10.0 * largest, 100.0 * largest]
+    } else {
+        given.to_vec()
+    }
+}
+
+/// Predictions at `budgets`.
 fn predictions(
     fits: Option<&(PathBuf, Fits)>,
     budgets: &[f64],
@@ -216,20 +240,10 @@ fn predictions(
     let Some((path, fits)) = fits else {
         return Vec::new();
     };
-    let largest = fits
-        .budgets
-        .iter()
-        .map(|b| b.min.budget)
-        .fold(0.0, f64::max);
-    let budgets = if budgets.is_empty() && largest > 0.0 {
-        vec![10.0 * largest, 100.0 * largest]
-    } else {
-        budgets.to_vec()
-    };
     let laws = Laws::from_fits(fits, &path.display().to_string());
     budgets
-        .into_iter()
-        .map(|budget| {
+        .iter()
+        .map(|&budget| {
             let opts = PredictOptions {
                 budget,
                 width: None,
@@ -241,4 +255,35 @@ fn predictions(
             )
         })
         .collect()
+}
+
+/// predict's data-bound verdict at each budget on the hours given (none without --hours; a
+/// fit without the data-constrained law is an error naming the file).
+fn data_verdicts(
+    fits: Option<&(PathBuf, Fits)>,
+    budgets: &[f64],
+    data: &crate::fit::HoursArgs,
+) -> Result<Vec<DataVerdict>> {
+    let (Some((path, fits)), Some(hours)) = (fits, data.hours) else {
+        if data.hours.is_some() {
+            bail!("--hours needs a fit of the data-constrained law among the inputs");
+        }
+        return Ok(Vec::new());
+    };
+    let on = format!(
+        "{} captured + {} synthetic",
+        data.hours_text(hours.real),
+        data.hours_text(hours.synth)
+    );
+    let mut verdicts = Vec::new();
+    for &budget in budgets {
+        if let Some(answer) = data.answer(fits, path, budget)? {
+            verdicts.push(DataVerdict {
+                budget,
+                hours: on.clone(),
+                sentence: data.verdict_text(&answer),
+            });
+        }
+    }
+    Ok(verdicts)
 }

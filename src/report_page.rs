@@ -64,6 +64,16 @@ pub struct Sweep {
     pub rows: Vec<RunRow>,
 }
 
+/// The data-bound verdict at one budget: the sentence a data engineer acts on.
+pub struct DataVerdict {
+    /// Budget C.
+    pub budget: f64,
+    /// The hours it was asked on, as given.
+    pub hours: String,
+    /// predict's verdict ("data-bound above … buy data — doubling …").
+    pub sentence: String,
+}
+
 /// Everything the page shows, each part present when an input provided it.
 pub struct Study {
     /// The inputs as given.
@@ -78,6 +88,8 @@ pub struct Study {
     pub fits: Option<(PathBuf, Fits)>,
     /// A prediction (or why there is none) at each budget.
     pub predictions: Vec<(f64, Result<Prediction, String>)>,
+    /// predict's data-bound verdict at each budget (given the corpus's hours).
+    pub data_verdicts: Vec<DataVerdict>,
     /// A replay of the sweep planner.
     pub replay: Option<Replay>,
 }
@@ -688,7 +700,7 @@ fn predictions(study: &Study) -> Result<String> {
     if study.predictions.is_empty() {
         return Ok(absent("fit to predict from"));
     }
-    let mut s = String::new();
+    let mut s = data_verdicts(study);
     for (budget, p) in &study.predictions {
         let _ = write!(s, "<h3>C = {} FLOPs</h3>", sig(*budget));
         match p {
@@ -712,6 +724,33 @@ fn predictions(study: &Study) -> Result<String> {
         }
     }
     Ok(s)
+}
+
+/// The data-bound verdicts first, each budget's in one line; or, for a fit of the
+/// data-constrained law asked without hours, how to get them.
+fn data_verdicts(study: &Study) -> String {
+    let has_data_law = study
+        .fits
+        .as_ref()
+        .is_some_and(|(_, f)| f.repeated_data.is_some());
+    if study.data_verdicts.is_empty() {
+        return match has_data_law {
+            true => "<p class=\"warn\">The fit has a data-constrained law: give --hours real=H,synth=H for its data-bound verdict.</p>".into(),
+            false => String::new(),
+        };
+    }
+    let lines = study.data_verdicts.iter().map(|v| {
+        format!(
+            "<p><b>C = {} FLOPs on {}:</b> {}</p>",
+            sig(v.budget),
+            esc(&v.hours),
+            esc(&v.sentence)
+        )
+    });
+    format!(
+        "<div class=\"verdict data\">{}</div>",
+        lines.collect::<String>()
+    )
 }
 
 /// The predicted quantities with their 95% intervals, then predict's verdict on them.

@@ -124,6 +124,23 @@ fn predict_scamo_preset_states_the_inconsistencies() {
     assert!(String::from_utf8_lossy(&human.stdout).contains("warning: inconsistent: compute"));
 }
 
+/// A committed fit whose parametric law diverged (B = ∞: the stage-2 ladder's `dc-stopping`
+/// fit, docs/results/data-law/recipe/ladder): `predict` says it has no compute-optimal
+/// allocation instead of printing an N_opt of 0 and a NaN loss.
+#[test]
+fn predict_refuses_the_allocation_of_a_diverged_parametric_law() {
+    let fits = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("docs/results/data-law/recipe/ladder/stage2/dc-stopping/fits.json");
+    let printed = motionscale_ok(&["predict", "--fits", arg(&fits), "--budget", "1e15"]);
+    assert!(
+        printed.contains("the parametric law has no compute-optimal allocation (A "),
+        "{printed}"
+    );
+    for absent in ["NaN", "parametric N_opt"] {
+        assert!(!printed.contains(absent), "{absent:?} in {printed}");
+    }
+}
+
 #[test]
 fn fit_errors_name_the_file_and_the_problem() {
     let tmp = tempfile::tempdir().unwrap();
@@ -460,6 +477,42 @@ fn data_bound_verdict(fits: &std::path::Path) {
         b.doubling.value < 0.0 && b.doubling.ci_high.unwrap() < 0.0,
         "{b:?}"
     );
+    report_leads_with_the_verdict(fits, &text);
+}
+
+/// `report FITS --hours …` opens its first section with the verdict `predict` printed, before
+/// the first budget's table; without --hours it says how to get it.
+fn report_leads_with_the_verdict(fits: &std::path::Path, predicted: &str) {
+    let dir = fits.parent().unwrap();
+    let page = |extra: &[&str]| {
+        let html = dir.join("report.html");
+        let args = [
+            "report",
+            arg(fits),
+            "--budgets",
+            "1e18",
+            "--out",
+            arg(&html),
+        ];
+        motionscale_ok(&[&args[..], extra].concat());
+        std::fs::read_to_string(&html).unwrap()
+    };
+    let html = page(&["--hours", "real=2.5", "--mirrored", "--noise", "0.005"]);
+    let first = html.find("<section id=\"predictions\">").unwrap();
+    let answer = &html[first..html[first..].find("<h3>").unwrap() + first];
+    let sentence = predicted
+        .lines()
+        .find(|l| l.contains("data-bound above "))
+        .unwrap()
+        .trim()
+        .replace('<', "&lt;");
+    assert!(
+        answer.contains("C = 1.000e18 FLOPs on 2.5 h distinct = 5 h with mirrors captured"),
+        "{answer}"
+    );
+    assert!(answer.contains(&sentence), "{sentence:?} in {answer}");
+    let without = page(&[]);
+    assert!(without.contains("give --hours real=H,synth=H for its data-bound verdict"));
 }
 
 /// ScaleBench's tasks (arXiv 2604.22753) through `fit --law all`: each task's family chosen

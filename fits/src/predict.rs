@@ -388,6 +388,10 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         .loss_shape
         .as_ref()
         .map_or_else(Vec::new, |s| losses_by_form(s, c, &mut warnings));
+    let parametric = laws
+        .parametric
+        .as_ref()
+        .and_then(|p| parametric_if_finite(p, c, &mut warnings));
     let mut prediction = Prediction {
         source: laws.source.clone(),
         budget: c,
@@ -403,7 +407,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         v_opt: laws.v.as_ref().map(|l| l.at(c)),
         loss: laws.loss.as_ref().map(|l| l.at(c)),
         loss_by_form,
-        parametric: laws.parametric.as_ref().map(|p| parametric_at(p, c)),
+        parametric,
         consistency: Vec::new(),
         warnings,
     };
@@ -448,6 +452,30 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
     prediction.warnings.extend(wide);
     prediction.consistency = checks;
     Ok(prediction)
+}
+
+/// The parametric law's compute-optimal point at `c`, or None with a warning when its fit
+/// diverged (a scale A or B at ∞, an exponent at 0): then it has no finite allocation, and an
+/// N_opt of 0 with a NaN loss is not a prediction.
+fn parametric_if_finite(
+    p: &Parametric,
+    c: f64,
+    warnings: &mut Vec<String>,
+) -> Option<ParametricPrediction> {
+    let q = parametric_at(p, c);
+    let finite = [q.n_opt.value, q.d_opt.value, q.loss.value]
+        .iter()
+        .all(|v| v.is_finite() && *v > 0.0);
+    if !finite {
+        warnings.push(format!(
+            "the parametric law has no compute-optimal allocation (A {}, B {}, α {:.3}, β {:.3}: a term diverged in the fit); not predicted",
+            crate::report::sig(p.law.a.value),
+            crate::report::sig(p.law.b.value),
+            p.law.alpha.value,
+            p.law.beta.value
+        ));
+    }
+    finite.then_some(q)
 }
 
 /// A plain statement when `e`'s 95% interval spans more than a decade: a prediction that
