@@ -38,7 +38,9 @@ def main():
     for (c, d), ids in sorted(declared_cells().items()):
         done = [rows[i] for i in ids if i in rows]
         if len(done) < len(ids):
-            print(f"{c:.3g} {d}: {len(done)} of {len(ids)} declared runs trained; not scored yet")
+            so_far = ", ".join(f"{r['model']} {float(r['best_real_test_loss']):.4f}" for r in done)
+            print(f"{c:.3g} {d}: {len(done)} of {len(ids)} declared runs trained; not scored yet"
+                  + (f" (so far: {so_far})" if done else ""))
             continue
         best = min(done, key=lambda r: float(r["best_real_test_loss"]))
         loss = float(best["best_real_test_loss"])
@@ -74,6 +76,25 @@ def main():
             got = measured[(c, "all-1")] - measured[(c, "all-1_2")]
             print(f"doubling 1/2 -> 1 at {c:.3g}: predicted {want:+.4f}, measured {got:+.4f}, "
                   f"error {want - got:+.4f}")
+    second_scoring(rows, measured)
+
+
+def second_scoring(rows, scored):
+    """Sizes added after the first scoring (plan-3.toml): each run's loss beside its cell's."""
+    later_plan = HERE / "plan-3.toml"
+    if not later_plan.exists():
+        return
+    first = len(tomllib.load(open(HERE / "plan-2.toml", "rb"))["points"])
+    for p in tomllib.load(open(later_plan, "rb"))["points"][first:]:
+        r = rows.get(p["run_id"])
+        cell = (float(p["budget"]), p["data"])
+        if r is None:
+            print(f"second scoring: {p['run_id']} not trained yet")
+            continue
+        loss = float(r["best_real_test_loss"])
+        was = scored.get(cell)
+        print(f"second scoring: {p['run_id']} {loss:.4f} at step {r['best_step']} of {r['steps']}"
+              + (f"; the cell's first scoring {was:.4f}" if was is not None else ""))
 
 
 if __name__ == "__main__":
