@@ -345,16 +345,7 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
         )));
     }
     let mut warnings = Vec::new();
-    let mut equations = Vec::new();
-    for law in [&laws.n, &laws.nv, &laws.v, &laws.d, &laws.nv_vs_n]
-        .into_iter()
-        .flatten()
-    {
-        equations.push(law.equation());
-    }
-    if let Some(l) = &laws.loss {
-        equations.push(l.equation());
-    }
+    let equations = equations(laws);
     let n_nv = laws.n.as_ref().map(|l| l.at(c));
     let width = opts
         .width
@@ -435,23 +426,35 @@ pub fn predict(laws: &Laws, opts: &PredictOptions) -> Result<Prediction, FitErro
             .warnings
             .push("the loss law carries no standard errors: no interval".into());
     }
-    let wide = {
-        let p = &prediction;
-        let param = p.parametric.as_ref();
-        [
-            ("N_nv", p.n_nv.as_ref()),
-            ("N_v", p.n_v.as_ref()),
-            ("D", p.d.as_ref()),
-            ("the parametric N_opt", param.map(|q| &q.n_opt)),
-            ("the parametric D_opt", param.map(|q| &q.d_opt)),
-        ]
-        .into_iter()
-        .filter_map(|(name, e)| too_wide(name, e?))
-        .collect::<Vec<_>>()
-    };
+    let wide = wide_intervals(&prediction);
     prediction.warnings.extend(wide);
     prediction.consistency = checks;
     Ok(prediction)
+}
+
+/// The equations of every law the prediction reads, the loss law's last.
+fn equations(laws: &Laws) -> Vec<String> {
+    [&laws.n, &laws.nv, &laws.v, &laws.d, &laws.nv_vs_n]
+        .into_iter()
+        .flatten()
+        .map(|law| law.equation())
+        .chain(laws.loss.as_ref().map(|l| l.equation()))
+        .collect()
+}
+
+/// A warning for each predicted quantity whose 95% interval spans more than a decade.
+fn wide_intervals(p: &Prediction) -> Vec<String> {
+    let param = p.parametric.as_ref();
+    [
+        ("N_nv", p.n_nv.as_ref()),
+        ("N_v", p.n_v.as_ref()),
+        ("D", p.d.as_ref()),
+        ("the parametric N_opt", param.map(|q| &q.n_opt)),
+        ("the parametric D_opt", param.map(|q| &q.d_opt)),
+    ]
+    .into_iter()
+    .filter_map(|(name, e)| too_wide(name, e?))
+    .collect()
 }
 
 /// The parametric law's compute-optimal point at `c`, or None with a warning when its fit
