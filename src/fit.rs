@@ -2,7 +2,9 @@
 //! predictions at a compute budget.
 
 use anyhow::{bail, Context, Result};
-use fits::data_value::{data_bound, predict_data, DataBound, DataPrediction, Hours};
+use fits::data_value::{
+    data_bound, predict_data, size_losses, DataBound, DataPrediction, Hours, SizeLoss, SizeLosses,
+};
 use fits::family::predict::predict_at;
 use fits::family::run::LawReport;
 use fits::family::Point;
@@ -374,6 +376,16 @@ pub struct PredictArgs {
     /// it: the data-constrained exchange-rate laws).
     #[arg(long, value_name = "S")]
     pub synth_share: Option<f64>,
+    /// With --hours: the model sizes N (the fit's N column) that can be trained, comma-separated:
+    /// the loss the law gives each at this budget and these hours (with early stopping, on the
+    /// tokens it trains before it stops), and the best of them — a cell's best run.
+    #[arg(
+        long,
+        value_name = "N[,N...]",
+        value_delimiter = ',',
+        requires = "hours"
+    )]
+    pub sizes: Vec<f64>,
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
@@ -425,11 +437,7 @@ impl HoursArgs {
                 path.display()
             );
         };
-        let scale = if self.mirrored { 2.0 } else { 1.0 };
-        let fit_hours = Hours {
-            real: scale * hours.real,
-            synth: scale * hours.synth,
-        };
+        let fit_hours = self.fit_hours(hours);
         let in_file = |e: String| anyhow::anyhow!("{}: {e}", path.display());
         let prediction = predict_data(rd, budget, fit_hours).map_err(in_file)?;
         let bound = self
@@ -439,6 +447,15 @@ impl HoursArgs {
             .transpose()
             .map_err(in_file)?;
         Ok(Some(DataAnswer { prediction, bound }))
+    }
+
+    /// `hours` as the fit counts them: doubled when --mirrored.
+    pub(crate) fn fit_hours(&self, hours: Hours) -> Hours {
+        let scale = if self.mirrored { 2.0 } else { 1.0 };
+        Hours {
+            real: scale * hours.real,
+            synth: scale * hours.synth,
+        }
     }
 
     /// Hours as given, with their mirrored count when --mirrored.
@@ -519,8 +536,15 @@ fn predict_hours(path: &Path, args: &PredictArgs) -> Result<ExitCode> {
         bail!("--hours is required for the data question");
     };
     let (p, bound) = (&answer.prediction, &answer.bound);
+    let sizes = match (&fits.repeated_data, args.sizes.is_empty()) {
+        (Some(rd), false) => Some(
+            size_losses(rd, args.budget, args.data.fit_hours(hours), &args.sizes)
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?,
+        ),
+        _ => None,
+    };
     if args.json {
-        let both = serde_json::json!({ "prediction": p, "data_bound": bound });
+        let both = serde_json::json!({ "prediction": p, "data_bound": bound, "sizes": sizes });
         println!("{}", serde_json::to_string_pretty(&both)?);
         return Ok(ExitCode::SUCCESS);
     }
@@ -563,8 +587,34 @@ fn predict_hours(path: &Path, args: &PredictArgs) -> Result<ExitCode> {
     if let Some(rd) = &fits.repeated_data {
         baseline_lines(rd, p);
     }
+    if let Some(s) = &sizes {
+        size_lines(s);
+    }
     println!("  {}", args.data.verdict_text(&answer));
     Ok(ExitCode::SUCCESS)
+}
+
+/// `predict --sizes`: each size's loss at the budget, then the best of them.
+fn size_lines(s: &SizeLosses) {
+    println!("  the sizes asked about (--sizes):");
+    let line = |label: String, z: &SizeLoss| {
+        let stops = z
+            .stop_epochs
+            .map_or(String::new(), |e| format!(", stops at {e:.1}"));
+        let run = z
+            .loss_prediction
+            .as_ref()
+            .map_or(String::new(), |e| format!(" ; a run {}", estimate_text(e)));
+        println!(
+            "    {label:<16} {:.1} epochs{stops}: loss {}{run}",
+            z.epochs,
+            estimate_text(&z.loss)
+        );
+    };
+    for z in &s.sizes {
+        line(format!("N {}", sig(z.n)), z);
+    }
+    line(format!("best, N {}", sig(s.best.n)), &s.best);
 }
 
 /// The two naive baselines beside N_opt and the loss, from the fit's frontier on the unique

@@ -141,6 +141,62 @@ fn predict_refuses_the_allocation_of_a_diverged_parametric_law() {
     }
 }
 
+/// `predict --sizes` on the committed stage-3 fit of the data-law ladder (`dc-stopping` on 94
+/// runs): at 2·10¹⁴ FLOPs on half the data, the law gives `1024x4` (5.1·10⁷ parameters) a
+/// higher loss than the small sizes it asks for — it stops after fewer epochs — and the best of
+/// the sizes is the lowest; a size that is not positive names the file, and --sizes needs
+/// --hours.
+#[test]
+fn predict_sizes_gives_each_size_its_loss_and_the_best_of_them() {
+    let fits = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("docs/results/data-law/recipe/ladder/stage3/dc-stopping/fits.json");
+    let args = [
+        "predict",
+        "--fits",
+        arg(&fits),
+        "--budget",
+        "2e14",
+        "--hours",
+        "real=3.036889,synth=2.844333",
+    ];
+    let sizes = ["--sizes", "1845120,3247616,50739200"];
+    let text = motionscale_ok(&[&args[..], &sizes].concat());
+    for needle in [
+        "the sizes asked about (--sizes):",
+        "N 5.074e7",
+        "best, N 3.248e6",
+    ] {
+        assert!(text.contains(needle), "{needle:?} in {text}");
+    }
+    let json = motionscale_ok(&[&args[..], &sizes, &["--json"]].concat());
+    let raw: serde_json::Value = serde_json::from_str(&json).unwrap();
+    let s: fits::data_value::SizeLosses = serde_json::from_value(raw["sizes"].clone()).unwrap();
+    let loss: Vec<f64> = s.sizes.iter().map(|z| z.loss.value).collect();
+    assert!(
+        loss[2] > loss[0] + 0.05 && loss[2] > loss[1] + 0.05,
+        "{loss:?}"
+    );
+    assert!(s.sizes[2].stop_epochs < s.sizes[0].stop_epochs, "{s:?}");
+    assert_eq!(s.best.loss.value, loss[0].min(loss[1]));
+    assert!(s.best.loss_prediction.is_some(), "{s:?}");
+
+    let bad = motionscale(&[&args[..], &["--sizes", "3e6,0"]].concat());
+    fails_with(
+        &bad,
+        "fits.json: --sizes 0: a model size must be a positive number",
+    );
+    let no_hours = motionscale(&[
+        "predict",
+        "--fits",
+        arg(&fits),
+        "--budget",
+        "2e14",
+        "--sizes",
+        "3e6",
+    ]);
+    fails_with(&no_hours, "--hours");
+}
+
 #[test]
 fn fit_errors_name_the_file_and_the_problem() {
     let tmp = tempfile::tempdir().unwrap();

@@ -436,6 +436,77 @@ pub fn predict_data(
     })
 }
 
+/// One model size at (C, hours): the loss the law gives it, trained on C's tokens (with early
+/// stopping, up to e*).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SizeLoss {
+    /// N (the fit's N column).
+    pub n: f64,
+    /// D / U: the epochs C buys this size.
+    pub epochs: f64,
+    /// With early stopping: e*, the epochs after which this size stops improving (point law).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stop_epochs: Option<f64>,
+    /// The law's loss: 95% interval of the refits.
+    pub loss: Estimate,
+    /// The 95% prediction interval of one run's loss (absent without the fit's scatter).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub loss_prediction: Option<Estimate>,
+}
+
+/// `predict --sizes`: the sizes one can train at (C, hours), and the best of them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SizeLosses {
+    /// Each size asked about, in the order given.
+    pub sizes: Vec<SizeLoss>,
+    /// The best of them: the point law's lowest, its loss the lowest of the sizes at each
+    /// refit (what a ladder scores a cell by: its best run).
+    pub best: SizeLoss,
+}
+
+/// The loss of each of `sizes` at `budget` and `hours`, and of the best of them.
+pub fn size_losses(
+    rd: &RepeatedData,
+    budget: f64,
+    hours: Hours,
+    sizes: &[f64],
+) -> Result<SizeLosses, String> {
+    if let Some(bad) = sizes.iter().find(|n| !(n.is_finite() && **n > 0.0)) {
+        return Err(format!(
+            "--sizes {bad}: a model size must be a positive number of parameters"
+        ));
+    }
+    if sizes.is_empty() {
+        return Err("--sizes: give at least one model size".into());
+    }
+    let laws = laws(rd)?;
+    let sd = scatter(rd);
+    let u = laws[0].unique_tokens(hours);
+    let at: Vec<Vec<Optimum>> = sizes
+        .iter()
+        .map(|&n| laws.iter().map(|l| l.at(budget, n, hours)).collect())
+        .collect();
+    let size_loss = |n: f64, d: f64, losses: Vec<f64>| SizeLoss {
+        n,
+        epochs: d / u,
+        stop_epochs: laws[0].stopping.map(|c| stop_epochs(&c, n, u)),
+        loss: estimate(&losses),
+        loss_prediction: sd.map(|sd| predictive(&losses, sd)),
+    };
+    let each: Vec<SizeLoss> = at
+        .iter()
+        .map(|o| size_loss(o[0].n, o[0].d, loss_values(o)))
+        .collect();
+    let lowest: Vec<f64> = (0..laws.len())
+        .map(|k| at.iter().map(|o| o[k].loss).fold(f64::INFINITY, f64::min))
+        .collect();
+    let point = (0..sizes.len())
+        .min_by(|&a, &b| at[a][0].loss.total_cmp(&at[b][0].loss))
+        .unwrap_or(0);
+    let best = size_loss(at[point][0].n, at[point][0].d, lowest);
+    Ok(SizeLosses { sizes: each, best })
+}
+
 /// Each law's loss at its optimum.
 fn loss_values(optima: &[Optimum]) -> Vec<f64> {
     optima.iter().map(|o| o.loss).collect()
@@ -541,7 +612,7 @@ fn verdicts(n_opt: &Estimate, values: &[HourValue], draws: usize) -> Vec<String>
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::fitted::LawEstimates;
+    use crate::fitted::{LawEstimates, StoppingRule};
     use crate::lbfgs::Termination;
 
     /// A fit with known parameters (E, A, B, α, β, R*_D, ρ, R*_N) and three refits around
@@ -642,6 +713,61 @@ mod tests {
         assert!((p.epochs.value - p.d.value / p.unique_tokens).abs() < 1e-9);
         let (lo, hi) = (p.n_opt.ci_low.unwrap(), p.n_opt.ci_high.unwrap());
         assert!(lo <= p.n_opt.value && p.n_opt.value <= hi);
+    }
+
+    #[test]
+    fn each_size_gets_its_loss_and_the_best_is_the_lowest_at_every_refit() {
+        // e* falls with N: past saturation a size too large for the data stops early, on fewer
+        // tokens, and the law gives it a higher loss than N_opt's.
+        let mut rd = fit(THETA);
+        let coef = [8.0, -0.3, 0.0];
+        rd.stopping = Some(StoppingRule {
+            coef,
+            se: [0.0; 3],
+            runs: 10,
+            residual_sd: 0.1,
+            draws: vec![coef; 3],
+        });
+        let h = Hours {
+            real: 2.0,
+            synth: 1.0,
+        };
+        let c = 1e18;
+        let n_opt = predict_data(&rd, c, h).unwrap().n_opt.value;
+        let sizes = [n_opt, 30.0 * n_opt, n_opt / 30.0];
+        let got = size_losses(&rd, c, h, &sizes).unwrap();
+        let law = laws(&rd).unwrap()[0];
+        for (s, &n) in got.sizes.iter().zip(&sizes) {
+            assert_eq!(s.n, n);
+            assert!((s.loss.value - law.at(c, n, h).loss).abs() < 1e-12);
+            assert_eq!(
+                s.stop_epochs,
+                Some(stop_epochs(&coef, n, law.unique_tokens(h)))
+            );
+            assert!(
+                s.epochs > s.stop_epochs.unwrap(),
+                "past saturation every size stops early"
+            );
+            assert!(s.loss.ci_low.unwrap() <= s.loss.ci_high.unwrap());
+        }
+        assert!(
+            got.sizes[1].loss.value > got.sizes[0].loss.value,
+            "too large for the data"
+        );
+        assert!(
+            got.sizes[2].loss.value > got.sizes[0].loss.value,
+            "too small"
+        );
+        assert_eq!(got.best.n, n_opt);
+        assert_eq!(got.best.loss.value, got.sizes[0].loss.value);
+        for s in &got.sizes {
+            assert!(got.best.loss.ci_high.unwrap() <= s.loss.ci_high.unwrap());
+        }
+        for bad in [vec![], vec![1e6, 0.0], vec![f64::NAN]] {
+            assert!(size_losses(&rd, c, h, &bad)
+                .unwrap_err()
+                .contains("--sizes"));
+        }
     }
 
     #[test]
