@@ -5,6 +5,7 @@
 use crate::commands::corpus_stats;
 use crate::report_page::{DataVerdict, Study, Sweep};
 use anyhow::{bail, Context, Result};
+use fits::report::estimate_text;
 use fits::{Fits, Laws, PredictOptions, Prediction};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -257,6 +258,23 @@ fn predictions(
         .collect()
 }
 
+/// The data-constrained optimum in one line: N_opt, its epochs (and e*), the loss and a run's.
+fn optimum_text(p: &fits::data_value::DataPrediction) -> String {
+    let stops = p.stop_epochs.as_ref().map_or(String::new(), |e| {
+        format!(", stops at {}", estimate_text(e))
+    });
+    let run = p
+        .loss_prediction
+        .as_ref()
+        .map_or(String::new(), |e| format!("; a run {}", estimate_text(e)));
+    format!(
+        "N_opt {}, {} epochs{stops}; loss {}{run}",
+        estimate_text(&p.n_opt),
+        estimate_text(&p.epochs),
+        estimate_text(&p.loss)
+    )
+}
+
 /// predict's data-bound verdict at each budget on the hours given (none without --hours; a
 /// fit without the data-constrained law is an error naming the file).
 fn data_verdicts(
@@ -282,6 +300,8 @@ fn data_verdicts(
                 budget,
                 hours: on.clone(),
                 sentence: data.verdict_text(&answer),
+                optimum: optimum_text(&answer.prediction),
+                bound: answer.bound.as_ref().is_some_and(|b| b.bound),
             });
         }
     }

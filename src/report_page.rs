@@ -72,6 +72,11 @@ pub struct DataVerdict {
     pub hours: String,
     /// predict's verdict ("data-bound above … buy data — doubling …").
     pub sentence: String,
+    /// The data-constrained optimum at C on these hours, in one line.
+    pub optimum: String,
+    /// Whether C is past C_sat on these hours (the IsoFLOP laws, fitted as if every token
+    /// were fresh, do not apply there).
+    pub bound: bool,
 }
 
 /// Everything the page shows, each part present when an input provided it.
@@ -703,6 +708,17 @@ fn predictions(study: &Study) -> Result<String> {
     let mut s = data_verdicts(study);
     for (budget, p) in &study.predictions {
         let _ = write!(s, "<h3>C = {} FLOPs</h3>", sig(*budget));
+        if let Some(v) = study
+            .data_verdicts
+            .iter()
+            .find(|v| v.budget == *budget && v.bound)
+        {
+            let _ = write!(
+                s,
+                "<p class=\"warn\">Past C_sat on {}: the IsoFLOP laws below extrapolate as if every token were fresh and do not apply here; the data-constrained optimum above does.</p>",
+                esc(&v.hours)
+            );
+        }
         match p {
             Ok(p) => s.push_str(&prediction(p)),
             Err(e) => {
@@ -741,10 +757,11 @@ fn data_verdicts(study: &Study) -> String {
     }
     let lines = study.data_verdicts.iter().map(|v| {
         format!(
-            "<p><b>C = {} FLOPs on {}:</b> {}</p>",
+            "<p><b>C = {} FLOPs on {}:</b> {} <br>The data-constrained optimum: {}.</p>",
             sig(v.budget),
             esc(&v.hours),
-            esc(&v.sentence)
+            esc(&v.sentence),
+            esc(&v.optimum)
         )
     });
     format!(

@@ -567,6 +567,21 @@ fn report_leads_with_the_verdict(fits: &std::path::Path, predicted: &str) {
         "{answer}"
     );
     assert!(answer.contains(&sentence), "{sentence:?} in {answer}");
+    let n_opt = predicted
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("N_opt"))
+        .unwrap()
+        .trim();
+    assert!(
+        answer.contains(&format!("The data-constrained optimum: N_opt {n_opt}, ")),
+        "{n_opt:?} in {answer}"
+    );
+    // Past C_sat the IsoFLOP table that follows is marked as not applying.
+    let table = &html[first + answer.len()..];
+    assert!(
+        table.contains("Past C_sat on 2.5 h distinct") && table.contains("do not apply here"),
+        "{table}"
+    );
     let without = page(&[]);
     assert!(without.contains("give --hours real=H,synth=H for its data-bound verdict"));
 }
