@@ -594,6 +594,11 @@ fn predict_hours(path: &Path, args: &PredictArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// "; a run [interval]": one run's 95% prediction interval where the fit has one.
+pub(crate) fn run_text(e: Option<&fits::laws::Estimate>) -> String {
+    e.map_or(String::new(), |e| format!("; a run {}", estimate_text(e)))
+}
+
 /// `predict --sizes`: each size's loss at the budget, then the best of them.
 fn size_lines(s: &SizeLosses) {
     println!("  the sizes asked about (--sizes):");
@@ -601,10 +606,7 @@ fn size_lines(s: &SizeLosses) {
         let stops = z
             .stop_epochs
             .map_or(String::new(), |e| format!(", stops at {e:.1}"));
-        let run = z
-            .loss_prediction
-            .as_ref()
-            .map_or(String::new(), |e| format!(" ; a run {}", estimate_text(e)));
+        let run = run_text(z.loss_prediction.as_ref());
         println!(
             "    {label:<16} {:.1} epochs{stops}: loss {}{run}",
             z.epochs,

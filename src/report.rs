@@ -263,10 +263,7 @@ fn optimum_text(p: &fits::data_value::DataPrediction) -> String {
     let stops = p.stop_epochs.as_ref().map_or(String::new(), |e| {
         format!(", stops at {}", estimate_text(e))
     });
-    let run = p
-        .loss_prediction
-        .as_ref()
-        .map_or(String::new(), |e| format!("; a run {}", estimate_text(e)));
+    let run = crate::fit::run_text(p.loss_prediction.as_ref());
     format!(
         "N_opt {}, {} epochs{stops}; loss {}{run}",
         estimate_text(&p.n_opt),
