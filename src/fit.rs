@@ -663,7 +663,10 @@ fn bound_text(b: &DataBound, budget: f64, stop: Option<&fits::laws::Estimate>) -
             sig(b.saturation.value),
             sig(b.noise),
             sig(b.floor.value),
-            stop.map_or(String::new(), |e| format!("stop at {:.1} epochs; ", e.value)),
+            stop.map_or(String::new(), |e| format!(
+                "train {:.1} epochs with the schedule ending there (a checkpoint selected early in a longer schedule keeps its higher learning rate); ",
+                e.value
+            )),
         ),
         false => format!(
             "compute-bound at {}: compute keeps paying up to {} FLOPs [{}]; {doubling}",

@@ -516,7 +516,7 @@ fn data_bound_verdict(fits: &std::path::Path) {
     for needle in [
         "2.5 h distinct = 5 h with mirrors",
         "data-bound above ",
-        "stop at ",
+        "with the schedule ending there",
         "buy data — doubling the captured hours changes the loss by -",
         "baselines from the best run at C = 1.000e15",
         "no growth N",
