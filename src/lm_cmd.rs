@@ -145,6 +145,101 @@ pub struct LogitsArgs {
     pub compute: ComputeArgs,
 }
 
+/// Arguments of `motionscale model loss`.
+#[derive(clap::Args, Debug)]
+pub struct LossArgs {
+    /// Trained run folder (`motionscale train --out`); give it more than once for the ensemble
+    /// of the runs (each target's probability the mean of theirs). The runs must share a token
+    /// set, its splits and their sequence lengths.
+    #[arg(long, required = true)]
+    pub model: Vec<PathBuf>,
+    /// Split scored (first caption of each clip), as training scores it.
+    #[arg(long, default_value = "test")]
+    pub split: String,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+    /// Where the models run.
+    #[command(flatten)]
+    pub device: crate::device_args::DeviceArgs,
+    /// Executor and precision.
+    #[command(flatten)]
+    pub compute: ComputeArgs,
+}
+
+/// `motionscale model loss`: the cross-entropy and L_u of a trained model, or of the ensemble
+/// of several, on a split of their token set (per origin where it has both), from the weights
+/// in each run folder (the last checkpoint).
+pub fn loss(args: LossArgs) -> Result<ExitCode> {
+    let device = args.device.open()?;
+    let mut lms = Vec::new();
+    let mut runs: Vec<RunConfig> = Vec::new();
+    for dir in &args.model {
+        let (lm, run) = lm::train::load_lm(dir, &device, args.compute.compute())?;
+        if let Some(first) = runs.first() {
+            let key = |r: &RunConfig| {
+                (
+                    r.train.tokens.clone(),
+                    r.train.splits.clone(),
+                    r.corpus.clone(),
+                    r.text_encoder.clone(),
+                    r.train.hyper.max_text_tokens,
+                    r.train.hyper.max_motion_tokens,
+                )
+            };
+            if key(first) != key(&run) {
+                bail!(
+                    "{}: another token set, splits, corpus, text encoder or sequence length than {}",
+                    dir.display(),
+                    args.model[0].display()
+                );
+            }
+        }
+        lms.push(lm);
+        runs.push(run);
+    }
+    let run = &runs[0];
+    let limits = Limits {
+        text_tokens: run.train.hyper.max_text_tokens,
+        motion_tokens: run.train.hyper.max_motion_tokens,
+    };
+    let splits = SplitAssignment::from_dir(run.train.splits.as_deref())
+        .map_err(|e| anyhow::anyhow!("{}: {e}", args.model[0].display()))?;
+    let data = LmData::load(
+        &run.train.tokens,
+        &run.corpus,
+        Some(&run.text_encoder),
+        limits,
+        &splits,
+    )?;
+    let members: Vec<&dyn lm::MotionLm> = lms.iter().map(|m| m.as_ref()).collect();
+    let batch = run.train.hyper.batch_size;
+    let loss = lm::test_loss::evaluate_ensemble(&members, &data, &args.split, batch)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&loss)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let what = match members.len() {
+        1 => "the model".to_string(),
+        k => format!("the ensemble of {k} models"),
+    };
+    println!(
+        "{what} on split {}: {} clips, {} code targets",
+        loss.split, loss.clips, loss.code_targets
+    );
+    for (name, l) in std::iter::once(("all".to_string(), &loss)).chain(
+        loss.by_origin
+            .iter()
+            .map(|(o, l)| (format!("{o:?}").to_lowercase(), l)),
+    ) {
+        println!(
+            "  {name:<6} CE {:.4}  L_u {:.4}  (with EOS {:.4}; {} clips)",
+            l.cross_entropy, l.normalized_loss, l.cross_entropy_with_eos, l.clips
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 /// `motionscale model logits`: the logits of a trained model on a few clips of its token set,
 /// with the exact inputs that produced them (`scripts/torch-check-lm.py` reads them).
 pub fn logits(args: LogitsArgs) -> Result<ExitCode> {

@@ -148,6 +148,9 @@ enum ModelCommand {
     Presets(lm_cmd::PresetsArgs),
     /// A trained model's logits on a few clips, with their inputs (for cross-framework checks).
     Logits(lm_cmd::LogitsArgs),
+    /// A trained model's cross-entropy and L_u on a split of its token set, per origin; given
+    /// several runs, their ensemble's (the mean of their next-token probabilities).
+    Loss(lm_cmd::LossArgs),
     /// The executors side by side: the graph and GPU executors on --device against the cpu
     /// executor on the CPU (loss, every gradient, logits, KV-cached decoding), and each fused
     /// op and the AdamW update on --device against the CPU; exit 1 beyond the tolerances.
@@ -255,6 +258,7 @@ fn main() -> ExitCode {
         Command::Model(ModelCommand::Info(args)) => lm_cmd::info(*args),
         Command::Model(ModelCommand::Presets(args)) => lm_cmd::presets(args),
         Command::Model(ModelCommand::Logits(args)) => lm_cmd::logits(args),
+        Command::Model(ModelCommand::Loss(args)) => lm_cmd::loss(args),
         Command::Model(ModelCommand::Executors(args)) => lm_cmd::executors(args),
         Command::Train(args) => lm_cmd::train(args),
         Command::Generate(args) => lm_cmd::generate(args),

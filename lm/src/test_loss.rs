@@ -105,6 +105,18 @@ pub fn evaluate(
     split: &str,
     batch: usize,
 ) -> Result<SplitLoss, ModelError> {
+    evaluate_ensemble(&[lm], data, split, batch)
+}
+
+/// Losses of the ensemble of `lms` on `split`, as [`evaluate`]: each target's probability is
+/// the mean of the members' (log p = log Σ_k p_k − log K, token-level ensembling). The members
+/// must read the same batches (one codebook, one prefix and motion length).
+pub fn evaluate_ensemble(
+    lms: &[&dyn MotionLm],
+    data: &LmData,
+    split: &str,
+    batch: usize,
+) -> Result<SplitLoss, ModelError> {
     let items = data.eval_items(split);
     if items.is_empty() {
         return Err(ModelError::argument(
@@ -112,17 +124,20 @@ pub fn evaluate(
             format!("the token set has no {split} clips to evaluate"),
         ));
     }
+    let first = *lms
+        .first()
+        .ok_or_else(|| ModelError::argument("models", "an ensemble needs at least one model"))?;
     let codebook = data.codebook_size() as u32;
     let unigram = data.unigram.smoothed_probabilities("train");
     // The split's sums in clip order (as before origins were told apart), and per origin.
     let (mut mix, mut by_origin) = (LossSums::default(), BTreeMap::<Origin, LossSums>::new());
-    let batch = if lm.per_caption() { 1 } else { batch.max(1) };
+    let batch = match lms.iter().any(|lm| lm.per_caption()) {
+        true => 1,
+        false => batch.max(1),
+    };
     for chunk in items.chunks(batch) {
-        let b = data.batch(lm.config(), chunk);
-        let lp = lm
-            .for_caption(data.text_of(&chunk[0]))
-            .and_then(|model| model.target_log_probs(&b))
-            .map_err(ModelError::Candle)?;
+        let b = data.batch(first.config(), chunk);
+        let lp = ensemble_log_probs(lms, data, chunk, &b)?;
         let mut start = 0;
         for (item, &n) in chunk.iter().zip(&b.layout.motion_lens) {
             let slots = start..start + n;
@@ -133,8 +148,8 @@ pub fn evaluate(
             for (&t, &l) in b.targets[slots.clone()].iter().zip(&lp[slots]) {
                 if t != IGNORE {
                     let code = (t < codebook).then(|| unigram[t as usize]);
-                    sums.add(f64::from(l), code);
-                    mix.add(f64::from(l), code);
+                    sums.add(l, code);
+                    mix.add(l, code);
                 }
             }
         }
@@ -148,6 +163,42 @@ pub fn evaluate(
             .collect();
     }
     Ok(loss)
+}
+
+/// Each target's log-probability under the mean of the members' distributions, for the
+/// batch `b` of `chunk` (built for the first member; every other member must build the same).
+fn ensemble_log_probs(
+    lms: &[&dyn MotionLm],
+    data: &LmData,
+    chunk: &[(&crate::lm_data::Example, Option<usize>)],
+    b: &crate::LmBatch,
+) -> Result<Vec<f64>, ModelError> {
+    let mut members = Vec::with_capacity(lms.len());
+    for (k, lm) in lms.iter().enumerate() {
+        let own = data.batch(lm.config(), chunk);
+        if own.targets != b.targets {
+            return Err(ModelError::argument(
+                "models",
+                format!("ensemble member {k} reads other batches than the first (another codebook or sequence length)"),
+            ));
+        }
+        let lp = lm
+            .for_caption(data.text_of(&chunk[0]))
+            .and_then(|model| model.target_log_probs(&own))
+            .map_err(ModelError::Candle)?;
+        members.push(lp);
+    }
+    let ln_k = (lms.len() as f64).ln();
+    Ok((0..b.targets.len())
+        .map(|i| {
+            let max = members
+                .iter()
+                .map(|m| f64::from(m[i]))
+                .fold(f64::NEG_INFINITY, f64::max);
+            let sum: f64 = members.iter().map(|m| (f64::from(m[i]) - max).exp()).sum();
+            max + sum.ln() - ln_k
+        })
+        .collect())
 }
 
 #[cfg(test)]

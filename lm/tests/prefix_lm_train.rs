@@ -6,8 +6,8 @@ use candle_core::{DType, Device, Tensor};
 use candle_nn::VarBuilder;
 use ingest::pipeline::{ingest, IngestOptions};
 use lm::lm_data::{Limits, LmData};
-use lm::test_loss::evaluate;
-use lm::train::{train, ModelShape, TrainConfig, TrainReport};
+use lm::test_loss::{evaluate, evaluate_ensemble};
+use lm::train::{load_model, train, ModelShape, TrainConfig, TrainReport};
 use lm::{PrefixLm, PrefixLmConfig};
 use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
@@ -203,6 +203,51 @@ fn an_interrupted_run_resumes_to_the_same_weights() {
     let mut other = parts.clone();
     other.compute.precision = nn::device::Precision::Bf16;
     assert!(train(&other, &Device::Cpu, &mut |_| {}).is_err());
+}
+
+/// Two seeds of a tiny model and their ensemble: a one-member ensemble is the model, a model
+/// twice is itself, and two models score at most the mean of their cross-entropies (the log of
+/// a mean probability is at least the mean log-probability, target by target).
+#[test]
+fn an_ensemble_averages_the_members_probabilities() {
+    let root = tempfile::tempdir().unwrap();
+    let (corpus, tokens) = fixture(root.path());
+    let mut members = Vec::new();
+    for seed in [0, 1] {
+        let mut config = tiny_run(
+            &tokens,
+            &root.path().join(format!("run-{seed}")),
+            8 * 10 * 30,
+        );
+        config.hyper.seed = seed;
+        run(&config);
+        members.push(load_model(&config.out, &Device::Cpu).unwrap().0);
+    }
+    let limits = Limits {
+        text_tokens: 64,
+        motion_tokens: 64,
+    };
+    let data = LmData::load(&tokens, &corpus, None, limits, &Default::default()).unwrap();
+    let (a, b) = (&members[0], &members[1]);
+    let alone = evaluate(a, &data, "test", 4).unwrap();
+    assert_eq!(evaluate_ensemble(&[a], &data, "test", 4).unwrap(), alone);
+    let twice = evaluate_ensemble(&[a, a], &data, "test", 4).unwrap();
+    assert!((twice.cross_entropy - alone.cross_entropy).abs() < 1e-9);
+    let other = evaluate(b, &data, "test", 4).unwrap();
+    let both = evaluate_ensemble(&[a, b], &data, "test", 4).unwrap();
+    let mean = 0.5 * (alone.cross_entropy + other.cross_entropy);
+    assert!(
+        both.cross_entropy < mean,
+        "{} vs {mean}",
+        both.cross_entropy
+    );
+    assert!(
+        alone.cross_entropy != other.cross_entropy,
+        "the seeds differ"
+    );
+    assert_eq!(both.code_targets, alone.code_targets);
+    let unigram = both.cross_entropy - both.normalized_loss;
+    assert!((unigram - both.unigram_cross_entropy).abs() < 1e-9);
 }
 
 #[test]
