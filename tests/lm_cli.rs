@@ -126,6 +126,24 @@ fn train_then_generate_a_bvh_that_ingest_reads_back() {
         ce(&graph),
         ce(&report)
     );
+    // `model loss` scores a run's final weights as training did, and an ensemble of the two
+    // runs at most at the mean of their cross-entropies (the two executors' weights are close:
+    // the strict inequality is lm's test, on two seeds).
+    let loss = |models: &[&Path]| -> serde_json::Value {
+        let mut args = vec!["model", "loss", "--json"];
+        for m in models {
+            args.extend(["--model", arg(m)]);
+        }
+        serde_json::from_str(&motionscale_ok(&args)).unwrap()
+    };
+    let alone = loss(&[&run])["cross_entropy"].as_f64().unwrap();
+    assert!(
+        (alone - ce(&report)).abs() < 1e-9,
+        "{alone} vs {}",
+        ce(&report)
+    );
+    let both = loss(&[&run, &graph_run])["cross_entropy"].as_f64().unwrap();
+    assert!(both <= 0.5 * (ce(&report) + ce(&graph)) + 1e-9, "{both}");
     // No GPU in this build: a clear error, exit 1, nothing trained.
     for args in [
         vec![
