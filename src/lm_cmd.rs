@@ -167,6 +167,22 @@ pub struct LossArgs {
     pub compute: ComputeArgs,
 }
 
+/// The token set of `run` as it trained on it (its encoder and sequence lengths), split by
+/// `splits`.
+fn run_data(run: &RunConfig, splits: &SplitAssignment) -> Result<LmData> {
+    let limits = Limits {
+        text_tokens: run.train.hyper.max_text_tokens,
+        motion_tokens: run.train.hyper.max_motion_tokens,
+    };
+    Ok(LmData::load(
+        &run.train.tokens,
+        &run.corpus,
+        Some(&run.text_encoder),
+        limits,
+        splits,
+    )?)
+}
+
 /// `motionscale model loss`: the cross-entropy and L_u of a trained model, or of the ensemble
 /// of several, on a split of their token set (per origin where it has both), from the weights
 /// in each run folder (the last checkpoint).
@@ -199,19 +215,9 @@ pub fn loss(args: LossArgs) -> Result<ExitCode> {
         runs.push(run);
     }
     let run = &runs[0];
-    let limits = Limits {
-        text_tokens: run.train.hyper.max_text_tokens,
-        motion_tokens: run.train.hyper.max_motion_tokens,
-    };
     let splits = SplitAssignment::from_dir(run.train.splits.as_deref())
         .map_err(|e| anyhow::anyhow!("{}: {e}", args.model[0].display()))?;
-    let data = LmData::load(
-        &run.train.tokens,
-        &run.corpus,
-        Some(&run.text_encoder),
-        limits,
-        &splits,
-    )?;
+    let data = run_data(run, &splits)?;
     let members: Vec<&dyn lm::MotionLm> = lms.iter().map(|m| m.as_ref()).collect();
     let batch = run.train.hyper.batch_size;
     let loss = lm::test_loss::evaluate_ensemble(&members, &data, &args.split, batch)?;
@@ -245,17 +251,7 @@ pub fn loss(args: LossArgs) -> Result<ExitCode> {
 pub fn logits(args: LogitsArgs) -> Result<ExitCode> {
     let (model, run) = lm::train::load_model(&args.model, &args.device.open()?)?;
     let model = model.with_compute(args.compute.compute());
-    let limits = Limits {
-        text_tokens: run.train.hyper.max_text_tokens,
-        motion_tokens: run.train.hyper.max_motion_tokens,
-    };
-    let data = LmData::load(
-        &run.train.tokens,
-        &run.corpus,
-        Some(&run.text_encoder),
-        limits,
-        &SplitAssignment::default(),
-    )?;
+    let data = run_data(&run, &SplitAssignment::default())?;
     let items = data.eval_items(&args.split);
     if items.is_empty() {
         bail!(

@@ -175,8 +175,9 @@ fn ensemble_log_probs(
 ) -> Result<Vec<f64>, ModelError> {
     let mut members = Vec::with_capacity(lms.len());
     for (k, lm) in lms.iter().enumerate() {
-        let own = data.batch(lm.config(), chunk);
-        if own.targets != b.targets {
+        // `b` is the first member's batch: only the others build (and check) their own.
+        let own = (k > 0).then(|| data.batch(lm.config(), chunk));
+        if own.as_ref().is_some_and(|own| own.targets != b.targets) {
             return Err(ModelError::argument(
                 "models",
                 format!("ensemble member {k} reads other batches than the first (another codebook or sequence length)"),
@@ -184,7 +185,7 @@ fn ensemble_log_probs(
         }
         let lp = lm
             .for_caption(data.text_of(&chunk[0]))
-            .and_then(|model| model.target_log_probs(&own))
+            .and_then(|model| model.target_log_probs(own.as_ref().unwrap_or(b)))
             .map_err(ModelError::Candle)?;
         members.push(lp);
     }
