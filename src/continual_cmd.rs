@@ -60,8 +60,12 @@ pub struct ContinualArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Motion tokens trained on per step.
-    #[arg(long, default_value_t = 100_000)]
+    #[arg(long, default_value_t = 100_000, conflicts_with = "tokens_share")]
     pub tokens_budget: u64,
+    /// With --fits: motion tokens per step as this share of the backbone's training tokens D
+    /// (experts scale with the backbone as the law's D says), instead of --tokens-budget.
+    #[arg(long, requires = "fits")]
+    pub tokens_share: Option<f64>,
     /// Clips per batch.
     #[arg(long, default_value_t = 32)]
     pub batch: usize,
@@ -218,6 +222,9 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         mixture: ablation != Some("single-lora"),
         ..EsMoeConfig::default()
     });
+    if let Some(share) = args.tokens_share.filter(|s| !(s.is_finite() && *s > 0.0)) {
+        bail!("--tokens-share {share}: must be a positive share of the backbone's tokens");
+    }
     crate::memory::keep_freed_memory();
     let device = args.device.open()?;
     let out = required(args.out.clone(), "out")?;
@@ -237,7 +244,10 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         method,
         orders: args.orders.max(1),
         seed: args.seed,
-        tokens_budget: args.tokens_budget,
+        tokens_budget: match (args.tokens_share, &backbone) {
+            (Some(share), Some(choice)) => (share * choice.tokens as f64).round() as u64,
+            _ => args.tokens_budget,
+        },
         batch_size: args.batch,
         lr: args.lr,
         lora: LoraConfig {

@@ -286,6 +286,10 @@ fn a_law_sizes_the_backbone(setup: &Path) {
         args.drain(at..at + 2);
         args.extend(["--fits", arg(&laws), "--budget", "6e10"].map(String::from));
         args.extend(["--models", "cpu-50K,cpu-100K,cpu-400K"].map(String::from));
+        if extra.contains(&"--tokens-share") {
+            let at = args.iter().position(|a| a == "--tokens-budget").unwrap();
+            args.drain(at..at + 2);
+        }
         args.extend(extra.iter().map(|s| s.to_string()));
         motionscale(&args.iter().map(String::as_str).collect::<Vec<_>>())
     };
@@ -309,13 +313,22 @@ fn a_law_sizes_the_backbone(setup: &Path) {
         (n_nv / n_opt).ln().abs() < (4f64).ln(),
         "{choice}: a ladder model near N_opt"
     );
-    // Given the first run's backbone folder as a sweep, the second run reuses its backbone.
+    // Given the first run's backbone folder as a sweep, the second run reuses its backbone;
+    // --tokens-share sets its tokens per step from the backbone's D.
     let sweep = first.join("backbone");
-    let out = by_law(&setup.join("law-seq-2"), &["--sweep", arg(&sweep)]);
+    let second = ["--sweep", arg(&sweep), "--tokens-share", "0.01"];
+    let out = by_law(&setup.join("law-seq-2"), &second);
     assert_eq!(code(&out), 0, "{}", text(&out));
     let again: Value = read_json(&setup.join("law-seq-2/summary.json"));
     assert_eq!(again["config"]["backbone"]["reused"], true);
     assert_eq!(again["config"]["backbone"]["run"], choice["run"]);
+    let tokens = choice["tokens"].as_f64().unwrap();
+    assert_eq!(
+        again["config"]["tokens_budget"].as_f64(),
+        Some((0.01 * tokens).round()),
+        "{}",
+        again["config"]
+    );
     // A laws.json whose adopted law reads the vocabulary does not size a backbone.
     let mut report: Value = read_json(&laws);
     report["adopted"] = "vocab".into();

@@ -4,10 +4,12 @@
 //! when it is not yet). What was chosen, and from which fit, is recorded with the run.
 
 use crate::centring::{self, Centre};
+use crate::data_ladder::DataSource;
 use crate::error::SweepError;
 use crate::plan::{self, IsoFlopPlan, PlanPoint, PlanRequest, TrainSettings, VocabSource};
 use crate::run::{run_point, Outcome};
 use candle_core::Device;
+use fits::data_value::{predict_data, Hours};
 use fits::family::predict::predict_at;
 use fits::family::{family, Axis, Point};
 use fits::fit_file::FitFile;
@@ -56,19 +58,42 @@ pub struct BackboneChoice {
     pub reused: bool,
 }
 
-/// N_opt at `budget` from `fit`: an IsoFLOP fit's parabola at that budget, else its
-/// N_opt ∝ C^b law, else its parametric law; a law family's compute-optimal N (at `unique`
-/// tokens where it reads them). A fit without any of these, or whose law reads the vocabulary,
+/// The data a backbone trains on, as the laws read it.
+#[derive(Debug, Clone, Copy)]
+pub struct TrainData {
+    /// Loss positions of one epoch of the train split (U).
+    pub unique_tokens: f64,
+    /// Its hours per source, in the units of the fit's hours column.
+    pub hours: Hours,
+}
+
+/// N_opt at `budget` from `fit` on `data`: an IsoFLOP fit's data-constrained law at the split's
+/// hours when it has one (the N_opt `predict --hours` reports), else its parabola at that
+/// budget, else its N_opt ∝ C^b law, else its parametric law; a law family's compute-optimal
+/// N (at U where it reads it). A fit without any of these, or whose law reads the vocabulary,
 /// is refused naming the file.
 pub fn n_opt_at(
     fit: &FitFile,
     path: &Path,
     budget: f64,
-    unique: f64,
+    data: TrainData,
 ) -> Result<Centre, SweepError> {
     let refuse = |why: String| SweepError::invalid(path, why);
     match fit {
-        FitFile::IsoFlop(fits) => centring::of_fit(fits, budget).map_err(refuse),
+        FitFile::IsoFlop(fits) => match &fits.repeated_data {
+            Some(rd) => {
+                let p = predict_data(rd, budget, data.hours).map_err(refuse)?;
+                Ok(Centre {
+                    budget,
+                    n_opt: p.n_opt.value,
+                    source: format!(
+                        "the fit's data-constrained law at {:.3} h real + {:.3} h synthetic",
+                        data.hours.real, data.hours.synth
+                    ),
+                })
+            }
+            None => centring::of_fit(fits, budget).map_err(refuse),
+        },
         FitFile::Families(report) => {
             let law = family(&report.adopted);
             if law.as_ref().is_some_and(|f| f.needs().contains(&Axis::Nv)) {
@@ -78,7 +103,7 @@ pub fn n_opt_at(
                 )));
             }
             let at = Point {
-                u: Some(unique),
+                u: Some(data.unique_tokens),
                 ..Point::default()
             };
             let p = predict_at(report, budget, at).map_err(|e| refuse(e.to_string()))?;
@@ -121,8 +146,18 @@ pub fn plan_backbone(req: &BackboneRequest) -> Result<(IsoFlopPlan, Centre), Swe
         data_seed: 0,
         only: Vec::new(),
     })?;
-    let unique = grid.vocabularies[0].train_tokens as f64;
-    let centre = n_opt_at(&FitFile::read(&req.fits)?, &req.fits, req.budget, unique)?;
+    let split = grid
+        .train_split
+        .as_ref()
+        .ok_or_else(|| SweepError::Argument("the plan has no train split".into()))?;
+    let data = TrainData {
+        unique_tokens: grid.vocabularies[0].train_tokens as f64,
+        hours: Hours {
+            real: split.hours - split.synth_hours,
+            synth: split.synth_hours,
+        },
+    };
+    let centre = n_opt_at(&FitFile::read(&req.fits)?, &req.fits, req.budget, data)?;
     let distance = |p: &PlanPoint| (p.n_nv as f64 / centre.n_opt).ln().abs();
     let nearest = grid
         .points
@@ -138,37 +173,61 @@ pub fn plan_backbone(req: &BackboneRequest) -> Result<(IsoFlopPlan, Centre), Swe
     Ok((plan, centre))
 }
 
+/// Whether `candidate`, a point of `sweep`, trains the backbone's `point`: the same budget,
+/// model and vocabulary, on the whole train split, with the plan's own seed. A data ladder
+/// names its whole-split runs `…-dall-1`, so run ids alone would miss them.
+fn trains_point(sweep: &IsoFlopPlan, candidate: &PlanPoint, point: &PlanPoint) -> bool {
+    let whole_split = match &candidate.data {
+        None => true,
+        Some(name) => sweep
+            .data
+            .iter()
+            .any(|s| &s.name == name && s.source == DataSource::All && s.fraction == 1.0),
+    };
+    candidate.model == point.model
+        && candidate.codebook == point.codebook
+        && (candidate.budget / point.budget - 1.0).abs() < 1e-9
+        && candidate.seed.is_none()
+        && whole_split
+}
+
 /// The law-sized backbone: reused (or trained) in `req.sweep` when its plan has the point,
-/// else trained in `out`.
+/// else trained in `out` — with the sweep's training settings (its recipe) when one is given.
 pub fn backbone(
     req: &BackboneRequest,
     out: &Path,
     device: &Device,
     log: &dyn Fn(&str),
 ) -> Result<BackboneChoice, SweepError> {
-    let (plan, centre) = plan_backbone(req)?;
-    let point = &plan.points[0];
-    let in_sweep = match &req.sweep {
-        Some(dir) => {
-            let sweep = plan::read_adopted_plan(dir)?;
-            let found = sweep
-                .points
-                .iter()
-                .find(|p| p.run_id == point.run_id)
-                .cloned();
-            found.map(|p| (dir.clone(), sweep, p))
-        }
+    let sweep = match &req.sweep {
+        Some(dir) => Some((dir.clone(), plan::read_adopted_plan(dir)?)),
         None => None,
     };
-    let (runs, reused) = match in_sweep {
+    let req = &BackboneRequest {
+        train: sweep
+            .as_ref()
+            .map_or_else(|| req.train.clone(), |(_, s)| s.train.clone()),
+        ..req.clone()
+    };
+    let (plan, centre) = plan_backbone(req)?;
+    let point = &plan.points[0];
+    let in_sweep = sweep.and_then(|(dir, sweep)| {
+        let found = sweep
+            .points
+            .iter()
+            .find(|p| trains_point(&sweep, p, point))
+            .cloned();
+        found.map(|p| (dir, sweep, p))
+    });
+    let (runs, trained, reused) = match in_sweep {
         Some((dir, sweep, p)) => {
             let outcome = run_point(&sweep, &dir, &p, device, log)?;
-            (dir, matches!(outcome, Outcome::AlreadyDone(_)))
+            (dir, p, matches!(outcome, Outcome::AlreadyDone(_)))
         }
         None => {
             plan::adopt_plan(&plan, out)?;
             run_point(&plan, out, point, device, log)?;
-            (out.to_path_buf(), false)
+            (out.to_path_buf(), point.clone(), false)
         }
     };
     Ok(BackboneChoice {
@@ -176,10 +235,72 @@ pub fn backbone(
         law: centre.source,
         budget: req.budget,
         n_opt: centre.n_opt,
-        model: point.model.clone(),
-        n_nv: point.n_nv,
-        tokens: point.tokens,
-        run: crate::results::run_dir(&runs, &point.run_id).join("train"),
+        model: trained.model,
+        n_nv: trained.n_nv,
+        tokens: trained.tokens,
+        run: crate::results::run_dir(&runs, &trained.run_id).join("train"),
         reused,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The data-law ladder's plan (101 points: three nested fractions, seed repeats) holds
+    /// the backbone's point once, as its whole-split run `…-dall-1`; halves, quarters, seed
+    /// repeats, other budgets and other models are not it.
+    #[test]
+    fn a_data_ladder_run_on_the_whole_split_is_the_backbone() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../docs/results/data-law/recipe/ladder/plan-7.toml");
+        let ladder = IsoFlopPlan::read(&path).unwrap();
+        let find = |budget: f64, model: &str| {
+            let template = ladder.points.iter().find(|p| p.model == model).unwrap();
+            let point = PlanPoint {
+                run_id: plan::run_id(budget, model, 1024),
+                budget,
+                data: None,
+                seed: None,
+                ..template.clone()
+            };
+            let found: Vec<_> = ladder
+                .points
+                .iter()
+                .filter(|p| trains_point(&ladder, p, &point))
+                .map(|p| p.run_id.as_str())
+                .collect();
+            found
+        };
+        assert_eq!(find(3e12, "96x1"), ["c3e12-96x1-v1024-dall-1"]);
+        assert_eq!(find(3e13, "256x4"), ["c3e13-256x4-v1024-dall-1"]);
+        assert_eq!(find(1e13, "128x2"), ["c1e13-128x2-v1024-dall-1"]);
+        assert!(find(3e11, "96x1").is_empty(), "no such budget");
+        assert!(
+            find(1e14, "512x4").is_empty(),
+            "halves, quarters and seed repeats only"
+        );
+    }
+
+    /// An IsoFLOP fit with a data-constrained law sizes the backbone by that law at the split's
+    /// hours, as `predict --hours` does (the data-law study's stage-3 fit: 1.759e5 at 3·10¹²,
+    /// 2.040e6 at 3·10¹³ on 6.083 h real + 5.679 h synthetic), not by the budget's parabola.
+    #[test]
+    fn a_data_constrained_fit_sizes_by_its_law() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../docs/results/data-law/recipe/ladder/stage3/dc-stopping/fits.json");
+        let fit = FitFile::read(&path).unwrap();
+        let data = TrainData {
+            unique_tokens: 216_640.0,
+            hours: Hours {
+                real: 6.083222,
+                synth: 5.678889,
+            },
+        };
+        for (budget, n_opt) in [(3e12, 1.759e5), (3e13, 2.040e6)] {
+            let centre = n_opt_at(&fit, &path, budget, data).unwrap();
+            assert!((centre.n_opt / n_opt - 1.0).abs() < 1e-3, "{centre:?}");
+            assert!(centre.source.contains("data-constrained law"), "{centre:?}");
+        }
+    }
 }
