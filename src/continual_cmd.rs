@@ -110,6 +110,10 @@ pub struct ContinualArgs {
     /// Texts per dataset with 10 samples each (multimodality).
     #[arg(long, default_value_t = 10)]
     pub mm_texts: usize,
+    /// After each step score only the datasets learned so far (what AF, AR and FR read),
+    /// not the ones still to come: about half the evaluation.
+    #[arg(long)]
+    pub eval_learned_only: bool,
     /// Split of each dataset that is evaluated.
     #[arg(long, default_value = "test")]
     pub eval_split: String,
@@ -269,6 +273,7 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         repeats: args.repeats.max(1),
         pool: args.pool,
         mm_texts: args.mm_texts,
+        eval_learned_only: args.eval_learned_only,
         eval_split: args.eval_split,
         keep_motions: args.keep_motions,
         out,

@@ -316,7 +316,13 @@ fn a_law_sizes_the_backbone(setup: &Path) {
     // Given the first run's backbone folder as a sweep, the second run reuses its backbone;
     // --tokens-share sets its tokens per step from the backbone's D.
     let sweep = first.join("backbone");
-    let second = ["--sweep", arg(&sweep), "--tokens-share", "0.01"];
+    let second = [
+        "--sweep",
+        arg(&sweep),
+        "--tokens-share",
+        "0.01",
+        "--eval-learned-only",
+    ];
     let out = by_law(&setup.join("law-seq-2"), &second);
     assert_eq!(code(&out), 0, "{}", text(&out));
     let again: Value = read_json(&setup.join("law-seq-2/summary.json"));
@@ -329,6 +335,15 @@ fn a_law_sizes_the_backbone(setup: &Path) {
         "{}",
         again["config"]
     );
+    // --eval-learned-only: after step k only the first k datasets are scored.
+    for order in again["orders"].as_array().unwrap() {
+        let f = order["f"].as_array().unwrap();
+        for (k, row) in f.iter().enumerate() {
+            for (j, cell) in row.as_array().unwrap().iter().enumerate() {
+                assert_eq!(cell.is_number(), j <= k, "step {k}, dataset {j}: {order}");
+            }
+        }
+    }
     // A laws.json whose adopted law reads the vocabulary does not size a backbone.
     let mut report: Value = read_json(&laws);
     report["adopted"] = "vocab".into();

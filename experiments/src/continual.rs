@@ -141,6 +141,10 @@ pub struct ContinualConfig {
     pub pool: usize,
     /// Texts with 10 samples each for multimodality, per dataset.
     pub mm_texts: usize,
+    /// Score only the datasets learned so far after each step (the lower triangle that AF,
+    /// AR, FR and plasticity read); the others' cells stay empty.
+    #[serde(default)]
+    pub eval_learned_only: bool,
     /// Split of every dataset that is evaluated.
     pub eval_split: String,
     /// Keep the generated motions after scoring (about 200 MB per step and dataset at
@@ -181,10 +185,11 @@ impl ContinualConfig {
 pub struct OrderResult {
     /// Dataset names in the order learned.
     pub datasets: Vec<String>,
-    /// FID [step][position].
-    pub f: Vec<Vec<f64>>,
-    /// Top-1 R-precision [step][position].
-    pub r: Vec<Vec<f64>>,
+    /// FID [step][position] (`None`: not scored, a dataset not yet learned with
+    /// `eval_learned_only`).
+    pub f: Vec<Vec<Option<f64>>>,
+    /// Top-1 R-precision [step][position] (`None` as for `f`).
+    pub r: Vec<Vec<Option<f64>>>,
     /// Diversity (`None` with too few motions).
     pub d: Vec<Vec<Option<f64>>>,
     /// Multimodality (`None` without multi-sample texts).
@@ -225,24 +230,29 @@ fn mean_known(row: &[Option<f64>]) -> Option<f64> {
 impl Summary {
     /// The summary of matrices whose last row is after the last step; FR over the rows
     /// (row k is after learning position k, when there is one row per position).
+    /// Every cell these read is a learned dataset's, so it is scored (an unscored one, `None`,
+    /// would make the metric NaN).
     pub fn of(
-        f: &[Vec<f64>],
-        r: &[Vec<f64>],
+        f: &[Vec<Option<f64>>],
+        r: &[Vec<Option<f64>>],
         d: &[Vec<Option<f64>>],
         mm: &[Vec<Option<f64>>],
         wf: &[Vec<Option<f64>>],
     ) -> Self {
+        let scored = |v: &Option<f64>| v.unwrap_or(f64::NAN);
         let last = r.len() - 1;
         let n = r[last].len();
         let fr = (r.len() == n && n > 1).then(|| {
             mean((0..n - 1).map(|j| {
-                let best = (j..n - 1).map(|k| r[k][j]).fold(f64::MIN, f64::max);
-                best - r[last][j]
+                let best = (j..n - 1)
+                    .map(|k| scored(&r[k][j]))
+                    .fold(f64::MIN, f64::max);
+                best - scored(&r[last][j])
             }))
         });
         Self {
-            af: mean(f[last].iter().copied()),
-            ar: mean(r[last].iter().copied()),
+            af: mean(f[last].iter().map(scored)),
+            ar: mean(r[last].iter().map(scored)),
             ad: mean_known(&d[last]),
             amm: mean_known(&mm[last]),
             awf: mean_known(&wf[last]),
@@ -465,7 +475,7 @@ fn run_order(
     } else {
         ordered.len()
     };
-    let mut rows: Vec<Vec<EvalReport>> = Vec::new();
+    let mut rows: Vec<Vec<Option<EvalReport>>> = Vec::new();
     let mut previous: Option<PathBuf> = None;
     let mut adapters: Vec<PathBuf> = Vec::new();
     for k in 0..steps {
@@ -497,8 +507,20 @@ fn run_order(
         ));
         previous = Some(train_dir.join(lm::lora::ADAPTER_FILE));
         adapters.extend(previous.clone());
+        let scored = match (config.eval_learned_only, config.method) {
+            (true, m) if m != Method::Mtl => k + 1,
+            _ => ordered.len(),
+        };
         let step = (o, k, step_dir.as_path());
-        rows.push(score_step(config, setup, &ordered, step, &train_dir, log)?);
+        rows.push(score_step(
+            config,
+            setup,
+            &ordered[..scored],
+            step,
+            &train_dir,
+            log,
+        )?);
+        rows.last_mut().unwrap().resize(ordered.len(), None);
     }
     let result = order_result(ordered, &rows);
     write_heatmaps(&order_dir, o, &result)?;
@@ -609,8 +631,8 @@ fn step_shape(
     })
 }
 
-/// Score the model step `k` trained (in `train_dir`) on every dataset of the order: its
-/// captions animated, then evaluated against the dataset's reference; finished datasets are
+/// Score the model step `k` trained (in `train_dir`) on each dataset of `ordered` (the whole
+/// order, or its learned head with `eval_learned_only`): its captions animated, then evaluated against the dataset's reference; finished datasets are
 /// read back, so a re-run resumes.
 fn score_step(
     config: &ContinualConfig,
@@ -619,13 +641,13 @@ fn score_step(
     (o, k, step_dir): (usize, usize, &Path),
     train_dir: &Path,
     log: &mut impl FnMut(&str),
-) -> Result<Vec<EvalReport>, SweepError> {
+) -> Result<Vec<Option<EvalReport>>, SweepError> {
     let (model, run) = load_lm(train_dir, &setup.device, Compute::default())?;
     let mut row = Vec::new();
     for name in ordered {
         let eval_path = step_dir.join(format!("eval-{name}.json"));
         if let Ok(report) = read_json::<EvalReport>(&eval_path) {
-            row.push(report);
+            row.push(Some(report));
             continue;
         }
         let gen_dir = step_dir.join(format!("gen-{name}"));
@@ -670,7 +692,7 @@ fn score_step(
             report.fid.mean,
             report.r_precision[0].mean
         ));
-        row.push(report);
+        row.push(Some(report));
     }
     Ok(row)
 }
@@ -699,7 +721,10 @@ fn write_heatmaps(dir: &Path, o: usize, result: &OrderResult) -> Result<(), Swee
             title: format!("{what}, order {o} (rows: after step; columns: dataset)"),
             rows: rows.clone(),
             columns: result.datasets.iter().map(short).collect(),
-            values: values.clone(),
+            values: values
+                .iter()
+                .map(|row| row.iter().map(|v| v.unwrap_or(f64::NAN)).collect())
+                .collect(),
         };
         let path = dir.join(stem);
         map.write(&path)
@@ -708,18 +733,17 @@ fn write_heatmaps(dir: &Path, o: usize, result: &OrderResult) -> Result<(), Swee
     Ok(())
 }
 
-fn order_result(datasets: Vec<String>, rows: &[Vec<EvalReport>]) -> OrderResult {
-    let take = |f: &dyn Fn(&EvalReport) -> f64| -> Vec<Vec<f64>> {
-        rows.iter().map(|row| row.iter().map(f).collect()).collect()
+fn order_result(datasets: Vec<String>, rows: &[Vec<Option<EvalReport>>]) -> OrderResult {
+    let take = |f: &dyn Fn(&EvalReport) -> Option<f64>| -> Vec<Vec<Option<f64>>> {
+        rows.iter()
+            .map(|row| row.iter().map(|e| e.as_ref().and_then(f)).collect())
+            .collect()
     };
-    let take_opt = |f: &dyn Fn(&EvalReport) -> Option<f64>| -> Vec<Vec<Option<f64>>> {
-        rows.iter().map(|row| row.iter().map(f).collect()).collect()
-    };
-    let f = take(&|e| e.fid.mean);
-    let r = take(&|e| e.r_precision[0].mean);
-    let d = take_opt(&|e| e.diversity.as_ref().map(|i| i.mean));
-    let mm = take_opt(&|e| e.multimodality.as_ref().map(|i| i.mean));
-    let wf = take_opt(&|e| e.emotion_weighted_f1.as_ref().map(|i| i.mean));
+    let f = take(&|e| Some(e.fid.mean));
+    let r = take(&|e| Some(e.r_precision[0].mean));
+    let d = take(&|e| e.diversity.as_ref().map(|i| i.mean));
+    let mm = take(&|e| e.multimodality.as_ref().map(|i| i.mean));
+    let wf = take(&|e| e.emotion_weighted_f1.as_ref().map(|i| i.mean));
     let summary = Summary::of(&f, &r, &d, &mm, &wf);
     OrderResult {
         datasets,
@@ -810,8 +834,28 @@ mod tests {
             vec![0.3, 0.2, 0.7],
         ];
         let f = vec![vec![1.0; 3], vec![1.0; 3], vec![0.1, 0.2, 0.3]];
+        let some = |m: &[Vec<f64>]| -> Vec<Vec<Option<f64>>> {
+            m.iter()
+                .map(|row| row.iter().map(|&v| Some(v)).collect())
+                .collect()
+        };
+        let (f, r) = (some(&f), some(&r));
         let none = vec![vec![None; 3]; 3];
         let s = Summary::of(&f, &r, &none, &none, &none);
+        // Scoring only the learned datasets (the cells above the diagonal empty) changes none.
+        let learned = |m: &[Vec<Option<f64>>]| -> Vec<Vec<Option<f64>>> {
+            let cell = |(k, row): (usize, &Vec<Option<f64>>)| {
+                row.iter()
+                    .enumerate()
+                    .map(|(j, v)| v.filter(|_| j <= k))
+                    .collect()
+            };
+            m.iter().enumerate().map(cell).collect()
+        };
+        assert_eq!(
+            Summary::of(&learned(&f), &learned(&r), &none, &none, &none),
+            s
+        );
         // Task 0: best of rows 0..=1 is 0.5, final 0.3 → 0.2; task 1: best of row 1 is 0.6,
         // final 0.2 → 0.4. FR = 0.3.
         assert!((s.fr.unwrap() - 0.3).abs() < 1e-12);
