@@ -46,6 +46,11 @@ pub struct ContinualArgs {
     /// With --fits: the corpus with the caption embeddings (default: the token set's).
     #[arg(long, requires = "fits")]
     pub corpus: Option<PathBuf>,
+    /// With --fits: the train clips the backbone learns from: all, real (captured) or synth. A
+    /// backbone that never saw the scenario datasets' source (e.g. real with `scenarios
+    /// --source synth`) has something left for its experts to learn.
+    #[arg(long, default_value = "all", requires = "fits")]
+    pub backbone_data: experiments::data_ladder::DataSource,
     /// Token set of the whole corpus (`motionscale tokenize`).
     #[arg(long, required = true)]
     pub tokens: Option<PathBuf>,
@@ -60,12 +65,12 @@ pub struct ContinualArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Motion tokens trained on per step.
-    #[arg(long, default_value_t = 100_000, conflicts_with = "tokens_share")]
+    #[arg(long, default_value_t = 100_000, conflicts_with = "expert_epochs")]
     pub tokens_budget: u64,
-    /// With --fits: motion tokens per step as this share of the backbone's training tokens D
-    /// (experts scale with the backbone as the law's D says), instead of --tokens-budget.
-    #[arg(long, requires = "fits")]
-    pub tokens_share: Option<f64>,
+    /// Instead of --tokens-budget: each step trains this many epochs of its train clips, or
+    /// `backbone`: as many as the law-sized backbone trained on its own (its D over U).
+    #[arg(long)]
+    pub expert_epochs: Option<String>,
     /// Clips per batch.
     #[arg(long, default_value_t = 32)]
     pub batch: usize,
@@ -169,6 +174,7 @@ fn law_backbone(
         corpus,
         tokens: tokens.to_path_buf(),
         sweep: args.sweep.clone(),
+        data: args.backbone_data,
         train: TrainSettings::default(),
     };
     let choice = backbone(&request, &out.join("backbone"), device, &|l| {
@@ -190,6 +196,24 @@ fn law_backbone(
         choice.run.display()
     );
     Ok(choice)
+}
+
+/// Epochs per step of --expert-epochs: a positive number, or the law-sized backbone's own.
+fn expert_epochs(arg: Option<&str>, backbone: Option<&BackboneChoice>) -> Result<Option<f64>> {
+    let epochs = match (arg, backbone) {
+        (None, _) => return Ok(None),
+        (Some("backbone"), Some(choice)) => choice.epochs,
+        (Some("backbone"), None) => {
+            bail!("--expert-epochs backbone needs a law-sized backbone (--fits, --budget)")
+        }
+        (Some(e), _) => e
+            .parse()
+            .with_context(|| format!("--expert-epochs {e:?}: a number or `backbone`"))?,
+    };
+    if !(epochs.is_finite() && epochs > 0.0) {
+        bail!("--expert-epochs: {epochs} epochs; need a positive number");
+    }
+    Ok(Some(epochs))
 }
 
 /// `motionscale continual`.
@@ -226,9 +250,6 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         mixture: ablation != Some("single-lora"),
         ..EsMoeConfig::default()
     });
-    if let Some(share) = args.tokens_share.filter(|s| !(s.is_finite() && *s > 0.0)) {
-        bail!("--tokens-share {share}: must be a positive share of the backbone's tokens");
-    }
     crate::memory::keep_freed_memory();
     let device = args.device.open()?;
     let out = required(args.out.clone(), "out")?;
@@ -248,10 +269,8 @@ pub fn continual(args: ContinualArgs) -> Result<ExitCode> {
         method,
         orders: args.orders.max(1),
         seed: args.seed,
-        tokens_budget: match (args.tokens_share, &backbone) {
-            (Some(share), Some(choice)) => (share * choice.tokens as f64).round() as u64,
-            _ => args.tokens_budget,
-        },
+        tokens_budget: args.tokens_budget,
+        expert_epochs: expert_epochs(args.expert_epochs.as_deref(), backbone.as_ref())?,
         batch_size: args.batch,
         lr: args.lr,
         lora: LoraConfig {

@@ -286,7 +286,7 @@ fn a_law_sizes_the_backbone(setup: &Path) {
         args.drain(at..at + 2);
         args.extend(["--fits", arg(&laws), "--budget", "6e10"].map(String::from));
         args.extend(["--models", "cpu-50K,cpu-100K,cpu-400K"].map(String::from));
-        if extra.contains(&"--tokens-share") {
+        if extra.contains(&"--expert-epochs") {
             let at = args.iter().position(|a| a == "--tokens-budget").unwrap();
             args.drain(at..at + 2);
         }
@@ -314,13 +314,14 @@ fn a_law_sizes_the_backbone(setup: &Path) {
         "{choice}: a ladder model near N_opt"
     );
     // Given the first run's backbone folder as a sweep, the second run reuses its backbone;
-    // --tokens-share sets its tokens per step from the backbone's D.
+    // --expert-epochs backbone trains each step as many epochs of its clips as the backbone
+    // trained of its own.
     let sweep = first.join("backbone");
     let second = [
         "--sweep",
         arg(&sweep),
-        "--tokens-share",
-        "0.01",
+        "--expert-epochs",
+        "backbone",
         "--eval-learned-only",
     ];
     let out = by_law(&setup.join("law-seq-2"), &second);
@@ -328,12 +329,14 @@ fn a_law_sizes_the_backbone(setup: &Path) {
     let again: Value = read_json(&setup.join("law-seq-2/summary.json"));
     assert_eq!(again["config"]["backbone"]["reused"], true);
     assert_eq!(again["config"]["backbone"]["run"], choice["run"]);
-    let tokens = choice["tokens"].as_f64().unwrap();
-    assert_eq!(
-        again["config"]["tokens_budget"].as_f64(),
-        Some((0.01 * tokens).round()),
-        "{}",
-        again["config"]
+    let epochs = choice["epochs"].as_f64().unwrap();
+    assert!(epochs > 0.0, "{choice}");
+    assert_eq!(again["config"]["expert_epochs"].as_f64(), Some(epochs));
+    let step: Value = read_json(&setup.join("law-seq-2/order-0/step-1/train/config.json"));
+    let budget = step["train"]["tokens_budget"].as_f64().unwrap();
+    assert!(
+        budget > epochs && budget != 600.0,
+        "epochs × the step's loss positions, not --tokens-budget: {budget}"
     );
     // --eval-learned-only: after step k only the first k datasets are scored.
     for order in again["orders"].as_array().unwrap() {

@@ -31,6 +31,9 @@ pub struct BackboneRequest {
     pub tokens: PathBuf,
     /// A sweep folder that may hold the chosen point already.
     pub sweep: Option<PathBuf>,
+    /// The train clips it learns from: all of them, or only the captured (real) or synthetic
+    /// ones (a backbone that has not seen the datasets its experts will learn).
+    pub data: DataSource,
     /// The backbone's training settings.
     pub train: TrainSettings,
 }
@@ -52,6 +55,12 @@ pub struct BackboneChoice {
     pub n_nv: u64,
     /// Its training tokens D = C / (6·N).
     pub tokens: u64,
+    /// D over one epoch of its train clips.
+    #[serde(default)]
+    pub epochs: f64,
+    /// The train clips it learned from.
+    #[serde(default)]
+    pub data: DataSource,
     /// Its run folder (`…/<run_id>/train`).
     pub run: PathBuf,
     /// Whether it came from the given sweep folder.
@@ -141,17 +150,25 @@ pub fn plan_backbone(req: &BackboneRequest) -> Result<(IsoFlopPlan, Centre), Swe
         extend: None,
         repeat: Vec::new(),
         repeat_seeds: Vec::new(),
-        data_fractions: Vec::new(),
-        data_source: crate::data_ladder::DataSource::All,
+        data_fractions: match req.data {
+            DataSource::All => Vec::new(),
+            _ => vec![1.0],
+        },
+        data_source: req.data,
         data_seed: 0,
         only: Vec::new(),
     })?;
     let split = grid
-        .train_split
-        .as_ref()
+        .data
+        .first()
+        .or(grid.train_split.as_ref())
         .ok_or_else(|| SweepError::Argument("the plan has no train split".into()))?;
+    let unique = match grid.points.first() {
+        Some(p) => p.unique_tokens(&grid),
+        None => grid.vocabularies[0].train_tokens,
+    };
     let data = TrainData {
-        unique_tokens: grid.vocabularies[0].train_tokens as f64,
+        unique_tokens: unique as f64,
         hours: Hours {
             real: split.hours - split.synth_hours,
             synth: split.synth_hours,
@@ -174,21 +191,26 @@ pub fn plan_backbone(req: &BackboneRequest) -> Result<(IsoFlopPlan, Centre), Swe
 }
 
 /// Whether `candidate`, a point of `sweep`, trains the backbone's `point`: the same budget,
-/// model and vocabulary, on the whole train split, with the plan's own seed. A data ladder
-/// names its whole-split runs `…-dall-1`, so run ids alone would miss them.
-fn trains_point(sweep: &IsoFlopPlan, candidate: &PlanPoint, point: &PlanPoint) -> bool {
-    let whole_split = match &candidate.data {
-        None => true,
+/// model and vocabulary, on every train clip of the same source, with the plan's own seed. A
+/// data ladder names its whole-split runs `…-dall-1`, so run ids alone would miss them.
+fn trains_point(
+    sweep: &IsoFlopPlan,
+    candidate: &PlanPoint,
+    point: &PlanPoint,
+    data: DataSource,
+) -> bool {
+    let same_data = match &candidate.data {
+        None => data == DataSource::All,
         Some(name) => sweep
             .data
             .iter()
-            .any(|s| &s.name == name && s.source == DataSource::All && s.fraction == 1.0),
+            .any(|s| &s.name == name && s.source == data && s.fraction == 1.0),
     };
     candidate.model == point.model
         && candidate.codebook == point.codebook
         && (candidate.budget / point.budget - 1.0).abs() < 1e-9
         && candidate.seed.is_none()
-        && whole_split
+        && same_data
 }
 
 /// The law-sized backbone: reused (or trained) in `req.sweep` when its plan has the point,
@@ -215,7 +237,7 @@ pub fn backbone(
         let found = sweep
             .points
             .iter()
-            .find(|p| trains_point(&sweep, p, point))
+            .find(|p| trains_point(&sweep, p, point, req.data))
             .cloned();
         found.map(|p| (dir, sweep, p))
     });
@@ -238,6 +260,8 @@ pub fn backbone(
         model: trained.model,
         n_nv: trained.n_nv,
         tokens: trained.tokens,
+        epochs: trained.epochs,
+        data: req.data,
         run: crate::results::run_dir(&runs, &trained.run_id).join("train"),
         reused,
     })
@@ -267,7 +291,7 @@ mod tests {
             let found: Vec<_> = ladder
                 .points
                 .iter()
-                .filter(|p| trains_point(&ladder, p, &point))
+                .filter(|p| trains_point(&ladder, p, &point, DataSource::All))
                 .map(|p| p.run_id.as_str())
                 .collect();
             found
@@ -280,6 +304,40 @@ mod tests {
             find(1e14, "512x4").is_empty(),
             "halves, quarters and seed repeats only"
         );
+    }
+
+    /// The forgetting ladder's plan extends the data ladder with backbones on the captured
+    /// clips only: a backbone on real data is its `…-dreal-1` run, never the `…-dall-1` one.
+    #[test]
+    fn a_backbone_on_one_source_is_that_sources_run() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../docs/results/continual/ladder/plan-10.toml");
+        let ladder = IsoFlopPlan::read(&path).unwrap();
+        let find = |budget: f64, model: &str, data: DataSource| -> Vec<String> {
+            let template = ladder.points.iter().find(|p| p.model == model).unwrap();
+            let point = PlanPoint {
+                budget,
+                data: None,
+                seed: None,
+                ..template.clone()
+            };
+            ladder
+                .points
+                .iter()
+                .filter(|p| trains_point(&ladder, p, &point, data))
+                .map(|p| p.run_id.clone())
+                .collect()
+        };
+        assert_eq!(
+            find(1e13, "128x4", DataSource::Real),
+            ["c1e13-128x4-v1024-dreal-1"]
+        );
+        assert_eq!(
+            find(1e13, "128x4", DataSource::All),
+            ["c1e13-128x4-v1024-dall-1"]
+        );
+        assert!(find(3e13, "192x4", DataSource::Real).is_empty());
+        assert!(find(1e13, "128x4", DataSource::Synth).is_empty());
     }
 
     /// An IsoFLOP fit with a data-constrained law sizes the backbone by that law at the split's

@@ -30,6 +30,7 @@
 
 use crate::backbone::BackboneChoice;
 use crate::error::SweepError;
+use crate::plan::lm_targets;
 use crate::seeds;
 use evaluator::model::TrainedEvaluator;
 use evaluator::score::{
@@ -118,6 +119,9 @@ pub struct ContinualConfig {
     pub seed: u64,
     /// Motion tokens trained on per step.
     pub tokens_budget: u64,
+    /// Instead: epochs of each step's train clips (their loss positions) trained per step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expert_epochs: Option<f64>,
     /// Clips per batch.
     pub batch_size: usize,
     /// Peak learning rate.
@@ -384,6 +388,17 @@ struct Setup {
     labels: HashMap<String, LabelledClip>,
     /// Where every network of the run trains and runs.
     device: candle_core::Device,
+    /// Loss positions per epoch of each clip of the token set (with `expert_epochs`).
+    positions: HashMap<String, u64>,
+}
+
+/// Loss positions of one epoch of the train list in `lists_dir`.
+fn step_positions(setup: &Setup, lists_dir: &Path) -> Result<u64, SweepError> {
+    let path = lists_dir.join("train.txt");
+    let ids = read_ids(&path)
+        .map_err(|e| SweepError::invalid(&path, e))?
+        .unwrap_or_default();
+    Ok(ids.iter().filter_map(|id| setup.positions.get(id)).sum())
 }
 
 /// Run (or resume) `config`, every network on `device`; `log` receives one line per finished
@@ -447,6 +462,18 @@ fn prepare(config: &ContinualConfig, device: &candle_core::Device) -> Result<Set
         .into_iter()
         .map(|c| (c.motion_id.clone(), c))
         .collect();
+    let positions = match config.expert_epochs {
+        Some(_) => {
+            let set = tokenizer::TokenSet::open(&config.tokens)
+                .map_err(|e| SweepError::invalid(&config.tokens, e))?;
+            let max = lm::run_config::HYPERPARAMS.max_motion_tokens;
+            set.clips
+                .iter()
+                .map(|c| (c.motion_id.clone(), lm_targets(c.tokens.len(), max)))
+                .collect()
+        }
+        None => HashMap::new(),
+    };
     Ok(Setup {
         names,
         evaluator,
@@ -455,6 +482,7 @@ fn prepare(config: &ContinualConfig, device: &candle_core::Device) -> Result<Set
         references,
         labels,
         device: device.clone(),
+        positions,
     })
 }
 
@@ -484,8 +512,11 @@ fn run_order(
         let learned = write_step_lists(config, &ordered, (o, k), &lists_dir)?;
         let train_dir = step_dir.join("train");
         let shape = step_shape(config, &ordered, k, previous.as_deref(), &adapters)?;
-        let mut train_config =
-            TrainConfig::new(&config.tokens, shape, config.tokens_budget, &train_dir);
+        let budget = match config.expert_epochs {
+            Some(epochs) => (epochs * step_positions(setup, &lists_dir)? as f64).round() as u64,
+            None => config.tokens_budget,
+        };
+        let mut train_config = TrainConfig::new(&config.tokens, shape, budget, &train_dir);
         train_config.splits = Some(lists_dir.clone());
         train_config.hyper.batch_size = config.batch_size;
         train_config.hyper.lr = config.lr;

@@ -409,7 +409,7 @@ pub fn expand_models(names: &[String]) -> Result<Vec<String>, SweepError> {
 
 /// Loss positions of a clip of `tokens` tokens when at most `max` are kept: the kept tokens,
 /// plus EOS when the clip ends within them (as `lm::lm_data::Example::targets`).
-fn lm_targets(tokens: usize, max: usize) -> u64 {
+pub(crate) fn lm_targets(tokens: usize, max: usize) -> u64 {
     let keep = tokens.min(max);
     keep as u64 + u64::from(keep == tokens)
 }

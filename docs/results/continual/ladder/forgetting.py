@@ -1,0 +1,275 @@
+#!/usr/bin/env python3
+"""The law of forgetting (issue #59): forgetting and plasticity of continual LoRA experts
+against the size of a law-sized backbone, from the forgetting ladder's runs (queue.sh).
+
+    python3 forgetting.py RUNS                     cells, laws, ES-MoE - SeqLoRA gaps
+    python3 forgetting.py RUNS --at C --out F.json  ... and the forecast at the budget C's cell
+    python3 forgetting.py RUNS --score F.json       a forecast scored against its runs
+
+Per run and dataset order (the summaries of `motionscale continual`):
+  AF  mean final FID (the paper's);  FR  mean over j < n of max_{j<=k<n} r[k][j] - r[n][j]
+  (top-1 R-precision, the paper's);  FF  the same on FID: f[n][j] - min_{j<=k<n} f[k][j];
+  PR / PF  plasticity: mean_k r[k][k] / f[k][k], dataset k scored right after learning it.
+A cell (budget, rank, method) has 3 seeds x 3 orders. Intervals are bootstraps (2,000) that
+resample the orders once per replicate for every cell (the orders are shared) and the seeds
+of each cell. The law per method and metric: y = c + b * log10(N_nv), fitted by least squares
+on the ladder's rank-8 cells; its forecast interval adds a cell's own seed/order scatter.
+"""
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+METRICS = ["AF", "FR", "FF", "PR", "PF"]
+METHODS = ["es-moe", "seq-lora", "replay", "mtl"]
+DRAWS, SEED = 2000, 0
+
+
+def order_metrics(order):
+    f, r = order["f"], order["r"]
+    n = len(r)
+    out = {"AF": np.mean(f[-1])}
+    if n > 1:
+        out["FR"] = np.mean([max(r[k][j] for k in range(j, n - 1)) - r[-1][j] for j in range(n - 1)])
+        out["FF"] = np.mean([f[-1][j] - min(f[k][j] for k in range(j, n - 1)) for j in range(n - 1)])
+        out["PR"] = np.mean([r[k][k] for k in range(n)])
+        out["PF"] = np.mean([f[k][k] for k in range(n)])
+    return out
+
+
+def expert_params(run):
+    """Parameters of one LoRA expert: the first step's adapter (safetensors header)."""
+    path = Path(run) / "order-0" / "step-1" / "train" / "adapter.safetensors"
+    if not path.is_file():
+        return None
+    with open(path, "rb") as f:
+        header = json.loads(f.read(int.from_bytes(f.read(8), "little")))
+    return sum(math.prod(t["shape"]) for k, t in header.items()
+               if k != "__metadata__" and "lora" in k)
+
+
+def load(runs):
+    """cells[(budget, rank, method)] = {"n_nv", "model", "tokens_per_step", "values": metric ->
+    array [seed, order]}."""
+    cells = {}
+    for summary in sorted(Path(runs).glob("*/summary.json")):
+        s = json.loads(summary.read_text())
+        c, b = s["config"], s["config"]["backbone"]
+        key = (b["budget"], c["lora"]["rank"], c["method"])
+        cell = cells.setdefault(key, {"n_nv": b["n_nv"], "model": b["model"],
+                                      "epochs": c.get("expert_epochs"), "seeds": {}})
+        cell["seeds"][c["seed"]] = [order_metrics(o) for o in s["orders"]]
+        if c["method"] == "seq-lora":
+            cell["expert_params"] = expert_params(summary.parent)
+    for cell in cells.values():
+        seeds = sorted(cell["seeds"])
+        cell["n_seeds"] = len(seeds)
+        cell["values"] = {m: np.array([[o[m] for o in cell["seeds"][s]] for s in seeds])
+                          for m in METRICS if m in cell["seeds"][seeds[0]][0]}
+    return cells
+
+
+def draws(cells):
+    """Bootstrap replicates of every cell's mean: {key: {metric: array [DRAWS]}}."""
+    rng = np.random.default_rng(SEED)
+    n_orders = {v.shape[1] for c in cells.values() for v in c["values"].values()}
+    assert len(n_orders) == 1, "every run has the same orders"
+    n_orders = n_orders.pop()
+    orders = rng.integers(0, n_orders, size=(DRAWS, n_orders))
+    out = {}
+    for key in sorted(cells):
+        cell = cells[key]
+        seeds = rng.integers(0, cell["n_seeds"], size=(DRAWS, cell["n_seeds"]))
+        out[key] = {m: v[seeds[:, :, None], orders[:, None, :]].mean(axis=(1, 2))
+                    for m, v in cell["values"].items()}
+    return out
+
+
+def ci(x):
+    return np.percentile(x, 2.5), np.percentile(x, 97.5)
+
+
+def fmt(value, interval, digits=4):
+    return f"{value:.{digits}f} [{interval[0]:.{digits}f}, {interval[1]:.{digits}f}]"
+
+
+def ladder_keys(cells, method, exclude):
+    return sorted(k for k in cells if k[1] == 8 and k[2] == method and k[0] not in exclude)
+
+
+def fit_line(x, y):
+    slope, intercept = np.polyfit(x, y, 1)
+    return intercept, slope
+
+
+def law(cells, boot, method, metric, exclude):
+    keys = [k for k in ladder_keys(cells, method, exclude) if metric in cells[k]["values"]]
+    if len(keys) < 3:
+        return None
+    x = np.log10([cells[k]["n_nv"] for k in keys])
+    y = np.array([cells[k]["values"][metric].mean() for k in keys])
+    c, b = fit_line(x, y)
+    ys = np.stack([boot[k][metric] for k in keys], axis=1)
+    fits = np.array([fit_line(x, row) for row in ys])
+    return {"keys": keys, "x": x, "c": c, "b": b, "boot": fits,
+            "scatter": [boot[k][metric] - cells[k]["values"][metric].mean() for k in keys]}
+
+
+def forecast(fit, n_nv, rng):
+    x = math.log10(n_nv)
+    point = fit["c"] + fit["b"] * x
+    line = fit["boot"][:, 0] + fit["boot"][:, 1] * x
+    scatter = np.stack(fit["scatter"])[rng.integers(0, len(fit["scatter"]), size=DRAWS),
+                                        np.arange(DRAWS)]
+    return point, ci(line), ci(line + scatter)
+
+
+def gap(cells, boot, key_a, key_b, metric):
+    a, b = cells[key_a]["values"][metric].mean(), cells[key_b]["values"][metric].mean()
+    return a - b, ci(boot[key_a][metric] - boot[key_b][metric])
+
+
+def report(cells, boot, exclude):
+    print("## Cells (mean over seeds x orders [95% bootstrap interval])\n")
+    print("| budget | model (N_nv) | rank | method | seeds | epochs/step | " + " | ".join(METRICS) + " |")
+    print("|---|---|---|---|---|---|" + "---|" * len(METRICS))
+    for key in sorted(cells, key=lambda k: (k[0], k[1], METHODS.index(k[2]))):
+        cell, b = cells[key], boot[key]
+        vals = [fmt(cell["values"][m].mean(), ci(b[m]), 3) if m in b else "–" for m in METRICS]
+        print(f"| {key[0]:.0e} | {cell['model']} ({cell['n_nv']:,}) | {key[1]} | {key[2]} | "
+              f"{cell['n_seeds']} | {cell['epochs']:.2f} | " + " | ".join(vals) + " |")
+    print("\n## Laws y = c + b log10 N_nv (rank 8; b per decade [95% interval])\n")
+    print("| method | " + " | ".join(METRICS) + " |")
+    print("|---|" + "---|" * len(METRICS))
+    for method in METHODS:
+        row = []
+        for m in METRICS:
+            fit = law(cells, boot, method, m, exclude)
+            row.append("–" if fit is None else fmt(fit["b"], ci(fit["boot"][:, 1])))
+        print(f"| {method} | " + " | ".join(row) + " |")
+    rank_axis(cells, boot)
+    print("\n## ES-MoE - SeqLoRA per size (rank 8; [95% interval])\n")
+    print("| budget | N_nv | " + " | ".join(METRICS) + " |")
+    print("|---|---|" + "---|" * len(METRICS))
+    for budget in sorted({k[0] for k in cells}):
+        a, b = (budget, 8, "es-moe"), (budget, 8, "seq-lora")
+        if a in cells and b in cells:
+            vals = [fmt(*gap(cells, boot, a, b, m)) for m in METRICS]
+            print(f"| {budget:.0e} | {cells[a]['n_nv']:,} | " + " | ".join(vals) + " |")
+
+
+def rank_axis(cells, boot):
+    """At the budget with several ranks: y = c + p log10 rank per method (at a fixed backbone
+    a decade of rank is a decade of expert parameters)."""
+    budgets = [b for b in {k[0] for k in cells} if len({k[1] for k in cells if k[0] == b}) >= 3]
+    for budget in budgets:
+        ranks = sorted({k[1] for k in cells if k[0] == budget})
+        params = {r: cells.get((budget, r, "seq-lora"), {}).get("expert_params") for r in ranks}
+        print(f"\n## LoRA rank at {budget:.0e} (ranks {ranks}; expert parameters {params}): "
+              "y = c + p log10 rank, p [95% interval]\n")
+        print("| method | " + " | ".join(METRICS) + " |")
+        print("|---|" + "---|" * len(METRICS))
+        for method in METHODS:
+            keys = [(budget, r, method) for r in ranks if (budget, r, method) in cells]
+            if len(keys) < 3:
+                continue
+            x = np.log10([k[1] for k in keys])
+            row = []
+            for m in METRICS:
+                if m not in cells[keys[0]]["values"]:
+                    row.append("–")
+                    continue
+                y = [cells[k]["values"][m].mean() for k in keys]
+                ys = np.stack([boot[k][m] for k in keys], axis=1)
+                slopes = [fit_line(x, r)[1] for r in ys]
+                row.append(fmt(fit_line(x, y)[1], ci(slopes)))
+            print(f"| {method} | " + " | ".join(row) + " |")
+
+
+def predict(cells, boot, budget, n_nv, exclude):
+    """The forecast at a larger backbone for every method and metric and for the gap."""
+    rng = np.random.default_rng(SEED + 1)
+    top = max(k[0] for k in cells if k[0] not in exclude and k[1] == 8)
+    out = {"budget": budget, "n_nv": n_nv, "fitted_on": sorted({k[0] for k in cells
+                                                                if k[0] not in exclude}),
+           "forecasts": []}
+    for method in METHODS:
+        for m in METRICS:
+            fit = law(cells, boot, method, m, exclude)
+            if fit is None:
+                continue
+            point, line, run = forecast(fit, n_nv, rng)
+            out["forecasts"].append({"what": f"{method} {m}", "law": point, "law_95": line,
+                                     "cell_95": run,
+                                     "carried": cells[(top, 8, method)]["values"][m].mean()})
+    for m in ["AF", "FR", "FF", "PR", "PF"]:
+        fa, fb = (law(cells, boot, meth, m, exclude) for meth in ("es-moe", "seq-lora"))
+        if fa is None or fb is None:
+            continue
+        x = math.log10(n_nv)
+        line = (fa["boot"][:, 0] - fb["boot"][:, 0]) + (fa["boot"][:, 1] - fb["boot"][:, 1]) * x
+        point = (fa["c"] - fb["c"]) + (fa["b"] - fb["b"]) * x
+        scatter = np.array([bs - bb for bs, bb in zip(fa["scatter"], fb["scatter"])])
+        noisy = line + scatter[rng.integers(0, len(scatter), size=DRAWS), np.arange(DRAWS)]
+        carried, _ = gap(cells, boot, (top, 8, "es-moe"), (top, 8, "seq-lora"), m)
+        out["forecasts"].append({"what": f"es-moe - seq-lora {m}", "law": point,
+                                 "law_95": ci(line), "cell_95": ci(noisy), "carried": carried})
+    return out
+
+
+def measured(cells, boot, budget, what):
+    method, m = what.rsplit(" ", 1)
+    if method == "es-moe - seq-lora":
+        return gap(cells, boot, (budget, 8, "es-moe"), (budget, 8, "seq-lora"), m)
+    key = (budget, 8, method)
+    return cells[key]["values"][m].mean(), ci(boot[key][m])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[1])
+    ap.add_argument("runs")
+    ap.add_argument("--at", type=float, help="forecast at this budget's backbone")
+    ap.add_argument("--n-nv", type=float, help="its N_nv (the model continual will pick)")
+    ap.add_argument("--out", help="write the forecast here (JSON)")
+    ap.add_argument("--score", help="score this forecast against the runs at its budget")
+    args = ap.parse_args()
+    cells = load(args.runs)
+    if not cells:
+        sys.exit(f"{args.runs}: no finished run (no */summary.json)")
+    boot = draws(cells)
+    if args.score:
+        pred = json.loads(Path(args.score).read_text())
+        budget = pred["budget"]
+        report(cells, boot, exclude=[])
+        print(f"\n## Forecast at {budget:.0e} (N_nv {pred['n_nv']:,.0f}) scored\n")
+        print("| quantity | measured [95%] | law [cell 95% PI] | error | inside | carried (error) | closer |")
+        print("|---|---|---|---|---|---|---|")
+        for f in pred["forecasts"]:
+            value, interval = measured(cells, boot, budget, f["what"])
+            inside = f["cell_95"][0] <= value <= f["cell_95"][1]
+            closer = abs(f["law"] - value) < abs(f["carried"] - value)
+            print(f"| {f['what']} | {fmt(value, interval)} | {fmt(f['law'], f['cell_95'])} | "
+                  f"{f['law'] - value:+.4f} | {'yes' if inside else 'no'} | "
+                  f"{f['carried']:.4f} ({f['carried'] - value:+.4f}) | {'law' if closer else 'carried'} |")
+        return
+    exclude = [args.at] if args.at else []
+    report(cells, boot, exclude)
+    if args.at:
+        if not args.n_nv:
+            sys.exit("--at needs --n-nv")
+        pred = predict(cells, boot, args.at, args.n_nv, exclude)
+        print(f"\n## Forecast at {args.at:.0e} (N_nv {args.n_nv:,.0f}), fitted on {pred['fitted_on']}\n")
+        print("| quantity | law [line 95%] | cell 95% PI | carried from the largest size |")
+        print("|---|---|---|---|")
+        for f in pred["forecasts"]:
+            print(f"| {f['what']} | {fmt(f['law'], f['law_95'])} | [{f['cell_95'][0]:.4f}, "
+                  f"{f['cell_95'][1]:.4f}] | {f['carried']:.4f} |")
+        if args.out:
+            Path(args.out).write_text(json.dumps(pred, indent=1, default=float) + "\n")
+
+
+if __name__ == "__main__":
+    main()
