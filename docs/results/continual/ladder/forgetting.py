@@ -3,7 +3,8 @@
 against the size of a law-sized backbone, from the forgetting ladder's runs (queue.sh).
 
     python3 forgetting.py RUNS                     cells, laws, ES-MoE - SeqLoRA gaps
-    python3 forgetting.py RUNS --at C --out F.json  ... and the forecast at the budget C's cell
+    python3 forgetting.py RUNS --at C --n-nv N --epochs E --out F.json
+                                                   ... and the forecast at budget C's backbone
     python3 forgetting.py RUNS --score F.json       a forecast scored against its runs
 
 Per run and dataset order (the summaries of `motionscale continual`):
@@ -13,7 +14,8 @@ Per run and dataset order (the summaries of `motionscale continual`):
 A cell (budget, rank, method) has 3 seeds x 3 orders. Intervals are bootstraps (2,000) that
 resample the orders once per replicate for every cell (the orders are shared) and the seeds
 of each cell. The law per method and metric: y = c + b * log10(N_nv), fitted by least squares
-on the ladder's rank-8 cells; its forecast interval adds a cell's own seed/order scatter.
+on the ladder's rank-8 cells, and y = c + b * log10(N_nv) + e * log10(E) with the experts'
+epochs E per step; a forecast's interval adds a cell's own seed/order scatter to the line's.
 """
 import argparse
 import json
@@ -105,26 +107,40 @@ def fit_line(x, y):
     return intercept, slope
 
 
-def law(cells, boot, method, metric, exclude):
+FORMS = {"N": "c + b log10 N_nv", "N+E": "c + b log10 N_nv + e log10 E (expert epochs)"}
+
+
+def features(cell, form):
+    x = [1.0, math.log10(cell["n_nv"])]
+    return x + [math.log10(cell["epochs"])] if form == "N+E" else x
+
+
+def law(cells, boot, method, metric, exclude, form="N"):
+    """The law `form` fitted by least squares to the ladder's cells, and refitted to every
+    bootstrap replicate; `scatter` is each cell's replicate mean minus its mean."""
     keys = [k for k in ladder_keys(cells, method, exclude) if metric in cells[k]["values"]]
-    if len(keys) < 3:
+    if len(keys) <= len(FORMS[form].split("+")):
         return None
-    x = np.log10([cells[k]["n_nv"] for k in keys])
+    X = np.array([features(cells[k], form) for k in keys])
     y = np.array([cells[k]["values"][metric].mean() for k in keys])
-    c, b = fit_line(x, y)
+    solve = lambda ys: np.linalg.lstsq(X, ys, rcond=None)[0]
     ys = np.stack([boot[k][metric] for k in keys], axis=1)
-    fits = np.array([fit_line(x, row) for row in ys])
-    return {"keys": keys, "x": x, "c": c, "b": b, "boot": fits,
+    return {"keys": keys, "form": form, "beta": solve(y), "boot": solve(ys.T).T,
             "scatter": [boot[k][metric] - cells[k]["values"][metric].mean() for k in keys]}
 
 
-def forecast(fit, n_nv, rng):
-    x = math.log10(n_nv)
-    point = fit["c"] + fit["b"] * x
-    line = fit["boot"][:, 0] + fit["boot"][:, 1] * x
-    scatter = np.stack(fit["scatter"])[rng.integers(0, len(fit["scatter"]), size=DRAWS),
-                                        np.arange(DRAWS)]
-    return point, ci(line), ci(line + scatter)
+def scatter_draws(fit, rng):
+    pick = rng.integers(0, len(fit["scatter"]), size=DRAWS)
+    return np.stack(fit["scatter"])[pick, np.arange(DRAWS)]
+
+
+def forecast(fits, x, rng, sign=(1,)):
+    """The forecast at features `x` of sum(sign_i * law_i): the point, the line's 95%
+    interval, and a cell's 95% prediction interval (the line plus a cell's scatter)."""
+    point = sum(s * f["beta"] @ x for s, f in zip(sign, fits))
+    line = sum(s * f["boot"] @ x for s, f in zip(sign, fits))
+    noisy = line + sum(s * scatter_draws(f, rng) for s, f in zip(sign, fits))
+    return point, ci(line), ci(noisy)
 
 
 def gap(cells, boot, key_a, key_b, metric):
@@ -141,15 +157,19 @@ def report(cells, boot, exclude):
         vals = [fmt(cell["values"][m].mean(), ci(b[m]), 3) if m in b else "–" for m in METRICS]
         print(f"| {key[0]:.0e} | {cell['model']} ({cell['n_nv']:,}) | {key[1]} | {key[2]} | "
               f"{cell['n_seeds']} | {cell['epochs']:.2f} | " + " | ".join(vals) + " |")
-    print("\n## Laws y = c + b log10 N_nv (rank 8; b per decade [95% interval])\n")
-    print("| method | " + " | ".join(METRICS) + " |")
-    print("|---|" + "---|" * len(METRICS))
-    for method in METHODS:
-        row = []
-        for m in METRICS:
-            fit = law(cells, boot, method, m, exclude)
-            row.append("–" if fit is None else fmt(fit["b"], ci(fit["boot"][:, 1])))
-        print(f"| {method} | " + " | ".join(row) + " |")
+    for form in FORMS:
+        print(f"\n## Law y = {FORMS[form]} (rank 8; coefficients [95% interval])\n")
+        print("| method | " + " | ".join(METRICS) + " |")
+        print("|---|" + "---|" * len(METRICS))
+        for method in METHODS:
+            row = []
+            for m in METRICS:
+                fit = law(cells, boot, method, m, exclude, form)
+                coef = [] if fit is None else [
+                    f"{name} {fmt(fit['beta'][i], ci(fit['boot'][:, i]))}"
+                    for i, name in list(enumerate(["b", "e"], start=1))[:len(fit["beta"]) - 1]]
+                row.append("; ".join(coef) or "–")
+            print(f"| {method} | " + " | ".join(row) + " |")
     rank_axis(cells, boot)
     print("\n## ES-MoE - SeqLoRA per size (rank 8; [95% interval])\n")
     print("| budget | N_nv | " + " | ".join(METRICS) + " |")
@@ -189,34 +209,27 @@ def rank_axis(cells, boot):
             print(f"| {method} | " + " | ".join(row) + " |")
 
 
-def predict(cells, boot, budget, n_nv, exclude):
-    """The forecast at a larger backbone for every method and metric and for the gap."""
+def predict(cells, boot, budget, n_nv, epochs, exclude):
+    """The forecast at a larger backbone for every method, metric and law form, and for the
+    ES-MoE - SeqLoRA gap, beside the largest ladder size's value carried forward."""
     rng = np.random.default_rng(SEED + 1)
     top = max(k[0] for k in cells if k[0] not in exclude and k[1] == 8)
-    out = {"budget": budget, "n_nv": n_nv, "fitted_on": sorted({k[0] for k in cells
-                                                                if k[0] not in exclude}),
-           "forecasts": []}
-    for method in METHODS:
-        for m in METRICS:
-            fit = law(cells, boot, method, m, exclude)
-            if fit is None:
-                continue
-            point, line, run = forecast(fit, n_nv, rng)
-            out["forecasts"].append({"what": f"{method} {m}", "law": point, "law_95": line,
-                                     "cell_95": run,
-                                     "carried": cells[(top, 8, method)]["values"][m].mean()})
-    for m in ["AF", "FR", "FF", "PR", "PF"]:
-        fa, fb = (law(cells, boot, meth, m, exclude) for meth in ("es-moe", "seq-lora"))
-        if fa is None or fb is None:
-            continue
-        x = math.log10(n_nv)
-        line = (fa["boot"][:, 0] - fb["boot"][:, 0]) + (fa["boot"][:, 1] - fb["boot"][:, 1]) * x
-        point = (fa["c"] - fb["c"]) + (fa["b"] - fb["b"]) * x
-        scatter = np.array([bs - bb for bs, bb in zip(fa["scatter"], fb["scatter"])])
-        noisy = line + scatter[rng.integers(0, len(scatter), size=DRAWS), np.arange(DRAWS)]
-        carried, _ = gap(cells, boot, (top, 8, "es-moe"), (top, 8, "seq-lora"), m)
-        out["forecasts"].append({"what": f"es-moe - seq-lora {m}", "law": point,
-                                 "law_95": ci(line), "cell_95": ci(noisy), "carried": carried})
+    at = {"n_nv": n_nv, "epochs": epochs}
+    out = {"budget": budget, "n_nv": n_nv, "epochs": epochs,
+           "fitted_on": sorted({k[0] for k in cells if k[0] not in exclude}), "forecasts": []}
+    for form in FORMS:
+        x = np.array(features(at, form))
+        for method in METHODS + ["es-moe - seq-lora"]:
+            pair = method.split(" - ")
+            for m in METRICS:
+                fits = [law(cells, boot, p, m, exclude, form) for p in pair]
+                if any(f is None for f in fits):
+                    continue
+                point, line, run = forecast(fits, x, rng, sign=(1, -1)[:len(fits)])
+                carried = (gap(cells, boot, (top, 8, pair[0]), (top, 8, pair[1]), m)[0]
+                           if len(pair) == 2 else cells[(top, 8, method)]["values"][m].mean())
+                out["forecasts"].append({"what": f"{method} {m}", "law": form, "value": point,
+                                         "law_95": line, "cell_95": run, "carried": carried})
     return out
 
 
@@ -233,6 +246,7 @@ def main():
     ap.add_argument("runs")
     ap.add_argument("--at", type=float, help="forecast at this budget's backbone")
     ap.add_argument("--n-nv", type=float, help="its N_nv (the model continual will pick)")
+    ap.add_argument("--epochs", type=float, help="its expert epochs per step (its D/U)")
     ap.add_argument("--out", help="write the forecast here (JSON)")
     ap.add_argument("--score", help="score this forecast against the runs at its budget")
     args = ap.parse_args()
@@ -245,28 +259,29 @@ def main():
         budget = pred["budget"]
         report(cells, boot, exclude=[])
         print(f"\n## Forecast at {budget:.0e} (N_nv {pred['n_nv']:,.0f}) scored\n")
-        print("| quantity | measured [95%] | law [cell 95% PI] | error | inside | carried (error) | closer |")
-        print("|---|---|---|---|---|---|---|")
+        print("| quantity | law | measured [95%] | forecast [cell 95% PI] | error | inside | carried (error) | closer |")
+        print("|---|---|---|---|---|---|---|---|")
         for f in pred["forecasts"]:
             value, interval = measured(cells, boot, budget, f["what"])
             inside = f["cell_95"][0] <= value <= f["cell_95"][1]
-            closer = abs(f["law"] - value) < abs(f["carried"] - value)
-            print(f"| {f['what']} | {fmt(value, interval)} | {fmt(f['law'], f['cell_95'])} | "
-                  f"{f['law'] - value:+.4f} | {'yes' if inside else 'no'} | "
+            closer = abs(f["value"] - value) < abs(f["carried"] - value)
+            print(f"| {f['what']} | {f['law']} | {fmt(value, interval)} | "
+                  f"{fmt(f['value'], f['cell_95'])} | {f['value'] - value:+.4f} | "
+                  f"{'yes' if inside else 'no'} | "
                   f"{f['carried']:.4f} ({f['carried'] - value:+.4f}) | {'law' if closer else 'carried'} |")
         return
     exclude = [args.at] if args.at else []
     report(cells, boot, exclude)
     if args.at:
-        if not args.n_nv:
-            sys.exit("--at needs --n-nv")
-        pred = predict(cells, boot, args.at, args.n_nv, exclude)
+        if not (args.n_nv and args.epochs):
+            sys.exit("--at needs --n-nv and --epochs")
+        pred = predict(cells, boot, args.at, args.n_nv, args.epochs, exclude)
         print(f"\n## Forecast at {args.at:.0e} (N_nv {args.n_nv:,.0f}), fitted on {pred['fitted_on']}\n")
-        print("| quantity | law [line 95%] | cell 95% PI | carried from the largest size |")
-        print("|---|---|---|---|")
+        print("| quantity | law | forecast [line 95%] | cell 95% PI | carried from the largest size |")
+        print("|---|---|---|---|---|")
         for f in pred["forecasts"]:
-            print(f"| {f['what']} | {fmt(f['law'], f['law_95'])} | [{f['cell_95'][0]:.4f}, "
-                  f"{f['cell_95'][1]:.4f}] | {f['carried']:.4f} |")
+            print(f"| {f['what']} | {f['law']} | {fmt(f['value'], f['law_95'])} | "
+                  f"[{f['cell_95'][0]:.4f}, {f['cell_95'][1]:.4f}] | {f['carried']:.4f} |")
         if args.out:
             Path(args.out).write_text(json.dumps(pred, indent=1, default=float) + "\n")
 
