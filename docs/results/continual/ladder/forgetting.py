@@ -3,6 +3,7 @@
 against the size of a law-sized backbone, from the forgetting ladder's runs (queue.sh).
 
     python3 forgetting.py RUNS                     cells, laws, ES-MoE - SeqLoRA gaps
+(RUNS: the continual run folders, or a folder of their summaries as <run>.json)
     python3 forgetting.py RUNS --at C --n-nv N --epochs E --out F.json
                                                    ... and the forecast at budget C's backbone
     python3 forgetting.py RUNS --score F.json       a forecast scored against its runs
@@ -57,14 +58,15 @@ def load(runs):
     """cells[(budget, rank, method)] = {"n_nv", "model", "tokens_per_step", "values": metric ->
     array [seed, order]}."""
     cells = {}
-    for summary in sorted(Path(runs).glob("*/summary.json")):
+    files = sorted(Path(runs).glob("*/summary.json")) or sorted(Path(runs).glob("*.json"))
+    for summary in files:
         s = json.loads(summary.read_text())
         c, b = s["config"], s["config"]["backbone"]
         key = (b["budget"], c["lora"]["rank"], c["method"])
         cell = cells.setdefault(key, {"n_nv": b["n_nv"], "model": b["model"],
                                       "epochs": c.get("expert_epochs"), "seeds": {}})
         cell["seeds"][c["seed"]] = [order_metrics(o) for o in s["orders"]]
-        if c["method"] == "seq-lora":
+        if c["method"] == "seq-lora" and summary.name == "summary.json":
             cell["expert_params"] = expert_params(summary.parent)
     for cell in cells.values():
         seeds = sorted(cell["seeds"])
@@ -252,7 +254,7 @@ def main():
     args = ap.parse_args()
     cells = load(args.runs)
     if not cells:
-        sys.exit(f"{args.runs}: no finished run (no */summary.json)")
+        sys.exit(f"{args.runs}: no finished run (no */summary.json, no *.json)")
     boot = draws(cells)
     if args.score:
         pred = json.loads(Path(args.score).read_text())
