@@ -241,6 +241,20 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
         "{}",
         text(&out)
     );
+    // --expert-epochs: `backbone` needs a law-sized one; a number must be positive.
+    for (epochs, why) in [
+        ("backbone", "needs a law-sized backbone"),
+        ("0", "need a positive number"),
+        ("many", "a number or `backbone`"),
+    ] {
+        let mut args = continual_args(setup, "seq-lora", "1", &setup.join("no-epochs"));
+        let at = args.iter().position(|a| a == "--tokens-budget").unwrap();
+        args.drain(at..at + 2);
+        args.extend(["--expert-epochs", epochs].map(String::from));
+        let out = motionscale(&args.iter().map(String::as_str).collect::<Vec<_>>());
+        assert_eq!(code(&out), 1, "{epochs}: {}", text(&out));
+        assert!(text(&out).contains(why), "{epochs}: {}", text(&out));
+    }
 }
 
 /// `continual --fits laws.json --budget C`: a Chinchilla law whose N_opt at C = 6·10¹⁰ is
