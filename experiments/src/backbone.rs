@@ -271,31 +271,44 @@ pub fn backbone(
 mod tests {
     use super::*;
 
+    /// The committed plan at `docs/results/<rel>`.
+    fn committed_plan(rel: &str) -> IsoFlopPlan {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../docs/results")
+            .join(rel);
+        IsoFlopPlan::read(&path).unwrap()
+    }
+
+    /// The runs of `ladder` that train the backbone `model` at `budget` on `data`.
+    fn backbone_runs(
+        ladder: &IsoFlopPlan,
+        budget: f64,
+        model: &str,
+        data: DataSource,
+    ) -> Vec<String> {
+        let template = ladder.points.iter().find(|p| p.model == model).unwrap();
+        let point = PlanPoint {
+            run_id: plan::run_id(budget, model, 1024),
+            budget,
+            data: None,
+            seed: None,
+            ..template.clone()
+        };
+        ladder
+            .points
+            .iter()
+            .filter(|p| trains_point(ladder, p, &point, data))
+            .map(|p| p.run_id.clone())
+            .collect()
+    }
+
     /// The data-law ladder's plan (101 points: three nested fractions, seed repeats) holds
     /// the backbone's point once, as its whole-split run `…-dall-1`; halves, quarters, seed
     /// repeats, other budgets and other models are not it.
     #[test]
     fn a_data_ladder_run_on_the_whole_split_is_the_backbone() {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../docs/results/data-law/recipe/ladder/plan-7.toml");
-        let ladder = IsoFlopPlan::read(&path).unwrap();
-        let find = |budget: f64, model: &str| {
-            let template = ladder.points.iter().find(|p| p.model == model).unwrap();
-            let point = PlanPoint {
-                run_id: plan::run_id(budget, model, 1024),
-                budget,
-                data: None,
-                seed: None,
-                ..template.clone()
-            };
-            let found: Vec<_> = ladder
-                .points
-                .iter()
-                .filter(|p| trains_point(&ladder, p, &point, DataSource::All))
-                .map(|p| p.run_id.as_str())
-                .collect();
-            found
-        };
+        let ladder = committed_plan("data-law/recipe/ladder/plan-7.toml");
+        let find = |budget, model| backbone_runs(&ladder, budget, model, DataSource::All);
         assert_eq!(find(3e12, "96x1"), ["c3e12-96x1-v1024-dall-1"]);
         assert_eq!(find(3e13, "256x4"), ["c3e13-256x4-v1024-dall-1"]);
         assert_eq!(find(1e13, "128x2"), ["c1e13-128x2-v1024-dall-1"]);
@@ -310,24 +323,8 @@ mod tests {
     /// clips only: a backbone on real data is its `…-dreal-1` run, never the `…-dall-1` one.
     #[test]
     fn a_backbone_on_one_source_is_that_sources_run() {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../docs/results/continual/ladder/plan-10.toml");
-        let ladder = IsoFlopPlan::read(&path).unwrap();
-        let find = |budget: f64, model: &str, data: DataSource| -> Vec<String> {
-            let template = ladder.points.iter().find(|p| p.model == model).unwrap();
-            let point = PlanPoint {
-                budget,
-                data: None,
-                seed: None,
-                ..template.clone()
-            };
-            ladder
-                .points
-                .iter()
-                .filter(|p| trains_point(&ladder, p, &point, data))
-                .map(|p| p.run_id.clone())
-                .collect()
-        };
+        let ladder = committed_plan("continual/ladder/plan-10.toml");
+        let find = |budget, model, data| backbone_runs(&ladder, budget, model, data);
         assert_eq!(
             find(1e13, "128x4", DataSource::Real),
             ["c1e13-128x4-v1024-dreal-1"]
