@@ -7,6 +7,8 @@ against the size of a law-sized backbone, from the forgetting ladder's runs (que
     python3 forgetting.py RUNS --at C --n-nv N --epochs E --out F.json
                                                    ... and the forecast at budget C's backbone
     python3 forgetting.py RUNS --score F.json       a forecast scored against its runs
+    ... --plot F.svg                               AF, FF and PF against N_nv per method
+    ... --logs DIR                                 and ES-MoE's routing of each new dataset
 
 Per run and dataset order (the summaries of `motionscale continual`):
   AF  mean final FID (the paper's);  FR  mean over j < n of max_{j<=k<n} r[k][j] - r[n][j]
@@ -16,11 +18,14 @@ A cell (budget, rank, method) has 3 seeds x 3 orders. Intervals are bootstraps (
 resample the orders once per replicate for every cell (the orders are shared) and the seeds
 of each cell. The law per method and metric: y = c + b * log10(N_nv), fitted by least squares
 on the ladder's rank-8 cells, and y = c + b * log10(N_nv) + e * log10(E) with the experts'
-epochs E per step; a forecast's interval adds a cell's own seed/order scatter to the line's.
+epochs E per step; a forecast's interval adds a cell's own seed/order scatter to the line's
+(the declared interval), and a second one also the law's misfit beyond that scatter.
+A backtest: `--at 1e13 ...` fits the smaller sizes only, and `--score` scores it on 1e13.
 """
 import argparse
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -119,7 +124,9 @@ def features(cell, form):
 
 def law(cells, boot, method, metric, exclude, form="N"):
     """The law `form` fitted by least squares to the ladder's cells, and refitted to every
-    bootstrap replicate; `scatter` is each cell's replicate mean minus its mean."""
+    bootstrap replicate; `scatter` is each cell's replicate mean minus its mean, `misfit_sd`
+    the cells' scatter about the law beyond their sampling noise (residual variance on n - p
+    degrees of freedom less the cells' mean bootstrap variance, floored at 0)."""
     keys = [k for k in ladder_keys(cells, method, exclude) if metric in cells[k]["values"]]
     if len(keys) <= len(FORMS[form].split("+")):
         return None
@@ -127,8 +134,11 @@ def law(cells, boot, method, metric, exclude, form="N"):
     y = np.array([cells[k]["values"][metric].mean() for k in keys])
     solve = lambda ys: np.linalg.lstsq(X, ys, rcond=None)[0]
     ys = np.stack([boot[k][metric] for k in keys], axis=1)
-    return {"keys": keys, "form": form, "beta": solve(y), "boot": solve(ys.T).T,
-            "scatter": [boot[k][metric] - cells[k]["values"][metric].mean() for k in keys]}
+    beta = solve(y)
+    residual = np.sum((y - X @ beta) ** 2) / (len(keys) - X.shape[1])
+    return {"keys": keys, "form": form, "beta": beta, "boot": solve(ys.T).T,
+            "scatter": [boot[k][metric] - cells[k]["values"][metric].mean() for k in keys],
+            "misfit_sd": math.sqrt(max(0.0, residual - ys.var(axis=0).mean()))}
 
 
 def scatter_draws(fit, rng):
@@ -138,11 +148,13 @@ def scatter_draws(fit, rng):
 
 def forecast(fits, x, rng, sign=(1,)):
     """The forecast at features `x` of sum(sign_i * law_i): the point, the line's 95%
-    interval, and a cell's 95% prediction interval (the line plus a cell's scatter)."""
+    interval, a cell's 95% prediction interval (the line plus a cell's scatter), and that
+    interval widened by the laws' misfit (a normal draw of `misfit_sd` per law)."""
     point = sum(s * f["beta"] @ x for s, f in zip(sign, fits))
     line = sum(s * f["boot"] @ x for s, f in zip(sign, fits))
     noisy = line + sum(s * scatter_draws(f, rng) for s, f in zip(sign, fits))
-    return point, ci(line), ci(noisy)
+    misfit = noisy + sum(rng.normal(0.0, f["misfit_sd"], DRAWS) for f in fits)
+    return point, ci(line), ci(noisy), ci(misfit)
 
 
 def gap(cells, boot, key_a, key_b, metric):
@@ -227,20 +239,138 @@ def predict(cells, boot, budget, n_nv, epochs, exclude):
                 fits = [law(cells, boot, p, m, exclude, form) for p in pair]
                 if any(f is None for f in fits):
                     continue
-                point, line, run = forecast(fits, x, rng, sign=(1, -1)[:len(fits)])
+                point, line, run, misfit = forecast(fits, x, rng, sign=(1, -1)[:len(fits)])
                 carried = (gap(cells, boot, (top, 8, pair[0]), (top, 8, pair[1]), m)[0]
                            if len(pair) == 2 else cells[(top, 8, method)]["values"][m].mean())
                 out["forecasts"].append({"what": f"{method} {m}", "law": form, "value": point,
-                                         "law_95": line, "cell_95": run, "carried": carried})
+                                         "law_95": line, "cell_95": run,
+                                         "cell_misfit_95": misfit, "carried": carried})
     return out
 
 
 def measured(cells, boot, budget, what):
+    """The measured value and interval of a forecast quantity; None before its runs exist."""
     method, m = what.rsplit(" ", 1)
     if method == "es-moe - seq-lora":
-        return gap(cells, boot, (budget, 8, "es-moe"), (budget, 8, "seq-lora"), m)
+        keys = [(budget, 8, "es-moe"), (budget, 8, "seq-lora")]
+        return gap(cells, boot, *keys, m) if all(k in cells for k in keys) else None
     key = (budget, 8, method)
-    return cells[key]["values"][m].mean(), ci(boot[key][m])
+    return (cells[key]["values"][m].mean(), ci(boot[key][m])) if key in cells else None
+
+
+PLOT_METRICS = [("AF", "final FID (AF)"), ("FF", "FID forgetting (FF)"), ("PF", "FID right after learning (PF)")]
+COLORS = {"es-moe": "#d62728", "seq-lora": "#1f77b4", "replay": "#2ca02c", "mtl": "#7f7f7f"}
+
+
+def plot(cells, boot, exclude, path, pred=None):
+    """One SVG, a panel per metric: every rank-8 cell's mean and 95% interval against N_nv
+    (log axis), each method's law y = c + b log10 N_nv (fitted without `exclude`) as a line;
+    cells at excluded budgets drawn hollow, and the forecast `pred` (if any) as a square with
+    its cell 95% prediction interval."""
+    keys = [k for k in cells if k[1] == 8]
+    at = {f["what"]: f for f in (pred or {}).get("forecasts", [])
+          if f["law"] == "N" and f["what"].rsplit(" ", 1)[0] in METHODS}
+    xs = [math.log10(cells[k]["n_nv"]) for k in keys] + ([math.log10(pred["n_nv"])] if pred else [])
+    x0, x1 = math.floor(min(xs) * 2) / 2, math.ceil(max(xs) * 2) / 2
+    w, h, pad = 330, 300, 50
+    parts = []
+    for p, (metric, title) in enumerate(PLOT_METRICS):
+        bars = [ci(boot[k][metric]) for k in keys if metric in boot[k]]
+        bars += [tuple(f["cell_95"]) for what, f in at.items() if what.endswith(" " + metric)]
+        y0, y1 = min(b[0] for b in bars) - 0.05, max(b[1] for b in bars) + 0.05
+        ox = p * (w + pad) + pad
+        sx = lambda x: ox + (x - x0) / (x1 - x0) * w
+        sy = lambda y: 20 + (1 - (y - y0) / (y1 - y0)) * h
+        parts.append(f'<clipPath id="panel{p}"><rect x="{ox}" y="20" width="{w}" height="{h}"/></clipPath>')
+        parts.append(f'<rect x="{ox}" y="20" width="{w}" height="{h}" fill="none" stroke="#000"/>')
+        parts.append(f'<text x="{ox + w / 2}" y="14" text-anchor="middle">{title}</text>')
+        for e in range(math.ceil(x0), math.floor(x1) + 1):
+            parts.append(f'<text x="{sx(e)}" y="{h + 36}" text-anchor="middle">1e{e}</text>')
+        for t in np.linspace(y0, y1, 5)[1:-1]:
+            parts.append(f'<text x="{ox - 4}" y="{sy(t) + 4}" text-anchor="end">{t:.2f}</text>')
+        parts.append(f'<text x="{ox + w / 2}" y="{h + 54}" text-anchor="middle">backbone N_nv</text>')
+        parts.append(f'<g clip-path="url(#panel{p})">')
+        for method in METHODS:
+            color = COLORS[method]
+            fit = law(cells, boot, method, metric, exclude)
+            if fit is not None:
+                (a, ya), (b, yb) = [(x, fit["beta"] @ [1.0, x]) for x in (x0, x1)]
+                parts.append(f'<line x1="{sx(a)}" y1="{sy(ya)}" x2="{sx(b)}" y2="{sy(yb)}" '
+                             f'stroke="{color}" stroke-dasharray="4 3"/>')
+            for k in sorted(k for k in keys if k[2] == method and metric in boot[k]):
+                x, (a, b) = math.log10(cells[k]["n_nv"]), ci(boot[k][metric])
+                y = cells[k]["values"][metric].mean()
+                fill = "#fff" if k[0] in exclude else color
+                parts.append(f'<line x1="{sx(x)}" y1="{sy(a)}" x2="{sx(x)}" y2="{sy(b)}" stroke="{color}"/>')
+                parts.append(f'<circle cx="{sx(x)}" cy="{sy(y)}" r="4" fill="{fill}" stroke="{color}"/>')
+            f = at.get(f"{method} {metric}")
+            if f:
+                x, (a, b) = math.log10(pred["n_nv"]) + 0.04 * (METHODS.index(method) - 1.5), f["cell_95"]
+                parts.append(f'<line x1="{sx(x)}" y1="{sy(a)}" x2="{sx(x)}" y2="{sy(b)}" '
+                             f'stroke="{color}" stroke-dasharray="2 2"/>')
+                parts.append(f'<rect x="{sx(x) - 4}" y="{sy(f["value"]) - 4}" width="8" height="8" '
+                             f'fill="none" stroke="{color}"/>')
+        parts.append("</g>")
+    for i, method in enumerate(METHODS):
+        parts.append(f'<circle cx="{pad + 10 + 110 * i}" cy="{h + 76}" r="4" fill="{COLORS[method]}"/>'
+                     f'<text x="{pad + 18 + 110 * i}" y="{h + 80}">{method}</text>')
+    parts.append(f'<text x="{pad + 460}" y="{h + 80}">dashed: law c + b log10 N_nv; '
+                 'square: forecast, its 95% PI; hollow: forward runs</text>')
+    width, height = 3 * (w + pad) + pad, h + 96
+    Path(path).write_text(f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
+                          f'font-family="sans-serif" font-size="12">\n<rect width="100%" height="100%" fill="#fff"/>\n'
+                          + "\n".join(parts) + "\n</svg>\n")
+
+
+def routing(logs, cells):
+    """ES-MoE's gate weight on the newest expert for the test captions of the dataset it just
+    learned (steps 2-6, the last attempt of each), per budget: mean and share of steps >= 0.5."""
+    pattern = re.compile(r"order (\d) step (\d): trained on \S+ .*test captions \[([^\]]*)\]")
+    per_budget = {}
+    for log in sorted(Path(logs).glob("*-es-moe-*.log")):
+        last = {}
+        for line in log.read_text().splitlines():
+            m = pattern.match(line)
+            if m and int(m.group(2)) > 1:
+                last[m.group(1), m.group(2)] = float(m.group(3).split(",")[-1])
+        run = re.match(r"c(\d+e\d+)-r(\d+)-", log.name)
+        key = (float(run.group(1)), int(run.group(2)))
+        per_budget.setdefault(key, []).extend(last.values())
+    print("\n## ES-MoE routing: gate weight on the new expert for its own dataset's test captions\n")
+    print("| budget | rank | N_nv | steps | mean weight | share >= 0.5 |")
+    print("|---|---|---|---|---|---|")
+    for (budget, rank), w in sorted(per_budget.items()):
+        n_nv = cells.get((budget, rank, "es-moe"), {}).get("n_nv", float("nan"))
+        print(f"| {budget:.0e} | {rank} | {n_nv:,} | {len(w)} | {np.mean(w):.3f} | {np.mean(np.array(w) >= 0.5):.2f} |")
+
+
+def score(cells, boot, pred):
+    """Each forecast against the cells measured at its budget, beside the carried value, and
+    per law form how many fell inside their intervals and beat the carried value."""
+    budget = pred["budget"]
+    print(f"\n## Forecast at {budget:.0e} (N_nv {pred['n_nv']:,.0f}) scored\n")
+    print("| quantity | law | measured [95%] | forecast [cell 95% PI] | error | inside | "
+          "inside with misfit | carried (error) | closer |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    inside = lambda v, band: band[0] <= v <= band[1]
+    tally = {}
+    for f in pred["forecasts"]:
+        if (found := measured(cells, boot, budget, f["what"])) is None:
+            print(f"| {f['what']} | {f['law']} | not run yet | {fmt(f['value'], f['cell_95'])} |||||")
+            continue
+        value = found[0]
+        hits = (inside(value, f["cell_95"]), inside(value, f["cell_misfit_95"]),
+                abs(f["value"] - value) < abs(f["carried"] - value))
+        t = tally.setdefault(f["law"], [0, 0, 0, 0])
+        t[:] = [a + b for a, b in zip(t, (1,) + hits)]
+        yes = lambda hit: "yes" if hit else "no"
+        print(f"| {f['what']} | {f['law']} | {fmt(*found)} | "
+              f"{fmt(f['value'], f['cell_95'])} | {f['value'] - value:+.4f} | {yes(hits[0])} | "
+              f"{yes(hits[1])} | {f['carried']:.4f} ({f['carried'] - value:+.4f}) | "
+              f"{'law' if hits[2] else 'carried'} |")
+    for form, (n, cell, misfit, closer) in tally.items():
+        print(f"\nlaw {form}: {n} quantities measured; inside the cell 95% PI {cell}, with misfit "
+              f"{misfit}; closer than the carried value {closer}")
 
 
 def main():
@@ -251,41 +381,36 @@ def main():
     ap.add_argument("--epochs", type=float, help="its expert epochs per step (its D/U)")
     ap.add_argument("--out", help="write the forecast here (JSON)")
     ap.add_argument("--score", help="score this forecast against the runs at its budget")
+    ap.add_argument("--plot", help="write AF, FF and PF against N_nv here (SVG)")
+    ap.add_argument("--logs", help="the runs' logs (<run>.log): ES-MoE's routing per size")
     args = ap.parse_args()
     cells = load(args.runs)
     if not cells:
         sys.exit(f"{args.runs}: no finished run (no */summary.json, no *.json)")
     boot = draws(cells)
-    if args.score:
-        pred = json.loads(Path(args.score).read_text())
-        budget = pred["budget"]
-        report(cells, boot, exclude=[])
-        print(f"\n## Forecast at {budget:.0e} (N_nv {pred['n_nv']:,.0f}) scored\n")
-        print("| quantity | law | measured [95%] | forecast [cell 95% PI] | error | inside | carried (error) | closer |")
-        print("|---|---|---|---|---|---|---|---|")
-        for f in pred["forecasts"]:
-            value, interval = measured(cells, boot, budget, f["what"])
-            inside = f["cell_95"][0] <= value <= f["cell_95"][1]
-            closer = abs(f["value"] - value) < abs(f["carried"] - value)
-            print(f"| {f['what']} | {f['law']} | {fmt(value, interval)} | "
-                  f"{fmt(f['value'], f['cell_95'])} | {f['value'] - value:+.4f} | "
-                  f"{'yes' if inside else 'no'} | "
-                  f"{f['carried']:.4f} ({f['carried'] - value:+.4f}) | {'law' if closer else 'carried'} |")
-        return
-    exclude = [args.at] if args.at else []
+    pred = json.loads(Path(args.score).read_text()) if args.score else None
+    exclude = [pred["budget"]] if pred else [args.at] if args.at else []
     report(cells, boot, exclude)
-    if args.at:
+    if args.logs:
+        routing(args.logs, cells)
+    if pred:
+        score(cells, boot, pred)
+    elif args.at:
         if not (args.n_nv and args.epochs):
             sys.exit("--at needs --n-nv and --epochs")
         pred = predict(cells, boot, args.at, args.n_nv, args.epochs, exclude)
         print(f"\n## Forecast at {args.at:.0e} (N_nv {args.n_nv:,.0f}), fitted on {pred['fitted_on']}\n")
-        print("| quantity | law | forecast [line 95%] | cell 95% PI | carried from the largest size |")
-        print("|---|---|---|---|---|")
+        print("| quantity | law | forecast [line 95%] | cell 95% PI | with the law's misfit | "
+              "carried from the largest size |")
+        print("|---|---|---|---|---|---|")
+        band = lambda b: f"[{b[0]:.4f}, {b[1]:.4f}]"
         for f in pred["forecasts"]:
             print(f"| {f['what']} | {f['law']} | {fmt(f['value'], f['law_95'])} | "
-                  f"[{f['cell_95'][0]:.4f}, {f['cell_95'][1]:.4f}] | {f['carried']:.4f} |")
+                  f"{band(f['cell_95'])} | {band(f['cell_misfit_95'])} | {f['carried']:.4f} |")
         if args.out:
             Path(args.out).write_text(json.dumps(pred, indent=1, default=float) + "\n")
+    if args.plot:
+        plot(cells, boot, exclude, args.plot, pred)
 
 
 if __name__ == "__main__":
