@@ -4,7 +4,7 @@ against the size of a law-sized backbone, from the forgetting ladder's runs (que
 
     python3 forgetting.py RUNS                     cells, laws, ES-MoE - SeqLoRA gaps
 (RUNS: the continual run folders, or a folder of their summaries as <run>.json)
-    python3 forgetting.py RUNS --at C --n-nv N --epochs E --out F.json
+    python3 forgetting.py RUNS --at C --n-nv N --model DxL --epochs E --out F.json
                                                    ... and the forecast at budget C's backbone
     python3 forgetting.py RUNS --score F.json       a forecast scored against its runs
     ... --plot F.svg                               AF, FF and PF against N_nv per method
@@ -48,15 +48,20 @@ def order_metrics(order):
     return out
 
 
-def expert_params(run):
-    """Parameters of one LoRA expert: the first step's adapter (safetensors header)."""
-    path = Path(run) / "order-0" / "step-1" / "train" / "adapter.safetensors"
-    if not path.is_file():
-        return None
-    with open(path, "rb") as f:
-        header = json.loads(f.read(int.from_bytes(f.read(8), "little")))
-    return sum(math.prod(t["shape"]) for k, t in header.items()
-               if k != "__metadata__" and "lora" in k)
+def expert_params(model, rank, run=None):
+    """Parameters of one LoRA expert on a `DxL` backbone: every block's QKV (d -> 3d), output
+    (d -> d), gate/up (d -> 2f) and down (f -> d) projections, f = round(8d/3), each r x (in +
+    out); checked against the run's first adapter (safetensors header) when it is there."""
+    d, layers = map(int, model.split("x"))
+    f = (8 * d + 1) // 3
+    params = rank * layers * (8 * d + 3 * f)
+    path = Path(run or "") / "order-0" / "step-1" / "train" / "adapter.safetensors"
+    if run and path.is_file():
+        with open(path, "rb") as fh:
+            header = json.loads(fh.read(int.from_bytes(fh.read(8), "little")))
+        found = sum(math.prod(t["shape"]) for k, t in header.items() if "lora" in k)
+        assert found == params, f"{path}: {found} LoRA parameters, the formula says {params}"
+    return params
 
 
 def load(runs):
@@ -68,11 +73,11 @@ def load(runs):
         s = json.loads(summary.read_text())
         c, b = s["config"], s["config"]["backbone"]
         key = (b["budget"], c["lora"]["rank"], c["method"])
+        run = summary.parent if summary.name == "summary.json" else None
         cell = cells.setdefault(key, {"n_nv": b["n_nv"], "model": b["model"],
-                                      "epochs": c.get("expert_epochs"), "seeds": {}})
+                                      "epochs": c.get("expert_epochs"), "seeds": {},
+                                      "expert_params": expert_params(b["model"], key[1], run)})
         cell["seeds"][c["seed"]] = [order_metrics(o) for o in s["orders"]]
-        if c["method"] == "seq-lora" and summary.name == "summary.json":
-            cell["expert_params"] = expert_params(summary.parent)
     for cell in cells.values():
         seeds = sorted(cell["seeds"])
         cell["n_seeds"] = len(seeds)
@@ -105,8 +110,13 @@ def fmt(value, interval, digits=4):
     return f"{value:.{digits}f} [{interval[0]:.{digits}f}, {interval[1]:.{digits}f}]"
 
 
-def ladder_keys(cells, method, exclude):
-    return sorted(k for k in cells if k[1] == 8 and k[2] == method and k[0] not in exclude)
+def ladder_keys(cells, method, exclude, form="N"):
+    """The cells a law of `form` is fitted to: rank 8 only, except N+P+E, which takes every
+    rank (and is fitted only where the method has more than one)."""
+    keys = sorted(k for k in cells if k[2] == method and k[0] not in exclude)
+    if form == "N+P+E":
+        return keys if len({k[1] for k in keys}) > 1 else []
+    return [k for k in keys if k[1] == 8]
 
 
 def fit_line(x, y):
@@ -114,12 +124,15 @@ def fit_line(x, y):
     return intercept, slope
 
 
-FORMS = {"N": "c + b log10 N_nv", "N+E": "c + b log10 N_nv + e log10 E (expert epochs)"}
+FORMS = {"N": "c + b log10 N_nv", "N+E": "c + b log10 N_nv + e log10 E (expert epochs)",
+         "N+P+E": "c + b log10 N_nv + p log10 P (expert parameters) + e log10 E"}
+COEFFICIENTS = {"N": ["b"], "N+E": ["b", "e"], "N+P+E": ["b", "p", "e"]}
 
 
 def features(cell, form):
     x = [1.0, math.log10(cell["n_nv"])]
-    return x + [math.log10(cell["epochs"])] if form == "N+E" else x
+    p = [math.log10(cell["expert_params"])] if form == "N+P+E" else []
+    return x + p + ([math.log10(cell["epochs"])] if form != "N" else [])
 
 
 def law(cells, boot, method, metric, exclude, form="N"):
@@ -127,8 +140,8 @@ def law(cells, boot, method, metric, exclude, form="N"):
     bootstrap replicate; `scatter` is each cell's replicate mean minus its mean, `misfit_sd`
     the cells' scatter about the law beyond their sampling noise (residual variance on n - p
     degrees of freedom less the cells' mean bootstrap variance, floored at 0)."""
-    keys = [k for k in ladder_keys(cells, method, exclude) if metric in cells[k]["values"]]
-    if len(keys) <= len(FORMS[form].split("+")):
+    keys = [k for k in ladder_keys(cells, method, exclude, form) if metric in cells[k]["values"]]
+    if len(keys) <= len(COEFFICIENTS[form]) + 1:
         return None
     X = np.array([features(cells[k], form) for k in keys])
     y = np.array([cells[k]["values"][metric].mean() for k in keys])
@@ -164,15 +177,16 @@ def gap(cells, boot, key_a, key_b, metric):
 
 def report(cells, boot, exclude):
     print("## Cells (mean over seeds x orders [95% bootstrap interval])\n")
-    print("| budget | model (N_nv) | rank | method | seeds | epochs/step | " + " | ".join(METRICS) + " |")
+    print("| budget | model (N_nv) | rank (P) | method | seeds | epochs/step | " + " | ".join(METRICS) + " |")
     print("|---|---|---|---|---|---|" + "---|" * len(METRICS))
     for key in sorted(cells, key=lambda k: (k[0], k[1], METHODS.index(k[2]))):
         cell, b = cells[key], boot[key]
         vals = [fmt(cell["values"][m].mean(), ci(b[m]), 3) if m in b else "–" for m in METRICS]
-        print(f"| {key[0]:.0e} | {cell['model']} ({cell['n_nv']:,}) | {key[1]} | {key[2]} | "
-              f"{cell['n_seeds']} | {cell['epochs']:.2f} | " + " | ".join(vals) + " |")
+        print(f"| {key[0]:.0e} | {cell['model']} ({cell['n_nv']:,}) | {key[1]} ({cell['expert_params']:,}) | "
+              f"{key[2]} | {cell['n_seeds']} | {cell['epochs']:.2f} | " + " | ".join(vals) + " |")
     for form in FORMS:
-        print(f"\n## Law y = {FORMS[form]} (rank 8; coefficients [95% interval])\n")
+        cells_used = "every rank" if form == "N+P+E" else "rank 8"
+        print(f"\n## Law y = {FORMS[form]} ({cells_used}; coefficients [95% interval])\n")
         print("| method | " + " | ".join(METRICS) + " |")
         print("|---|" + "---|" * len(METRICS))
         for method in METHODS:
@@ -181,7 +195,7 @@ def report(cells, boot, exclude):
                 fit = law(cells, boot, method, m, exclude, form)
                 coef = [] if fit is None else [
                     f"{name} {fmt(fit['beta'][i], ci(fit['boot'][:, i]))}"
-                    for i, name in list(enumerate(["b", "e"], start=1))[:len(fit["beta"]) - 1]]
+                    for i, name in enumerate(COEFFICIENTS[form], start=1)]
                 row.append("; ".join(coef) or "–")
             print(f"| {method} | " + " | ".join(row) + " |")
     rank_axis(cells, boot)
@@ -223,13 +237,14 @@ def rank_axis(cells, boot):
             print(f"| {method} | " + " | ".join(row) + " |")
 
 
-def predict(cells, boot, budget, n_nv, epochs, exclude):
-    """The forecast at a larger backbone for every method, metric and law form, and for the
-    ES-MoE - SeqLoRA gap, beside the largest ladder size's value carried forward."""
+def predict(cells, boot, budget, backbone, exclude):
+    """The forecast at a larger backbone (`n_nv`, `model`, `epochs`) for every method, metric
+    and law form at rank 8, and for the ES-MoE - SeqLoRA gap, beside the largest ladder
+    size's value carried forward."""
     rng = np.random.default_rng(SEED + 1)
     top = max(k[0] for k in cells if k[0] not in exclude and k[1] == 8)
-    at = {"n_nv": n_nv, "epochs": epochs}
-    out = {"budget": budget, "n_nv": n_nv, "epochs": epochs,
+    at = dict(backbone, expert_params=expert_params(backbone["model"], 8))
+    out = {"budget": budget, **at,
            "fitted_on": sorted({k[0] for k in cells if k[0] not in exclude}), "forecasts": []}
     for form in FORMS:
         x = np.array(features(at, form))
@@ -378,6 +393,7 @@ def main():
     ap.add_argument("runs")
     ap.add_argument("--at", type=float, help="forecast at this budget's backbone")
     ap.add_argument("--n-nv", type=float, help="its N_nv (the model continual will pick)")
+    ap.add_argument("--model", help="its shape DxL (for its experts' parameters)")
     ap.add_argument("--epochs", type=float, help="its expert epochs per step (its D/U)")
     ap.add_argument("--out", help="write the forecast here (JSON)")
     ap.add_argument("--score", help="score this forecast against the runs at its budget")
@@ -396,9 +412,10 @@ def main():
     if pred:
         score(cells, boot, pred)
     elif args.at:
-        if not (args.n_nv and args.epochs):
-            sys.exit("--at needs --n-nv and --epochs")
-        pred = predict(cells, boot, args.at, args.n_nv, args.epochs, exclude)
+        if not (args.n_nv and args.epochs and args.model):
+            sys.exit("--at needs --n-nv, --model and --epochs")
+        backbone = {"n_nv": args.n_nv, "model": args.model, "epochs": args.epochs}
+        pred = predict(cells, boot, args.at, backbone, exclude)
         print(f"\n## Forecast at {args.at:.0e} (N_nv {args.n_nv:,.0f}), fitted on {pred['fitted_on']}\n")
         print("| quantity | law | forecast [line 95%] | cell 95% PI | with the law's misfit | "
               "carried from the largest size |")
