@@ -196,6 +196,8 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
         (weights.iter().sum::<f64>() - 1.0).abs() < 1e-5,
         "{weights:?}"
     );
+    assert_eq!(report["orders"][0]["gate"][1], serde_json::json!(weights));
+    assert_eq!(report["orders"][0]["gate"].as_array().unwrap().len(), 6);
     assert!(
         !step2.join("model.safetensors").exists(),
         "no single model file"

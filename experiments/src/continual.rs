@@ -200,6 +200,11 @@ pub struct OrderResult {
     pub mm: Vec<Vec<Option<f64>>>,
     /// Emotion weighted F1 (`None` without emotion labels).
     pub wf: Vec<Vec<Option<f64>>>,
+    /// ES-MoE: after each step, the gate's mean weight on every expert for the test captions
+    /// of the dataset that step learned (the last is the new expert's); `None` for the other
+    /// methods. Each step's `train/eval.json` holds the same (`expert_weights`).
+    #[serde(default)]
+    pub gate: Vec<Option<Vec<f64>>>,
     /// AF, AR, AD, AMM, AWF and FR.
     pub summary: Summary,
 }
@@ -504,6 +509,7 @@ fn run_order(
         ordered.len()
     };
     let mut rows: Vec<Vec<Option<EvalReport>>> = Vec::new();
+    let mut gate = Vec::new();
     let mut previous: Option<PathBuf> = None;
     let mut adapters: Vec<PathBuf> = Vec::new();
     for k in 0..steps {
@@ -522,7 +528,7 @@ fn run_order(
         train_config.hyper.lr = config.lr;
         train_config.hyper.seed = config.seed;
         let report = train(&train_config, &setup.device, &mut |_| {})?;
-        let gate = report
+        let weights = report
             .eval
             .expert_weights
             .as_ref()
@@ -531,11 +537,12 @@ fn run_order(
                 format!(", gate weights on its test captions [{}]", w.join(", "))
             });
         log(&format!(
-            "order {o} step {}: trained on {} (test CE {:.3}{gate})",
+            "order {o} step {}: trained on {} (test CE {:.3}{weights})",
             k + 1,
             learned.join("+"),
             report.eval.test.cross_entropy
         ));
+        gate.push(report.eval.expert_weights.clone());
         previous = Some(train_dir.join(lm::lora::ADAPTER_FILE));
         adapters.extend(previous.clone());
         let scored = match (config.eval_learned_only, config.method) {
@@ -553,7 +560,7 @@ fn run_order(
         )?);
         rows.last_mut().unwrap().resize(ordered.len(), None);
     }
-    let result = order_result(ordered, &rows);
+    let result = order_result(ordered, &rows, gate);
     write_heatmaps(&order_dir, o, &result)?;
     Ok(result)
 }
@@ -764,7 +771,11 @@ fn write_heatmaps(dir: &Path, o: usize, result: &OrderResult) -> Result<(), Swee
     Ok(())
 }
 
-fn order_result(datasets: Vec<String>, rows: &[Vec<Option<EvalReport>>]) -> OrderResult {
+fn order_result(
+    datasets: Vec<String>,
+    rows: &[Vec<Option<EvalReport>>],
+    gate: Vec<Option<Vec<f64>>>,
+) -> OrderResult {
     let take = |f: &dyn Fn(&EvalReport) -> Option<f64>| -> Vec<Vec<Option<f64>>> {
         rows.iter()
             .map(|row| row.iter().map(|e| e.as_ref().and_then(f)).collect())
@@ -783,6 +794,7 @@ fn order_result(datasets: Vec<String>, rows: &[Vec<Option<EvalReport>>]) -> Orde
         d,
         mm,
         wf,
+        gate,
         summary,
     }
 }
