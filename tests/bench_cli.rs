@@ -39,6 +39,11 @@ fn generation_alone_writes_its_figures_and_the_machine_it_ran_on() {
     );
     let peak = machine["fma_peak_gflops"].as_f64().expect("an FMA peak");
     assert!(peak > 0.0, "{machine}");
+    let row_kernels = machine["row_kernels"].as_str();
+    assert!(
+        matches!(row_kernels, Some("avx512" | "avx2" | "baseline")),
+        "{machine}"
+    );
     assert_eq!(report["peak_gflops"].as_f64(), Some(peak), "{report}");
     assert!(printed.contains("FMA peak measured now"), "{printed}");
 }

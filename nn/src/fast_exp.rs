@@ -1,18 +1,5 @@
-//! A vectorisable eˣ: the loops that call it compile to AVX2 + FMA code (in functions built
-//! with those features, chosen at run time by [`avx2_fma`]) where libm's `expf` is one call
-//! per value.
-
-/// Whether this CPU has AVX2 and FMA (the detection is cached by std).
-pub fn avx2_fma() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
-}
+//! A vectorisable eˣ: the loops that call it compile to vector code (in kernels built for the
+//! CPU's widest vectors by [`crate::vectorised!`]) where libm's `expf` is one call per value.
 
 /// Round-to-nearest shift for f32 (1.5 · 2²³).
 const MAGIC: f32 = 12_582_912.0;

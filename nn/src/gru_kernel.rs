@@ -16,7 +16,7 @@
 //! to first when `reverse`) and its output is zero past its length.
 
 use crate::cpu_f32::{contiguous_f32, F32Values};
-use crate::fast_exp::{self, exp};
+use crate::fast_exp::exp;
 use crate::kernels::{column_sums, SharedMut};
 use crate::matmul::{gemm_with, transpose};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
@@ -92,22 +92,12 @@ fn tanh(x: f32) -> f32 {
     1.0 - 2.0 / (1.0 + exp(2.0 * x))
 }
 
-/// One step of one sequence: updates `h` in place from its gate inputs `x` and `gh`
-/// (both `3h`: r, z, n) and keeps r, z, n and gh_n in `saved` for the backward pass.
-fn gate_step(x: &[f32], gh: &[f32], h: &mut [f32], saved: &mut [f32]) {
-    #[cfg(target_arch = "x86_64")]
-    if fast_exp::avx2_fma() {
-        // SAFETY: the CPU supports the features the function was compiled for.
-        return unsafe { gate_step_avx2(x, gh, h, saved) };
-    }
-    gate_step_body(x, gh, h, saved);
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn gate_step_avx2(x: &[f32], gh: &[f32], h: &mut [f32], saved: &mut [f32]) {
-    gate_step_body(x, gh, h, saved);
-}
+crate::vectorised!(
+    /// One step of one sequence: updates `h` in place from its gate inputs `x` and `gh`
+    /// (both `3h`: r, z, n) and keeps r, z, n and gh_n in `saved` for the backward pass.
+    fn gate_step / gate_step_at(x: &[f32], gh: &[f32], h: &mut [f32], saved: &mut [f32])
+        = gate_step_body;
+);
 
 #[inline(always)]
 fn gate_step_body(x: &[f32], gh: &[f32], h: &mut [f32], saved: &mut [f32]) {
@@ -433,5 +423,25 @@ pub fn scan_reference(
         reverse_within(&states, lengths)
     } else {
         Ok(states)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One GRU gate step gives the same bits at every vector level.
+    #[test]
+    fn gate_step_agrees_at_every_vector_level() {
+        let hd = 67;
+        let mut rng = motionscale_core::rng::SplitMix64(9);
+        let mut draw =
+            |n: usize| -> Vec<f32> { (0..n).map(|_| rng.range(-4.0, 4.0) as f32).collect() };
+        let (x, gh, h) = (draw(3 * hd), draw(3 * hd), draw(hd));
+        crate::simd::assert_levels_agree(|isa| {
+            let (mut h, mut saved) = (h.clone(), vec![0f32; 4 * hd]);
+            gate_step_at(isa, &x, &gh, &mut h, &mut saved);
+            crate::simd::bits(&[h, saved].concat())
+        });
     }
 }

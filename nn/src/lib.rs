@@ -11,6 +11,8 @@
 //! - [`fused_ops`]: RMSNorm, SwiGLU, rotary QKV heads, the masked softmax and the
 //!   cross-entropy as single ops with a backward, on the CPU and (`cuda`) the GPU, for the
 //!   graph executor; [`device_check`]: those ops and the AdamW step on a device against the CPU;
+//! - [`simd`]: the row kernels' vector level (AVX-512, AVX2 + FMA or baseline) chosen at run
+//!   time, every level giving the same bits ([`vectorised!`]);
 //! - [`optim`] (AdamW with saveable state, warm-up + cosine schedule), [`checkpoint`]
 //!   (safetensors written atomically, resumable run files), [`kmeans`], and [`gradcheck`]
 //!   (the finite-difference reference of the gradient tests).
@@ -39,6 +41,7 @@ pub mod matmul;
 pub mod model_error;
 pub mod optim;
 pub mod seq_layout;
+pub mod simd;
 
 pub use error::NnError;
 pub use model_error::ModelError;

@@ -88,21 +88,10 @@ pub fn gate_sigmoid(ab: &[f32], f: usize) -> Vec<f32> {
     s
 }
 
-/// `dst = σ(src)`, through the vectorised exp where the CPU has AVX2 + FMA.
-fn sigmoid_into(dst: &mut [f32], src: &[f32]) {
-    #[cfg(target_arch = "x86_64")]
-    if fast_exp::avx2_fma() {
-        // SAFETY: the CPU supports the features the function was compiled for.
-        return unsafe { sigmoid_avx2(dst, src) };
-    }
-    sigmoid_body(dst, src);
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn sigmoid_avx2(dst: &mut [f32], src: &[f32]) {
-    sigmoid_body(dst, src);
-}
+crate::vectorised!(
+    /// `dst = σ(src)`, through the vectorised exp at the CPU's widest vectors.
+    fn sigmoid_into / sigmoid_into_at(dst: &mut [f32], src: &[f32]) = sigmoid_body;
+);
 
 #[inline(always)]
 fn sigmoid_body(dst: &mut [f32], src: &[f32]) {
@@ -503,21 +492,11 @@ impl LayerCache {
 // ---------------------------------------------------------------------------------------
 // Cross-entropy
 
-/// `log p(target)` of one row of logits (log-softmax at the target).
-pub(crate) fn target_log_prob(row: &[f32], target: usize) -> f32 {
-    #[cfg(target_arch = "x86_64")]
-    if fast_exp::avx2_fma() {
-        // SAFETY: the CPU supports the features the function was compiled for.
-        return unsafe { target_log_prob_avx2(row, target) };
-    }
-    target_log_prob_body(row, target)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn target_log_prob_avx2(row: &[f32], target: usize) -> f32 {
-    target_log_prob_body(row, target)
-}
+crate::vectorised!(
+    /// `log p(target)` of one row of logits (log-softmax at the target).
+    pub(crate) fn target_log_prob / target_log_prob_at(row: &[f32], target: usize) -> f32
+        = target_log_prob_body;
+);
 
 #[inline(always)]
 fn target_log_prob_body(row: &[f32], target: usize) -> f32 {
@@ -619,22 +598,15 @@ pub fn cross_entropy(logits: &[f32], vocab: usize, targets: &[u32]) -> (f32, Vec
     (mean as f32, grad)
 }
 
-/// Cross-entropy of one row of logits at `target`, turning the row into its gradient scaled
-/// by `scale`: `scale · (softmax − onehot)`.
-pub(crate) fn cross_entropy_row(row: &mut [f32], target: usize, scale: f32) -> f64 {
-    #[cfg(target_arch = "x86_64")]
-    if fast_exp::avx2_fma() {
-        // SAFETY: the CPU supports the features the function was compiled for.
-        return unsafe { cross_entropy_row_avx2(row, target, scale) };
-    }
-    cross_entropy_row_body(row, target, scale)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn cross_entropy_row_avx2(row: &mut [f32], target: usize, scale: f32) -> f64 {
-    cross_entropy_row_body(row, target, scale)
-}
+crate::vectorised!(
+    /// Cross-entropy of one row of logits at `target`, turning the row into its gradient
+    /// scaled by `scale`: `scale · (softmax − onehot)`.
+    pub(crate) fn cross_entropy_row / cross_entropy_row_at(
+        row: &mut [f32],
+        target: usize,
+        scale: f32,
+    ) -> f64 = cross_entropy_row_body;
+);
 
 #[inline(always)]
 fn cross_entropy_row_body(row: &mut [f32], target: usize, scale: f32) -> f64 {
@@ -681,6 +653,26 @@ mod tests {
     fn values(n: usize, seed: u64) -> Vec<f32> {
         let mut rng = motionscale_core::rng::SplitMix64(seed);
         (0..n).map(|_| rng.range(-1.0, 1.0) as f32).collect()
+    }
+
+    /// σ, the cross-entropy row and log p(target) give the same bits at every vector level.
+    #[test]
+    fn row_kernels_agree_at_every_vector_level() {
+        let row: Vec<f32> = values(1027, 3).iter().map(|v| v * 9.0).collect();
+        crate::simd::assert_levels_agree(|isa| {
+            let mut sig = vec![0f32; row.len()];
+            sigmoid_into_at(isa, &mut sig, &row);
+            let mut grad = row.clone();
+            let ce = cross_entropy_row_at(isa, &mut grad, 17, 0.5);
+            let log_p = target_log_prob_at(isa, &row, 17);
+            let mut out = crate::simd::bits(&[sig, grad].concat());
+            out.extend([
+                ce.to_bits() as u32,
+                (ce.to_bits() >> 32) as u32,
+                log_p.to_bits(),
+            ]);
+            out
+        });
     }
 
     #[test]

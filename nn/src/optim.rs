@@ -95,14 +95,7 @@ impl StepValues {
             .zip(m.par_chunks_mut(CHUNK))
             .zip(v.par_chunks_mut(CHUNK))
             .zip(g.par_chunks(CHUNK))
-            .for_each(|(((p, m), v), g)| {
-                #[cfg(target_arch = "x86_64")]
-                if crate::fast_exp::avx2_fma() {
-                    // SAFETY: the CPU supports the features the function was compiled for.
-                    return unsafe { self.chunk_avx2(p, m, v, g) };
-                }
-                self.chunk(p, m, v, g);
-            });
+            .for_each(|(((p, m), v), g)| step_chunk(self, p, m, v, g));
     }
 
     /// The same update on the parameter's device, from moments `mv` (`(2, n)`; `None`:
@@ -157,15 +150,6 @@ impl StepValues {
         Ok((m, v))
     }
 
-    /// [`StepValues::chunk`] in 8-wide registers: its square roots and divisions are most of
-    /// the optimiser's time. Exactly rounded either way (no FMA contraction), so the values do
-    /// not depend on the path.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    fn chunk_avx2(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
-        self.chunk(p, m, v, g);
-    }
-
     /// One chunk of the update; iterators rather than indices, so that it vectorises.
     #[inline(always)]
     fn chunk(&self, p: &mut [f32], m: &mut [f32], v: &mut [f32], g: &[f32]) {
@@ -179,6 +163,19 @@ impl StepValues {
         }
     }
 }
+
+crate::vectorised!(
+    /// [`StepValues::chunk`] at the CPU's widest vectors: its square roots and divisions are
+    /// most of the optimiser's time. Exactly rounded at every width (no FMA contraction), so
+    /// the values do not depend on the path.
+    fn step_chunk / step_chunk_at(
+        values: &StepValues,
+        p: &mut [f32],
+        m: &mut [f32],
+        v: &mut [f32],
+        g: &[f32],
+    ) = StepValues::chunk;
+);
 
 /// One parameter's update applied in place to its storage, reading the gradient where it
 /// lies, instead of copying the parameter out and back and the gradient out. The moments sit
@@ -515,6 +512,29 @@ pub fn device_agreement(device: &Device) -> Result<f32, NnError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// AdamW's chunk update gives the same bits at every vector level.
+    #[test]
+    fn step_chunk_agrees_at_every_vector_level() {
+        let values = StepValues {
+            scale: 0.7,
+            beta: (0.9, 0.95),
+            eps: 1e-8,
+            step_size: 3e-4,
+            bias2_sqrt: 0.3,
+            decay: 0.999,
+        };
+        let mut rng = motionscale_core::rng::SplitMix64(5);
+        let mut draw =
+            |n: usize| -> Vec<f32> { (0..n).map(|_| rng.range(-1.0, 1.0) as f32).collect() };
+        let (p, m, g) = (draw(1001), draw(1001), draw(1001));
+        let v: Vec<f32> = draw(1001).iter().map(|x| x * x).collect();
+        crate::simd::assert_levels_agree(|isa| {
+            let (mut p, mut m, mut v) = (p.clone(), m.clone(), v.clone());
+            step_chunk_at(isa, &values, &mut p, &mut m, &mut v, &g);
+            crate::simd::bits(&[p, m, v].concat())
+        });
+    }
 
     #[test]
     fn schedule_warms_up_linearly_then_decays_by_cosine() {

@@ -162,6 +162,9 @@ pub struct Machine {
     pub isa: Isa,
     /// The vectors gemm's kernels take ([`vector_isa`]'s names).
     pub gemm_kernels: String,
+    /// The vectors our row kernels (exp, σ, GELU, softmax rows, AdamW) take (`nn::simd`).
+    #[serde(default)]
+    pub row_kernels: String,
     /// This machine's fp32 FMA peak measured now, GFLOP/s ([`fma_peak`]).
     pub fma_peak_gflops: f64,
     /// The vectors that peak ran with.
@@ -275,8 +278,7 @@ pub fn machine() -> Machine {
     };
     #[cfg(not(target_arch = "x86_64"))]
     let isa = Isa::default();
-    // gemm (x86-v4 feature on) takes its AVX-512 kernels where the CPU has them; our
-    // element-wise kernels take AVX2 + FMA where the CPU has them.
+    // gemm (x86-v4 feature on) takes its AVX-512 kernels where the CPU has them.
     let gemm_lanes = match (isa.avx512f, isa.avx2) {
         (Some(true), _) => 16,
         (_, Some(true)) => 8,
@@ -297,6 +299,7 @@ pub fn machine() -> Machine {
         gemm_cache_bytes_per_core: gemm_caches,
         isa,
         gemm_kernels: vector_isa(gemm_lanes),
+        row_kernels: nn::simd::isa().name().into(),
         fma_peak_gflops: peak.gflops,
         fma_peak_isa: peak.isa.clone(),
         threads: rayon::current_num_threads(),

@@ -116,21 +116,14 @@ fn add_norm(x: &mut [f32], y: &[f32], b: &[f32], norm: &LayerNorm) {
 
 /// `h ← GELU(h + b)` row by row, GELU the exact (erf) one.
 fn bias_gelu(h: &mut [f32], b: &[f32]) {
-    h.par_chunks_mut(b.len() * ROW_BLOCK).for_each(|block| {
-        #[cfg(target_arch = "x86_64")]
-        if fast_exp::avx2_fma() {
-            // SAFETY: the CPU supports the features the function was compiled for.
-            return unsafe { bias_gelu_avx2(block, b) };
-        }
-        bias_gelu_body(block, b)
-    });
+    h.par_chunks_mut(b.len() * ROW_BLOCK)
+        .for_each(|block| bias_gelu_block(block, b));
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn bias_gelu_avx2(h: &mut [f32], b: &[f32]) {
-    bias_gelu_body(h, b)
-}
+nn::vectorised!(
+    /// [`bias_gelu`] of one block of rows at the CPU's widest vectors.
+    fn bias_gelu_block / bias_gelu_block_at(h: &mut [f32], b: &[f32]) = bias_gelu_body;
+);
 
 #[inline(always)]
 fn bias_gelu_body(h: &mut [f32], b: &[f32]) {
@@ -176,24 +169,13 @@ fn softmax(p: &mut [f32]) {
     p.iter_mut().for_each(|v| *v *= inv);
 }
 
-/// Multi-head self-attention of one sequence over its own tokens: `qkv` holds its rows
-/// `[q | k | v]` (each `3d` wide, heads contiguous), `ctx` gets the heads' outputs side by
-/// side (`d` wide).
-fn attend(qkv: &[f32], ctx: &mut [f32], dims: (usize, usize), p: &mut Vec<f32>) {
-    #[cfg(target_arch = "x86_64")]
-    if fast_exp::avx2_fma() {
-        // SAFETY: the CPU supports the features the function was compiled for.
-        return unsafe { attend_avx2(qkv, ctx, dims, p) };
-    }
-    attend_body(qkv, ctx, dims, p)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn attend_avx2(qkv: &[f32], ctx: &mut [f32], dims: (usize, usize), p: &mut Vec<f32>) {
-    attend_body(qkv, ctx, dims, p)
-}
-
+nn::vectorised!(
+    /// Multi-head self-attention of one sequence over its own tokens: `qkv` holds its rows
+    /// `[q | k | v]` (each `3d` wide, heads contiguous), `ctx` gets the heads' outputs side
+    /// by side (`d` wide).
+    fn attend / attend_at(qkv: &[f32], ctx: &mut [f32], dims: (usize, usize), p: &mut Vec<f32>)
+        = attend_body;
+);
 /// [`attend`]: each score a dot product of two contiguous head rows (independent, so they
 /// overlap), each output row a sum of value rows.
 #[inline(always)]
@@ -437,6 +419,23 @@ mod tests {
     use candle_transformers::models::bert::BertModel;
     use motionscale_core::rng::SplitMix64;
     use nn::gradcheck::max_abs_diff;
+
+    /// The GELU block and the attention give the same bits at every vector level.
+    #[test]
+    fn row_kernels_agree_at_every_vector_level() {
+        let (d, heads, n) = (32, 4, 11);
+        let mut rng = SplitMix64(4);
+        let mut draw =
+            |len: usize| -> Vec<f32> { (0..len).map(|_| rng.range(-3.0, 3.0) as f32).collect() };
+        let (h, b, qkv) = (draw(n * 2 * d), draw(2 * d), draw(n * 3 * d));
+        nn::simd::assert_levels_agree(|isa| {
+            let mut gelu = h.clone();
+            bias_gelu_block_at(isa, &mut gelu, &b);
+            let (mut ctx, mut scratch) = (vec![0f32; n * d], Vec::new());
+            attend_at(isa, &qkv, &mut ctx, (d, heads), &mut scratch);
+            nn::simd::bits(&[gelu, ctx].concat())
+        });
+    }
 
     fn tiny_config() -> Config {
         Config {
