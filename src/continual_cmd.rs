@@ -136,8 +136,9 @@ pub struct ContinualArgs {
 /// `motionscale continual compare`.
 #[derive(clap::Subcommand, Debug)]
 pub enum CompareCommand {
-    /// Print one row per method (summary metrics averaged over its orders) as a Markdown
-    /// table; runs that differ only in --seed share a row: mean ± 95% interval over seeds.
+    /// Print one row per method (summary metrics averaged over its orders, and for ES-MoE the
+    /// gate's mean weight on the new expert for the dataset just learned) as a Markdown table;
+    /// runs that differ only in --seed share a row: mean ± 95% interval over seeds.
     Compare {
         /// Continual run folders.
         #[arg(required = true)]

@@ -230,6 +230,18 @@ fn continual_methods_fill_the_matrices_and_resume_to_the_same_summary() {
         table.contains("| es-moe | 1 |") && table.contains("| es-moe w/o MoE (single LoRA) | 1 |"),
         "{table}"
     );
+    // The new expert's weight: the gate's last entry after steps 2..6, averaged.
+    let gate = read_json::<Value>(&moe.join("summary.json"))["orders"][0]["gate"].clone();
+    let newest: Vec<f64> = gate.as_array().unwrap()[1..]
+        .iter()
+        .map(|w| w.as_array().unwrap().last().unwrap().as_f64().unwrap())
+        .collect();
+    let mean = newest.iter().sum::<f64>() / newest.len() as f64;
+    let moe_row = table
+        .lines()
+        .find(|l| l.contains("| es-moe | 1 |"))
+        .unwrap();
+    assert!(moe_row.contains(&format!("| {mean:.3} |")), "{table}");
 
     refuses_a_backbone_that_trained_on_held_out_clips(setup);
     a_law_sizes_the_backbone(setup);

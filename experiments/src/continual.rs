@@ -838,16 +838,20 @@ pub fn compare_table(runs: &[PathBuf], mixed_evaluators: bool) -> Result<String,
         ..r.config.clone()
     };
     let mut out = String::from(
-        "| run | method | orders | seeds | AF ↓ | AR ↑ | AD | AMM | AWF ↑ | FR ↓ | evaluator |\n\
-         |---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| run | method | orders | seeds | AF ↓ | AR ↑ | AD | AMM | AWF ↑ | FR ↓ | new expert's weight | evaluator |\n\
+         |---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for members in seeds::group(scored, seedless, mixed_evaluators)? {
         let metric = |f: fn(&Summary) -> Option<f64>, digits| {
             seeds::cell(members.iter().map(|r| f(&r.report.mean)).collect(), digits)
         };
         let first = &members[0];
+        let routed = members
+            .iter()
+            .map(|r| new_expert_weight(&r.report))
+            .collect();
         out.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             seeds::run_label(&members),
             first.report.config.label(),
             first.report.orders.len(),
@@ -858,10 +862,23 @@ pub fn compare_table(runs: &[PathBuf], mixed_evaluators: bool) -> Result<String,
             metric(|s| s.amm, 3),
             metric(|s| s.awf, 3),
             metric(|s| s.fr, 3),
+            seeds::cell(routed, 3),
             seeds::evaluator_label(&first.evaluator_id)
         ));
     }
     Ok(out)
+}
+
+/// ES-MoE: the gate's mean weight on the newest expert for the test captions of the dataset
+/// it just learned, over every order's steps after the first (`None` for other methods).
+fn new_expert_weight(report: &ContinualReport) -> Option<f64> {
+    let newest: Vec<f64> = report
+        .orders
+        .iter()
+        .flat_map(|o| o.gate.iter().skip(1).flatten())
+        .filter_map(|w| w.last().copied())
+        .collect();
+    (!newest.is_empty()).then(|| newest.iter().sum::<f64>() / newest.len() as f64)
 }
 
 #[cfg(test)]
