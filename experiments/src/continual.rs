@@ -870,13 +870,14 @@ pub fn compare_table(runs: &[PathBuf], mixed_evaluators: bool) -> Result<String,
 }
 
 /// ES-MoE: the gate's mean weight on the newest expert for the test captions of the dataset
-/// it just learned, over every order's steps after the first (`None` for other methods).
+/// it just learned, over every order's steps after the first that added an expert (`None`
+/// for other methods and for the single-LoRA ablation, whose one expert is shared).
 fn new_expert_weight(report: &ContinualReport) -> Option<f64> {
     let newest: Vec<f64> = report
         .orders
         .iter()
-        .flat_map(|o| o.gate.iter().skip(1).flatten())
-        .filter_map(|w| w.last().copied())
+        .flat_map(|o| o.gate.iter().enumerate().skip(1))
+        .filter_map(|(k, w)| w.as_ref().filter(|w| w.len() == k + 1)?.last().copied())
         .collect();
     (!newest.is_empty()).then(|| newest.iter().sum::<f64>() / newest.len() as f64)
 }
