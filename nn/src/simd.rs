@@ -25,8 +25,14 @@ impl Isa {
     }
 }
 
-/// The widest level this CPU has (std caches the detection).
+/// The widest level this CPU has, detected once: every kernel call reads it (twice, with its
+/// check), so it is one load rather than three feature detections.
 pub fn isa() -> Isa {
+    static LEVEL: std::sync::OnceLock<Isa> = std::sync::OnceLock::new();
+    *LEVEL.get_or_init(detect)
+}
+
+fn detect() -> Isa {
     #[cfg(target_arch = "x86_64")]
     {
         let avx2_fma =

@@ -176,6 +176,7 @@ nn::vectorised!(
     fn attend / attend_at(qkv: &[f32], ctx: &mut [f32], dims: (usize, usize), p: &mut Vec<f32>)
         = attend_body;
 );
+
 /// [`attend`]: each score a dot product of two contiguous head rows (independent, so they
 /// overlap), each output row a sum of value rows.
 #[inline(always)]
