@@ -174,11 +174,16 @@ fn fit_runs(t: &Table, runs: &Runs, opts: &FitOptions) -> Result<Fits, FitError>
     })
 }
 
+/// Budgets without an interior minimum that the warnings name one by one; past this many,
+/// one line counts them (the summary names each with its reason).
+const NAMED_EXCLUSIONS: usize = 3;
+
 /// Warnings about budgets and vocabulary minima that are not interior: a line per budget on
-/// an IsoFLOP grid, one line for a table that is not one (at most two interior minima among
-/// more than three budget groups).
+/// an IsoFLOP grid with a few bad budgets, one line for more, and one line for a table that
+/// is not a grid at all (at most two interior minima among more than three budget groups).
 fn minima_warnings(budgets: &[BudgetMinimum], vocab: &[IsoMinimum], warnings: &mut Vec<String>) {
     let interior = budgets.iter().filter(|b| b.min.interior).count();
+    let excluded = budgets.len() - interior;
     if budgets.len() > 3 && interior <= 2 {
         warnings.push(format!(
             "not an IsoFLOP grid: {interior} of {} budget groups have an interior minimum over N, \
@@ -187,12 +192,21 @@ fn minima_warnings(budgets: &[BudgetMinimum], vocab: &[IsoMinimum], warnings: &m
         ));
         return;
     }
-    for b in budgets {
-        if let (false, Some(reason)) = (b.min.interior, &b.min.reason) {
-            warnings.push(format!(
-                "budget {:.3e}: no interior minimum over N ({reason}); excluded from the laws",
-                b.min.budget
-            ));
+    if excluded > NAMED_EXCLUSIONS {
+        warnings.push(format!(
+            "{excluded} of {} budget groups have no interior minimum over N and are excluded \
+             from the laws (the summary names each with its reason); `fit --law` fits the \
+             parametric laws to every run",
+            budgets.len()
+        ));
+    } else {
+        for b in budgets {
+            if let (false, Some(reason)) = (b.min.interior, &b.min.reason) {
+                warnings.push(format!(
+                    "budget {:.3e}: no interior minimum over N ({reason}); excluded from the laws",
+                    b.min.budget
+                ));
+            }
         }
     }
     let excluded_v = vocab.iter().filter(|m| !m.interior).count();
@@ -481,7 +495,7 @@ mod tests {
     }
 
     #[test]
-    fn a_table_that_is_no_isoflop_grid_gets_one_line_not_one_per_budget() {
+    fn many_budgets_without_a_minimum_get_one_line_not_one_per_budget() {
         let mut w = Vec::new();
         minima_warnings(&budgets(&[false, false, true, false, false]), &[], &mut w);
         assert_eq!(w.len(), 1, "{w:?}");
@@ -494,6 +508,14 @@ mod tests {
         assert_eq!(w.len(), 2, "a grid with two bad budgets names each: {w:?}");
         assert!(
             w.iter().all(|l| l.contains("no interior minimum over N")),
+            "{w:?}"
+        );
+        let mut w = Vec::new();
+        let partial = [true, false, true, false, true, false, false];
+        minima_warnings(&budgets(&partial), &[], &mut w);
+        assert_eq!(w.len(), 1, "four bad budgets of seven get one line: {w:?}");
+        assert!(
+            w[0].starts_with("4 of 7 budget groups have no interior"),
             "{w:?}"
         );
     }
