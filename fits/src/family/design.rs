@@ -111,8 +111,9 @@ pub fn replay(
 
 /// A live study's next `k` runs (`room`: the compute they may spend): greedy V-optimal
 /// additions to `trained` from `candidates` (costing `cost`), at the fit θ in `space`, for the
-/// `target` points; each candidate's index with the target's mean prediction variance (in
-/// units of the noise) once it is added.
+/// `target` points, by gain per cost^γ for each γ of [`COST_EXPONENTS`], the sequence with the
+/// lowest final variance kept (as [`replay`] does); each candidate's index with the target's
+/// mean prediction variance (in units of the noise) once it is added.
 #[allow(clippy::too_many_arguments)]
 pub fn next_runs(
     family: &dyn Family,
@@ -139,19 +140,12 @@ pub fn next_runs(
         space,
         s: &s,
     };
-    let mut chosen: Vec<usize> = (0..trained.len()).collect();
-    let mut out = Vec::new();
-    let mut left = room;
-    while out.len() < k {
-        let Some(best) = pool.best_addition(theta, &chosen, left, 1.0) else {
-            break;
-        };
-        chosen.push(best);
-        left -= all_cost[best];
-        let variance = pool.variance(theta, &chosen).unwrap_or(f64::NAN);
-        out.push((best - trained.len(), variance));
-    }
-    out
+    let final_variance = |picks: &Vec<(usize, f64)>| picks.last().map_or(f64::INFINITY, |p| p.1);
+    COST_EXPONENTS
+        .map(|gamma| pool.additions(theta, trained.len(), (k, room), gamma))
+        .into_iter()
+        .min_by(|a, b| final_variance(a).total_cmp(&final_variance(b)))
+        .unwrap_or_default()
 }
 
 /// The pool, its target and the fitter, for the greedy designs.
@@ -199,6 +193,31 @@ impl Pool<'_> {
         }
         let theta = self.fit(&chosen).or(theta);
         (chosen, theta)
+    }
+
+    /// Up to `k` greedy additions by gain per cost^`gamma` to the first `trained` rows, within
+    /// `room`: each row's index past `trained` with the target's mean prediction variance once
+    /// it is added.
+    fn additions(
+        &self,
+        theta: &[f64],
+        trained: usize,
+        (k, room): (usize, f64),
+        gamma: f64,
+    ) -> Vec<(usize, f64)> {
+        let mut chosen: Vec<usize> = (0..trained).collect();
+        let mut out = Vec::new();
+        let mut left = room;
+        while out.len() < k {
+            let Some(best) = self.best_addition(theta, &chosen, left, gamma) else {
+                break;
+            };
+            chosen.push(best);
+            left -= self.cost[best];
+            let variance = self.variance(theta, &chosen).unwrap_or(f64::NAN);
+            out.push((best - trained, variance));
+        }
+        out
     }
 
     /// The inverse Fisher information of `chosen` at θ and the target's mean outer product.
@@ -286,6 +305,44 @@ fn start(cost: &[f64], budget: f64, k: usize, seed: u64) -> Vec<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A live study with room for it buys the one candidate near the target, which lowers the
+    /// target's variance most, beside 16 cheap ones; by gain per cost alone (the only design
+    /// before the cost exponents) it buys a cheap one instead.
+    #[test]
+    fn next_runs_keep_the_design_with_the_lowest_variance() {
+        let family = crate::family::family("chinchilla").unwrap();
+        let theta = family.theta_from_natural(&[1.69, 406.4, 410.7, 0.34, 0.28]);
+        let at = |n: f64, d: f64| Point {
+            n,
+            d,
+            ..Point::default()
+        };
+        let grid = |lo: f64, k: usize| -> Vec<Point> {
+            (0..k * k)
+                .map(|i| {
+                    let step = |j: usize| 10f64.powf(j as f64 / (k - 1) as f64);
+                    at(lo * step(i / k), 100.0 * lo * step(i % k))
+                })
+                .collect()
+        };
+        let trained = grid(1e6, 3);
+        let mut candidates = grid(2e6, 4);
+        candidates.push(at(1e9, 1e11));
+        let cost: Vec<f64> = candidates.iter().map(Point::compute).collect();
+        let target: Vec<Point> = [1e9, 1e10].iter().map(|&n| at(n, 20.0 * n)).collect();
+        let picks = next_runs(
+            family.as_ref(),
+            (&theta, Space::Log),
+            &trained,
+            &candidates,
+            &cost,
+            &target,
+            (1, 1e22),
+        );
+        assert_eq!(picks.len(), 1, "{picks:?}");
+        assert_eq!(picks[0].0, candidates.len() - 1, "{picks:?}");
+    }
 
     /// A Chinchilla pool of 12 × 12 runs with 0.5% noise, and targets a decade past its
     /// largest compute: at 1%, 5% and 10% of the pool's cost, V-optimal buys beat random
