@@ -111,9 +111,9 @@ pub fn replay(
 
 /// A live study's next `k` runs (`room`: the compute they may spend): greedy V-optimal
 /// additions to `trained` from `candidates` (costing `cost`), at the fit θ in `space`, for the
-/// `target` points, by gain per cost^γ for each γ of [`COST_EXPONENTS`], the sequence with the
-/// lowest final variance kept (as [`replay`] does); each candidate's index with the target's
-/// mean prediction variance (in units of the noise) once it is added.
+/// `target` points, by gain per cost^γ for γ = 1, 0.3 and 0, the sequence with the lowest
+/// final variance kept (as [`replay`] does); each candidate's index with the target's mean
+/// prediction variance (in units of the noise) once it is added.
 #[allow(clippy::too_many_arguments)]
 pub fn next_runs(
     family: &dyn Family,
