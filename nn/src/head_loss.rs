@@ -159,7 +159,7 @@ fn gather(x: &[f32], d: usize, rows: &[usize], out: &mut [f32]) {
 mod tests {
     use super::*;
     use crate::gradcheck::max_abs_diff;
-    use crate::lm_kernels::{cross_entropy, matmul_new, target_log_probs};
+    use crate::lm_kernels::{cross_entropy, gemm_new, target_log_probs};
 
     fn values(n: usize, seed: u64) -> Vec<f32> {
         let mut rng = motionscale_core::rng::SplitMix64(seed);
@@ -169,10 +169,10 @@ mod tests {
     /// The unfused path: full logits, cross-entropy, then both gradient products.
     fn unfused(x: &[f32], head: &[f32], d: usize, targets: &[u32]) -> (f32, Vec<f32>, Vec<f32>) {
         let (rows, vocab) = (x.len() / d, head.len() / d);
-        let logits = matmul_new((x, false), (head, true), (rows, vocab, d));
+        let logits = gemm_new((x, false), (head, true), (rows, vocab, d));
         let (loss, g) = cross_entropy(&logits, vocab, targets);
-        let g_x = matmul_new((&g, false), (head, false), (rows, d, vocab));
-        let g_head = matmul_new((&g, true), (x, false), (vocab, d, rows));
+        let g_x = gemm_new((&g, false), (head, false), (rows, d, vocab));
+        let g_head = gemm_new((&g, true), (x, false), (vocab, d, rows));
         (loss, g_x, g_head)
     }
 
@@ -217,7 +217,7 @@ mod tests {
                     assert!(fx[r * d..][..d].iter().any(|&g| g != 0.0));
                 }
             }
-            let logits = matmul_new((&x, false), (&head, true), (rows, vocab, d));
+            let logits = gemm_new((&x, false), (&head, true), (rows, vocab, d));
             let lp = target_log_probs(&logits, vocab, &targets);
             let flp = linear_target_log_probs(&x, &head, d, &targets);
             for (a, b) in lp.iter().zip(&flp) {

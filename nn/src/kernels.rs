@@ -3,7 +3,7 @@
 //! product, column sums, the fixed row block of the row-wise kernels and the rayon pool they
 //! start in. Every reduction runs in a fixed order, so results never depend on scheduling.
 
-use crate::matmul::{gemm_new, gemm_with, Operand};
+use crate::matmul::{gemm_with, Operand};
 
 /// Run `f` on a thread of the rayon pool. A step of many small parallel kernels (a decoded
 /// token, an LM training step) started there forks each kernel cheaply; started outside the
@@ -63,12 +63,6 @@ pub fn gemm(
     accumulate: bool,
 ) {
     gemm_with(dst, lhs, rhs, mnk, (accumulate, 1.0, true));
-}
-
-/// A new `m×n` matrix `lhs · rhs`, on several threads when large and not zero-filled first
-/// ([`gemm_new`]: the product writes every value).
-pub fn matmul_new(lhs: Operand, rhs: Operand, mnk: (usize, usize, usize)) -> Vec<f32> {
-    gemm_new(lhs, rhs, mnk)
 }
 
 /// One small single-threaded product (`dst = scale · lhs · rhs`) of the kernels that run

@@ -16,7 +16,8 @@ use crate::kernels::{matmul, SharedMut};
 use crate::seq_layout::SeqLayout;
 use rayon::prelude::*;
 
-pub use crate::kernels::{column_sums, dot, gemm, in_pool, matmul_new, ROW_BLOCK};
+pub use crate::kernels::{column_sums, dot, gemm, in_pool, ROW_BLOCK};
+pub use crate::matmul::gemm_new;
 
 /// Target id of a position without loss (padding).
 pub const IGNORE: u32 = u32::MAX;

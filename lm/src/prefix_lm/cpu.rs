@@ -45,14 +45,14 @@ fn block_forward(
     let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
     let rows = h.len() / d;
     let xn = lm_kernels::rms_norm(&h, w.n1, eps);
-    let qkv = lm_kernels::matmul_new((&xn, false), wqkv, (rows, 3 * d, d));
+    let qkv = lm_kernels::gemm_new((&xn, false), wqkv, (rows, 3 * d, d));
     let (a, probs) = attend(&qkv);
     let scales = dropped
         .as_ref()
         .map(|[att, ffn]| (att.as_slice(), ffn.as_slice()));
     let h1 = add_branch(&h, (&a, wo), (rows, d, d), scales.map(|s| s.0));
     let xn = lm_kernels::rms_norm(&h1, w.n2, eps);
-    let ab = lm_kernels::matmul_new((&xn, false), w13, (rows, 2 * f, d));
+    let ab = lm_kernels::gemm_new((&xn, false), w13, (rows, 2 * f, d));
     let sig = lm_kernels::gate_sigmoid(&ab, f);
     let act = lm_kernels::swiglu(&ab, &sig, f);
     let h2 = add_branch(&h1, (&act, w2), (rows, d, f), scales.map(|s| s.1));
@@ -84,7 +84,7 @@ fn add_branch(
             out
         }
         Some(scales) => {
-            let branch = lm_kernels::matmul_new((x, false), w, (rows, d, k));
+            let branch = lm_kernels::gemm_new((x, false), w, (rows, d, k));
             (h.iter().zip(branch).zip(scales))
                 .map(|((h, b), s)| h + b * s)
                 .collect()
@@ -123,23 +123,23 @@ fn block_backward(
     // h2 = h1 + swiglu(ab)·W2ᵀ (⊙ dropout scales).
     let act = lm_kernels::swiglu(&t.ab, &t.sig, f);
     let g_out = through_dropout(gh, g_ffn_scales);
-    let g_w2 = lm_kernels::matmul_new((&g_out, true), (&act, false), (d, f, rows));
-    let g_act = lm_kernels::matmul_new((&g_out, false), (w.w2, false), (rows, f, d));
+    let g_w2 = lm_kernels::gemm_new((&g_out, true), (&act, false), (d, f, rows));
+    let g_act = lm_kernels::gemm_new((&g_out, false), (w.w2, false), (rows, f, d));
     let g_ab = lm_kernels::swiglu_backward(&t.ab, &t.sig, &g_act, f);
     // ab = RMSNorm(h1)·W13ᵀ.
     let xn = lm_kernels::rms_norm(&t.h1, w.n2, eps);
-    let g_w13 = lm_kernels::matmul_new((&g_ab, true), (&xn, false), (2 * f, d, rows));
-    let g_xn = lm_kernels::matmul_new((&g_ab, false), (w.w13, false), (rows, d, 2 * f));
+    let g_w13 = lm_kernels::gemm_new((&g_ab, true), (&xn, false), (2 * f, d, rows));
+    let g_xn = lm_kernels::gemm_new((&g_ab, false), (w.w13, false), (rows, d, 2 * f));
     let g_n2 = lm_kernels::rms_norm_backward(&t.h1, w.n2, &g_xn, eps, gh);
     // h1 = h + a·Woᵀ (⊙ dropout scales).
     let g_out = through_dropout(gh, g_att_scales);
-    let g_wo = lm_kernels::matmul_new((&g_out, true), (&t.a, false), (d, d, rows));
-    let g_a = lm_kernels::matmul_new((&g_out, false), (w.wo, false), (rows, d, d));
+    let g_wo = lm_kernels::gemm_new((&g_out, true), (&t.a, false), (d, d, rows));
+    let g_a = lm_kernels::gemm_new((&g_out, false), (w.wo, false), (rows, d, d));
     let g_qkv = attn.backward(&t.qkv, &t.probs, &g_a);
     // qkv = RMSNorm(h)·Wqkvᵀ.
     let xn = lm_kernels::rms_norm(&t.h, w.n1, eps);
-    let g_wqkv = lm_kernels::matmul_new((&g_qkv, true), (&xn, false), (3 * d, d, rows));
-    let g_xn = lm_kernels::matmul_new((&g_qkv, false), (w.wqkv, false), (rows, d, 3 * d));
+    let g_wqkv = lm_kernels::gemm_new((&g_qkv, true), (&xn, false), (3 * d, d, rows));
+    let g_xn = lm_kernels::gemm_new((&g_qkv, false), (w.wqkv, false), (rows, d, 3 * d));
     let g_n1 = lm_kernels::rms_norm_backward(&t.h, w.n1, &g_xn, eps, gh);
     BlockWeights {
         n1: g_n1,
@@ -194,7 +194,7 @@ impl Pass<'_> {
     fn project_text(&self, text: &[f32]) -> Vec<f32> {
         let (d, e) = (self.config().d_model, self.config().text_dim);
         let rows = text.len() / e;
-        let mut out = lm_kernels::matmul_new((text, false), (self.w.proj_w, true), (rows, d, e));
+        let mut out = lm_kernels::gemm_new((text, false), (self.w.proj_w, true), (rows, d, e));
         out.chunks_mut(d)
             .for_each(|r| r.iter_mut().zip(self.w.proj_b).for_each(|(x, b)| *x += b));
         out
@@ -258,7 +258,7 @@ impl Pass<'_> {
         let c = self.config();
         let (d, v) = (c.d_model, c.vocab_size());
         let xn = lm_kernels::rms_norm(h, self.w.norm, c.norm_eps as f32);
-        lm_kernels::matmul_new((&xn, false), head_t, (h.len() / d, v, d))
+        lm_kernels::gemm_new((&xn, false), head_t, (h.len() / d, v, d))
     }
 
     /// Backward pass from the gradients of the normalised motion rows and of the head: the
@@ -295,7 +295,7 @@ impl Pass<'_> {
         let gt = &gh[motion * d..];
         Weights {
             tok_emb,
-            proj_w: lm_kernels::matmul_new((gt, true), (&batch.text, false), (d, e, gt.len() / d)),
+            proj_w: lm_kernels::gemm_new((gt, true), (&batch.text, false), (d, e, gt.len() / d)),
             proj_b: lm_kernels::column_sums(gt, d),
             blocks,
             norm,
@@ -348,14 +348,14 @@ pub(super) fn loss_and_grads_with(
     let (d, v) = (model.config.d_model, model.config.vocab_size());
     loss_and_grads_by(model, batch, &|w, xn| {
         let rows = xn.len() / d;
-        let logits = lm_kernels::matmul_new((xn, false), (w.head, true), (rows, v, d));
+        let logits = lm_kernels::gemm_new((xn, false), (w.head, true), (rows, v, d));
         let (mut loss, mut g_logits) = lm_kernels::cross_entropy(&logits, v, &batch.targets);
         if let Some((term, g_term)) = extra(&logits) {
             loss += term;
             g_logits.iter_mut().zip(g_term).for_each(|(g, e)| *g += e);
         }
-        let g_xn = lm_kernels::matmul_new((&g_logits, false), (w.head, false), (rows, d, v));
-        let g_head = lm_kernels::matmul_new((&g_logits, true), (xn, false), (v, d, rows));
+        let g_xn = lm_kernels::gemm_new((&g_logits, false), (w.head, false), (rows, d, v));
+        let g_head = lm_kernels::gemm_new((&g_logits, true), (xn, false), (v, d, rows));
         (loss, g_xn, g_head)
     })
 }
