@@ -11,8 +11,10 @@
 //! (`prefix_lm`). Every reduction runs in a fixed order, so results never depend on thread
 //! scheduling: a resumed run reproduces an uninterrupted one bit for bit.
 
+use std::mem::MaybeUninit;
+
 use crate::fast_exp;
-use crate::kernels::{matmul, SharedMut};
+use crate::kernels::{matmul, par_new, SharedMut};
 use crate::seq_layout::SeqLayout;
 use rayon::prelude::*;
 
@@ -29,18 +31,17 @@ fn rstd(x: &[f32], eps: f32) -> f32 {
 /// RMSNorm of each `d`-wide row of `x`, scaled by `w` (d = `w.len()`).
 pub fn rms_norm(x: &[f32], w: &[f32], eps: f32) -> Vec<f32> {
     let d = w.len();
-    let mut y = vec![0f32; x.len()];
-    y.par_chunks_mut(d * ROW_BLOCK)
-        .zip(x.par_chunks(d * ROW_BLOCK))
-        .for_each(|(yb, xb)| {
-            for (yr, xr) in yb.chunks_mut(d).zip(xb.chunks(d)) {
-                let r = rstd(xr, eps);
-                for ((y, x), w) in yr.iter_mut().zip(xr).zip(w) {
-                    *y = x * r * w;
-                }
+    let block = d * ROW_BLOCK;
+    let fill = |i: usize, yb: &mut [MaybeUninit<f32>]| {
+        for (yr, xr) in yb.chunks_mut(d).zip(x[i * block..].chunks(d)) {
+            let r = rstd(xr, eps);
+            for ((y, x), w) in yr.iter_mut().zip(xr).zip(w) {
+                y.write(x * r * w);
             }
-        });
-    y
+        }
+    };
+    // SAFETY: block i holds the rows of x's block i, each written whole.
+    unsafe { par_new(x.len(), block, fill) }
 }
 
 /// Backward of [`rms_norm`] given the output gradient `g`: adds the gradient with respect
@@ -78,68 +79,63 @@ pub fn rms_norm_backward(x: &[f32], w: &[f32], g: &[f32], eps: f32, gx: &mut [f3
 
 /// `sigmoid(a)` of the first halves `a` of the `2f`-wide rows `[a | b]`.
 pub fn gate_sigmoid(ab: &[f32], f: usize) -> Vec<f32> {
-    let mut s = vec![0f32; ab.len() / 2];
-    s.par_chunks_mut(f * ROW_BLOCK)
-        .zip(ab.par_chunks(2 * f * ROW_BLOCK))
-        .for_each(|(sb, abb)| {
-            for (sr, abr) in sb.chunks_mut(f).zip(abb.chunks(2 * f)) {
-                sigmoid_into(sr, &abr[..f]);
-            }
-        });
-    s
+    let fill = |i: usize, sb: &mut [MaybeUninit<f32>]| {
+        let abb = &ab[i * 2 * f * ROW_BLOCK..];
+        for (sr, abr) in sb.chunks_mut(f).zip(abb.chunks(2 * f)) {
+            sigmoid_into(sr, &abr[..f]);
+        }
+    };
+    // SAFETY: block i holds the rows of ab's block i, each written whole.
+    unsafe { par_new(ab.len() / 2, f * ROW_BLOCK, fill) }
 }
 
 crate::vectorised!(
-    /// `dst = σ(src)`, through the vectorised exp at the CPU's widest vectors.
-    fn sigmoid_into / sigmoid_into_at(dst: &mut [f32], src: &[f32]) = sigmoid_body;
+    /// `dst = σ(src)` (same length), through the vectorised exp at the CPU's widest vectors;
+    /// `dst` need not be initialised.
+    fn sigmoid_into / sigmoid_into_at(dst: &mut [MaybeUninit<f32>], src: &[f32]) = sigmoid_body;
 );
 
 #[inline(always)]
-fn sigmoid_body(dst: &mut [f32], src: &[f32]) {
+fn sigmoid_body(dst: &mut [MaybeUninit<f32>], src: &[f32]) {
     for (s, a) in dst.iter_mut().zip(src) {
-        *s = 1.0 / (1.0 + fast_exp::exp(-a));
+        s.write(1.0 / (1.0 + fast_exp::exp(-a)));
     }
 }
 
 /// SwiGLU `silu(a)·b = a·σ(a)·b` of the rows `[a | b]`, given `σ(a)`.
 pub fn swiglu(ab: &[f32], sig: &[f32], f: usize) -> Vec<f32> {
-    let mut y = vec![0f32; sig.len()];
-    y.par_chunks_mut(f * ROW_BLOCK)
-        .zip(ab.par_chunks(2 * f * ROW_BLOCK))
-        .zip(sig.par_chunks(f * ROW_BLOCK))
-        .for_each(|((yb, abb), sb)| {
-            for ((yr, abr), sr) in yb.chunks_mut(f).zip(abb.chunks(2 * f)).zip(sb.chunks(f)) {
-                let (a, b) = abr.split_at(f);
-                for i in 0..f {
-                    yr[i] = a[i] * sr[i] * b[i];
-                }
+    let block = f * ROW_BLOCK;
+    let fill = |i: usize, yb: &mut [MaybeUninit<f32>]| {
+        let (abb, sb) = (&ab[i * 2 * block..], &sig[i * block..]);
+        for ((yr, abr), sr) in yb.chunks_mut(f).zip(abb.chunks(2 * f)).zip(sb.chunks(f)) {
+            let (a, b) = abr.split_at(f);
+            for i in 0..f {
+                yr[i].write(a[i] * sr[i] * b[i]);
             }
-        });
-    y
+        }
+    };
+    // SAFETY: block i holds the rows of sig's block i, each written whole.
+    unsafe { par_new(sig.len(), block, fill) }
 }
 
 /// Gradient of [`swiglu`] with respect to `[a | b]` given the output gradient `g`.
 pub fn swiglu_backward(ab: &[f32], sig: &[f32], g: &[f32], f: usize) -> Vec<f32> {
-    let mut out = vec![0f32; ab.len()];
-    out.par_chunks_mut(2 * f * ROW_BLOCK)
-        .zip(ab.par_chunks(2 * f * ROW_BLOCK))
-        .zip(
-            sig.par_chunks(f * ROW_BLOCK)
-                .zip(g.par_chunks(f * ROW_BLOCK)),
-        )
-        .for_each(|((ob, abb), (sb, gb))| {
-            let rows = ob.chunks_mut(2 * f).zip(abb.chunks(2 * f));
-            for ((or, abr), (sr, gr)) in rows.zip(sb.chunks(f).zip(gb.chunks(f))) {
-                let (a, b) = abr.split_at(f);
-                let (ga, gb) = or.split_at_mut(f);
-                for i in 0..f {
-                    let s = sr[i];
-                    ga[i] = gr[i] * b[i] * s * (1.0 + a[i] * (1.0 - s));
-                    gb[i] = gr[i] * a[i] * s;
-                }
+    let block = f * ROW_BLOCK;
+    let fill = |i: usize, ob: &mut [MaybeUninit<f32>]| {
+        let rows = ob.chunks_mut(2 * f).zip(ab[i * 2 * block..].chunks(2 * f));
+        let given = sig[i * block..].chunks(f).zip(g[i * block..].chunks(f));
+        for ((or, abr), (sr, gr)) in rows.zip(given) {
+            let (a, b) = abr.split_at(f);
+            let (ga, gb) = or.split_at_mut(f);
+            for i in 0..f {
+                let s = sr[i];
+                ga[i].write(gr[i] * b[i] * s * (1.0 + a[i] * (1.0 - s)));
+                gb[i].write(gr[i] * a[i] * s);
             }
-        });
-    out
+        }
+    };
+    // SAFETY: block i holds the rows of ab's block i, each written whole (both halves).
+    unsafe { par_new(ab.len(), 2 * block, fill) }
 }
 
 // ---------------------------------------------------------------------------------------
@@ -661,8 +657,13 @@ mod tests {
     fn row_kernels_agree_at_every_vector_level() {
         let row: Vec<f32> = values(1027, 3).iter().map(|v| v * 9.0).collect();
         crate::simd::assert_levels_agree(|isa| {
-            let mut sig = vec![0f32; row.len()];
+            let mut sig = vec![MaybeUninit::uninit(); row.len()];
             sigmoid_into_at(isa, &mut sig, &row);
+            // SAFETY: sigmoid_into wrote every value.
+            let sig: Vec<f32> = sig
+                .into_iter()
+                .map(|v| unsafe { v.assume_init() })
+                .collect();
             let mut grad = row.clone();
             let ce = cross_entropy_row_at(isa, &mut grad, 17, 0.5);
             let log_p = target_log_prob_at(isa, &row, 17);
