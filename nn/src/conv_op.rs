@@ -28,10 +28,12 @@
 //! FLOPs. It can apply a leaky ReLU to the output in the same pass.
 
 use crate::cpu_f32::{contiguous_f32, F32Values};
+use crate::kernels::par_new;
 use crate::matmul::{gemm_new, gemm_strided, gemm_with, transpose, Strided};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::borrow::Cow;
+use std::mem::MaybeUninit;
 use winograd::Winograd;
 
 mod winograd;
@@ -608,18 +610,16 @@ impl ConvCpu {
 
 /// `x` (batch × frames × channels) as frames × batch × channels, through a ReLU when `relu`.
 fn time_major(x: &[f32], (batch, frames, channels): Dims3, relu: bool) -> Vec<f32> {
-    let mut t = vec![0f32; x.len()];
-    t.par_chunks_mut(batch * channels)
-        .enumerate()
-        .for_each(|(f, block)| {
-            for (b, dst) in block.chunks_exact_mut(channels).enumerate() {
-                let src = &x[(b * frames + f) * channels..][..channels];
-                dst.iter_mut()
-                    .zip(src)
-                    .for_each(|(d, &v)| *d = if relu { v.max(0.0) } else { v });
+    let fill = |f: usize, block: &mut [MaybeUninit<f32>]| {
+        for (b, dst) in block.chunks_exact_mut(channels).enumerate() {
+            let src = &x[(b * frames + f) * channels..][..channels];
+            for (d, &v) in dst.iter_mut().zip(src) {
+                d.write(if relu { v.max(0.0) } else { v });
             }
-        });
-    t
+        }
+    };
+    // SAFETY: block f is frame f's `batch` rows of `channels`, each written whole.
+    unsafe { par_new(x.len(), batch * channels, fill) }
 }
 
 /// The time-major `v_t` (frames × batch × width) back to batch-major: `write(b, f, row, src)`

@@ -1,7 +1,11 @@
 //! Row-major f32 matrix products on the `gemm` crate (AVX-512 kernels with the workspace's
 //! `x86-v4` feature), shared by the fused convolution here and the transformer's kernels.
 
+use std::mem::MaybeUninit;
+
 use rayon::prelude::*;
+
+use crate::kernels::par_new;
 
 /// A matrix operand: row-major values, read transposed when the flag is set.
 pub type Operand<'a> = (&'a [f32], bool);
@@ -251,23 +255,18 @@ pub fn transpose(x: &[f32], rows: usize, cols: usize) -> Vec<f32> {
     // and one write to each of the eight rows, which all fill front to back (4096 × 512:
     // 0.9 ms on two threads; 32 × 32 tiles on one thread took 11.7 ms).
     const BAND: usize = 8;
-    let mut t = vec![0f32; x.len()];
-    if rows == 0 {
-        return t;
-    }
-    t.par_chunks_mut(BAND * rows)
-        .enumerate()
-        .for_each(|(band, out)| {
-            let c0 = band * BAND;
-            let mut outs: Vec<&mut [f32]> = out.chunks_exact_mut(rows).collect();
-            let width = outs.len();
-            for (r, src) in x.chunks_exact(cols).enumerate() {
-                for (o, &v) in outs.iter_mut().zip(&src[c0..c0 + width]) {
-                    o[r] = v;
-                }
+    let fill = |band: usize, out: &mut [MaybeUninit<f32>]| {
+        let c0 = band * BAND;
+        let mut outs: Vec<&mut [MaybeUninit<f32>]> = out.chunks_exact_mut(rows).collect();
+        let width = outs.len();
+        for (r, src) in x.chunks_exact(cols).enumerate() {
+            for (o, &v) in outs.iter_mut().zip(&src[c0..c0 + width]) {
+                o[r].write(v);
             }
-        });
-    t
+        }
+    };
+    // SAFETY: block i is output rows BAND·i.. (input columns), each written at every input row.
+    unsafe { par_new(x.len(), BAND * rows, fill) }
 }
 
 /// Multiply-adds from which a product is split into column bands over the threads.
