@@ -1,7 +1,8 @@
 //! Generic CPU kernels that every hand-written executor shares (the prefix LM's, the text
 //! encoder's, the GRU's): the product of all rows through `gemm`, one small product, a dot
-//! product, column sums, the fixed row block of the row-wise kernels and the rayon pool they
-//! start in. Every reduction runs in a fixed order, so results never depend on scheduling.
+//! product, column sums, the fixed row block of the row-wise kernels, the rayon pool they
+//! start in and [`par_new`] (their new outputs, written without a zero-fill first). Every
+//! reduction runs in a fixed order, so results never depend on scheduling.
 
 use std::mem::MaybeUninit;
 
