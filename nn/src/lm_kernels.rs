@@ -446,9 +446,21 @@ impl Attention<'_> {
     }
 }
 
-/// Scores `scale · q_i · k_j` of a few new rows against the `to` cached keys. Decoding has
-/// one row per (sequence, head): plain dot products beat a gemm call of that size.
-fn new_row_scores(p: &mut [f32], q: &[f32], k: &[f32], (hd, to): (usize, usize), scale: f32) {
+crate::vectorised!(
+    /// Scores `scale · q_i · k_j` of a few new rows against the `to` cached keys
+    /// (`dims`: head width, `to`). Decoding has one row per (sequence, head): plain dot
+    /// products beat a gemm call of that size.
+    fn new_row_scores / new_row_scores_at(
+        p: &mut [f32],
+        q: &[f32],
+        k: &[f32],
+        dims: (usize, usize),
+        scale: f32,
+    ) = new_row_scores_body;
+);
+
+#[inline(always)]
+fn new_row_scores_body(p: &mut [f32], q: &[f32], k: &[f32], (hd, to): (usize, usize), scale: f32) {
     for (row, qi) in p.chunks_mut(to).zip(q.chunks(hd)) {
         for (v, kj) in row.iter_mut().zip(k.chunks(hd)) {
             *v = scale * dot(qi, kj);
@@ -456,14 +468,34 @@ fn new_row_scores(p: &mut [f32], q: &[f32], k: &[f32], (hd, to): (usize, usize),
     }
 }
 
-/// `o_i = Σ_j p_ij · v_j` of the new rows (weights already softmaxed; masked ones are 0).
-fn weighted_values(o: &mut [f32], p: &[f32], v: &[f32], (hd, to): (usize, usize)) {
+crate::vectorised!(
+    /// `o_i = Σ_j p_ij · v_j` of the new rows (`dims`: head width, `to`; weights already
+    /// softmaxed, masked ones 0 and skipped).
+    fn weighted_values / weighted_values_at(o: &mut [f32], p: &[f32], v: &[f32], dims: (usize, usize))
+        = weighted_values_body;
+);
+
+/// Output columns one pass over the weights accumulates in registers (four AVX-512 vectors).
+const VALUE_BLOCK: usize = 64;
+
+#[inline(always)]
+fn weighted_values_body(o: &mut [f32], p: &[f32], v: &[f32], (hd, to): (usize, usize)) {
     for (oi, row) in o.chunks_mut(hd).zip(p.chunks(to)) {
-        oi.fill(0.0);
-        for (&w, vj) in row.iter().zip(v.chunks(hd)) {
-            if w != 0.0 {
-                oi.iter_mut().zip(vj).for_each(|(a, b)| *a += w * b);
+        for (c, oc) in oi.chunks_mut(VALUE_BLOCK).enumerate() {
+            // Each output value sums its terms in the order j = 0, 1, …, whatever the block.
+            let mut acc = [0f32; VALUE_BLOCK];
+            let n = oc.len();
+            for (&w, vj) in row.iter().zip(v.chunks(hd)) {
+                if w == 0.0 {
+                    continue;
+                }
+                match <&[f32; VALUE_BLOCK]>::try_from(&vj[c * VALUE_BLOCK..][..n]) {
+                    Ok(vb) => acc.iter_mut().zip(vb).for_each(|(a, b)| *a += w * b),
+                    Err(_) => (acc[..n].iter_mut().zip(&vj[c * VALUE_BLOCK..]))
+                        .for_each(|(a, b)| *a += w * b),
+                }
             }
+            oc.copy_from_slice(&acc[..n]);
         }
     }
 }
@@ -675,6 +707,35 @@ mod tests {
             ]);
             out
         });
+    }
+
+    /// Decoding's scores and weighted values give the same bits at every vector level,
+    /// with a head width that leaves a partial block.
+    #[test]
+    fn decode_attention_kernels_agree_at_every_vector_level() {
+        for hd in [64, 80] {
+            let (rows, to) = (2, 37);
+            let (q, k) = (values(rows * hd, 5), values(to * hd, 6));
+            let v = values(to * hd, 7);
+            crate::simd::assert_levels_agree(|isa| {
+                let mut p = vec![0f32; rows * to];
+                new_row_scores_at(isa, &mut p, &q, &k, (hd, to), 0.125);
+                masked_softmax(&mut p, to, |i, j| j % 5 != 0 || i == 0);
+                let mut o = vec![0f32; rows * hd];
+                weighted_values_at(isa, &mut o, &p, &v, (hd, to));
+                // The plain sums, term by term in key order.
+                for (i, oi) in o.chunks(hd).enumerate() {
+                    for (l, &got) in oi.iter().enumerate() {
+                        let want = (0..to).fold(0f32, |a, j| match p[i * to + j] {
+                            0.0 => a,
+                            w => a + w * v[j * hd + l],
+                        });
+                        assert_eq!(got.to_bits(), want.to_bits(), "{isa:?} ({i}, {l})");
+                    }
+                }
+                crate::simd::bits(&[p, o].concat())
+            });
+        }
     }
 
     #[test]
