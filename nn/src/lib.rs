@@ -1,7 +1,8 @@
 //! The CPU numerics every model of motionscale shares, below the models themselves:
 //!
 //! - [`device`]: the devices and precisions the command line names, each device opened once;
-//! - [`matmul`] (gemm with the AVX-512 kernels) and [`cpu_f32`] (f32 views of candle tensors);
+//! - [`matmul`] (gemm with the AVX-512 kernels), [`panels`] (decoding's few-row products by
+//!   weights packed once) and [`cpu_f32`] (f32 views of candle tensors);
 //! - [`conv_op`]: the fused 1-D convolution (im2col + gemm, ReLU and up-sampling fused in) of
 //!   the tokenizer and the evaluator;
 //! - [`lm_kernels`] and [`seq_layout`]: the prefix LM's fused forward/backward kernels and the
@@ -40,6 +41,7 @@ pub mod lm_kernels;
 pub mod matmul;
 pub mod model_error;
 pub mod optim;
+pub mod panels;
 pub mod seq_layout;
 pub mod simd;
 

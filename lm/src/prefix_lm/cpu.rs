@@ -8,13 +8,13 @@ use candle_core::{CpuStorage, Layout, Result, Storage, Tensor};
 use nn::dropout::Branch;
 use nn::head_loss;
 use nn::lm_kernels::{self, LayerCache};
-use nn::matmul::{transpose, Operand};
+use nn::panels::{PackedMatrix, Weight};
 use nn::seq_layout::SeqLayout;
 
 impl BlockWeights<&[f32]> {
     /// The four matrices as the forward products read them: each `W` (`out × in`) transposed.
-    fn forward_mats(&self) -> [Operand<'_>; 4] {
-        [self.wqkv, self.wo, self.w13, self.w2].map(|m| (m, true))
+    fn forward_mats(&self) -> [Weight<'_>; 4] {
+        [self.wqkv, self.wo, self.w13, self.w2].map(|m| Weight::Dense((m, true)))
     }
 }
 
@@ -32,27 +32,27 @@ struct BlockTrace {
 }
 
 /// The block on rows `h` (`rows × d`) with its matrices read as `mats` (Wqkvᵀ, Woᵀ,
-/// W13ᵀ, W2ᵀ: [`BlockWeights::forward_mats`] or a decoding cache's copies); `attend` maps
+/// W13ᵀ, W2ᵀ: [`BlockWeights::forward_mats`] or a decoding cache's packed copies); `attend` maps
 /// the packed QKV rows to the attention output and its softmax probabilities; `dropped`, when
 /// training drops values, scales the attention and FFN outputs before the residual adds them.
 fn block_forward(
     c: &PrefixLmConfig,
     w: &BlockWeights<&[f32]>,
-    [wqkv, wo, w13, w2]: [Operand; 4],
+    [wqkv, wo, w13, w2]: [Weight; 4],
     (h, dropped): (Vec<f32>, Option<[Vec<f32>; 2]>),
     attend: impl FnOnce(&[f32]) -> (Vec<f32>, Vec<f32>),
 ) -> (Vec<f32>, BlockTrace) {
     let (d, f, eps) = (c.d_model, c.ffn_hidden, c.norm_eps as f32);
     let rows = h.len() / d;
     let xn = lm_kernels::rms_norm(&h, w.n1, eps);
-    let qkv = lm_kernels::gemm_new((&xn, false), wqkv, (rows, 3 * d, d));
+    let qkv = wqkv.product(&xn, (rows, 3 * d, d));
     let (a, probs) = attend(&qkv);
     let scales = dropped
         .as_ref()
         .map(|[att, ffn]| (att.as_slice(), ffn.as_slice()));
     let h1 = add_branch(&h, (&a, wo), (rows, d, d), scales.map(|s| s.0));
     let xn = lm_kernels::rms_norm(&h1, w.n2, eps);
-    let ab = lm_kernels::gemm_new((&xn, false), w13, (rows, 2 * f, d));
+    let ab = w13.product(&xn, (rows, 2 * f, d));
     let sig = lm_kernels::gate_sigmoid(&ab, f);
     let act = lm_kernels::swiglu(&ab, &sig, f);
     let h2 = add_branch(&h1, (&act, w2), (rows, d, f), scales.map(|s| s.1));
@@ -73,18 +73,18 @@ fn block_forward(
 /// when training drops values.
 fn add_branch(
     h: &[f32],
-    (x, w): (&[f32], Operand),
+    (x, w): (&[f32], Weight),
     (rows, d, k): (usize, usize, usize),
     scales: Option<&[f32]>,
 ) -> Vec<f32> {
     match scales {
         None => {
             let mut out = h.to_vec();
-            lm_kernels::gemm(&mut out, (x, false), w, (rows, d, k), true);
+            w.product_add(&mut out, x, (rows, d, k));
             out
         }
         Some(scales) => {
-            let branch = lm_kernels::gemm_new((x, false), w, (rows, d, k));
+            let branch = w.product(x, (rows, d, k));
             (h.iter().zip(branch).zip(scales))
                 .map(|((h, b), s)| h + b * s)
                 .collect()
@@ -191,10 +191,11 @@ impl Pass<'_> {
         &self.model.config
     }
 
-    fn project_text(&self, text: &[f32]) -> Vec<f32> {
+    /// The text rows projected to the model's width, with `projᵀ` read as `proj_t`.
+    fn project_text(&self, text: &[f32], proj_t: Weight) -> Vec<f32> {
         let (d, e) = (self.config().d_model, self.config().text_dim);
         let rows = text.len() / e;
-        let mut out = lm_kernels::gemm_new((text, false), (self.w.proj_w, true), (rows, d, e));
+        let mut out = proj_t.product(text, (rows, d, e));
         out.chunks_mut(d)
             .for_each(|r| r.iter_mut().zip(self.w.proj_b).for_each(|(x, b)| *x += b));
         out
@@ -217,7 +218,7 @@ impl Pass<'_> {
         self.model.check(layout)?;
         let attn = self.attention(layout);
         let mut h = self.embed(&batch.inputs);
-        h.extend(self.project_text(&batch.text));
+        h.extend(self.project_text(&batch.text, Weight::Dense((self.w.proj_w, true))));
         let mut blocks = Vec::new();
         let dropout = batch.dropout.filter(|_| keep);
         let d = self.config().d_model;
@@ -254,11 +255,11 @@ impl Pass<'_> {
     }
 
     /// `RMSNorm(h; norm) · headᵀ`, with `headᵀ` read as `head_t`.
-    fn head(&self, h: &[f32], head_t: Operand) -> Vec<f32> {
+    fn head(&self, h: &[f32], head_t: Weight) -> Vec<f32> {
         let c = self.config();
         let (d, v) = (c.d_model, c.vocab_size());
         let xn = lm_kernels::rms_norm(h, self.w.norm, c.norm_eps as f32);
-        lm_kernels::gemm_new((&xn, false), head_t, (h.len() / d, v, d))
+        head_t.product(&xn, (h.len() / d, v, d))
     }
 
     /// Backward pass from the gradients of the normalised motion rows and of the head: the
@@ -309,7 +310,7 @@ pub(super) fn forward(model: &PrefixLm, batch: &LmBatch) -> Result<Tensor> {
     let logits = with_pass(model, |p| {
         let trace = p.run(batch, false)?;
         let h = &trace.h[..batch.inputs.len() * model.config.d_model];
-        Ok(p.head(h, (p.w.head, true)))
+        Ok(p.head(h, Weight::Dense((p.w.head, true))))
     })?;
     let rows = batch.inputs.len();
     Tensor::from_vec(logits, (rows, model.config.vocab_size()), model.device())
@@ -386,30 +387,27 @@ fn loss_and_grads_by(
 pub(super) fn new_cache(model: &PrefixLm, layout: &SeqLayout) -> Result<CpuCache> {
     let c = &model.config;
     let (d, heads, hd, f) = (c.d_model, c.n_heads, c.head_dim(), c.ffn_hidden);
-    // One row per step reads the weights fastest as they are (gemm's matrix-vector path).
-    let transposed = (layout.batch > 1)
-        .then(|| {
-            with_pass(model, |p| {
-                let t = |b: &BlockWeights<&[f32]>| {
-                    [
-                        transpose(b.wqkv, 3 * d, d),
-                        transpose(b.wo, d, d),
-                        transpose(b.w13, 2 * f, d),
-                        transpose(b.w2, d, f),
-                    ]
-                };
-                Ok(TransposedWeights {
-                    blocks: p.w.blocks.iter().map(t).collect(),
-                    head: transpose(p.w.head, c.vocab_size(), d),
-                })
-            })
+    let packed = with_pass(model, |p| {
+        let pack = |w: &[f32], out_in| PackedMatrix::new((w, true), out_in);
+        let t = |b: &BlockWeights<&[f32]>| {
+            [
+                pack(b.wqkv, (d, 3 * d)),
+                pack(b.wo, (d, d)),
+                pack(b.w13, (d, 2 * f)),
+                pack(b.w2, (f, d)),
+            ]
+        };
+        Ok(PackedWeights {
+            proj: pack(p.w.proj_w, (c.text_dim, d)),
+            blocks: p.w.blocks.iter().map(t).collect(),
+            head: pack(p.w.head, (d, c.vocab_size())),
         })
-        .transpose()?;
+    })?;
     Ok(CpuCache {
         layers: (0..c.n_layers)
             .map(|_| LayerCache::new(layout, heads, hd))
             .collect(),
-        transposed,
+        packed,
     })
 }
 
@@ -424,9 +422,10 @@ pub(super) fn forward_cached(
 ) -> Result<Tensor> {
     let (c, p, n_new) = (&model.config, layout.prefix_slots, to - from);
     let d = c.d_model;
+    let CpuCache { layers, packed } = cache;
     let logits = with_pass(model, |pass| {
         let projected = match from < p {
-            true => pass.project_text(text),
+            true => pass.project_text(text, Weight::Packed(&packed.proj)),
             false => Vec::new(),
         };
         let motion = pass.embed(tokens);
@@ -439,12 +438,10 @@ pub(super) fn forward_cached(
             h.extend_from_slice(&motion[b * per_seq * d..][..per_seq * d]);
         }
         let attn = pass.attention(layout);
-        let t = cache.transposed.as_ref();
-        for (i, (bw, layer)) in pass.w.blocks.iter().zip(&mut cache.layers).enumerate() {
+        let blocks = pass.w.blocks.iter().zip(&packed.blocks);
+        for ((bw, mats), layer) in blocks.zip(layers.iter_mut()) {
             let attend = |qkv: &[f32]| (attn.cached(qkv, layer, (from, to)), Vec::new());
-            let mats = t.map_or(bw.forward_mats(), |t| {
-                t.blocks[i].each_ref().map(|m| (m.as_slice(), false))
-            });
+            let mats = mats.each_ref().map(Weight::Packed);
             h = block_forward(c, bw, mats, (h, None), attend).0;
         }
         let last: Vec<f32> = h
@@ -452,23 +449,25 @@ pub(super) fn forward_cached(
             .flat_map(|rows| &rows[(n_new - 1) * d..])
             .copied()
             .collect();
-        let head_t = t.map_or((pass.w.head, true), |t| (t.head.as_slice(), false));
-        Ok(pass.head(&last, head_t))
+        Ok(pass.head(&last, Weight::Packed(&packed.head)))
     })?;
     Tensor::from_vec(logits, (layout.batch, c.vocab_size()), model.device())
 }
 
-/// What cached decoding keeps between steps on the CPU: each layer's keys and values and,
-/// for batches of several sequences, the weights transposed.
+/// What cached decoding keeps between steps on the CPU: each layer's keys and values, and
+/// the weights packed into panels.
 pub(super) struct CpuCache {
     layers: Vec<LayerCache>,
-    transposed: Option<TransposedWeights>,
+    packed: PackedWeights,
 }
 
-/// Every matrix a decoding step multiplies by, transposed once (`in × out`), so that each
-/// step's few-row products read it as it lies (see [`nn::matmul::transpose`]).
-struct TransposedWeights {
+/// Every matrix a decoding step multiplies by, packed once into column panels, so that each
+/// step's few-row products stream it (see [`nn::panels`]) and a row's values do not depend on
+/// the rows decoded beside it.
+struct PackedWeights {
+    /// The text projection's Wᵀ.
+    proj: PackedMatrix,
     /// Per block: Wqkvᵀ, Woᵀ, W13ᵀ, W2ᵀ.
-    blocks: Vec<[Vec<f32>; 4]>,
-    head: Vec<f32>,
+    blocks: Vec<[PackedMatrix; 4]>,
+    head: PackedMatrix,
 }

@@ -155,6 +155,66 @@ fn kv_cached_log_probabilities_equal_full_recomputation_on_both_executors() {
     }
 }
 
+/// The logits of every cached decoding step of `texts` (tokens `tokens[b][t]` fed back) on
+/// the CPU executor, per step and sequence.
+fn cached_steps(model: &PrefixLm, texts: &[&[f32]], tokens: &[[u32; 5]]) -> Vec<Vec<Vec<f32>>> {
+    let e = model.config().text_dim;
+    let layout = SeqLayout::new(texts.iter().map(|t| t.len() / e).collect(), 6);
+    let p = layout.prefix_slots;
+    let mut text_rows = vec![0f32; texts.len() * p * e];
+    for (b, t) in texts.iter().enumerate() {
+        text_rows[b * p * e..][..t.len()].copy_from_slice(t);
+    }
+    let mut cache = model.new_cache(&layout).unwrap();
+    (0..layout.motion_slots)
+        .map(|t| {
+            let input: Vec<u32> = (0..texts.len())
+                .map(|b| {
+                    if t == 0 {
+                        model.config().bos()
+                    } else {
+                        tokens[b][t - 1]
+                    }
+                })
+                .collect();
+            let slots = if t == 0 {
+                (0, p + 1)
+            } else {
+                (p + t, p + t + 1)
+            };
+            (model.forward_cached(&mut cache, &layout, &text_rows, &input, slots))
+                .unwrap()
+                .to_vec2::<f32>()
+                .unwrap()
+        })
+        .collect()
+}
+
+/// Cached decoding on the CPU computes each sequence alone: one sequence and two give the
+/// same bits by themselves as beside a third with a longer text (so more text slots), on one
+/// thread or three. `generate` relies on it to decode a batch in groups.
+#[test]
+fn cached_cpu_decoding_gives_each_sequence_the_same_bits_whatever_its_batch() {
+    let (model, _) = init_model(&tiny(), 3, &Device::Cpu).unwrap();
+    let texts = [text(2, 6, 1), text(3, 6, 2), text(5, 6, 3)];
+    let texts: Vec<&[f32]> = texts.iter().map(Vec::as_slice).collect();
+    let tokens = [[4u32, 9, 1, 17, 2], [0, 13, 13, 6, 19], [8, 8, 3, 11, 5]];
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(3)
+        .build()
+        .unwrap();
+    let three = pool.install(|| cached_steps(&model, &texts, &tokens));
+    let bits = |rows: &[Vec<f32>], n: usize| -> Vec<u32> {
+        rows[..n].concat().iter().map(|v| v.to_bits()).collect()
+    };
+    for n in [1, 2] {
+        let fewer = cached_steps(&model, &texts[..n], &tokens);
+        for (t, (a, b)) in fewer.iter().zip(&three).enumerate() {
+            assert_eq!(bits(a, n), bits(b, n), "{n} sequences, step {t}");
+        }
+    }
+}
+
 #[test]
 fn executors_agree_on_logits_and_target_log_probs() {
     let config = tiny();
