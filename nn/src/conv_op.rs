@@ -183,11 +183,11 @@ impl Rows {
         if self.starts.is_none() {
             return Cow::Borrowed(padded);
         }
-        let mut packed = vec![0f32; self.count() * width];
+        // Appended, not zero-filled and overwritten: each value is written once.
+        let mut packed = Vec::with_capacity(self.count() * width);
         for b in 0..self.batch {
-            let (start, n) = self.span(b);
-            packed[start * width..][..n * width]
-                .copy_from_slice(&padded[b * self.out * width..][..n * width]);
+            let (_, n) = self.span(b);
+            packed.extend_from_slice(&padded[b * self.out * width..][..n * width]);
         }
         Cow::Owned(packed)
     }
@@ -197,11 +197,11 @@ impl Rows {
         if self.starts.is_none() {
             return packed;
         }
-        let mut padded = vec![0f32; self.batch * self.out * width];
+        let mut padded = Vec::with_capacity(self.batch * self.out * width);
         for b in 0..self.batch {
             let (start, n) = self.span(b);
-            padded[b * self.out * width..][..n * width]
-                .copy_from_slice(&packed[start * width..][..n * width]);
+            padded.extend_from_slice(&packed[start * width..][..n * width]);
+            padded.resize((b + 1) * self.out * width, 0.0);
         }
         padded
     }

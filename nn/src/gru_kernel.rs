@@ -148,6 +148,33 @@ fn gate_step_backward(
     }
 }
 
+/// `(sequences, steps, width)` values whose cells past each sequence's length are zero and
+/// whose real cells `fill` writes through the pointer it gets (`fill`'s result is passed
+/// on): the buffers a scan fills are not zero-filled first (for the states, gates and their
+/// gradients of a layer, that fill was a pass over as much memory as the scan writes).
+///
+/// # Safety
+/// `fill` writes every value of every real cell (step < `lengths[b]` ≤ `steps`).
+unsafe fn cells_new<R>(
+    lengths: &[usize],
+    steps: usize,
+    width: usize,
+    fill: impl FnOnce(SharedMut) -> R,
+) -> (Vec<f32>, R) {
+    let len = lengths.len() * steps * width;
+    let mut values: Vec<f32> = Vec::with_capacity(len);
+    let at = values.as_mut_ptr();
+    for (b, &n) in lengths.iter().enumerate() {
+        assert!(n <= steps);
+        // SAFETY: sequence b's padding cells lie inside the capacity.
+        unsafe { std::ptr::write_bytes(at.add((b * steps + n) * width), 0, (steps - n) * width) };
+    }
+    let result = fill(SharedMut(at));
+    // SAFETY: the padding was zeroed above and `fill` wrote every real cell.
+    unsafe { values.set_len(len) };
+    (values, result)
+}
+
 /// The fused scan of one GRU direction (see the module docs). Keeps the gates of its forward
 /// pass for the backward.
 struct GruScan {
@@ -165,41 +192,47 @@ impl GruScan {
     /// States `(batch, steps, h)` and saved gates `(batch, steps, 4h)`.
     fn forward(&self, gi: &[f32], w: &[f32], bias: &[f32], d: Dims) -> (Vec<f32>, Vec<f32>) {
         let (hd, h3) = (d.hidden, 3 * d.hidden);
-        let mut out = vec![0f32; d.batch * d.steps * hd];
-        let mut gates = vec![0f32; d.batch * d.steps * 4 * hd];
-        let (out_ptr, gates_ptr) = (SharedMut(out.as_mut_ptr()), SharedMut(gates.as_mut_ptr()));
         // Each step's few-row product reads W_hhᵀ as it lies (see `transpose`).
         let wt = transpose(w, h3, hd);
-        groups(&self.lengths).par_iter().for_each(|g| {
-            let mut h = vec![0f32; g.rows.len() * hd];
-            let mut gh = vec![0f32; g.rows.len() * h3];
-            for s in 0..g.lengths[0] {
-                let a = g.active(s);
-                gh[..a * h3]
-                    .chunks_exact_mut(h3)
-                    .for_each(|row| row.copy_from_slice(bias));
-                gemm_with(
-                    &mut gh[..a * h3],
-                    (&h[..a * hd], false),
-                    (&wt, false),
-                    (a, h3, hd),
-                    (true, 1.0, false),
-                );
-                for i in 0..a {
-                    let at = self.cell(d, g.rows[i], g.lengths[i], s);
-                    // SAFETY: each (sequence, step) cell belongs to one group and one step.
-                    let (state, saved) = unsafe {
-                        (
-                            out_ptr.slice(at * hd, hd),
-                            gates_ptr.slice(at * 4 * hd, 4 * hd),
-                        )
-                    };
-                    let hi = &mut h[i * hd..][..hd];
-                    gate_step(&gi[at * h3..][..h3], &gh[i * h3..][..h3], hi, saved);
-                    state.copy_from_slice(hi);
+        let scan = |out_ptr: SharedMut, gates_ptr: SharedMut| {
+            groups(&self.lengths).par_iter().for_each(|g| {
+                let mut h = vec![0f32; g.rows.len() * hd];
+                let mut gh = vec![0f32; g.rows.len() * h3];
+                let mut saved = vec![0f32; 4 * hd];
+                for s in 0..g.lengths[0] {
+                    let a = g.active(s);
+                    gh[..a * h3]
+                        .chunks_exact_mut(h3)
+                        .for_each(|row| row.copy_from_slice(bias));
+                    gemm_with(
+                        &mut gh[..a * h3],
+                        (&h[..a * hd], false),
+                        (&wt, false),
+                        (a, h3, hd),
+                        (true, 1.0, false),
+                    );
+                    for i in 0..a {
+                        let at = self.cell(d, g.rows[i], g.lengths[i], s);
+                        let hi = &mut h[i * hd..][..hd];
+                        gate_step(&gi[at * h3..][..h3], &gh[i * h3..][..h3], hi, &mut saved);
+                        // SAFETY: each (sequence, step) cell belongs to one group and one step.
+                        unsafe {
+                            out_ptr.put(at * hd, hi);
+                            gates_ptr.put(at * 4 * hd, &saved);
+                        }
+                    }
                 }
-            }
-        });
+            })
+        };
+        let lengths = &self.lengths;
+        // SAFETY: the scan writes every real cell of both buffers.
+        let (out, (gates, ())) = unsafe {
+            cells_new(lengths, d.steps, hd, |out_ptr| {
+                cells_new(lengths, d.steps, 4 * hd, |gates_ptr| {
+                    scan(out_ptr, gates_ptr)
+                })
+            })
+        };
         (out, gates)
     }
 
@@ -214,7 +247,6 @@ impl GruScan {
         d: Dims,
     ) -> [Vec<f32>; 3] {
         let (hd, h3) = (d.hidden, 3 * d.hidden);
-        let mut dgi = vec![0f32; d.batch * d.steps * h3];
         // gh's gradient and the previous state of every real cell, packed in batch then step
         // order (sequence b's cells from `first[b]`) for the one weight-gradient product.
         let first: Vec<usize> = self
@@ -227,56 +259,58 @@ impl GruScan {
             })
             .collect();
         let cells: usize = self.lengths.iter().sum();
-        let mut dgh = vec![0f32; cells * h3];
-        let mut prev = vec![0f32; cells * hd];
-        let ptrs = (
-            SharedMut(dgi.as_mut_ptr()),
-            SharedMut(dgh.as_mut_ptr()),
-            SharedMut(prev.as_mut_ptr()),
-        );
         let zero = vec![0f32; hd];
-        groups(&self.lengths).par_iter().for_each(|g| {
-            let mut dh = vec![0f32; g.rows.len() * hd];
-            let mut dgh_step = vec![0f32; g.rows.len() * h3];
-            for s in (0..g.lengths[0]).rev() {
-                let a = g.active(s);
-                for i in 0..a {
-                    let (row, len) = (g.rows[i], g.lengths[i]);
-                    let at = self.cell(d, row, len, s);
-                    let packed = first[row] + at - row * d.steps;
-                    let hp = match s {
-                        0 => &zero[..],
-                        _ => &states[self.cell(d, row, len, s - 1) * hd..][..hd],
-                    };
-                    let dhi = &mut dh[i * hd..][..hd];
-                    dhi.iter_mut()
-                        .zip(&dout[at * hd..][..hd])
-                        .for_each(|(a, b)| *a += b);
-                    let dghi = &mut dgh_step[i * h3..][..h3];
-                    // SAFETY: each (sequence, step) cell, packed or not, belongs to one group
-                    // and one step.
-                    let (dgi_cell, dgh_cell, prev_cell) = unsafe {
-                        (
-                            ptrs.0.slice(at * h3, h3),
-                            ptrs.1.slice(packed * h3, h3),
-                            ptrs.2.slice(packed * hd, hd),
-                        )
-                    };
-                    gate_step_backward(&gates[at * 4 * hd..][..4 * hd], hp, dhi, dgi_cell, dghi);
-                    dgh_cell.copy_from_slice(dghi);
-                    prev_cell.copy_from_slice(hp);
+        let scan = |ptrs: [SharedMut; 3]| {
+            groups(&self.lengths).par_iter().for_each(|g| {
+                let mut dh = vec![0f32; g.rows.len() * hd];
+                let mut dgh_step = vec![0f32; g.rows.len() * h3];
+                let mut dgi_cell = vec![0f32; h3];
+                for s in (0..g.lengths[0]).rev() {
+                    let a = g.active(s);
+                    for i in 0..a {
+                        let (row, len) = (g.rows[i], g.lengths[i]);
+                        let at = self.cell(d, row, len, s);
+                        let packed = first[row] + at - row * d.steps;
+                        let hp = match s {
+                            0 => &zero[..],
+                            _ => &states[self.cell(d, row, len, s - 1) * hd..][..hd],
+                        };
+                        let dhi = &mut dh[i * hd..][..hd];
+                        dhi.iter_mut()
+                            .zip(&dout[at * hd..][..hd])
+                            .for_each(|(a, b)| *a += b);
+                        let dghi = &mut dgh_step[i * h3..][..h3];
+                        let saved = &gates[at * 4 * hd..][..4 * hd];
+                        gate_step_backward(saved, hp, dhi, &mut dgi_cell, dghi);
+                        // SAFETY: each (sequence, step) cell, packed or not, belongs to one
+                        // group and one step.
+                        unsafe {
+                            ptrs[0].put(at * h3, &dgi_cell);
+                            ptrs[1].put(packed * h3, dghi);
+                            ptrs[2].put(packed * hd, hp);
+                        }
+                    }
+                    if s > 0 {
+                        gemm_with(
+                            &mut dh[..a * hd],
+                            (&dgh_step[..a * h3], false),
+                            (w, false),
+                            (a, hd, h3),
+                            (true, 1.0, false),
+                        );
+                    }
                 }
-                if s > 0 {
-                    gemm_with(
-                        &mut dh[..a * hd],
-                        (&dgh_step[..a * h3], false),
-                        (w, false),
-                        (a, hd, h3),
-                        (true, 1.0, false),
-                    );
-                }
-            }
-        });
+            })
+        };
+        // dgi is zero past each length; the packed buffers have real cells only.
+        // SAFETY: the scan writes every real cell of the three buffers.
+        let (dgi, (dgh, (prev, ()))) = unsafe {
+            cells_new(&self.lengths, d.steps, h3, |dgi| {
+                cells_new(&[cells], cells, h3, |dgh| {
+                    cells_new(&[cells], cells, hd, |prev| scan([dgi, dgh, prev]))
+                })
+            })
+        };
         let mut dw = vec![0f32; h3 * hd];
         gemm_with(
             &mut dw,

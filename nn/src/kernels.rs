@@ -70,13 +70,13 @@ impl SharedMut {
         self.0.wrapping_add(offset)
     }
 
-    /// The `len` values from `offset` on, as a slice.
+    /// Copies `src` to the values from `offset` on (which need not be initialised).
     ///
     /// # Safety
-    /// They lie inside the buffer, and nothing else reads or writes them while it lives.
-    pub(crate) unsafe fn slice<'a>(self, offset: usize, len: usize) -> &'a mut [f32] {
+    /// They lie inside the buffer, and nothing else reads or writes them meanwhile.
+    pub(crate) unsafe fn put(self, offset: usize, src: &[f32]) {
         // SAFETY: the caller's contract.
-        unsafe { std::slice::from_raw_parts_mut(self.at(offset), len) }
+        unsafe { std::ptr::copy_nonoverlapping(src.as_ptr(), self.at(offset), src.len()) }
     }
 }
 
