@@ -28,8 +28,8 @@
 //! FLOPs. It can apply a leaky ReLU to the output in the same pass.
 
 use crate::cpu_f32::{contiguous_f32, F32Values};
-use crate::kernels::par_new;
 use crate::matmul::{gemm_new, gemm_strided, gemm_with, transpose, Strided};
+use crate::par::par_new;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::borrow::Cow;

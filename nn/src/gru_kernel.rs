@@ -17,8 +17,9 @@
 
 use crate::cpu_f32::{contiguous_f32, F32Values};
 use crate::fast_exp::exp;
-use crate::kernels::{column_sums, SharedMut};
+use crate::kernels::column_sums;
 use crate::matmul::{gemm_with, transpose};
+use crate::par::SharedMut;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::sync::Mutex;

@@ -1,12 +1,8 @@
 //! Generic CPU kernels that every hand-written executor shares (the prefix LM's, the text
 //! encoder's, the GRU's): the product of all rows through `gemm`, one small product, a dot
-//! product, column sums, the fixed row block of the row-wise kernels, the rayon pool they
-//! start in and [`par_new`] (their new outputs, written without a zero-fill first). Every
-//! reduction runs in a fixed order, so results never depend on scheduling.
-
-use std::mem::MaybeUninit;
-
-use rayon::prelude::*;
+//! product, column sums, the fixed row block of the row-wise kernels and the rayon pool they
+//! start in (their parallel writers are [`crate::par`]'s). Every reduction runs in a fixed
+//! order, so results never depend on scheduling.
 
 use crate::matmul::{gemm_with, Operand};
 
@@ -19,27 +15,6 @@ pub fn in_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
 
 /// Rows per parallel work item of the row-wise kernels (fixed, so reductions are too).
 pub const ROW_BLOCK: usize = 32;
-
-/// A new vector of `len` values that `fill` writes in parallel blocks of `block` values
-/// (`fill(block index, block)`), never zero-filled first: for outputs a kernel overwrites,
-/// the fill was a whole extra pass over memory (4% of an LM training step on a Xeon).
-///
-/// # Safety
-/// `fill` writes every value of every block it is given.
-pub unsafe fn par_new(
-    len: usize,
-    block: usize,
-    fill: impl Fn(usize, &mut [MaybeUninit<f32>]) + Sync,
-) -> Vec<f32> {
-    let mut out = Vec::with_capacity(len);
-    out.spare_capacity_mut()[..len]
-        .par_chunks_mut(block.max(1))
-        .enumerate()
-        .for_each(|(i, values)| fill(i, values));
-    // SAFETY: the caller's contract: every value below `len` has been written.
-    unsafe { out.set_len(len) };
-    out
-}
 
 /// Sum of `a[i]·b[i]` with eight partial sums (vectorises; fixed order). Inlined across
 /// crates, so callers compiled for wider vectors (AVX2) get them here too.
@@ -55,29 +30,6 @@ pub fn dot(a: &[f32], b: &[f32]) -> f32 {
     }
     let tail: f32 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
     acc.iter().sum::<f32>() + tail
-}
-
-/// Raw pointer that worker threads write disjoint parts through.
-#[derive(Clone, Copy)]
-pub(crate) struct SharedMut(pub(crate) *mut f32);
-// SAFETY: every user writes a disjoint set of indices, documented at each use.
-unsafe impl Send for SharedMut {}
-unsafe impl Sync for SharedMut {}
-
-impl SharedMut {
-    /// The pointer `offset` elements in (a method, so closures capture the whole wrapper).
-    pub(crate) fn at(self, offset: usize) -> *mut f32 {
-        self.0.wrapping_add(offset)
-    }
-
-    /// Copies `src` to the values from `offset` on (which need not be initialised).
-    ///
-    /// # Safety
-    /// They lie inside the buffer, and nothing else reads or writes them meanwhile.
-    pub(crate) unsafe fn put(self, offset: usize, src: &[f32]) {
-        // SAFETY: the caller's contract.
-        unsafe { std::ptr::copy_nonoverlapping(src.as_ptr(), self.at(offset), src.len()) }
-    }
 }
 
 /// One large product over all rows, spread over the rayon threads (`dst (+)= lhs · rhs`).

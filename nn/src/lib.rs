@@ -2,7 +2,8 @@
 //!
 //! - [`device`]: the devices and precisions the command line names, each device opened once;
 //! - [`matmul`] (gemm with the AVX-512 kernels), [`panels`] (decoding's few-row products by
-//!   weights packed once) and [`cpu_f32`] (f32 views of candle tensors);
+//!   weights packed once), [`kernels`] (what every hand-written executor shares), [`par`]
+//!   (their parallel writers) and [`cpu_f32`] (f32 views of candle tensors);
 //! - [`conv_op`]: the fused 1-D convolution (im2col + gemm, ReLU and up-sampling fused in) of
 //!   the tokenizer and the evaluator;
 //! - [`lm_kernels`] and [`seq_layout`]: the prefix LM's fused forward/backward kernels and the
@@ -42,6 +43,7 @@ pub mod matmul;
 pub mod model_error;
 pub mod optim;
 pub mod panels;
+pub mod par;
 pub mod seq_layout;
 pub mod simd;
 

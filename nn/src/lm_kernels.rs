@@ -14,7 +14,8 @@
 use std::mem::MaybeUninit;
 
 use crate::fast_exp;
-use crate::kernels::{matmul, par_new, SharedMut};
+use crate::kernels::matmul;
+use crate::par::{par_new, SharedMut};
 use crate::seq_layout::SeqLayout;
 use rayon::prelude::*;
 

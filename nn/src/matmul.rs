@@ -5,7 +5,7 @@ use std::mem::MaybeUninit;
 
 use rayon::prelude::*;
 
-use crate::kernels::par_new;
+use crate::par::par_new;
 
 /// A matrix operand: row-major values, read transposed when the flag is set.
 pub type Operand<'a> = (&'a [f32], bool);

@@ -13,8 +13,9 @@ use std::mem::MaybeUninit;
 
 use rayon::prelude::*;
 
-use crate::kernels::{gemm, SharedMut};
+use crate::kernels::gemm;
 use crate::matmul::{gemm_new, Operand};
+use crate::par::SharedMut;
 use crate::simd::{isa, Isa};
 
 /// A weight matrix as a product reads it.
