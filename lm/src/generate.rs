@@ -117,7 +117,7 @@ pub fn generate(model: &PrefixLm, texts: &[&[f32]], s: &Sampling) -> Result<Vec<
         let parts = (texts.par_chunks(size).enumerate())
             .map(|(g, texts)| decode(model, texts, s, g * size))
             .collect::<Result<Vec<_>>>()?;
-        Ok(parts.concat())
+        Ok(parts.into_iter().flatten().collect())
     })
 }
 
@@ -235,16 +235,21 @@ mod tests {
         }
     }
 
-    #[test]
-    fn cached_and_recomputed_decoding_agree() {
+    /// A tiny seeded model (12 codes, 5-wide text) and random texts of `lens` text slots.
+    fn tiny_model_and_texts(lens: &[usize], seed: u64) -> (PrefixLm, Vec<Vec<f32>>) {
         let config = crate::PrefixLmConfig::new(32, 2, 2, 12, 5);
         let (model, _) =
             crate::prefix_lm::init_model(&config, 4, &candle_core::Device::Cpu).unwrap();
-        let mut rng = SplitMix64(9);
-        let texts: Vec<Vec<f32>> = [3usize, 1]
-            .iter()
+        let mut rng = SplitMix64(seed);
+        let texts = (lens.iter())
             .map(|&n| (0..n * 5).map(|_| rng.range(-1.0, 1.0) as f32).collect())
             .collect();
+        (model, texts)
+    }
+
+    #[test]
+    fn cached_and_recomputed_decoding_agree() {
+        let (model, texts) = tiny_model_and_texts(&[3, 1], 9);
         let texts: Vec<&[f32]> = texts.iter().map(Vec::as_slice).collect();
         let s = Sampling {
             max_tokens: 10,
@@ -275,17 +280,8 @@ mod tests {
     /// thread), sampling included.
     #[test]
     fn grouped_decoding_draws_the_tokens_of_one_group() {
-        let config = crate::PrefixLmConfig::new(32, 2, 2, 12, 5);
-        let (model, _) =
-            crate::prefix_lm::init_model(&config, 4, &candle_core::Device::Cpu).unwrap();
-        let mut rng = SplitMix64(2);
-        let texts: Vec<Vec<f32>> = (0..2 * MIN_GROUP + 3)
-            .map(|b| {
-                (0..(1 + b % 4) * 5)
-                    .map(|_| rng.range(-1.0, 1.0) as f32)
-                    .collect()
-            })
-            .collect();
+        let lens: Vec<usize> = (0..2 * MIN_GROUP + 3).map(|b| 1 + b % 4).collect();
+        let (model, texts) = tiny_model_and_texts(&lens, 2);
         let texts: Vec<&[f32]> = texts.iter().map(Vec::as_slice).collect();
         let s = Sampling {
             max_tokens: 12,

@@ -219,31 +219,26 @@ fn im2col(
     let len = rows.count() * width;
     // Written once, zeros only where a tap reads padding: no zero-fill of the whole matrix
     // first (it is the largest buffer of a step).
-    let mut cols = Vec::with_capacity(len);
-    cols.spare_capacity_mut()[..len]
-        .par_chunks_mut(width * ROWS_PER_TASK)
-        .enumerate()
-        .for_each(|(task, chunk)| {
-            for (i, row) in chunk.chunks_exact_mut(width).enumerate() {
-                let (b, t) = rows.locate(task * ROWS_PER_TASK + i);
-                for (k, dst) in row.chunks_exact_mut(channels).enumerate() {
-                    let Some(s) = g.source(t, k, frames) else {
-                        dst.iter_mut().for_each(|d| {
-                            d.write(0.0);
-                        });
-                        continue;
-                    };
-                    let src = &x[(b * frames + s) * channels..][..channels];
-                    let relu = g.relu_input;
-                    dst.iter_mut().zip(src).for_each(|(d, &v)| {
-                        d.write(if relu { v.max(0.0) } else { v });
+    let fill = |task: usize, chunk: &mut [MaybeUninit<f32>]| {
+        for (i, row) in chunk.chunks_exact_mut(width).enumerate() {
+            let (b, t) = rows.locate(task * ROWS_PER_TASK + i);
+            for (k, dst) in row.chunks_exact_mut(channels).enumerate() {
+                let Some(s) = g.source(t, k, frames) else {
+                    dst.iter_mut().for_each(|d| {
+                        d.write(0.0);
                     });
-                }
+                    continue;
+                };
+                let src = &x[(b * frames + s) * channels..][..channels];
+                let relu = g.relu_input;
+                dst.iter_mut().zip(src).for_each(|(d, &v)| {
+                    d.write(if relu { v.max(0.0) } else { v });
+                });
             }
-        });
-    // SAFETY: the loop above wrote every one of the `len` values.
-    unsafe { cols.set_len(len) };
-    cols
+        }
+    };
+    // SAFETY: every row of every task is written whole.
+    unsafe { par_new(len, width * ROWS_PER_TASK, fill) }
 }
 
 /// The adjoint of [`im2col`]: each input frame gathers the column gradients of every
@@ -258,32 +253,27 @@ fn col2im(
 ) -> Vec<f32> {
     let width = g.kernel * channels;
     let len = batch * frames * channels;
-    let mut dx = Vec::with_capacity(len);
-    dx.spare_capacity_mut()[..len]
-        .par_chunks_mut(frames * channels)
-        .enumerate()
-        .for_each(|(b, dxb)| {
-            let (start, n) = rows.span(b);
-            let mut sum = vec![0f32; channels];
-            for (s, dst) in dxb.chunks_exact_mut(channels).enumerate() {
-                sum.fill(0.0);
-                // Taps from the last, so the rows add in increasing order as a scatter would.
-                for k in (0..g.kernel).rev() {
-                    for t in g.readers(s, k).filter(|&t| t < n) {
-                        let src = &dcols[(start + t) * width + k * channels..][..channels];
-                        sum.iter_mut().zip(src).for_each(|(a, v)| *a += v);
-                    }
+    let fill = |b: usize, dxb: &mut [MaybeUninit<f32>]| {
+        let (start, n) = rows.span(b);
+        let mut sum = vec![0f32; channels];
+        for (s, dst) in dxb.chunks_exact_mut(channels).enumerate() {
+            sum.fill(0.0);
+            // Taps from the last, so the rows add in increasing order as a scatter would.
+            for k in (0..g.kernel).rev() {
+                for t in g.readers(s, k).filter(|&t| t < n) {
+                    let src = &dcols[(start + t) * width + k * channels..][..channels];
+                    sum.iter_mut().zip(src).for_each(|(a, v)| *a += v);
                 }
-                let xs = &x[(b * frames + s) * channels..][..channels];
-                let relu = g.relu_input;
-                dst.iter_mut().zip(&sum).zip(xs).for_each(|((d, &a), &v)| {
-                    d.write(if relu && v <= 0.0 { 0.0 } else { a });
-                });
             }
-        });
-    // SAFETY: the loop above wrote every one of the `len` values.
-    unsafe { dx.set_len(len) };
-    dx
+            let xs = &x[(b * frames + s) * channels..][..channels];
+            let relu = g.relu_input;
+            dst.iter_mut().zip(&sum).zip(xs).for_each(|((d, &a), &v)| {
+                d.write(if relu && v <= 0.0 { 0.0 } else { a });
+            });
+        }
+    };
+    // SAFETY: block b is sequence b's frames, each written whole.
+    unsafe { par_new(len, frames * channels, fill) }
 }
 
 /// `w (out, in, kernel)` as `(out, kernel·in)`, the tap-major order of the im2col columns;
@@ -484,18 +474,15 @@ impl ConvCpu {
         }
         // Every row starts as the bias (written once, no zero-fill first); gemm adds to it.
         let len = rows.count() * out_ch;
-        let mut y = Vec::with_capacity(len);
-        y.spare_capacity_mut()[..len]
-            .par_chunks_mut(out_ch * ROWS_PER_TASK)
-            .for_each(|chunk| {
-                for row in chunk.chunks_exact_mut(out_ch) {
-                    row.iter_mut().zip(&w.bias).for_each(|(d, &b)| {
-                        d.write(b);
-                    });
-                }
-            });
-        // SAFETY: the loop above wrote every one of the `len` values.
-        unsafe { y.set_len(len) };
+        let fill = |_, chunk: &mut [MaybeUninit<f32>]| {
+            for row in chunk.chunks_exact_mut(out_ch) {
+                row.iter_mut().zip(&w.bias).for_each(|(d, &b)| {
+                    d.write(b);
+                });
+            }
+        };
+        // SAFETY: every row is written whole.
+        let mut y = unsafe { par_new(len, out_ch * ROWS_PER_TASK, fill) };
         if self.polyphase() {
             Polyphase::new(w).forward(&mut y, lhs);
         } else {

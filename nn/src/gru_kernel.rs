@@ -19,7 +19,7 @@ use crate::cpu_f32::{contiguous_f32, F32Values};
 use crate::fast_exp::exp;
 use crate::kernels::column_sums;
 use crate::matmul::{gemm_with, transpose};
-use crate::par::SharedMut;
+use crate::par::{new_written, SharedMut};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::sync::Mutex;
@@ -162,18 +162,18 @@ unsafe fn cells_new<R>(
     width: usize,
     fill: impl FnOnce(SharedMut) -> R,
 ) -> (Vec<f32>, R) {
-    let len = lengths.len() * steps * width;
-    let mut values: Vec<f32> = Vec::with_capacity(len);
-    let at = values.as_mut_ptr();
-    for (b, &n) in lengths.iter().enumerate() {
-        assert!(n <= steps);
-        // SAFETY: sequence b's padding cells lie inside the capacity.
-        unsafe { std::ptr::write_bytes(at.add((b * steps + n) * width), 0, (steps - n) * width) };
-    }
-    let result = fill(SharedMut(at));
-    // SAFETY: the padding was zeroed above and `fill` wrote every real cell.
-    unsafe { values.set_len(len) };
-    (values, result)
+    let write = |values: SharedMut| {
+        for (b, &n) in lengths.iter().enumerate() {
+            assert!(n <= steps);
+            // SAFETY: sequence b's padding cells lie inside the buffer.
+            unsafe {
+                std::ptr::write_bytes(values.at((b * steps + n) * width), 0, (steps - n) * width)
+            };
+        }
+        fill(values)
+    };
+    // SAFETY: the padding is zeroed above and `fill` writes every real cell.
+    unsafe { new_written(lengths.len() * steps * width, write) }
 }
 
 /// The fused scan of one GRU direction (see the module docs). Keeps the gates of its forward

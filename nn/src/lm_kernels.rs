@@ -320,13 +320,7 @@ impl Attention<'_> {
                         let at = r * d + h * hd;
                         // SAFETY: (row of sequence b, columns of head h) is written by this
                         // (b, h) item only, and lies inside `out` (rows × d).
-                        unsafe {
-                            std::ptr::copy_nonoverlapping(
-                                scr.o[s * hd..].as_ptr(),
-                                out_ptr.at(at),
-                                hd,
-                            )
-                        };
+                        unsafe { out_ptr.put(at, &scr.o[s * hd..][..hd]) };
                     }
                 },
             );
@@ -377,13 +371,7 @@ impl Attention<'_> {
                         for (part, src) in [&gs.q, &gs.k, &gs.v].into_iter().enumerate() {
                             // SAFETY: (row of sequence b, q/k/v columns of head h) is written by
                             // this (b, h) item only, inside `out` (rows × 3d).
-                            unsafe {
-                                std::ptr::copy_nonoverlapping(
-                                    src[r.clone()].as_ptr(),
-                                    out_ptr.at(at + part * d),
-                                    hd,
-                                )
-                            };
+                            unsafe { out_ptr.put(at + part * d, &src[r.clone()]) };
                         }
                     }
                 },
@@ -433,13 +421,7 @@ impl Attention<'_> {
                         let at = (b * n_new + i) * d + h * hd;
                         // SAFETY: (new row of sequence b, columns of head h) belongs to this
                         // item only.
-                        unsafe {
-                            std::ptr::copy_nonoverlapping(
-                                scr.o[i * hd..].as_ptr(),
-                                out_ptr.at(at),
-                                hd,
-                            )
-                        };
+                        unsafe { out_ptr.put(at, &scr.o[i * hd..][..hd]) };
                     }
                 },
             );

@@ -5,7 +5,7 @@ use std::mem::MaybeUninit;
 
 use rayon::prelude::*;
 
-use crate::par::par_new;
+use crate::par::{new_written, par_new, SharedMut};
 
 /// A matrix operand: row-major values, read transposed when the flag is set.
 pub type Operand<'a> = (&'a [f32], bool);
@@ -32,15 +32,12 @@ pub fn gemm_new(lhs: Operand, rhs: Operand, (m, n, k): (usize, usize, usize)) ->
     if k == 0 {
         return vec![0f32; m * n];
     }
-    let mut dst = Vec::with_capacity(m * n);
-    // SAFETY: the capacity holds m·n values; without `accumulate` gemm writes every one of
-    // them and reads none (its `read_dst` is off), so all are written before the length
-    // covers them.
-    unsafe {
-        gemm_raw(dst.as_mut_ptr(), lhs, rhs, (m, n, k), (false, 1.0, true));
-        dst.set_len(m * n);
-    }
-    dst
+    // SAFETY: without `accumulate` gemm writes every one of the m·n values and reads none
+    // (its `read_dst` is off).
+    let write =
+        |dst: SharedMut| unsafe { gemm_raw(dst.0, lhs, rhs, (m, n, k), (false, 1.0, true)) };
+    // SAFETY: as above, every value is written.
+    unsafe { new_written(m * n, write) }.0
 }
 
 /// [`gemm_with`] into `dst`.

@@ -9,13 +9,11 @@
 //! depend on the rows beside it, the thread count or the vector level, so decoding may split
 //! its batch into groups freely (`lm::generate`); gemm's own paths change with the shape.
 
-use std::mem::MaybeUninit;
-
 use rayon::prelude::*;
 
 use crate::kernels::gemm;
 use crate::matmul::{gemm_new, Operand};
-use crate::par::SharedMut;
+use crate::par::{new_written, SharedMut};
 use crate::simd::{isa, Isa};
 
 /// A weight matrix as a product reads it.
@@ -94,15 +92,8 @@ impl PackedMatrix {
     /// `x · W` for `m` rows of `x` (row-major m×k), as a new row-major m×n matrix, its panels
     /// spread over the rayon threads.
     pub fn product(&self, x: &[f32], m: usize) -> Vec<f32> {
-        let mut dst: Vec<f32> = Vec::with_capacity(m * self.n);
-        let spare: &mut [MaybeUninit<f32>] = dst.spare_capacity_mut();
-        // SAFETY: the capacity holds m·n values, and without accumulating every panel writes
-        // all its columns of every row, before the length covers them.
-        unsafe {
-            self.run(SharedMut(spare.as_mut_ptr().cast()), x, m, false);
-            dst.set_len(m * self.n);
-        }
-        dst
+        // SAFETY: without accumulating, every panel writes all its columns of every row.
+        unsafe { new_written(m * self.n, |dst| self.run(dst, x, m, false)) }.0
     }
 
     /// `dst += x · W` for `m` rows of `x` (`dst` row-major m×n).
@@ -220,15 +211,15 @@ impl Tile<'_> {
         let cols = PANEL.min(n - c * PANEL);
         for (i, a) in acc.into_iter().enumerate() {
             // `a` is a copy, so `acc` never has its address taken and stays in registers.
-            let at = self.dst.at((self.row0 + i) * n + c * PANEL);
+            let at = (self.row0 + i) * n + c * PANEL;
             // SAFETY: row row0 + i, columns of panel c, belong to this panel's task alone;
             // they are initialised when accumulating (`PackedMatrix::run`'s contract).
             unsafe {
                 if self.accumulate {
-                    let row = std::slice::from_raw_parts_mut(at, cols);
+                    let row = std::slice::from_raw_parts_mut(self.dst.at(at), cols);
                     row.iter_mut().zip(a).for_each(|(d, a)| *d += a);
                 } else {
-                    std::ptr::copy_nonoverlapping(a.as_ptr(), at, cols);
+                    self.dst.put(at, &a[..cols]);
                 }
             }
         }

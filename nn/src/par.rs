@@ -27,6 +27,23 @@ pub unsafe fn par_new(
     out
 }
 
+/// A new vector of `len` values that `fill` writes through the pointer it is given (its
+/// result is passed on), never zero-filled first: for writers that take a pointer (gemm,
+/// kernels that scatter their writes over the threads).
+///
+/// # Safety
+/// `fill` writes every one of the `len` values.
+pub(crate) unsafe fn new_written<R>(
+    len: usize,
+    fill: impl FnOnce(SharedMut) -> R,
+) -> (Vec<f32>, R) {
+    let mut out = Vec::with_capacity(len);
+    let result = fill(SharedMut(out.as_mut_ptr()));
+    // SAFETY: the caller's contract: every value below `len` has been written.
+    unsafe { out.set_len(len) };
+    (out, result)
+}
+
 /// Raw pointer that worker threads write disjoint parts through.
 #[derive(Clone, Copy)]
 pub(crate) struct SharedMut(pub(crate) *mut f32);
