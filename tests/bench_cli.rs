@@ -44,6 +44,11 @@ fn generation_alone_writes_its_figures_and_the_machine_it_ran_on() {
         matches!(row_kernels, Some("avx512" | "avx2" | "baseline")),
         "{machine}"
     );
+    let transposed_lhs = machine["transposed_lhs"].as_str();
+    assert!(
+        matches!(transposed_lhs, Some("in-place" | "copied")),
+        "{machine}"
+    );
     assert_eq!(report["peak_gflops"].as_f64(), Some(peak), "{report}");
     assert!(printed.contains("FMA peak measured now"), "{printed}");
 }

@@ -28,7 +28,7 @@
 //! FLOPs. It can apply a leaky ReLU to the output in the same pass.
 
 use crate::cpu_f32::{contiguous_f32, F32Values};
-use crate::matmul::{gemm_new, gemm_strided, gemm_with, transpose, Strided};
+use crate::matmul::{gemm_new, gemm_strided, gemm_with, transpose, Strided, TransposedLhs};
 use crate::par::par_new;
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -143,6 +143,8 @@ struct Rows {
 
 impl Rows {
     fn new(batch: usize, out: usize, valid: Option<&[usize]>) -> Self {
+        // Every sequence whole (BI-CTVAE's decoder): the rows are already packed.
+        let valid = valid.filter(|v| v.iter().any(|&n| n < out));
         let starts = valid.map(|v| {
             let mut starts = vec![0];
             for &n in v {
@@ -585,10 +587,7 @@ impl ConvCpu {
     ) -> (Vec<f32>, Option<Vec<f32>>) {
         let (out_ch, inp, kernel) = w.dims;
         let width = kernel * inp;
-        // dW = dYᵀ · cols, with dY transposed first: gemm reads a transposed left operand
-        // 10–17% slower than the copy costs.
-        let dy_t = transpose(dy, rows, out_ch);
-        let dwt = gemm_new((&dy_t, false), (cols, false), (out_ch, width, rows));
+        let dwt = TransposedLhs::chosen().product(dy, cols, (out_ch, width, rows));
         let dcols =
             input_grad.then(|| gemm_new((dy, false), (&w.taps, false), (rows, width, out_ch)));
         (dwt, dcols)
@@ -695,16 +694,23 @@ impl<'a> PerTap<'a> {
     fn weight_grad(&self, dy_t: &[f32], x_t: &[f32]) -> Vec<f32> {
         let (out, inp, kernel) = self.w.dims;
         let b = self.batch;
-        // dW_k = dYᵀ · X over the tap's rows, with dY transposed once (gemm reads a transposed
-        // left operand slower than the copy costs).
+        // dW_k = dYᵀ · X over the tap's rows, dY read as TransposedLhs::chosen() says (a copy
+        // transposed once for every tap, or in place).
         let rows = self.out_frames * b;
-        let dy_tt = transpose(dy_t, rows, out);
+        let dy_tt = match TransposedLhs::chosen() {
+            TransposedLhs::Copied => Some(transpose(dy_t, rows, out)),
+            TransposedLhs::InPlace => None,
+        };
+        let dy_rows = |t0: usize| match &dy_tt {
+            Some(dy_tt) => Strided::rows(dy_tt, t0 * b, rows),
+            None => Strided::rows(dy_t, t0 * b * out, out).t(),
+        };
         let mut dwt = vec![0f32; out * kernel * inp];
         for (k, t0, s0, n) in self.spans() {
             gemm_strided(
                 &mut dwt,
                 (k * inp, kernel * inp),
-                Strided::rows(&dy_tt, t0 * b, rows),
+                dy_rows(t0),
                 Strided::rows(x_t, s0 * b * inp, inp),
                 (out, inp, n * b),
                 false,

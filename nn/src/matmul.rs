@@ -40,6 +40,74 @@ pub fn gemm_new(lhs: Operand, rhs: Operand, (m, n, k): (usize, usize, usize)) ->
     unsafe { new_written(m * n, write) }.0
 }
 
+/// How a weight gradient's product `aᵀ · b` reads `a` (stored k×m: an output gradient, one
+/// row per frame).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TransposedLhs {
+    /// gemm reads `a` transposed where it lies.
+    InPlace,
+    /// `a` is transposed into a new matrix first.
+    Copied,
+}
+
+impl TransposedLhs {
+    /// The way this process uses: `MOTIONSCALE_TRANSPOSED_LHS` (`in-place` or `copied`) when
+    /// set, else whichever ran faster here, measured once at first use. Both give the same
+    /// values (gemm packs either into the same panels and sums in the same order); only the
+    /// speed differs by machine: on a Xeon (model 167) transposing 6400 × 768 values took as
+    /// long as two thirds of the product, where on the AMD class reading in place was the
+    /// slower.
+    pub fn chosen() -> Self {
+        static CHOICE: std::sync::OnceLock<TransposedLhs> = std::sync::OnceLock::new();
+        *CHOICE.get_or_init(
+            || match std::env::var("MOTIONSCALE_TRANSPOSED_LHS").as_deref() {
+                Ok("in-place") => Self::InPlace,
+                Ok("copied") => Self::Copied,
+                _ => Self::measured(),
+            },
+        )
+    }
+
+    /// The faster way at a mid-sized weight gradient (4096 frames, 512 × 256), best of three
+    /// alternated runs each.
+    fn measured() -> Self {
+        let (m, n, k) = (512, 256, 4096);
+        let a: Vec<f32> = (0..k * m).map(|i| (i % 7) as f32).collect();
+        let b: Vec<f32> = (0..k * n).map(|i| (i % 5) as f32).collect();
+        let time = |way: Self| {
+            let start = std::time::Instant::now();
+            std::hint::black_box(way.product(&a, &b, (m, n, k)));
+            start.elapsed()
+        };
+        let mut best = [std::time::Duration::MAX; 2];
+        for _ in 0..3 {
+            best[0] = best[0].min(time(Self::InPlace));
+            best[1] = best[1].min(time(Self::Copied));
+        }
+        if best[0] <= best[1] {
+            Self::InPlace
+        } else {
+            Self::Copied
+        }
+    }
+
+    /// The name `MOTIONSCALE_TRANSPOSED_LHS` takes (and the bench's machine record shows).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::InPlace => "in-place",
+            Self::Copied => "copied",
+        }
+    }
+
+    /// `aᵀ · b` (`a` stored k×m, `b` k×n) as a new row-major m×n matrix, read this way.
+    pub fn product(self, a: &[f32], b: &[f32], (m, n, k): (usize, usize, usize)) -> Vec<f32> {
+        match self {
+            Self::InPlace => gemm_new((a, true), (b, false), (m, n, k)),
+            Self::Copied => gemm_new((&transpose(a, k, m), false), (b, false), (m, n, k)),
+        }
+    }
+}
+
 /// [`gemm_with`] into `dst`.
 ///
 /// # Safety
@@ -278,6 +346,7 @@ const PARALLEL_MIN_MACS: usize = 1 << 24;
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::simd::bits;
     use motionscale_core::rng::SplitMix64;
 
     fn random(len: usize, rng: &mut SplitMix64) -> Vec<f32> {
@@ -333,5 +402,27 @@ mod tests {
                 assert_eq!(serial, split, "{m}x{n}x{k} lhs_t {lhs_t} rhs_t {rhs_t}");
             }
         }
+    }
+
+    /// Reading a weight gradient's left operand in place or through a transposed copy gives
+    /// the same bits (so the per-machine choice changes speed only): small and odd shapes,
+    /// more than one depth block (k > 512), and gemm's threaded path. (With a transposed
+    /// right operand too, gemm's path for tiny products sums in another order.)
+    #[test]
+    fn transposed_lhs_ways_give_the_same_bits() {
+        let mut rng = SplitMix64(9);
+        for (m, n, k) in [
+            (5, 7, 3),
+            (1, 9, 40),
+            (33, 70, 700),
+            (256, 96, 1500),
+            (512, 256, 4096),
+        ] {
+            let (a, b) = (random(k * m, &mut rng), random(k * n, &mut rng));
+            let in_place = TransposedLhs::InPlace.product(&a, &b, (m, n, k));
+            let copied = TransposedLhs::Copied.product(&a, &b, (m, n, k));
+            assert_eq!(bits(&in_place), bits(&copied), "{m}x{n}x{k}");
+        }
+        assert!([TransposedLhs::InPlace, TransposedLhs::Copied].contains(&TransposedLhs::chosen()));
     }
 }

@@ -165,6 +165,10 @@ pub struct Machine {
     /// The vectors our row kernels (exp, σ, GELU, softmax rows, AdamW) take (`nn::simd`).
     #[serde(default)]
     pub row_kernels: String,
+    /// How weight-gradient products read their transposed left operand here
+    /// (`nn::matmul::TransposedLhs`: "in-place" or "copied", measured at first use).
+    #[serde(default)]
+    pub transposed_lhs: String,
     /// This machine's fp32 FMA peak measured now, GFLOP/s ([`fma_peak`]).
     pub fma_peak_gflops: f64,
     /// The vectors that peak ran with.
@@ -300,6 +304,7 @@ pub fn machine() -> Machine {
         isa,
         gemm_kernels: vector_isa(gemm_lanes),
         row_kernels: nn::simd::isa().name().into(),
+        transposed_lhs: nn::matmul::TransposedLhs::chosen().name().into(),
         fma_peak_gflops: peak.gflops,
         fma_peak_isa: peak.isa.clone(),
         threads: rayon::current_num_threads(),

@@ -19,7 +19,7 @@
 //! it, and frames before the start or past the end read as zero.
 
 use super::ConvWeights;
-use crate::matmul::{gemm_new, transpose};
+use crate::matmul::{gemm_new, TransposedLhs};
 use rayon::prelude::*;
 use std::ops::Range;
 
@@ -216,13 +216,11 @@ impl<'a> Winograd<'a> {
     fn weight_grad(&self, dm: &[f32], xt: &[f32]) -> Vec<f32> {
         let (out, inp, _) = self.w.dims;
         let rows = self.rows();
-        // dM_j transposed first: gemm reads a transposed left operand slower than the copy.
         let dwt: Vec<Vec<f32>> = (0..4)
             .map(|j| {
-                let dmt = transpose(&dm[j * rows * out..][..rows * out], rows, out);
-                gemm_new(
-                    (&dmt, false),
-                    (&xt[j * rows * inp..][..rows * inp], false),
+                TransposedLhs::chosen().product(
+                    &dm[j * rows * out..][..rows * out],
+                    &xt[j * rows * inp..][..rows * inp],
                     (out, inp, rows),
                 )
             })
