@@ -544,7 +544,10 @@ impl ConvCpu {
             let input = input_grad.then(|| per_tap.input_grad(&dy_t, x));
             return ConvGrads {
                 input,
-                weight: channels_major(&per_tap.weight_grad(&dy_t, &lhs), (out_ch, inp, kernel)),
+                weight: channels_major(
+                    &per_tap.weight_grad(&dy_t, &lhs, TransposedLhs::chosen()),
+                    (out_ch, inp, kernel),
+                ),
                 bias: bias_gradient(&dy, out_ch),
             };
         }
@@ -690,14 +693,14 @@ impl<'a> PerTap<'a> {
         })
     }
 
-    /// The weight gradient, taps-major, from the time-major output gradient `dy_t`.
-    fn weight_grad(&self, dy_t: &[f32], x_t: &[f32]) -> Vec<f32> {
+    /// The weight gradient, taps-major, from the time-major output gradient `dy_t`, which the
+    /// products read `way` (a copy transposed once for every tap, or in place).
+    fn weight_grad(&self, dy_t: &[f32], x_t: &[f32], way: TransposedLhs) -> Vec<f32> {
         let (out, inp, kernel) = self.w.dims;
         let b = self.batch;
-        // dW_k = dYᵀ · X over the tap's rows, dY read as TransposedLhs::chosen() says (a copy
-        // transposed once for every tap, or in place).
+        // dW_k = dYᵀ · X over the tap's rows.
         let rows = self.out_frames * b;
-        let dy_tt = match TransposedLhs::chosen() {
+        let dy_tt = match way {
             TransposedLhs::Copied => Some(transpose(dy_t, rows, out)),
             TransposedLhs::InPlace => None,
         };
@@ -1274,6 +1277,34 @@ mod tests {
                 };
                 matches_the_generic_path(g, (3, frames, 16, 24));
             }
+        }
+    }
+
+    /// The per-tap weight gradient reads the output gradient in place or through a transposed
+    /// copy with the same bits (strided views of every tap's window).
+    #[test]
+    fn per_tap_weight_gradients_do_not_depend_on_how_dy_is_read() {
+        let mut rng = motionscale_core::rng::SplitMix64(4);
+        let mut draw =
+            |n: usize| -> Vec<f32> { (0..n).map(|_| rng.range(-1.0, 1.0) as f32).collect() };
+        for (dilation, frames) in [(1, 7), (3, 16), (9, 8)] {
+            let g = ConvGeometry::plain(3, 1, dilation, dilation);
+            let (batch, inp, out) = (3, 16, 24);
+            let weights = ConvWeights::new(&draw(out * inp * 3), &draw(out), (out, inp, 3));
+            let op = ConvCpu {
+                geometry: g,
+                output: ConvOutput::default(),
+            };
+            let per_tap = PerTap::new(&op, &weights, (batch, frames));
+            let x_t = draw(frames * batch * inp);
+            let dy_t = draw(g.out_len(frames) * batch * out);
+            let [in_place, copied] = [TransposedLhs::InPlace, TransposedLhs::Copied]
+                .map(|way| per_tap.weight_grad(&dy_t, &x_t, way));
+            assert_eq!(
+                crate::simd::bits(&in_place),
+                crate::simd::bits(&copied),
+                "{g:?}"
+            );
         }
     }
 
