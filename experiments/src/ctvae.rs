@@ -15,7 +15,7 @@
 use candle_core::{DType, Device, Module, Result, Tensor};
 use candle_nn::{Init, Linear, VarBuilder};
 use motionscale_core::rng::SplitMix64;
-use nn::gru::{last_states, StackedGru};
+use nn::gru::{GruOutput, StackedGru};
 use serde::{Deserialize, Serialize};
 
 /// The shape of a BI-CTVAE.
@@ -136,7 +136,7 @@ impl Ctvae {
     pub fn encode(&self, x: &Tensor, classes: &[u32], lengths: &[usize]) -> Result<Posterior> {
         let steps = x.dim(1)?;
         let input = Tensor::cat(&[x, &self.conditions(classes, steps, x.device())?], 2)?;
-        let last = last_states(&self.encoder.states(&input, lengths)?, lengths)?;
+        let last = self.encoder.run(&input, lengths, GruOutput::Final)?;
         Ok(Posterior {
             mu: self.to_mu.forward(&last)?,
             logvar: self.to_logvar.forward(&last)?,
@@ -154,8 +154,11 @@ impl Ctvae {
             ],
             2,
         )?;
-        self.out
-            .forward(&self.decoder.states(&input, &vec![steps; batch])?)
+        self.out.forward(
+            &self
+                .decoder
+                .run(&input, &vec![steps; batch], GruOutput::States)?,
+        )
     }
 
     /// The device its weights live on.

@@ -131,10 +131,10 @@ pub struct ConvOutput {
 /// Rows per parallel task of the copies (large enough to amortise scheduling).
 const ROWS_PER_TASK: usize = 64;
 
-/// The output rows an op computes: all `batch × out` of them in order, or each sequence's
-/// first `valid[b]`, packed one after another.
+/// The rows an op computes (a convolution's output frames, a GRU's steps): all `batch × out`
+/// of them in order, or each sequence's first `valid[b]`, packed one after another.
 #[derive(Clone)]
-struct Rows {
+pub(crate) struct Rows {
     batch: usize,
     out: usize,
     /// Packed row of each sequence's first frame, and the total at the end; `None`: all rows.
@@ -142,7 +142,9 @@ struct Rows {
 }
 
 impl Rows {
-    fn new(batch: usize, out: usize, valid: Option<&[usize]>) -> Self {
+    /// The rows of `batch` sequences of `out` frames, each computed at its first `valid[b]`
+    /// (`None`: all of them).
+    pub(crate) fn new(batch: usize, out: usize, valid: Option<&[usize]>) -> Self {
         // Every sequence whole (BI-CTVAE's decoder): the rows are already packed.
         let valid = valid.filter(|v| v.iter().any(|&n| n < out));
         let starts = valid.map(|v| {
@@ -155,14 +157,15 @@ impl Rows {
         Self { batch, out, starts }
     }
 
-    fn count(&self) -> usize {
+    /// Rows computed.
+    pub(crate) fn count(&self) -> usize {
         self.starts
             .as_ref()
             .map_or(self.batch * self.out, |s| s[self.batch])
     }
 
     /// Packed row of sequence `b`'s first frame, and how many frames it has.
-    fn span(&self, b: usize) -> (usize, usize) {
+    pub(crate) fn span(&self, b: usize) -> (usize, usize) {
         match &self.starts {
             Some(s) => (s[b], s[b + 1] - s[b]),
             None => (b * self.out, self.out),
@@ -181,7 +184,7 @@ impl Rows {
     }
 
     /// The packed rows of `padded` (`batch·out` rows of `width`).
-    fn gather<'a>(&self, padded: &'a [f32], width: usize) -> Cow<'a, [f32]> {
+    pub(crate) fn gather<'a>(&self, padded: &'a [f32], width: usize) -> Cow<'a, [f32]> {
         if self.starts.is_none() {
             return Cow::Borrowed(padded);
         }
@@ -195,7 +198,7 @@ impl Rows {
     }
 
     /// `packed` rows put back in their places among `batch·out` rows, zeros elsewhere.
-    fn scatter(&self, packed: Vec<f32>, width: usize) -> Vec<f32> {
+    pub(crate) fn scatter(&self, packed: Vec<f32>, width: usize) -> Vec<f32> {
         if self.starts.is_none() {
             return packed;
         }

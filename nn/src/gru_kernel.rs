@@ -1,20 +1,32 @@
-//! The GRU recurrence as one fused CPU op with a hand-written backward pass through time.
+//! GRU layers as one fused CPU op with a hand-written backward pass through time.
 //!
 //! Why: as candle ops, every time step was a dozen small graph nodes (narrow, matmul,
 //! sigmoid, mul…), and building and walking that graph made the evaluator's training step
-//! 0.25–0.3× PyTorch's. Here the input projection stays one candle matmul over all steps
-//! (`gi`) and this op runs the recurrence: one `(running, h) × (h, 3h)` gemm per step into
-//! preallocated buffers and the gates in one pass, as PyTorch's packed sequences do: each
-//! group's sequences are sorted longest first, so the ones still running are a prefix and
-//! padding costs nothing. Sequences are independent, so the batch is dealt into groups of a
-//! fixed size that the threads share; the weight gradient is one large gemm over every
-//! (sequence, step) in batch order, so no result depends on the thread count.
+//! 0.25–0.3× PyTorch's. Here one op takes a layer's input and parameters (one or both
+//! directions) and returns its states or only its final states: each direction projects
+//! every real step's input in one gemm (the pointwise convolution of [`crate::conv_op`]) and
+//! runs the recurrence with one `(running, h) × (h, 3h)` gemm per step into preallocated
+//! buffers and the gates in one pass, as PyTorch's packed sequences do: each group's
+//! sequences are sorted longest first, so the ones still running are a prefix and padding
+//! costs nothing. Sequences are independent, so the batch is dealt into groups of a fixed
+//! size that the threads share (both directions' groups at once); the weight gradients are
+//! one large gemm each over every (sequence, step) in batch order, so no result depends on
+//! the thread count.
+//!
+//! Why the projection is inside the op: as its own graph node, its output (the gate inputs,
+//! 3h wide, the largest tensor of a layer) and that output's gradient were padded to the
+//! longest sequence, and candle's autograd zero-filled and added every gradient it
+//! accumulated (the gate inputs', the states', the input's once per direction). Inside, they
+//! stay packed (real steps only) and are written once. The values are the same: each
+//! product has the shape and operands it had as separate nodes.
 //!
 //! Semantics (PyTorch's `nn.GRU` over a packed batch, gate order r, z, n): with
-//! gh = W_hh·h + b_hh, r = σ(gi_r + gh_r), z = σ(gi_z + gh_z), n = tanh(gi_n + r·gh_n),
-//! h' = (1 − z)·n + z·h, from h = 0. Sequence b runs over its first `lengths[b]` steps (last
-//! to first when `reverse`) and its output is zero past its length.
+//! gi = W_ih·x + b_ih, gh = W_hh·h + b_hh, r = σ(gi_r + gh_r), z = σ(gi_z + gh_z),
+//! n = tanh(gi_n + r·gh_n), h' = (1 − z)·n + z·h, from h = 0. Sequence b runs over its first
+//! `lengths[b]` steps (last to first in a reversed direction) and its states are zero past
+//! them.
 
+use crate::conv_op::{ConvCpu, ConvGeometry, ConvOutput, ConvWeights, Rows};
 use crate::cpu_f32::{contiguous_f32, F32Values};
 use crate::fast_exp::exp;
 use crate::kernels::column_sums;
@@ -24,25 +36,37 @@ use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::sync::Mutex;
 
-/// Batch, steps and hidden width of a scan.
+/// Batch, steps, input and hidden width, and directions of a layer.
 #[derive(Debug, Clone, Copy)]
 struct Dims {
     batch: usize,
     steps: usize,
+    input: usize,
     hidden: usize,
+    directions: usize,
 }
 
 impl Dims {
-    fn of(gi: &Shape, w: &Shape, bias: &Shape) -> Result<Self> {
-        let (batch, steps, h3) = gi.dims3()?;
-        let hidden = h3 / 3;
-        if h3 % 3 != 0 || w.dims() != [h3, hidden] || bias.dims() != [h3] {
-            candle_core::bail!("gru scan: gate inputs {gi:?}, weight {w:?}, bias {bias:?}");
+    /// From the input `(batch, steps, in)`, the directions' `[W_ih | W_hh]` stacked
+    /// `(directions·3h, in + h)` and their `[b_ih, b_hh]` stacked `(directions·6h)`.
+    fn of(x: &Shape, w: &Shape, bias: &Shape, directions: usize) -> Result<Self> {
+        let (batch, steps, input) = x.dims3()?;
+        let hidden = bias.elem_count() / (6 * directions).max(1);
+        let fits = directions > 0
+            && hidden > 0
+            && bias.dims() == [6 * hidden * directions]
+            && w.dims() == [3 * hidden * directions, input + hidden];
+        if !fits {
+            candle_core::bail!(
+                "gru: input {x:?}, weights {w:?}, biases {bias:?} for {directions} directions"
+            );
         }
         Ok(Self {
             batch,
             steps,
+            input,
             hidden,
+            directions,
         })
     }
 }
@@ -151,8 +175,8 @@ fn gate_step_backward(
 
 /// `(sequences, steps, width)` values whose cells past each sequence's length are zero and
 /// whose real cells `fill` writes through the pointer it gets (`fill`'s result is passed
-/// on): the buffers a scan fills are not zero-filled first (for the states, gates and their
-/// gradients of a layer, that fill was a pass over as much memory as the scan writes).
+/// on): a layer's padded states are not zero-filled first (that fill was a pass over as much
+/// memory as the scan writes).
 ///
 /// # Safety
 /// `fill` writes every value of every real cell (step < `lengths[b]` ≤ `steps`).
@@ -176,27 +200,140 @@ unsafe fn cells_new<R>(
     unsafe { new_written(lengths.len() * steps * width, write) }
 }
 
-/// The fused scan of one GRU direction (see the module docs). Keeps the gates of its forward
-/// pass for the backward.
-struct GruScan {
-    lengths: Vec<usize>,
-    reverse: bool,
-    saved: Mutex<Option<Vec<f32>>>,
+/// What [`fused_gru`] returns.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum GruOutput {
+    /// The state after every step, `(batch, steps, directions·h)`, zero past each length
+    /// (`nn.GRU`'s output).
+    States,
+    /// Each direction's state after its last step, `(batch, directions·h)` (`nn.GRU`'s
+    /// `h_n`, the directions side by side).
+    Final,
 }
 
-impl GruScan {
-    /// Index of sequence `row`'s `s`-th step in `(batch, steps)` order.
-    fn cell(&self, d: Dims, row: usize, len: usize, s: usize) -> usize {
-        row * d.steps + if self.reverse { len - 1 - s } else { s }
+/// One direction of a GRU layer: PyTorch's parameters and the way it runs.
+#[derive(Clone, Copy)]
+pub struct Direction<'a> {
+    /// `weight_ih (3h, in)`.
+    pub w_ih: &'a Tensor,
+    /// `bias_ih (3h)`.
+    pub b_ih: &'a Tensor,
+    /// `weight_hh (3h, h)`.
+    pub w_hh: &'a Tensor,
+    /// `bias_hh (3h)`.
+    pub b_hh: &'a Tensor,
+    /// Last step first (the `_reverse` direction of a bidirectional layer).
+    pub reverse: bool,
+}
+
+/// A direction's input projection: a pointwise convolution over one sequence of every
+/// packed step.
+fn projection() -> ConvCpu {
+    ConvCpu {
+        geometry: ConvGeometry::plain(1, 1, 1, 0),
+        output: ConvOutput::default(),
+    }
+}
+
+/// One direction's parameters in the layouts its products read.
+struct DirectionWeights {
+    /// `W_ih` and `b_ih`, as the projection's.
+    input: ConvWeights,
+    /// `W_hh` (3h × h): the right operand of the state gradient's product.
+    w_hh: Vec<f32>,
+    /// `W_hhᵀ` (h × 3h): each step's few-row product reads it as it lies (see `transpose`).
+    w_hh_t: Vec<f32>,
+    b_hh: Vec<f32>,
+}
+
+impl DirectionWeights {
+    /// Direction `k`'s, from the stacked `[W_ih | W_hh]` rows and `[b_ih, b_hh]` biases.
+    fn of(w: &[f32], bias: &[f32], d: Dims, k: usize) -> Self {
+        let (hd, h3, inp) = (d.hidden, 3 * d.hidden, d.input);
+        let mut w_ih = Vec::with_capacity(h3 * inp);
+        let mut w_hh = Vec::with_capacity(h3 * hd);
+        for row in w[k * h3 * (inp + hd)..][..h3 * (inp + hd)].chunks_exact(inp + hd) {
+            w_ih.extend_from_slice(&row[..inp]);
+            w_hh.extend_from_slice(&row[inp..]);
+        }
+        let b = &bias[k * 2 * h3..][..2 * h3];
+        Self {
+            input: ConvWeights::new(&w_ih, &b[..h3], (h3, inp, 1)),
+            w_hh_t: transpose(&w_hh, h3, hd),
+            w_hh,
+            b_hh: b[h3..].to_vec(),
+        }
+    }
+}
+
+/// What the forward pass keeps for the backward: every direction's gates (r, z, n, gh_n)
+/// and state at every packed step, direction by direction.
+struct Saved {
+    gates: Vec<f32>,
+    states: Vec<f32>,
+}
+
+/// The fused GRU layer (see the module docs).
+struct GruOp {
+    lengths: Vec<usize>,
+    /// Per direction, whether it runs last step first.
+    reverse: Vec<bool>,
+    output: GruOutput,
+    saved: Mutex<Option<Saved>>,
+}
+
+impl GruOp {
+    /// Each sequence's real steps, packed in batch then step order.
+    fn rows(&self, d: Dims) -> Rows {
+        Rows::new(d.batch, d.steps, Some(&self.lengths))
     }
 
-    /// States `(batch, steps, h)` and saved gates `(batch, steps, 4h)`.
-    fn forward(&self, gi: &[f32], w: &[f32], bias: &[f32], d: Dims) -> (Vec<f32>, Vec<f32>) {
+    /// Position in its sequence (of `len` steps) of direction `k`'s `s`-th step.
+    fn position(&self, k: usize, len: usize, s: usize) -> usize {
+        if self.reverse[k] {
+            len - 1 - s
+        } else {
+            s
+        }
+    }
+
+    /// Where direction `k`'s state at step `s` (position `t`) of sequence `b` (of `len`
+    /// steps) lies in the output, if it is there.
+    fn output_at(
+        &self,
+        d: Dims,
+        k: usize,
+        (b, len): (usize, usize),
+        (s, t): Step,
+    ) -> Option<usize> {
+        let width = d.directions * d.hidden;
+        match self.output {
+            GruOutput::States => Some((b * d.steps + t) * width + k * d.hidden),
+            GruOutput::Final => (s + 1 == len).then_some(b * width + k * d.hidden),
+        }
+    }
+
+    /// Every direction's groups of sequences: the tasks the threads share.
+    fn tasks<'g>(&self, groups: &'g [Group]) -> Vec<(usize, &'g Group)> {
+        (0..self.reverse.len())
+            .flat_map(|k| groups.iter().map(move |g| (k, g)))
+            .collect()
+    }
+
+    /// The output, and what the backward pass needs.
+    fn forward(&self, x: &[f32], weights: &[DirectionWeights], d: Dims) -> (Vec<f32>, Saved) {
         let (hd, h3) = (d.hidden, 3 * d.hidden);
-        // Each step's few-row product reads W_hhᵀ as it lies (see `transpose`).
-        let wt = transpose(w, h3, hd);
-        let scan = |out_ptr: SharedMut, gates_ptr: SharedMut| {
-            groups(&self.lengths).par_iter().for_each(|g| {
+        let rows = self.rows(d);
+        let cells = rows.count();
+        let xs = rows.gather(x, d.input);
+        let gi: Vec<Vec<f32>> = weights
+            .iter()
+            .map(|w| projection().forward(&xs, (1, cells), &w.input))
+            .collect();
+        let groups = groups(&self.lengths);
+        let scan = |out: SharedMut, gates: SharedMut, states: SharedMut| {
+            self.tasks(&groups).par_iter().for_each(|&(k, g)| {
+                let w = &weights[k];
                 let mut h = vec![0f32; g.rows.len() * hd];
                 let mut gh = vec![0f32; g.rows.len() * h3];
                 let mut saved = vec![0f32; 4 * hd];
@@ -204,98 +341,117 @@ impl GruScan {
                     let a = g.active(s);
                     gh[..a * h3]
                         .chunks_exact_mut(h3)
-                        .for_each(|row| row.copy_from_slice(bias));
+                        .for_each(|row| row.copy_from_slice(&w.b_hh));
                     gemm_with(
                         &mut gh[..a * h3],
                         (&h[..a * hd], false),
-                        (&wt, false),
+                        (&w.w_hh_t, false),
                         (a, h3, hd),
                         (true, 1.0, false),
                     );
                     for i in 0..a {
-                        let at = self.cell(d, g.rows[i], g.lengths[i], s);
+                        let (b, len) = (g.rows[i], g.lengths[i]);
+                        let t = self.position(k, len, s);
+                        let cell = k * cells + rows.span(b).0 + t;
                         let hi = &mut h[i * hd..][..hd];
-                        gate_step(&gi[at * h3..][..h3], &gh[i * h3..][..h3], hi, &mut saved);
-                        // SAFETY: each (sequence, step) cell belongs to one group and one step.
+                        gate_step(
+                            &gi[k][(cell - k * cells) * h3..][..h3],
+                            &gh[i * h3..][..h3],
+                            hi,
+                            &mut saved,
+                        );
+                        // SAFETY: each (direction, sequence, step) cell and each output
+                        // state belongs to one task and one step.
                         unsafe {
-                            out_ptr.put(at * hd, hi);
-                            gates_ptr.put(at * 4 * hd, &saved);
+                            gates.put(cell * 4 * hd, &saved);
+                            states.put(cell * hd, hi);
+                            if let Some(at) = self.output_at(d, k, (b, len), (s, t)) {
+                                out.put(at, hi);
+                            }
                         }
                     }
                 }
             })
         };
-        let lengths = &self.lengths;
-        // SAFETY: the scan writes every real cell of both buffers.
-        let (out, (gates, ())) = unsafe {
-            cells_new(lengths, d.steps, hd, |out_ptr| {
-                cells_new(lengths, d.steps, 4 * hd, |gates_ptr| {
-                    scan(out_ptr, gates_ptr)
+        let per_cell = |width: usize| d.directions * cells * width;
+        let fill = |out| {
+            // SAFETY: the scan writes every cell of both buffers.
+            unsafe {
+                new_written(per_cell(4 * hd), |gates| {
+                    new_written(per_cell(hd), |states| scan(out, gates, states))
                 })
-            })
+            }
         };
-        (out, gates)
+        let width = d.directions * hd;
+        // SAFETY: the scan writes every real step's states (States) or every sequence's
+        // final states (Final).
+        let (out, (gates, (states, ()))) = unsafe {
+            match self.output {
+                GruOutput::States => cells_new(&self.lengths, d.steps, width, fill),
+                GruOutput::Final => new_written(d.batch * width, fill),
+            }
+        };
+        (out, Saved { gates, states })
     }
 
-    /// Gradients of the gate inputs `(batch, steps, 3h)`, the recurrent weight `(3h, h)` and
-    /// its bias `(3h)` from the states' gradient `dout`.
+    /// Gradients of the input (when `input_grad`), the stacked weights and the stacked
+    /// biases, from the output's gradient `dout`.
     fn backward(
         &self,
-        w: &[f32],
-        states: &[f32],
-        gates: &[f32],
+        (x, input_grad): (&[f32], bool),
+        weights: &[DirectionWeights],
+        saved: &Saved,
         dout: &[f32],
         d: Dims,
-    ) -> [Vec<f32>; 3] {
+    ) -> (Option<Vec<f32>>, Vec<f32>, Vec<f32>) {
         let (hd, h3) = (d.hidden, 3 * d.hidden);
-        // gh's gradient and the previous state of every real cell, packed in batch then step
-        // order (sequence b's cells from `first[b]`) for the one weight-gradient product.
-        let first: Vec<usize> = self
-            .lengths
-            .iter()
-            .scan(0, |acc, &l| {
-                let at = *acc;
-                *acc += l;
-                Some(at)
-            })
-            .collect();
-        let cells: usize = self.lengths.iter().sum();
+        let rows = self.rows(d);
+        let cells = rows.count();
         let zero = vec![0f32; hd];
-        let scan = |ptrs: [SharedMut; 3]| {
-            groups(&self.lengths).par_iter().for_each(|g| {
+        let groups = groups(&self.lengths);
+        // Per (direction, packed step): the gate inputs' gradient, gh's, and the previous
+        // state, for the projection's backward and the one recurrent weight-gradient product.
+        let scan = |dgi: SharedMut, dgh: SharedMut, prev: SharedMut| {
+            self.tasks(&groups).par_iter().for_each(|&(k, g)| {
+                let w = &weights[k];
                 let mut dh = vec![0f32; g.rows.len() * hd];
                 let mut dgh_step = vec![0f32; g.rows.len() * h3];
                 let mut dgi_cell = vec![0f32; h3];
                 for s in (0..g.lengths[0]).rev() {
                     let a = g.active(s);
                     for i in 0..a {
-                        let (row, len) = (g.rows[i], g.lengths[i]);
-                        let at = self.cell(d, row, len, s);
-                        let packed = first[row] + at - row * d.steps;
+                        let (b, len) = (g.rows[i], g.lengths[i]);
+                        let (first, t) = (k * cells + rows.span(b).0, self.position(k, len, s));
+                        let cell = first + t;
                         let hp = match s {
                             0 => &zero[..],
-                            _ => &states[self.cell(d, row, len, s - 1) * hd..][..hd],
+                            _ => {
+                                let before = first + self.position(k, len, s - 1);
+                                &saved.states[before * hd..][..hd]
+                            }
                         };
                         let dhi = &mut dh[i * hd..][..hd];
-                        dhi.iter_mut()
-                            .zip(&dout[at * hd..][..hd])
-                            .for_each(|(a, b)| *a += b);
+                        if let Some(at) = self.output_at(d, k, (b, len), (s, t)) {
+                            dhi.iter_mut()
+                                .zip(&dout[at..][..hd])
+                                .for_each(|(a, b)| *a += b);
+                        }
                         let dghi = &mut dgh_step[i * h3..][..h3];
-                        let saved = &gates[at * 4 * hd..][..4 * hd];
-                        gate_step_backward(saved, hp, dhi, &mut dgi_cell, dghi);
-                        // SAFETY: each (sequence, step) cell, packed or not, belongs to one
-                        // group and one step.
+                        let gates = &saved.gates[cell * 4 * hd..][..4 * hd];
+                        gate_step_backward(gates, hp, dhi, &mut dgi_cell, dghi);
+                        // SAFETY: each (direction, sequence, step) cell belongs to one task
+                        // and one step.
                         unsafe {
-                            ptrs[0].put(at * h3, &dgi_cell);
-                            ptrs[1].put(packed * h3, dghi);
-                            ptrs[2].put(packed * hd, hp);
+                            dgi.put(cell * h3, &dgi_cell);
+                            dgh.put(cell * h3, dghi);
+                            prev.put(cell * hd, hp);
                         }
                     }
                     if s > 0 {
                         gemm_with(
                             &mut dh[..a * hd],
                             (&dgh_step[..a * h3], false),
-                            (w, false),
+                            (&w.w_hh, false),
                             (a, hd, h3),
                             (true, 1.0, false),
                         );
@@ -303,104 +459,147 @@ impl GruScan {
                 }
             })
         };
-        // dgi is zero past each length; the packed buffers have real cells only.
-        // SAFETY: the scan writes every real cell of the three buffers.
+        let per_cell = |width: usize| d.directions * cells * width;
+        // SAFETY: the scan writes every cell of the three buffers.
         let (dgi, (dgh, (prev, ()))) = unsafe {
-            cells_new(&self.lengths, d.steps, h3, |dgi| {
-                cells_new(&[cells], cells, h3, |dgh| {
-                    cells_new(&[cells], cells, hd, |prev| scan([dgi, dgh, prev]))
+            new_written(per_cell(h3), |dgi| {
+                new_written(per_cell(h3), |dgh| {
+                    new_written(per_cell(hd), |prev| scan(dgi, dgh, prev))
                 })
             })
         };
-        let mut dw = vec![0f32; h3 * hd];
-        gemm_with(
-            &mut dw,
-            (&dgh, true),
-            (&prev, false),
-            (h3, hd, cells),
-            (false, 1.0, true),
-        );
-        let db = column_sums(&dgh, h3);
-        [dgi, dw, db]
+        let xs = rows.gather(x, d.input);
+        let (mut dx, mut dw, mut db) = (None::<Vec<f32>>, Vec::new(), Vec::new());
+        for (k, w) in weights.iter().enumerate() {
+            let part = |width: usize| k * cells * width..(k + 1) * cells * width;
+            let (dgi, dgh, prev) = (&dgi[part(h3)], &dgh[part(h3)], &prev[part(hd)]);
+            let input =
+                projection().backward((&xs, None, None), (1, cells), &w.input, dgi, input_grad);
+            let mut dw_hh = vec![0f32; h3 * hd];
+            gemm_with(
+                &mut dw_hh,
+                (dgh, true),
+                (prev, false),
+                (h3, hd, cells),
+                (false, 1.0, true),
+            );
+            for (ih, hh) in input
+                .weight
+                .chunks_exact(d.input)
+                .zip(dw_hh.chunks_exact(hd))
+            {
+                dw.extend_from_slice(ih);
+                dw.extend_from_slice(hh);
+            }
+            db.extend_from_slice(&input.bias);
+            db.extend_from_slice(&column_sums(dgh, h3));
+            dx = match (dx, input.input) {
+                (Some(mut sum), Some(more)) => {
+                    sum.iter_mut().zip(&more).for_each(|(a, b)| *a += b);
+                    Some(sum)
+                }
+                (sum, more) => sum.or(more),
+            };
+        }
+        (dx.map(|dx| rows.scatter(dx, d.input)), dw, db)
+    }
+
+    fn weights(&self, w: &[f32], bias: &[f32], d: Dims) -> Vec<DirectionWeights> {
+        (0..d.directions)
+            .map(|k| DirectionWeights::of(w, bias, d, k))
+            .collect()
     }
 }
 
-impl CustomOp3 for GruScan {
+/// A direction's step: how many it has run before (`s`) and its position in the sequence.
+type Step = (usize, usize);
+
+impl CustomOp3 for GruOp {
     fn name(&self) -> &'static str {
-        "gru-scan"
+        "gru"
     }
 
     fn cpu_fwd(
         &self,
-        gs: &CpuStorage,
-        gl: &Layout,
+        xs: &CpuStorage,
+        xl: &Layout,
         ws: &CpuStorage,
         wl: &Layout,
         bs: &CpuStorage,
         bl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let d = Dims::of(gl.shape(), wl.shape(), bl.shape())?;
-        let gi = contiguous_f32(gs, gl, "gate inputs")?;
-        let w = contiguous_f32(ws, wl, "recurrent weight")?;
-        let bias = contiguous_f32(bs, bl, "recurrent bias")?;
-        let (out, gates) = self.forward(gi, w, bias, d);
-        *self.saved.lock().expect("gru scan lock") = Some(gates);
-        Ok((
-            CpuStorage::F32(out),
-            Shape::from((d.batch, d.steps, d.hidden)),
-        ))
+        let d = Dims::of(xl.shape(), wl.shape(), bl.shape(), self.reverse.len())?;
+        let x = contiguous_f32(xs, xl, "input")?;
+        let w = contiguous_f32(ws, wl, "weights")?;
+        let bias = contiguous_f32(bs, bl, "biases")?;
+        let (out, saved) = self.forward(x, &self.weights(w, bias, d), d);
+        *self.saved.lock().expect("gru lock") = Some(saved);
+        let width = d.directions * d.hidden;
+        let shape = match self.output {
+            GruOutput::States => Shape::from((d.batch, d.steps, width)),
+            GruOutput::Final => Shape::from((d.batch, width)),
+        };
+        Ok((CpuStorage::F32(out), shape))
     }
 
     fn bwd(
         &self,
-        gi: &Tensor,
+        x: &Tensor,
         w: &Tensor,
         bias: &Tensor,
-        res: &Tensor,
+        _res: &Tensor,
         grad: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let d = Dims::of(gi.shape(), w.shape(), bias.shape())?;
-        let saved = self.saved.lock().expect("gru scan lock");
-        let gates = saved
+        let d = Dims::of(x.shape(), w.shape(), bias.shape(), self.reverse.len())?;
+        let saved = self.saved.lock().expect("gru lock");
+        let saved = saved
             .as_ref()
-            .ok_or_else(|| candle_core::Error::Msg("gru scan: backward before forward".into()))?;
-        let (wv, states, dout) = (F32Values::of(w)?, F32Values::of(res)?, F32Values::of(grad)?);
-        let [dgi, dw, db] = self.backward(&wv, &states, gates, &dout, d);
-        let device = gi.device();
+            .ok_or_else(|| candle_core::Error::Msg("gru: backward before forward".into()))?;
+        let weights = self.weights(&F32Values::of(w)?, &F32Values::of(bias)?, d);
+        let (xv, dout) = (F32Values::of(x)?, F32Values::of(grad)?);
+        // An input that no gradient reaches (the data under the first layer) gets none.
+        let (dx, dw, db) = self.backward((&xv, x.track_op()), &weights, saved, &dout, d);
+        let device = x.device();
         Ok((
-            Some(Tensor::from_vec(dgi, gi.shape(), device)?),
+            dx.map(|dx| Tensor::from_vec(dx, x.shape(), device))
+                .transpose()?,
             Some(Tensor::from_vec(dw, w.shape(), device)?),
             Some(Tensor::from_vec(db, bias.shape(), device)?),
         ))
     }
 }
 
-/// The states `(batch, steps, h)` of one GRU direction from its gate inputs
-/// `gi = x·W_ihᵀ + b_ih` `(batch, steps, 3h)`, recurrent weight `w_hh` `(3h, h)` and bias
-/// `b_hh` `(3h)`; sequence b runs over its first `lengths[b]` steps (backwards when
-/// `reverse`), zero past them. f32 CPU tensors take the fused op, anything else
-/// [`scan_reference`].
-pub fn gru_scan(
-    gi: &Tensor,
-    w_hh: &Tensor,
-    b_hh: &Tensor,
+/// A GRU layer's [`GruOutput`] over `x` `(batch, steps, in)`, its `directions` side by side
+/// (one, or a bidirectional layer's two); sequence b runs over its first `lengths[b]` steps.
+/// f32 CPU tensors only ([`crate::gru::gru`] composes candle ops for the others).
+pub fn fused_gru(
+    x: &Tensor,
+    directions: &[Direction],
     lengths: &[usize],
-    reverse: bool,
+    output: GruOutput,
 ) -> Result<Tensor> {
-    let (batch, steps, _) = gi.dims3()?;
+    let (batch, steps, _) = x.dims3()?;
     if lengths.len() != batch || lengths.iter().any(|&l| l == 0 || l > steps) {
-        candle_core::bail!("gru scan: lengths {lengths:?} for {batch} sequences of {steps} steps");
+        candle_core::bail!("gru: lengths {lengths:?} for {batch} sequences of {steps} steps");
     }
-    if !(gi.device().is_cpu() && gi.dtype() == DType::F32) {
-        return scan_reference(gi, w_hh, b_hh, lengths, reverse);
+    if !(x.device().is_cpu() && x.dtype() == DType::F32) {
+        candle_core::bail!("fused gru: f32 CPU tensors only, not {:?}", x.dtype());
     }
-    let op = GruScan {
+    // One tensor each for the op: the directions' weights and biases, stacked.
+    let stacked = |part: &dyn Fn(&Direction) -> Result<Tensor>| -> Result<Tensor> {
+        let parts = directions.iter().map(part).collect::<Result<Vec<_>>>()?;
+        Tensor::cat(&parts, 0)
+    };
+    let w = stacked(&|d| Tensor::cat(&[d.w_ih, d.w_hh], 1))?;
+    let b = stacked(&|d| Tensor::cat(&[d.b_ih, d.b_hh], 0))?;
+    let op = GruOp {
         lengths: lengths.to_vec(),
-        reverse,
+        reverse: directions.iter().map(|d| d.reverse).collect(),
+        output,
         saved: Mutex::new(None),
     };
-    gi.contiguous()?
-        .apply_op3(&w_hh.contiguous()?, &b_hh.contiguous()?, op)
+    x.contiguous()?
+        .apply_op3(&w.contiguous()?, &b.contiguous()?, op)
 }
 
 /// Each sequence of `x` reversed within its own length (padding stays in place).

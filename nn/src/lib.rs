@@ -9,7 +9,7 @@
 //! - [`lm_kernels`] and [`seq_layout`]: the prefix LM's fused forward/backward kernels and the
 //!   batch layout they read; [`head_loss`]: the LM head fused with its cross-entropy;
 //! - [`gru`] and [`gru_kernel`]: the GRU layer (PyTorch's gate layout and names) and its fused
-//!   scan with a hand-written backward through time;
+//!   op (projection and recurrence) with a hand-written backward through time;
 //! - [`fused_ops`]: RMSNorm, SwiGLU, rotary QKV heads, the masked softmax and the
 //!   cross-entropy as single ops with a backward, on the CPU and (`cuda`) the GPU, for the
 //!   graph executor; [`device_check`]: those ops and the AdamW step on a device against the CPU;
