@@ -29,7 +29,7 @@
 
 use crate::cpu_f32::{contiguous_f32, F32Values};
 use crate::matmul::{gemm_new, gemm_strided, gemm_with, transpose, Strided, TransposedLhs};
-use crate::par::par_new;
+use crate::par::{new_written, par_new, SharedMut};
 use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::borrow::Cow;
@@ -183,32 +183,43 @@ impl Rows {
         }
     }
 
-    /// The packed rows of `padded` (`batch·out` rows of `width`).
+    /// The packed rows of `padded` (`batch·out` rows of `width`), one sequence per task.
     pub(crate) fn gather<'a>(&self, padded: &'a [f32], width: usize) -> Cow<'a, [f32]> {
         if self.starts.is_none() {
             return Cow::Borrowed(padded);
         }
-        // Appended, not zero-filled and overwritten: each value is written once.
-        let mut packed = Vec::with_capacity(self.count() * width);
-        for b in 0..self.batch {
-            let (_, n) = self.span(b);
-            packed.extend_from_slice(&padded[b * self.out * width..][..n * width]);
-        }
-        Cow::Owned(packed)
+        let copy = |packed: SharedMut| {
+            (0..self.batch).into_par_iter().for_each(|b| {
+                let (start, n) = self.span(b);
+                let rows = &padded[b * self.out * width..][..n * width];
+                // SAFETY: sequence b's packed rows are written by this task alone.
+                unsafe { packed.put(start * width, rows) };
+            })
+        };
+        // SAFETY: the sequences' packed rows tile the buffer.
+        Cow::Owned(unsafe { new_written(self.count() * width, copy) }.0)
     }
 
-    /// `packed` rows put back in their places among `batch·out` rows, zeros elsewhere.
+    /// `packed` rows put back in their places among `batch·out` rows, zeros elsewhere; one
+    /// sequence per task.
     pub(crate) fn scatter(&self, packed: Vec<f32>, width: usize) -> Vec<f32> {
         if self.starts.is_none() {
             return packed;
         }
-        let mut padded = Vec::with_capacity(self.batch * self.out * width);
-        for b in 0..self.batch {
+        let fill = |b: usize, block: &mut [MaybeUninit<f32>]| {
             let (start, n) = self.span(b);
-            padded.extend_from_slice(&packed[start * width..][..n * width]);
-            padded.resize((b + 1) * self.out * width, 0.0);
-        }
-        padded
+            let (rows, padding) = block.split_at_mut(n * width);
+            rows.iter_mut()
+                .zip(&packed[start * width..][..n * width])
+                .for_each(|(d, &v)| {
+                    d.write(v);
+                });
+            padding.iter_mut().for_each(|d| {
+                d.write(0.0);
+            });
+        };
+        // SAFETY: block b is sequence b's `out` rows, each written whole.
+        unsafe { par_new(self.batch * self.out * width, self.out * width, fill) }
     }
 }
 

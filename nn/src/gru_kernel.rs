@@ -32,7 +32,7 @@ use crate::fast_exp::exp;
 use crate::kernels::column_sums;
 use crate::matmul::{gemm_with, transpose};
 use crate::par::{new_written, SharedMut};
-use candle_core::{CpuStorage, CustomOp3, DType, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 use std::sync::Mutex;
 
@@ -47,27 +47,28 @@ struct Dims {
 }
 
 impl Dims {
-    /// From the input `(batch, steps, in)`, the directions' `[W_ih | W_hh]` stacked
-    /// `(directions·3h, in + h)` and their `[b_ih, b_hh]` stacked `(directions·6h)`.
-    fn of(x: &Shape, w: &Shape, bias: &Shape, directions: usize) -> Result<Self> {
+    /// From the input `(batch, steps, in)` and the directions' parameters, one after another
+    /// (see [`DirectionWeights::of`]).
+    fn of(x: &Shape, params: &Shape, hidden: usize, directions: usize) -> Result<Self> {
         let (batch, steps, input) = x.dims3()?;
-        let hidden = bias.elem_count() / (6 * directions).max(1);
-        let fits = directions > 0
-            && hidden > 0
-            && bias.dims() == [6 * hidden * directions]
-            && w.dims() == [3 * hidden * directions, input + hidden];
-        if !fits {
-            candle_core::bail!(
-                "gru: input {x:?}, weights {w:?}, biases {bias:?} for {directions} directions"
-            );
-        }
-        Ok(Self {
+        let d = Self {
             batch,
             steps,
             input,
             hidden,
             directions,
-        })
+        };
+        if directions == 0 || hidden == 0 || params.dims() != [directions * d.per_direction()] {
+            candle_core::bail!(
+                "gru: input {x:?}, parameters {params:?} for {directions} directions of {hidden}"
+            );
+        }
+        Ok(d)
+    }
+
+    /// Parameters of one direction: `W_ih`, `W_hh`, `b_ih`, `b_hh`.
+    fn per_direction(&self) -> usize {
+        3 * self.hidden * (self.input + self.hidden + 2)
     }
 }
 
@@ -236,32 +237,30 @@ fn projection() -> ConvCpu {
 }
 
 /// One direction's parameters in the layouts its products read.
-struct DirectionWeights {
+struct DirectionWeights<'a> {
     /// `W_ih` and `b_ih`, as the projection's.
     input: ConvWeights,
     /// `W_hh` (3h × h): the right operand of the state gradient's product.
-    w_hh: Vec<f32>,
+    w_hh: &'a [f32],
     /// `W_hhᵀ` (h × 3h): each step's few-row product reads it as it lies (see `transpose`).
     w_hh_t: Vec<f32>,
-    b_hh: Vec<f32>,
+    b_hh: &'a [f32],
 }
 
-impl DirectionWeights {
-    /// Direction `k`'s, from the stacked `[W_ih | W_hh]` rows and `[b_ih, b_hh]` biases.
-    fn of(w: &[f32], bias: &[f32], d: Dims, k: usize) -> Self {
-        let (hd, h3, inp) = (d.hidden, 3 * d.hidden, d.input);
-        let mut w_ih = Vec::with_capacity(h3 * inp);
-        let mut w_hh = Vec::with_capacity(h3 * hd);
-        for row in w[k * h3 * (inp + hd)..][..h3 * (inp + hd)].chunks_exact(inp + hd) {
-            w_ih.extend_from_slice(&row[..inp]);
-            w_hh.extend_from_slice(&row[inp..]);
-        }
-        let b = &bias[k * 2 * h3..][..2 * h3];
+impl<'a> DirectionWeights<'a> {
+    /// Direction `k`'s, from the directions' parameters one after another, each direction's
+    /// `W_ih (3h, in)`, `W_hh (3h, h)`, `b_ih (3h)`, `b_hh (3h)` flattened in that order.
+    fn of(params: &'a [f32], d: Dims, k: usize) -> Self {
+        let (h3, inp) = (3 * d.hidden, d.input);
+        let own = &params[k * d.per_direction()..][..d.per_direction()];
+        let (w_ih, rest) = own.split_at(h3 * inp);
+        let (w_hh, rest) = rest.split_at(h3 * d.hidden);
+        let (b_ih, b_hh) = rest.split_at(h3);
         Self {
-            input: ConvWeights::new(&w_ih, &b[..h3], (h3, inp, 1)),
-            w_hh_t: transpose(&w_hh, h3, hd),
+            input: ConvWeights::new(w_ih, b_ih, (h3, inp, 1)),
             w_hh,
-            b_hh: b[h3..].to_vec(),
+            w_hh_t: transpose(w_hh, h3, d.hidden),
+            b_hh,
         }
     }
 }
@@ -276,6 +275,7 @@ struct Saved {
 /// The fused GRU layer (see the module docs).
 struct GruOp {
     lengths: Vec<usize>,
+    hidden: usize,
     /// Per direction, whether it runs last step first.
     reverse: Vec<bool>,
     output: GruOutput,
@@ -341,7 +341,7 @@ impl GruOp {
                     let a = g.active(s);
                     gh[..a * h3]
                         .chunks_exact_mut(h3)
-                        .for_each(|row| row.copy_from_slice(&w.b_hh));
+                        .for_each(|row| row.copy_from_slice(w.b_hh));
                     gemm_with(
                         &mut gh[..a * h3],
                         (&h[..a * hd], false),
@@ -394,8 +394,8 @@ impl GruOp {
         (out, Saved { gates, states })
     }
 
-    /// Gradients of the input (when `input_grad`), the stacked weights and the stacked
-    /// biases, from the output's gradient `dout`.
+    /// Gradients of the input (when `input_grad`) and of the parameters (laid out as they
+    /// are), from the output's gradient `dout`.
     fn backward(
         &self,
         (x, input_grad): (&[f32], bool),
@@ -403,7 +403,7 @@ impl GruOp {
         saved: &Saved,
         dout: &[f32],
         d: Dims,
-    ) -> (Option<Vec<f32>>, Vec<f32>, Vec<f32>) {
+    ) -> (Option<Vec<f32>>, Vec<f32>) {
         let (hd, h3) = (d.hidden, 3 * d.hidden);
         let rows = self.rows(d);
         let cells = rows.count();
@@ -451,7 +451,7 @@ impl GruOp {
                         gemm_with(
                             &mut dh[..a * hd],
                             (&dgh_step[..a * h3], false),
-                            (&w.w_hh, false),
+                            (w.w_hh, false),
                             (a, hd, h3),
                             (true, 1.0, false),
                         );
@@ -469,7 +469,8 @@ impl GruOp {
             })
         };
         let xs = rows.gather(x, d.input);
-        let (mut dx, mut dw, mut db) = (None::<Vec<f32>>, Vec::new(), Vec::new());
+        let mut dx = None::<Vec<f32>>;
+        let mut grads = Vec::with_capacity(d.directions * d.per_direction());
         for (k, w) in weights.iter().enumerate() {
             let part = |width: usize| k * cells * width..(k + 1) * cells * width;
             let (dgi, dgh, prev) = (&dgi[part(h3)], &dgh[part(h3)], &prev[part(hd)]);
@@ -483,16 +484,10 @@ impl GruOp {
                 (h3, hd, cells),
                 (false, 1.0, true),
             );
-            for (ih, hh) in input
-                .weight
-                .chunks_exact(d.input)
-                .zip(dw_hh.chunks_exact(hd))
-            {
-                dw.extend_from_slice(ih);
-                dw.extend_from_slice(hh);
-            }
-            db.extend_from_slice(&input.bias);
-            db.extend_from_slice(&column_sums(dgh, h3));
+            grads.extend_from_slice(&input.weight);
+            grads.extend_from_slice(&dw_hh);
+            grads.extend_from_slice(&input.bias);
+            grads.extend_from_slice(&column_sums(dgh, h3));
             dx = match (dx, input.input) {
                 (Some(mut sum), Some(more)) => {
                     sum.iter_mut().zip(&more).for_each(|(a, b)| *a += b);
@@ -501,12 +496,12 @@ impl GruOp {
                 (sum, more) => sum.or(more),
             };
         }
-        (dx.map(|dx| rows.scatter(dx, d.input)), dw, db)
+        (dx.map(|dx| rows.scatter(dx, d.input)), grads)
     }
 
-    fn weights(&self, w: &[f32], bias: &[f32], d: Dims) -> Vec<DirectionWeights> {
+    fn weights<'a>(&self, params: &'a [f32], d: Dims) -> Vec<DirectionWeights<'a>> {
         (0..d.directions)
-            .map(|k| DirectionWeights::of(w, bias, d, k))
+            .map(|k| DirectionWeights::of(params, d, k))
             .collect()
     }
 }
@@ -514,7 +509,7 @@ impl GruOp {
 /// A direction's step: how many it has run before (`s`) and its position in the sequence.
 type Step = (usize, usize);
 
-impl CustomOp3 for GruOp {
+impl CustomOp2 for GruOp {
     fn name(&self) -> &'static str {
         "gru"
     }
@@ -523,16 +518,13 @@ impl CustomOp3 for GruOp {
         &self,
         xs: &CpuStorage,
         xl: &Layout,
-        ws: &CpuStorage,
-        wl: &Layout,
-        bs: &CpuStorage,
-        bl: &Layout,
+        ps: &CpuStorage,
+        pl: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
-        let d = Dims::of(xl.shape(), wl.shape(), bl.shape(), self.reverse.len())?;
+        let d = Dims::of(xl.shape(), pl.shape(), self.hidden, self.reverse.len())?;
         let x = contiguous_f32(xs, xl, "input")?;
-        let w = contiguous_f32(ws, wl, "weights")?;
-        let bias = contiguous_f32(bs, bl, "biases")?;
-        let (out, saved) = self.forward(x, &self.weights(w, bias, d), d);
+        let params = contiguous_f32(ps, pl, "parameters")?;
+        let (out, saved) = self.forward(x, &self.weights(params, d), d);
         *self.saved.lock().expect("gru lock") = Some(saved);
         let width = d.directions * d.hidden;
         let shape = match self.output {
@@ -545,26 +537,25 @@ impl CustomOp3 for GruOp {
     fn bwd(
         &self,
         x: &Tensor,
-        w: &Tensor,
-        bias: &Tensor,
+        params: &Tensor,
         _res: &Tensor,
         grad: &Tensor,
-    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
-        let d = Dims::of(x.shape(), w.shape(), bias.shape(), self.reverse.len())?;
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
+        let d = Dims::of(x.shape(), params.shape(), self.hidden, self.reverse.len())?;
         let saved = self.saved.lock().expect("gru lock");
         let saved = saved
             .as_ref()
             .ok_or_else(|| candle_core::Error::Msg("gru: backward before forward".into()))?;
-        let weights = self.weights(&F32Values::of(w)?, &F32Values::of(bias)?, d);
+        let values = F32Values::of(params)?;
         let (xv, dout) = (F32Values::of(x)?, F32Values::of(grad)?);
+        let weights = self.weights(&values, d);
         // An input that no gradient reaches (the data under the first layer) gets none.
-        let (dx, dw, db) = self.backward((&xv, x.track_op()), &weights, saved, &dout, d);
+        let (dx, dp) = self.backward((&xv, x.track_op()), &weights, saved, &dout, d);
         let device = x.device();
         Ok((
             dx.map(|dx| Tensor::from_vec(dx, x.shape(), device))
                 .transpose()?,
-            Some(Tensor::from_vec(dw, w.shape(), device)?),
-            Some(Tensor::from_vec(db, bias.shape(), device)?),
+            Some(Tensor::from_vec(dp, params.shape(), device)?),
         ))
     }
 }
@@ -585,21 +576,21 @@ pub fn fused_gru(
     if !(x.device().is_cpu() && x.dtype() == DType::F32) {
         candle_core::bail!("fused gru: f32 CPU tensors only, not {:?}", x.dtype());
     }
-    // One tensor each for the op: the directions' weights and biases, stacked.
-    let stacked = |part: &dyn Fn(&Direction) -> Result<Tensor>| -> Result<Tensor> {
-        let parts = directions.iter().map(part).collect::<Result<Vec<_>>>()?;
-        Tensor::cat(&parts, 0)
-    };
-    let w = stacked(&|d| Tensor::cat(&[d.w_ih, d.w_hh], 1))?;
-    let b = stacked(&|d| Tensor::cat(&[d.b_ih, d.b_hh], 0))?;
+    // One tensor for the op: every parameter flattened, one after another (see
+    // `DirectionWeights::of`): one copy forward, views of its gradient backward.
+    let params = directions
+        .iter()
+        .flat_map(|d| [d.w_ih, d.w_hh, d.b_ih, d.b_hh])
+        .map(|p| p.flatten_all())
+        .collect::<Result<Vec<_>>>()?;
     let op = GruOp {
         lengths: lengths.to_vec(),
+        hidden: directions.first().map_or(Ok(0), |d| d.w_hh.dim(1))?,
         reverse: directions.iter().map(|d| d.reverse).collect(),
         output,
         saved: Mutex::new(None),
     };
-    x.contiguous()?
-        .apply_op3(&w.contiguous()?, &b.contiguous()?, op)
+    x.contiguous()?.apply_op2(&Tensor::cat(&params, 0)?, op)
 }
 
 /// Each sequence of `x` reversed within its own length (padding stays in place).
