@@ -295,34 +295,34 @@ fn col2im(
 /// `w (out, in, kernel)` as `(out, kernel·in)`, the tap-major order of the im2col columns;
 /// one output channel per task (the reorders of a whole tokenizer are 20 M values a step).
 fn taps_major(w: &[f32], (out, inp, kernel): (usize, usize, usize)) -> Vec<f32> {
-    let mut t = vec![0f32; w.len()];
-    t.par_chunks_mut(kernel * inp)
-        .zip(w.par_chunks(inp * kernel))
-        .for_each(|(t, w)| {
-            for (k, t) in t.chunks_exact_mut(inp).enumerate() {
-                t.iter_mut()
-                    .zip(w.iter().skip(k).step_by(kernel))
-                    .for_each(|(t, &w)| *t = w);
-            }
-        });
-    debug_assert_eq!(t.len(), out * kernel * inp);
-    t
+    assert_eq!(w.len(), out * kernel * inp, "conv weight size");
+    let fill = |o: usize, t: &mut [MaybeUninit<f32>]| {
+        let w = &w[o * inp * kernel..][..inp * kernel];
+        for (k, t) in t.chunks_exact_mut(inp).enumerate() {
+            t.iter_mut()
+                .zip(w.iter().skip(k).step_by(kernel))
+                .for_each(|(t, &w)| {
+                    t.write(w);
+                });
+        }
+    };
+    // SAFETY: block o is output channel o's taps, each tap's `inp` values written.
+    unsafe { par_new(w.len(), kernel * inp, fill) }
 }
 
 /// The inverse of [`taps_major`].
 fn channels_major(t: &[f32], (out, inp, kernel): (usize, usize, usize)) -> Vec<f32> {
-    let mut w = vec![0f32; t.len()];
-    w.par_chunks_mut(inp * kernel)
-        .zip(t.par_chunks(kernel * inp))
-        .for_each(|(w, t)| {
-            for k in 0..kernel {
-                for c in 0..inp {
-                    w[c * kernel + k] = t[k * inp + c];
-                }
+    assert_eq!(t.len(), out * kernel * inp, "conv weight size");
+    let fill = |o: usize, w: &mut [MaybeUninit<f32>]| {
+        let t = &t[o * kernel * inp..][..kernel * inp];
+        for k in 0..kernel {
+            for c in 0..inp {
+                w[c * kernel + k].write(t[k * inp + c]);
             }
-        });
-    debug_assert_eq!(w.len(), out * kernel * inp);
-    w
+        }
+    };
+    // SAFETY: block o is output channel o's `inp · kernel` values, each (c, k) written.
+    unsafe { par_new(t.len(), inp * kernel, fill) }
 }
 
 /// (batch, frames, channels) of an input, or (out, in, kernel) of a weight.
@@ -627,20 +627,21 @@ fn time_major(x: &[f32], (batch, frames, channels): Dims3, relu: bool) -> Vec<f3
 
 /// The time-major `v_t` (frames × batch × width) back to batch-major: `write(b, f, row, src)`
 /// writes the row of sequence `b`, frame `f` from its time-major row `src`.
-fn batch_major(
+///
+/// # Safety
+/// `write` writes every value of the row it is given.
+unsafe fn batch_major(
     v_t: &[f32],
     (batch, frames, width): Dims3,
-    write: impl Fn(usize, usize, &mut [f32], &[f32]) + Sync,
+    write: impl Fn(usize, usize, &mut [MaybeUninit<f32>], &[f32]) + Sync,
 ) -> Vec<f32> {
-    let mut v = vec![0f32; v_t.len()];
-    v.par_chunks_mut(frames * width)
-        .enumerate()
-        .for_each(|(b, vb)| {
-            for (f, row) in vb.chunks_exact_mut(width).enumerate() {
-                write(b, f, row, &v_t[(f * batch + b) * width..][..width]);
-            }
-        });
-    v
+    let fill = |b: usize, vb: &mut [MaybeUninit<f32>]| {
+        for (f, row) in vb.chunks_exact_mut(width).enumerate() {
+            write(b, f, row, &v_t[(f * batch + b) * width..][..width]);
+        }
+    };
+    // SAFETY: block b is sequence b's frames, each row written whole (the caller's contract).
+    unsafe { par_new(v_t.len(), frames * width, fill) }
 }
 
 /// A stride-1 convolution as one product per tap over the time-major input: with frames
@@ -699,12 +700,16 @@ impl<'a> PerTap<'a> {
         }
         // Back to batch-major, adding the bias on the way (as bias + product, the order of
         // the other paths' single add).
-        batch_major(&y_t, (b, self.out_frames, out), |_, _, row, src| {
+        let add_bias = |_, _, row: &mut [MaybeUninit<f32>], src: &[f32]| {
             row.iter_mut()
                 .zip(src)
                 .zip(&self.w.bias)
-                .for_each(|((d, v), bias)| *d = bias + v);
-        })
+                .for_each(|((d, v), bias)| {
+                    d.write(bias + v);
+                });
+        };
+        // SAFETY: `out` values of the bias and of `src` for each of the row's `out` values.
+        unsafe { batch_major(&y_t, (b, self.out_frames, out), add_bias) }
     }
 
     /// The weight gradient, taps-major, from the time-major output gradient `dy_t`, which the
@@ -752,12 +757,14 @@ impl<'a> PerTap<'a> {
             );
         }
         let relu = self.geometry.relu_input;
-        batch_major(&dx_t, (b, self.frames, inp), |bi, f, row, src| {
+        let mask = |bi: usize, f: usize, row: &mut [MaybeUninit<f32>], src: &[f32]| {
             let xs = &x[(bi * self.frames + f) * inp..][..inp];
             row.iter_mut().zip(src).zip(xs).for_each(|((d, &g), &v)| {
-                *d = if relu && v <= 0.0 { 0.0 } else { g };
+                d.write(if relu && v <= 0.0 { 0.0 } else { g });
             });
-        })
+        };
+        // SAFETY: `inp` values of `src` and of `x` for each of the row's `inp` values.
+        unsafe { batch_major(&dx_t, (b, self.frames, inp), mask) }
     }
 }
 

@@ -20,7 +20,9 @@
 
 use super::ConvWeights;
 use crate::matmul::{gemm_new, TransposedLhs};
+use crate::par::par_new;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 use std::ops::Range;
 
 /// One Winograd F(2,3) convolution over a batch of whole sequences.
@@ -34,25 +36,49 @@ pub(super) struct Winograd<'a> {
     tiles: Vec<usize>,
 }
 
-/// The four transformed components of one block of values.
-type Components<'s> = (&'s mut [f32], &'s mut [f32], &'s mut [f32], &'s mut [f32]);
+/// The four transformed components of one block of values, to be written.
+type Components<'s> = (
+    &'s mut [MaybeUninit<f32>],
+    &'s mut [MaybeUninit<f32>],
+    &'s mut [MaybeUninit<f32>],
+    &'s mut [MaybeUninit<f32>],
+);
 
-/// `buffer` as its four components, each cut into blocks of `block` values (one sequence's
-/// tiles, or one row of a weight), in parallel.
-fn per_block(
-    buffer: &mut [f32],
+/// A new buffer of four components of `len` values each, one after another, that `fill`
+/// writes in parallel blocks of `block` values of each component (`fill(block index,
+/// components)`: one sequence's tiles, or one row of a weight). Not zero-filled first: every
+/// transform writes every value.
+///
+/// # Safety
+/// `fill` writes every value of the four components it is given.
+unsafe fn components_new(
+    len: usize,
     block: usize,
-) -> impl IndexedParallelIterator<Item = (usize, Components<'_>)> {
-    let (first, rest) = buffer.split_at_mut(buffer.len() / 4);
-    let (second, rest) = rest.split_at_mut(rest.len() / 3);
-    let (third, fourth) = rest.split_at_mut(rest.len() / 2);
+    fill: impl Fn(usize, Components<'_>) + Sync + Send,
+) -> Vec<f32> {
+    let mut buffer = Vec::with_capacity(4 * len);
+    let (first, rest) = buffer.spare_capacity_mut()[..4 * len].split_at_mut(len);
+    let (second, rest) = rest.split_at_mut(len);
+    let (third, fourth) = rest.split_at_mut(len);
     first
         .par_chunks_mut(block)
         .zip(second.par_chunks_mut(block))
         .zip(third.par_chunks_mut(block))
         .zip(fourth.par_chunks_mut(block))
-        .map(|(((a, b), c), d)| (a, b, c, d))
         .enumerate()
+        .for_each(|(i, (((a, b), c), d))| fill(i, (a, b, c, d)));
+    // SAFETY: the caller's contract: every value has been written.
+    unsafe { buffer.set_len(4 * len) };
+    buffer
+}
+
+/// Writes the four values of one position of the four components.
+fn put(components: &mut Components<'_>, at: usize, values: [f32; 4]) {
+    let (c0, c1, c2, c3) = components;
+    c0[at].write(values[0]);
+    c1[at].write(values[1]);
+    c2[at].write(values[2]);
+    c3[at].write(values[3]);
 }
 
 /// Values `at` of each of the four products.
@@ -118,21 +144,21 @@ impl<'a> Winograd<'a> {
         let zeros = vec![0f32; inp];
         let relu = self.relu_input;
         let d = self.dilation as isize;
-        let mut xt = vec![0f32; 4 * self.rows() * inp];
-        per_block(&mut xt, self.tiles.len() * inp).for_each(|(b, mut block)| {
+        let fill = |b: usize, mut block: Components<'_>| {
             let read = |f| self.frame(x, b, f, inp).unwrap_or(&zeros);
             for (i, &t0) in self.tiles.iter().enumerate() {
                 let t0 = t0 as isize;
                 let (x0, x1, x2, x3) = (read(t0 - d), read(t0), read(t0 + d), read(t0 + 2 * d));
-                let (c0, c1, c2, c3) = slice_components(&mut block, i * inp..(i + 1) * inp);
+                let mut tile = slice_components(&mut block, i * inp..(i + 1) * inp);
                 for c in 0..inp {
                     let act = |v: f32| if relu { v.max(0.0) } else { v };
                     let (v0, v1, v2, v3) = (act(x0[c]), act(x1[c]), act(x2[c]), act(x3[c]));
-                    (c0[c], c1[c], c2[c], c3[c]) = (v0 - v2, v1 + v2, v2 - v1, v1 - v3);
+                    put(&mut tile, c, [v0 - v2, v1 + v2, v2 - v1, v1 - v3]);
                 }
             }
-        });
-        xt
+        };
+        // SAFETY: every tile of every sequence is written whole.
+        unsafe { components_new(self.rows() * inp, self.tiles.len() * inp, fill) }
     }
 
     /// The output (batch-major, with the bias) of the transformed input `xt`.
@@ -149,21 +175,24 @@ impl<'a> Winograd<'a> {
     fn transform_output(&self, m: &[Vec<f32>]) -> Vec<f32> {
         let out = self.w.dims.0;
         let slots = self.slots();
-        let mut y = vec![0f32; self.batch * self.frames * out];
-        y.par_chunks_mut(self.frames * out)
-            .enumerate()
-            .for_each(|(b, yb)| {
-                for (dst, &(i, second)) in yb.chunks_exact_mut(out).zip(&slots) {
-                    let row = b * self.tiles.len() + i;
-                    let [m0, m1, m2, m3] = rows_at(m, row * out..(row + 1) * out);
-                    let bias = &self.w.bias[..out];
-                    match second {
-                        false => (0..out).for_each(|c| dst[c] = bias[c] + (m0[c] + m1[c] + m2[c])),
-                        true => (0..out).for_each(|c| dst[c] = bias[c] + (m1[c] - m2[c] - m3[c])),
-                    }
+        let fill = |b: usize, yb: &mut [MaybeUninit<f32>]| {
+            for (dst, &(i, second)) in yb.chunks_exact_mut(out).zip(&slots) {
+                let row = b * self.tiles.len() + i;
+                let [m0, m1, m2, m3] = rows_at(m, row * out..(row + 1) * out);
+                let bias = &self.w.bias[..out];
+                let dst = dst.iter_mut().enumerate();
+                match second {
+                    false => dst.for_each(|(c, d)| {
+                        d.write(bias[c] + (m0[c] + m1[c] + m2[c]));
+                    }),
+                    true => dst.for_each(|(c, d)| {
+                        d.write(bias[c] + (m1[c] - m2[c] - m3[c]));
+                    }),
                 }
-            });
-        y
+            }
+        };
+        // SAFETY: block b is sequence b's frames, each one slot's output, written whole.
+        unsafe { par_new(self.batch * self.frames * out, self.frames * out, fill) }
     }
 
     /// For each output frame, its tile and whether it is the tile's second output.
@@ -197,19 +226,19 @@ impl<'a> Winograd<'a> {
         let out = self.w.dims.0;
         let zeros = vec![0f32; out];
         let d = self.dilation as isize;
-        let mut dm = vec![0f32; 4 * self.rows() * out];
-        per_block(&mut dm, self.tiles.len() * out).for_each(|(b, mut block)| {
+        let fill = |b: usize, mut block: Components<'_>| {
             for (i, &t0) in self.tiles.iter().enumerate() {
                 let t0 = t0 as isize;
                 let g0 = self.frame(dy, b, t0, out).unwrap_or(&zeros);
                 let g1 = self.frame(dy, b, t0 + d, out).unwrap_or(&zeros);
-                let (c0, c1, c2, c3) = slice_components(&mut block, i * out..(i + 1) * out);
+                let mut tile = slice_components(&mut block, i * out..(i + 1) * out);
                 for c in 0..out {
-                    (c0[c], c1[c], c2[c], c3[c]) = (g0[c], g0[c] + g1[c], g0[c] - g1[c], -g1[c]);
+                    put(&mut tile, c, [g0[c], g0[c] + g1[c], g0[c] - g1[c], -g1[c]]);
                 }
             }
-        });
-        dm
+        };
+        // SAFETY: every tile of every sequence is written whole.
+        unsafe { components_new(self.rows() * out, self.tiles.len() * out, fill) }
     }
 
     /// The weight gradient, taps-major `(out, 3·in)`: `dW̃_j = dM_jᵀ · X̃_j`, then `Gᵀ·dW̃`.
@@ -225,17 +254,19 @@ impl<'a> Winograd<'a> {
                 )
             })
             .collect();
-        let mut grad = vec![0f32; out * 3 * inp];
-        grad.par_chunks_mut(3 * inp).enumerate().for_each(|(o, g)| {
+        let fill = |o: usize, g: &mut [MaybeUninit<f32>]| {
             let [d0, d1, d2, d3] = rows_at(&dwt, o * inp..(o + 1) * inp);
             let (g0, rest) = g.split_at_mut(inp);
             let (g1, g2) = rest.split_at_mut(inp);
             for c in 0..inp {
                 let (half_sum, half_diff) = (0.5 * (d1[c] + d2[c]), 0.5 * (d1[c] - d2[c]));
-                (g0[c], g1[c], g2[c]) = (d0[c] + half_sum, half_diff, half_sum + d3[c]);
+                g0[c].write(d0[c] + half_sum);
+                g1[c].write(half_diff);
+                g2[c].write(half_sum + d3[c]);
             }
-        });
-        grad
+        };
+        // SAFETY: block o is output channel o's three taps, each written whole.
+        unsafe { par_new(out * 3 * inp, 3 * inp, fill) }
     }
 
     /// The input gradient (batch-major, through the input ReLU's mask): `dX̃_j = dM_j · W̃_jᵀ`,
@@ -316,15 +347,16 @@ fn transform_weight<'t>(
     width: usize,
     row: impl Fn(usize) -> [&'t [f32]; 3] + Sync,
 ) -> Vec<f32> {
-    let mut wt = vec![0f32; 4 * len];
-    per_block(&mut wt, width).for_each(|(r, (c0, c1, c2, c3))| {
+    let fill = |r: usize, mut components: Components<'_>| {
         let [t0, t1, t2] = row(r);
         for c in 0..width {
-            (c0[c], c1[c]) = (t0[c], 0.5 * (t0[c] + t1[c] + t2[c]));
-            (c2[c], c3[c]) = (0.5 * (t0[c] - t1[c] + t2[c]), t2[c]);
+            let (half_sum, half_alt) =
+                (0.5 * (t0[c] + t1[c] + t2[c]), 0.5 * (t0[c] - t1[c] + t2[c]));
+            put(&mut components, c, [t0[c], half_sum, half_alt, t2[c]]);
         }
-    });
-    wt
+    };
+    // SAFETY: every row of every component is written whole.
+    unsafe { components_new(len, width, fill) }
 }
 
 /// `dst += (Bᵀ·e)[role]`: what a tile's transformed-input gradients `e` send to the input
