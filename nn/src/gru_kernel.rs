@@ -34,6 +34,7 @@ use crate::matmul::{gemm_with, transpose};
 use crate::par::{new_written, SharedMut};
 use candle_core::{CpuStorage, CustomOp2, DType, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
+use std::borrow::Cow;
 use std::sync::Mutex;
 
 /// Batch, steps, input and hidden width, and directions of a layer.
@@ -266,10 +267,12 @@ impl<'a> DirectionWeights<'a> {
 }
 
 /// What the forward pass keeps for the backward: every direction's gates (r, z, n, gh_n)
-/// and state at every packed step, direction by direction.
+/// and state at every packed step, direction by direction, and the packed input (`None`
+/// when every sequence is whole: the input itself).
 struct Saved {
     gates: Vec<f32>,
     states: Vec<f32>,
+    packed_input: Option<Vec<f32>>,
 }
 
 /// The fused GRU layer (see the module docs).
@@ -352,10 +355,11 @@ impl GruOp {
                     for i in 0..a {
                         let (b, len) = (g.rows[i], g.lengths[i]);
                         let t = self.position(k, len, s);
-                        let cell = k * cells + rows.span(b).0 + t;
+                        let packed = rows.span(b).0 + t;
+                        let cell = k * cells + packed;
                         let hi = &mut h[i * hd..][..hd];
                         gate_step(
-                            &gi[k][(cell - k * cells) * h3..][..h3],
+                            &gi[k][packed * h3..][..h3],
                             &gh[i * h3..][..h3],
                             hi,
                             &mut saved,
@@ -391,7 +395,16 @@ impl GruOp {
                 GruOutput::Final => new_written(d.batch * width, fill),
             }
         };
-        (out, Saved { gates, states })
+        let packed_input = match xs {
+            Cow::Owned(packed) => Some(packed),
+            Cow::Borrowed(_) => None,
+        };
+        let saved = Saved {
+            gates,
+            states,
+            packed_input,
+        };
+        (out, saved)
     }
 
     /// Gradients of the input (when `input_grad`) and of the parameters (laid out as they
@@ -468,14 +481,14 @@ impl GruOp {
                 })
             })
         };
-        let xs = rows.gather(x, d.input);
+        let xs = saved.packed_input.as_deref().unwrap_or(x);
         let mut dx = None::<Vec<f32>>;
         let mut grads = Vec::with_capacity(d.directions * d.per_direction());
         for (k, w) in weights.iter().enumerate() {
             let part = |width: usize| k * cells * width..(k + 1) * cells * width;
             let (dgi, dgh, prev) = (&dgi[part(h3)], &dgh[part(h3)], &prev[part(hd)]);
             let input =
-                projection().backward((&xs, None, None), (1, cells), &w.input, dgi, input_grad);
+                projection().backward((xs, None, None), (1, cells), &w.input, dgi, input_grad);
             let mut dw_hh = vec![0f32; h3 * hd];
             gemm_with(
                 &mut dw_hh,
