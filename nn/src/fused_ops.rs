@@ -12,7 +12,9 @@
 //! get no gradient and must not depend on a variable.
 
 use crate::cpu_f32::contiguous_f32;
-use crate::lm_kernels::{cross_entropy_row, swiglu, swiglu_backward, target_log_prob};
+use crate::lm_kernels::{
+    cross_entropy_row, gate_sigmoid, swiglu, swiglu_backward, target_log_prob,
+};
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, Layout, Result, Shape, Tensor};
 
 #[cfg(feature = "cuda")]
@@ -288,7 +290,7 @@ impl CustomOp1 for Swiglu {
     fn cpu_fwd(&self, s: &CpuStorage, l: &Layout) -> Result<(CpuStorage, Shape)> {
         let ab = contiguous_f32(s, l, "ab")?;
         let (rows, f) = (rows_cols(l).0, rows_cols(l).1 / 2);
-        f32_out(swiglu(ab, f), (rows, f))
+        f32_out(swiglu(ab, &gate_sigmoid(ab, f), f), (rows, f))
     }
 
     #[cfg(feature = "cuda")]
@@ -326,7 +328,10 @@ impl CustomOp2 for SwigluGrad {
             contiguous_f32(s2, l2, "gradient")?,
         );
         let f = rows_cols(l1).1 / 2;
-        f32_out(swiglu_backward(ab, g, f), l1.shape().clone())
+        f32_out(
+            swiglu_backward(ab, &gate_sigmoid(ab, f), g, f),
+            l1.shape().clone(),
+        )
     }
 
     #[cfg(feature = "cuda")]

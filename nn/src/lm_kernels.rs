@@ -78,73 +78,65 @@ pub fn rms_norm_backward(x: &[f32], w: &[f32], g: &[f32], eps: f32, gx: &mut [f3
     gw
 }
 
-/// `σ(a)` through the vectorised exp (inlined into each vector level's loop).
-#[inline(always)]
-fn sigmoid(a: f32) -> f32 {
-    1.0 / (1.0 + fast_exp::exp(-a))
-}
-
-/// SwiGLU `silu(a)·b = a·σ(a)·b` of the rows `[a | b]` (rows × f).
-pub fn swiglu(ab: &[f32], f: usize) -> Vec<f32> {
-    let block = f * ROW_BLOCK;
-    let fill = |i: usize, yb: &mut [MaybeUninit<f32>]| {
-        swiglu_block(yb, &ab[i * 2 * block..][..2 * yb.len()], f)
+/// `sigmoid(a)` of the first halves `a` of the `2f`-wide rows `[a | b]`.
+pub fn gate_sigmoid(ab: &[f32], f: usize) -> Vec<f32> {
+    let fill = |i: usize, sb: &mut [MaybeUninit<f32>]| {
+        let abb = &ab[i * 2 * f * ROW_BLOCK..];
+        for (sr, abr) in sb.chunks_mut(f).zip(abb.chunks(2 * f)) {
+            sigmoid_into(sr, &abr[..f]);
+        }
     };
     // SAFETY: block i holds the rows of ab's block i, each written whole.
-    unsafe { par_new(ab.len() / 2, block, fill) }
+    unsafe { par_new(ab.len() / 2, f * ROW_BLOCK, fill) }
 }
 
 crate::vectorised!(
-    /// [`swiglu`] of the rows of `ab` into `act`.
-    fn swiglu_block / swiglu_block_at(act: &mut [MaybeUninit<f32>], ab: &[f32], f: usize) =
-        swiglu_body;
+    /// `dst = σ(src)` (same length), through the vectorised exp at the CPU's widest vectors;
+    /// `dst` need not be initialised.
+    fn sigmoid_into / sigmoid_into_at(dst: &mut [MaybeUninit<f32>], src: &[f32]) = sigmoid_body;
 );
 
 #[inline(always)]
-fn swiglu_body(act: &mut [MaybeUninit<f32>], ab: &[f32], f: usize) {
-    for (yr, abr) in act.chunks_mut(f).zip(ab.chunks(2 * f)) {
-        let (a, b) = abr.split_at(f);
-        for ((y, &a), &b) in yr.iter_mut().zip(a).zip(b) {
-            y.write(a * sigmoid(a) * b);
-        }
+fn sigmoid_body(dst: &mut [MaybeUninit<f32>], src: &[f32]) {
+    for (s, a) in dst.iter_mut().zip(src) {
+        s.write(1.0 / (1.0 + fast_exp::exp(-a)));
     }
 }
 
-/// Gradient of [`swiglu`] with respect to `[a | b]` given the output gradient `g`; `σ(a)` is
-/// computed again rather than kept from the forward pass (reading it back cost more than
-/// the exp).
-pub fn swiglu_backward(ab: &[f32], g: &[f32], f: usize) -> Vec<f32> {
+/// SwiGLU `silu(a)·b = a·σ(a)·b` of the rows `[a | b]`, given `σ(a)`.
+pub fn swiglu(ab: &[f32], sig: &[f32], f: usize) -> Vec<f32> {
+    let block = f * ROW_BLOCK;
+    let fill = |i: usize, yb: &mut [MaybeUninit<f32>]| {
+        let (abb, sb) = (&ab[i * 2 * block..], &sig[i * block..]);
+        for ((yr, abr), sr) in yb.chunks_mut(f).zip(abb.chunks(2 * f)).zip(sb.chunks(f)) {
+            let (a, b) = abr.split_at(f);
+            for i in 0..f {
+                yr[i].write(a[i] * sr[i] * b[i]);
+            }
+        }
+    };
+    // SAFETY: block i holds the rows of sig's block i, each written whole.
+    unsafe { par_new(sig.len(), block, fill) }
+}
+
+/// Gradient of [`swiglu`] with respect to `[a | b]` given the output gradient `g`.
+pub fn swiglu_backward(ab: &[f32], sig: &[f32], g: &[f32], f: usize) -> Vec<f32> {
     let block = f * ROW_BLOCK;
     let fill = |i: usize, ob: &mut [MaybeUninit<f32>]| {
-        let gb = &g[i * block..][..ob.len() / 2];
-        swiglu_backward_block(ob, &ab[i * 2 * block..][..ob.len()], gb, f)
+        let rows = ob.chunks_mut(2 * f).zip(ab[i * 2 * block..].chunks(2 * f));
+        let given = sig[i * block..].chunks(f).zip(g[i * block..].chunks(f));
+        for ((or, abr), (sr, gr)) in rows.zip(given) {
+            let (a, b) = abr.split_at(f);
+            let (ga, gb) = or.split_at_mut(f);
+            for i in 0..f {
+                let s = sr[i];
+                ga[i].write(gr[i] * b[i] * s * (1.0 + a[i] * (1.0 - s)));
+                gb[i].write(gr[i] * a[i] * s);
+            }
+        }
     };
     // SAFETY: block i holds the rows of ab's block i, each written whole (both halves).
     unsafe { par_new(ab.len(), 2 * block, fill) }
-}
-
-crate::vectorised!(
-    /// [`swiglu_backward`] of the rows of `ab` into `out`.
-    fn swiglu_backward_block / swiglu_backward_block_at(
-        out: &mut [MaybeUninit<f32>],
-        ab: &[f32],
-        g: &[f32],
-        f: usize,
-    ) = swiglu_backward_body;
-);
-
-#[inline(always)]
-fn swiglu_backward_body(out: &mut [MaybeUninit<f32>], ab: &[f32], g: &[f32], f: usize) {
-    let rows = out.chunks_mut(2 * f).zip(ab.chunks(2 * f)).zip(g.chunks(f));
-    for ((or, abr), gr) in rows {
-        let (a, b) = abr.split_at(f);
-        let (ga, gb) = or.split_at_mut(f);
-        for ((((ga, gb), &a), &b), &g) in ga.iter_mut().zip(gb).zip(a).zip(b).zip(gr) {
-            let s = sigmoid(a);
-            ga.write(g * b * s * (1.0 + a * (1.0 - s)));
-            gb.write(g * a * s);
-        }
-    }
 }
 
 // ---------------------------------------------------------------------------------------
@@ -675,15 +667,22 @@ mod tests {
         (0..n).map(|_| rng.range(-1.0, 1.0) as f32).collect()
     }
 
-    /// The cross-entropy row and log p(target) give the same bits at every vector level.
+    /// σ, the cross-entropy row and log p(target) give the same bits at every vector level.
     #[test]
     fn row_kernels_agree_at_every_vector_level() {
         let row: Vec<f32> = values(1027, 3).iter().map(|v| v * 9.0).collect();
         crate::simd::assert_levels_agree(|isa| {
+            let mut sig = vec![MaybeUninit::uninit(); row.len()];
+            sigmoid_into_at(isa, &mut sig, &row);
+            // SAFETY: sigmoid_into wrote every value.
+            let sig: Vec<f32> = sig
+                .into_iter()
+                .map(|v| unsafe { v.assume_init() })
+                .collect();
             let mut grad = row.clone();
             let ce = cross_entropy_row_at(isa, &mut grad, 17, 0.5);
             let log_p = target_log_prob_at(isa, &row, 17);
-            let mut out = crate::simd::bits(&grad);
+            let mut out = crate::simd::bits(&[sig, grad].concat());
             out.extend([
                 ce.to_bits() as u32,
                 (ce.to_bits() >> 32) as u32,
@@ -691,50 +690,6 @@ mod tests {
             ]);
             out
         });
-    }
-
-    /// SwiGLU forward and backward give the same bits at every vector level, with a width
-    /// that leaves a partial vector, and equal the formulas with σ computed one value at a
-    /// time.
-    #[test]
-    fn swiglu_kernels_agree_at_every_vector_level() {
-        let (rows, f) = (3, 37);
-        let ab: Vec<f32> = values(rows * 2 * f, 5).iter().map(|v| v * 6.0).collect();
-        let g = values(rows * f, 6);
-        let init = |v: Vec<MaybeUninit<f32>>| -> Vec<f32> {
-            // SAFETY: the kernels below write every value.
-            v.into_iter().map(|x| unsafe { x.assume_init() }).collect()
-        };
-        let (mut act, mut grad) = (Vec::new(), Vec::new());
-        for (abr, gr) in ab.chunks(2 * f).zip(g.chunks(f)) {
-            let (a, b) = abr.split_at(f);
-            let s: Vec<f32> = a
-                .iter()
-                .map(|&a| 1.0 / (1.0 + crate::fast_exp::exp(-a)))
-                .collect();
-            act.extend((0..f).map(|i| a[i] * s[i] * b[i]));
-            grad.extend((0..f).map(|i| gr[i] * b[i] * s[i] * (1.0 + a[i] * (1.0 - s[i]))));
-            grad.extend((0..f).map(|i| gr[i] * a[i] * s[i]));
-        }
-        crate::simd::assert_levels_agree(|isa| {
-            let mut out = vec![MaybeUninit::uninit(); rows * f];
-            swiglu_block_at(isa, &mut out, &ab, f);
-            let mut out_grad = vec![MaybeUninit::uninit(); ab.len()];
-            swiglu_backward_block_at(isa, &mut out_grad, &ab, &g, f);
-            let (out, out_grad) = (init(out), init(out_grad));
-            assert_eq!(crate::simd::bits(&out), crate::simd::bits(&act), "{isa:?}");
-            assert_eq!(
-                crate::simd::bits(&out_grad),
-                crate::simd::bits(&grad),
-                "{isa:?}"
-            );
-            crate::simd::bits(&[out, out_grad].concat())
-        });
-        assert_eq!(crate::simd::bits(&swiglu(&ab, f)), crate::simd::bits(&act));
-        assert_eq!(
-            crate::simd::bits(&swiglu_backward(&ab, &g, f)),
-            crate::simd::bits(&grad)
-        );
     }
 
     /// Decoding's scores and weighted values give the same bits at every vector level,

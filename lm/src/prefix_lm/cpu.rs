@@ -26,7 +26,7 @@ struct BlockTrace {
     a: Vec<f32>,
     h1: Vec<f32>,
     ab: Vec<f32>,
-    act: Vec<f32>,
+    sig: Vec<f32>,
     /// The dropout scales of the attention and FFN outputs, when training drops values.
     dropped: Option<[Vec<f32>; 2]>,
 }
@@ -53,7 +53,8 @@ fn block_forward(
     let h1 = add_branch(&h, (&a, wo), (rows, d, d), scales.map(|s| s.0));
     let xn = lm_kernels::rms_norm(&h1, w.n2, eps);
     let ab = w13.product(&xn, (rows, 2 * f, d));
-    let act = lm_kernels::swiglu(&ab, f);
+    let sig = lm_kernels::gate_sigmoid(&ab, f);
+    let act = lm_kernels::swiglu(&ab, &sig, f);
     let h2 = add_branch(&h1, (&act, w2), (rows, d, f), scales.map(|s| s.1));
     let trace = BlockTrace {
         h,
@@ -62,7 +63,7 @@ fn block_forward(
         a,
         h1,
         ab,
-        act,
+        sig,
         dropped,
     };
     (h2, trace)
@@ -120,10 +121,11 @@ fn block_backward(
         None => [None, None],
     };
     // h2 = h1 + swiglu(ab)·W2ᵀ (⊙ dropout scales).
+    let act = lm_kernels::swiglu(&t.ab, &t.sig, f);
     let g_out = through_dropout(gh, g_ffn_scales);
-    let g_w2 = lm_kernels::gemm_new((&g_out, true), (&t.act, false), (d, f, rows));
+    let g_w2 = lm_kernels::gemm_new((&g_out, true), (&act, false), (d, f, rows));
     let g_act = lm_kernels::gemm_new((&g_out, false), (w.w2, false), (rows, f, d));
-    let g_ab = lm_kernels::swiglu_backward(&t.ab, &g_act, f);
+    let g_ab = lm_kernels::swiglu_backward(&t.ab, &t.sig, &g_act, f);
     // ab = RMSNorm(h1)·W13ᵀ.
     let xn = lm_kernels::rms_norm(&t.h1, w.n2, eps);
     let g_w13 = lm_kernels::gemm_new((&g_ab, true), (&xn, false), (2 * f, d, rows));
