@@ -403,83 +403,67 @@ mod tests {
         }
     }
 
+    /// `gemm_with` on `threads` threads gives the serial call's bits at every shape and
+    /// (lhs transposed, rhs transposed, accumulate) case.
+    fn assert_threaded_equals_serial(
+        threads: usize,
+        shapes: &[(usize, usize, usize)],
+        cases: &[(bool, bool, bool)],
+        seed: u64,
+    ) {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        let mut rng = SplitMix64(seed);
+        for &(m, n, k) in shapes {
+            for &(lhs_t, rhs_t, accumulate) in cases {
+                let (lhs, rhs) = (random(m * k, &mut rng), random(k * n, &mut rng));
+                let start = random(m * n, &mut rng);
+                let (mut serial, mut threaded) = (start.clone(), start);
+                let (l, r) = ((&lhs[..], lhs_t), (&rhs[..], rhs_t));
+                gemm_with(&mut serial, l, r, (m, n, k), (accumulate, 0.5, false));
+                pool.install(|| gemm_with(&mut threaded, l, r, (m, n, k), (accumulate, 0.5, true)));
+                let what = format!("{m}x{n}x{k} lhs_t {lhs_t} rhs_t {rhs_t}");
+                assert_eq!(bits(&serial), bits(&threaded), "{what}");
+            }
+        }
+    }
+
     /// The column-split path (mid-sized products on several threads) gives the serial bits.
     #[test]
     fn column_split_products_equal_serial_ones() {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(3)
-            .build()
-            .unwrap();
-        let mut rng = SplitMix64(5);
-        for (m, n, k) in [
+        let shapes = [
             (32, 768, 256),
             (31, 1027, 96),
             (64, 100, 200),
             (7, 4379, 160),
-        ] {
+        ];
+        for (m, n, k) in shapes {
             assert!((SPLIT_MIN_MACS..PARALLEL_MIN_MACS).contains(&(m * n * k)));
-            for (lhs_t, rhs_t, accumulate) in [
-                (false, false, false),
-                (true, true, true),
-                (false, true, true),
-            ] {
-                let (lhs, rhs) = (random(m * k, &mut rng), random(k * n, &mut rng));
-                let start = random(m * n, &mut rng);
-                let (mut serial, mut split) = (start.clone(), start);
-                let args = ((&lhs[..], lhs_t), (&rhs[..], rhs_t), (m, n, k));
-                gemm_with(
-                    &mut serial,
-                    args.0,
-                    args.1,
-                    args.2,
-                    (accumulate, 0.5, false),
-                );
-                pool.install(|| {
-                    gemm_with(&mut split, args.0, args.1, args.2, (accumulate, 0.5, true))
-                });
-                assert_eq!(serial, split, "{m}x{n}x{k} lhs_t {lhs_t} rhs_t {rhs_t}");
-            }
         }
+        let cases = [
+            (false, false, false),
+            (true, true, true),
+            (false, true, true),
+        ];
+        assert_threaded_equals_serial(3, &shapes, &cases, 5);
     }
 
     /// The row-band path (products deeper than tall on several threads: weight gradients)
     /// gives the serial bits, with odd row counts, transposed operands and accumulation.
     #[test]
     fn row_band_products_equal_serial_ones() {
-        let threads = 3;
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
-        let mut rng = SplitMix64(7);
-        for (m, n, k) in [(256, 96, 1500), (300, 70, 1000), (200, 130, 700)] {
+        let (threads, shapes) = (3, [(256, 96, 1500), (300, 70, 1000), (200, 130, 700)]);
+        for (m, n, k) in shapes {
             assert!(m * n * k >= PARALLEL_MIN_MACS && k >= m && m >= BAND_ROWS * threads);
-            for (lhs_t, rhs_t, accumulate) in [
-                (true, false, false),
-                (false, false, true),
-                (true, true, true),
-            ] {
-                let (lhs, rhs) = (random(m * k, &mut rng), random(k * n, &mut rng));
-                let start = random(m * n, &mut rng);
-                let (mut serial, mut banded) = (start.clone(), start);
-                let args = ((&lhs[..], lhs_t), (&rhs[..], rhs_t), (m, n, k));
-                gemm_with(
-                    &mut serial,
-                    args.0,
-                    args.1,
-                    args.2,
-                    (accumulate, 0.5, false),
-                );
-                pool.install(|| {
-                    gemm_with(&mut banded, args.0, args.1, args.2, (accumulate, 0.5, true))
-                });
-                assert_eq!(
-                    bits(&serial),
-                    bits(&banded),
-                    "{m}x{n}x{k} lhs_t {lhs_t} rhs_t {rhs_t}"
-                );
-            }
         }
+        let cases = [
+            (true, false, false),
+            (false, false, true),
+            (true, true, true),
+        ];
+        assert_threaded_equals_serial(threads, &shapes, &cases, 7);
     }
 
     /// Reading a weight gradient's left operand in place or through a transposed copy gives
