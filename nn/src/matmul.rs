@@ -187,12 +187,13 @@ impl Block<'_> {
         });
     }
 
-    /// Products deeper than they are tall (a weight gradient: k = the batch's frames) run
-    /// badly on gemm's own threads, which split each depth block's tiles among the threads
-    /// and meet after every block; each thread takes a band of rows over the whole depth
-    /// instead, packing the right operand for itself. Every output still sums over the whole
-    /// of k in one call, so the values equal the serial ones. (Model 167, 2,592 frames:
-    /// 256 × 256, 256 × 683 and 768 × 256 gradients 146–239 → 215–270 GFLOP/s.)
+    /// Products deeper than they are tall (a weight gradient: k = the batch's rows or
+    /// frames) run badly on gemm's own threads, which split each depth block's tiles among
+    /// the threads and meet after every block; each thread takes a band of rows over the
+    /// whole depth instead, packing the right operand for itself. Every output still sums
+    /// over the whole of k in one call, so the values equal the serial ones. (Model 167, the
+    /// LM's 2,592 rows: 256 × 256, 256 × 683 and 768 × 256 gradients 146–239 → 198–270
+    /// GFLOP/s.)
     ///
     /// # Safety
     /// `dst`, `lhs` and `rhs` hold the whole product.
