@@ -120,50 +120,71 @@ unsafe fn gemm_raw(
     (accumulate, scale, parallel): (bool, f32, bool),
 ) {
     assert!(lhs.len() >= m * k && rhs.len() >= k * n);
-    let threads = rayon::current_num_threads();
-    let macs = m * n * k;
-    let parallel = parallel && threads > 1;
+    // The view of an operand whose op(·) is rows × cols (stored cols × rows when transposed).
+    let view = |values, t: bool, (rows, cols): (usize, usize)| match t {
+        true => Strided::rows(values, 0, rows).t(),
+        false => Strided::rows(values, 0, cols),
+    };
     let block = Block {
         dst,
-        row_stride: n,
-        lhs: (lhs, lhs_t),
-        rhs: (rhs, rhs_t),
+        dst_row_stride: n,
+        lhs: view(lhs, lhs_t, (m, k)),
+        rhs: view(rhs, rhs_t, (k, n)),
         m,
+        n,
         k,
     };
-    if parallel && (SPLIT_MIN_MACS..PARALLEL_MIN_MACS).contains(&macs) && n >= 2 * SPLIT_COLUMNS {
-        // SAFETY: the caller's contract and the assert above bound the whole product.
-        return unsafe { block.run_in_column_bands((accumulate, scale), threads) };
-    }
-    if parallel && macs >= PARALLEL_MIN_MACS && k >= m && m >= BAND_ROWS * threads {
-        // SAFETY: as above.
-        return unsafe { block.run_in_row_bands((accumulate, scale), threads) };
-    }
-    // Small products (decoding a few rows) lose more to waking threads than they gain.
-    let parallelism = if parallel && macs >= PARALLEL_MIN_MACS {
-        gemm::Parallelism::Rayon(threads)
-    } else {
-        gemm::Parallelism::None
-    };
-    // SAFETY: the caller's contract and the assert above bound every index gemm touches.
-    unsafe { block.run((0, m), (0, n), (accumulate, scale), parallelism) }
+    // SAFETY: the caller's contract and the assert above bound the whole product.
+    unsafe { block.dispatch((accumulate, scale), parallel) }
 }
 
-/// One product `dst (+)= scale · op(lhs) · op(rhs)` (row-major `dst` of `row_stride`
-/// columns), run whole or by bands of its rows or columns.
+/// One product `dst (+)= scale · lhs · rhs` (m×k times k×n views; `dst` m×n with rows
+/// `dst_row_stride` apart), run whole or by bands of its rows or columns.
 struct Block<'a> {
     dst: *mut f32,
-    row_stride: usize,
-    lhs: Operand<'a>,
-    rhs: Operand<'a>,
+    dst_row_stride: usize,
+    lhs: Strided<'a>,
+    rhs: Strided<'a>,
     m: usize,
+    n: usize,
     k: usize,
 }
 
-// SAFETY: threads write disjoint column bands of `dst` (see `Block::run_in_column_bands`).
+// SAFETY: threads write disjoint bands of `dst` (see `Block::dispatch`).
 unsafe impl Sync for Block<'_> {}
 
 impl Block<'_> {
+    /// Runs the product on the threads in the way its shape runs best: column bands (mid-sized
+    /// products), row bands (deep ones), gemm's own threads (other large ones) or one thread
+    /// (small ones, or when not `parallel`). Every way gives the serial values.
+    ///
+    /// # Safety
+    /// `dst`, `lhs` and `rhs` hold the whole product.
+    unsafe fn dispatch(&self, (accumulate, scale): (bool, f32), parallel: bool) {
+        let (m, n, k) = (self.m, self.n, self.k);
+        let threads = rayon::current_num_threads();
+        let macs = m * n * k;
+        let parallel = parallel && threads > 1;
+        let flags = (accumulate, scale);
+        if parallel && (SPLIT_MIN_MACS..PARALLEL_MIN_MACS).contains(&macs) && n >= 2 * SPLIT_COLUMNS
+        {
+            // SAFETY: the caller's contract.
+            return unsafe { self.run_in_column_bands(flags, threads) };
+        }
+        if parallel && macs >= PARALLEL_MIN_MACS && k >= m && m >= BAND_ROWS * threads {
+            // SAFETY: as above.
+            return unsafe { self.run_in_row_bands(flags, threads) };
+        }
+        // Small products (decoding a few rows) lose more to waking threads than they gain.
+        let parallelism = if parallel && macs >= PARALLEL_MIN_MACS {
+            gemm::Parallelism::Rayon(threads)
+        } else {
+            gemm::Parallelism::None
+        };
+        // SAFETY: as above.
+        unsafe { self.run((0, m), (0, n), flags, parallelism) }
+    }
+
     /// Mid-sized products (a batch of decoded rows: m ≈ 32) are too small for gemm's own
     /// threading, which splits along m; each thread takes a band of columns instead. Every
     /// output still sums over the whole of k in one call, so the values equal the serial ones.
@@ -171,7 +192,7 @@ impl Block<'_> {
     /// # Safety
     /// `dst`, `lhs` and `rhs` hold the whole product.
     unsafe fn run_in_column_bands(&self, (accumulate, scale): (bool, f32), threads: usize) {
-        let n = self.row_stride;
+        let n = self.n;
         let band = n.div_ceil(threads).next_multiple_of(SPLIT_COLUMNS);
         (0..n.div_ceil(band)).into_par_iter().for_each(|i| {
             let cols = (i * band, ((i + 1) * band).min(n));
@@ -201,7 +222,7 @@ impl Block<'_> {
         let band = self.m.div_ceil(threads).next_multiple_of(BAND_ROWS);
         (0..self.m.div_ceil(band)).into_par_iter().for_each(|i| {
             let rows = (i * band, ((i + 1) * band).min(self.m));
-            let cols = (0, self.row_stride);
+            let cols = (0, self.n);
             // SAFETY: the caller's contract; bands of rows are disjoint.
             unsafe { self.run(rows, cols, (accumulate, scale), gemm::Parallelism::None) }
         });
@@ -218,27 +239,24 @@ impl Block<'_> {
         (accumulate, scale): (bool, f32),
         par: gemm::Parallelism,
     ) {
-        let (m, k, n) = (self.m, self.k, self.row_stride);
-        let ((lhs, lhs_t), (rhs, rhs_t)) = (self.lhs, self.rhs);
-        let (lhs_rs, lhs_cs) = if lhs_t { (1, m) } else { (k, 1) };
-        let (rhs_rs, rhs_cs) = if rhs_t { (1, k) } else { (n, 1) };
-        // SAFETY: the caller's contract; row r0 of op(lhs) starts r0 · lhs_rs in, column c0
-        // of op(rhs) c0 · rhs_cs in.
+        let (lhs, rhs, dst_rs) = (self.lhs, self.rhs, self.dst_row_stride);
+        // SAFETY: the caller's contract; row r0 of lhs starts r0 · its row stride in, column
+        // c0 of rhs c0 · its column stride in.
         unsafe {
             gemm::gemm(
                 r1 - r0,
                 c1 - c0,
-                k,
-                self.dst.add(r0 * n + c0),
+                self.k,
+                self.dst.add(r0 * dst_rs + c0),
                 1,
-                n as isize,
+                dst_rs as isize,
                 accumulate,
-                lhs.as_ptr().add(r0 * lhs_rs),
-                lhs_cs as isize,
-                lhs_rs as isize,
-                rhs.as_ptr().add(c0 * rhs_cs),
-                rhs_cs as isize,
-                rhs_rs as isize,
+                lhs.values.as_ptr().add(lhs.offset + r0 * lhs.row_stride),
+                lhs.col_stride as isize,
+                lhs.row_stride as isize,
+                rhs.values.as_ptr().add(rhs.offset + c0 * rhs.col_stride),
+                rhs.col_stride as isize,
+                rhs.row_stride as isize,
                 if accumulate { 1.0 } else { 0.0 },
                 scale,
                 false,
@@ -312,36 +330,18 @@ pub fn gemm_strided(
     );
     lhs.check((m, k), "lhs");
     rhs.check((k, n), "rhs");
-    let threads = rayon::current_num_threads();
-    let parallelism = if threads > 1 && m * n * k >= PARALLEL_MIN_MACS {
-        gemm::Parallelism::Rayon(threads)
-    } else {
-        gemm::Parallelism::None
+    let block = Block {
+        // SAFETY: dst_offset is inside `dst` (asserted above).
+        dst: unsafe { dst.as_mut_ptr().add(dst_offset) },
+        dst_row_stride,
+        lhs,
+        rhs,
+        m,
+        n,
+        k,
     };
     // SAFETY: the checks above bound every index gemm reads or writes.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            dst.as_mut_ptr().add(dst_offset),
-            1,
-            dst_row_stride as isize,
-            accumulate,
-            lhs.values.as_ptr().add(lhs.offset),
-            lhs.col_stride as isize,
-            lhs.row_stride as isize,
-            rhs.values.as_ptr().add(rhs.offset),
-            rhs.col_stride as isize,
-            rhs.row_stride as isize,
-            if accumulate { 1.0 } else { 0.0 },
-            1.0,
-            false,
-            false,
-            false,
-            parallelism,
-        )
-    }
+    unsafe { block.dispatch((accumulate, 1.0), true) }
 }
 
 /// `x` (`rows × cols`, row-major) transposed: `cols × rows`.
